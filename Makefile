@@ -1,0 +1,45 @@
+# hydrabench: `make demo` runs the main job on the embedded defaults, `make test` runs the checks.
+# Both build .venv from requirements.lock (+ constraints.txt, which pins the local torch) when it
+# is missing or older than the lock.
+PYTHON ?= python3
+VENV   := .venv
+BIN    := $(VENV)/bin
+STAMP  := $(VENV)/.hydrabench-installed
+DEMO   ?= demo
+CONTEXTS := city junction motorway rural rain fog snow night
+
+export PYOPENGL_PLATFORM := egl
+export SDL_VIDEODRIVER := offscreen
+
+.PHONY: demo test venv lint lock clean-venv
+
+venv: $(STAMP)
+
+$(STAMP): requirements.lock constraints.txt pyproject.toml
+	@test -x $(BIN)/python || $(PYTHON) -m venv $(VENV)
+	$(BIN)/python -m pip install --quiet -r requirements.lock -c constraints.txt
+	$(BIN)/python -m pip install --quiet --no-deps --no-build-isolation -e .
+	@touch $(STAMP)
+
+demo: $(STAMP)
+	@mkdir -p $(DEMO)
+	@for c in $(CONTEXTS); do \
+	  $(BIN)/hydrabench scenes --context $$c --frames 20 --seed 0 --plot $(DEMO)/scene_$$c.png || exit $$?; \
+	done
+	@echo "demo: top-down scene pictures in $(DEMO)/" >&2
+
+lint: $(STAMP)
+	$(BIN)/ruff check .
+
+test: $(STAMP)
+	$(BIN)/ruff check .
+	$(BIN)/python -m pytest
+
+# Regenerate the lock from requirements.txt in a scratch venv (needs the registries).
+lock:
+	rm -rf /tmp/hydrabench-lock && $(PYTHON) -m venv /tmp/hydrabench-lock
+	/tmp/hydrabench-lock/bin/pip install --quiet -r requirements.txt -c constraints.txt
+	/tmp/hydrabench-lock/bin/pip freeze | grep -v '^-e' > requirements.lock
+
+clean-venv:
+	rm -rf $(VENV)

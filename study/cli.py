@@ -1,0 +1,138 @@
+"""The `hydrabench` command line.
+
+Contract (DESIGN.md): every command that reports figures takes `--json` and then prints exactly
+one JSON object on stdout; progress goes to stderr. Bad input exits with code 2 and one line
+naming the problem (no traceback), and leaves nothing half-written.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import sys
+from collections.abc import Callable
+
+from sim.errors import UserError
+
+os.environ.setdefault("PYOPENGL_PLATFORM", "egl")
+if os.environ.get("SDL_VIDEODRIVER", "dummy") == "dummy":
+    os.environ["SDL_VIDEODRIVER"] = "offscreen"
+
+EXIT_USAGE = 2
+
+
+class Parser(argparse.ArgumentParser):
+    """argparse that reports errors as one line with exit code 2."""
+
+    def error(self, message: str) -> None:  # type: ignore[override]
+        raise UserError(f"{self.prog}: {message}")
+
+
+class Formatter(argparse.RawDescriptionHelpFormatter, argparse.ArgumentDefaultsHelpFormatter):
+    pass
+
+
+def nonneg_int(text: str) -> int:
+    try:
+        v = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected an integer, got {text!r}") from None
+    if v < 0:
+        raise argparse.ArgumentTypeError(f"must be >= 0, got {v}")
+    return v
+
+
+def pos_int(text: str) -> int:
+    v = nonneg_int(text)
+    if v < 1:
+        raise argparse.ArgumentTypeError(f"must be >= 1, got {v}")
+    return v
+
+
+def severity_arg(text: str) -> int:
+    try:
+        v = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"severity must be an integer 0..5, got {text!r}") from None
+    if not 0 <= v <= 5:
+        raise argparse.ArgumentTypeError(f"severity must be 0..5, got {v}")
+    return v
+
+
+def pos_float(text: str) -> float:
+    try:
+        v = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a number, got {text!r}") from None
+    if not v > 0:
+        raise argparse.ArgumentTypeError(f"must be > 0, got {v}")
+    return v
+
+
+def emit(result: dict, as_json: bool, text: Callable[[dict], str] | None = None) -> None:
+    """Print a command's result: one JSON object with --json, else readable text."""
+    if as_json:
+        sys.stdout.write(json.dumps(result, sort_keys=False, default=_json_default) + "\n")
+    elif text is not None:
+        sys.stdout.write(text(result).rstrip("\n") + "\n")
+    else:
+        sys.stdout.write(json.dumps(result, indent=2, default=_json_default) + "\n")
+    sys.stdout.flush()
+
+
+def _json_default(obj):
+    if hasattr(obj, "tolist"):
+        return obj.tolist()
+    if hasattr(obj, "item"):
+        return obj.item()
+    raise TypeError(f"not JSON serialisable: {type(obj).__name__}")
+
+
+# ----------------------------------------------------------------------------------------------
+# command table: name -> (module, help). Modules are imported only when their command runs, so
+# `hydrabench --help` and light commands never import torch.
+
+COMMANDS: dict[str, tuple[str, str]] = {
+    "scenes": ("study.cmd_scenes", "simulate scenes of a context, summarise and draw them top-down"),
+    "bench": ("study.bench", "measure throughput (sim, ...) and print the figures"),
+}
+
+
+def build_parser() -> Parser:
+    parser = Parser(
+        prog="hydrabench",
+        description=(
+            "hydrabench: a simulation-driven benchmark for context-aware selective sensor fusion.\n"
+            "Generate driving scenes with known weather, light and obstruction, render camera,\n"
+            "lidar and radar, and compare selective against full fusion.\n\n"
+            "Run `hydrabench <command> --help` for each command."
+        ),
+        formatter_class=Formatter,
+    )
+    sub = parser.add_subparsers(dest="command", metavar="<command>", parser_class=Parser)
+    sub.required = True
+    for name, (module, help_text) in COMMANDS.items():
+        mod = __import__(module, fromlist=["add_parser"])
+        mod.add_parser(sub, name, help_text)
+    return parser
+
+
+def main(argv: list[str] | None = None) -> int:
+    try:
+        parser = build_parser()
+        args = parser.parse_args(argv)
+        return int(args.run(args) or 0)
+    except UserError as exc:
+        msg = str(exc).splitlines()[0] if str(exc) else "invalid input"
+        sys.stderr.write(f"hydrabench: error: {msg}\n")
+        return EXIT_USAGE
+    except KeyboardInterrupt:
+        sys.stderr.write("hydrabench: interrupted\n")
+        return 130
+    except BrokenPipeError:
+        return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,118 @@
+"""Matplotlib figures (Agg backend, written to files)."""
+
+from __future__ import annotations
+
+import matplotlib
+
+matplotlib.use("Agg")
+
+import matplotlib.pyplot as plt  # noqa: E402
+import numpy as np  # noqa: E402
+from matplotlib.patches import Circle  # noqa: E402
+from matplotlib.patches import Polygon as MplPolygon  # noqa: E402
+
+from sim.actors import CLASSES, box_corners_2d  # noqa: E402
+from sim.world import STRUCTURE_ID  # noqa: E402
+from study.outputs import savefig_atomic  # noqa: E402
+
+CLASS_COLORS = {
+    "car": "#1f77b4",
+    "van": "#17becf",
+    "truck": "#d62728",
+    "bus": "#ff7f0e",
+    "motorbike": "#9467bd",
+    "bicycle": "#e377c2",
+    "pedestrian": "#2ca02c",
+    "group_of_pedestrians": "#bcbd22",
+}
+
+
+def _polys(geom):
+    if geom.is_empty:
+        return []
+    return list(geom.geoms) if hasattr(geom, "geoms") else [geom]
+
+
+def _fill(ax, geom, **kw):
+    for poly in _polys(geom):
+        if poly.geom_type != "Polygon":
+            continue
+        ax.add_patch(MplPolygon(np.asarray(poly.exterior.coords), closed=True, **kw))
+        for hole in poly.interiors:
+            ax.add_patch(MplPolygon(np.asarray(hole.coords), closed=True, facecolor="#d9e8c8", edgecolor="none"))
+
+
+def draw_topdown(ax, scene, half_extent: float = 70.0) -> None:
+    """Top-down view of a Scene centred on the ego, world axes (x east, y north)."""
+    ex, ey = scene.ego.position[:2]
+    ax.set_facecolor("#d9e8c8")
+    _fill(ax, scene.road.sidewalks, facecolor="#c8c3b8", edgecolor="none")
+    _fill(ax, scene.road.road, facecolor="#6e6e6e", edgecolor="none")
+    for cw in scene.road.crosswalks:
+        ax.add_patch(MplPolygon(cw, closed=True, facecolor="white", edgecolor="none", alpha=0.8, hatch="||"))
+    for line, dashed in zip(scene.road.markings, scene.road.marking_dashed):
+        ax.plot(line[:, 0], line[:, 1], color="white", lw=0.6, ls=(0, (3, 4)) if dashed else "-")
+    st = scene.structures
+    near = np.linalg.norm(st.centers[:, :2] - [ex, ey], axis=1) < half_extent * 1.6
+    for k, c, s, yaw in zip(st.kinds[near], st.centers[near], st.sizes[near], st.yaws[near]):
+        if k == STRUCTURE_ID["building"]:
+            corners = box_corners_2d(c[None, :2], s[None, :2], np.array([yaw]))[0]
+            ax.add_patch(MplPolygon(corners, closed=True, facecolor="#a0785a", edgecolor="#5a3e2b", lw=0.5))
+        elif k == STRUCTURE_ID["tree"]:
+            ax.add_patch(Circle(c[:2], s[0] / 2, facecolor="#3f7f3f", edgecolor="none", alpha=0.8))
+        elif k == STRUCTURE_ID["guardrail"]:
+            corners = box_corners_2d(c[None, :2], s[None, :2], np.array([yaw]))[0]
+            ax.add_patch(MplPolygon(corners, closed=True, facecolor="#333333", edgecolor="none"))
+        elif k == STRUCTURE_ID["street_lamp"]:
+            lit = scene.light.street_lamps_on
+            ax.add_patch(Circle(c[:2], 0.6, facecolor="#ffd700" if lit else "#444444", edgecolor="k", lw=0.3))
+    a = scene.actors
+    names = a.class_names()
+    corners = a.footprints()
+    for i in range(len(a)):
+        color = CLASS_COLORS[names[i]]
+        ax.add_patch(
+            MplPolygon(corners[i], closed=True, facecolor=color, edgecolor="k", lw=0.4,
+                       alpha=0.55 if a.parked[i] else 0.95)
+        )
+        if not a.parked[i] and np.linalg.norm(a.velocities[i]) > 0.1:
+            c = a.centers[i, :2]
+            d = np.array([np.cos(a.yaws[i]), np.sin(a.yaws[i])]) * max(a.sizes[i, 0] * 0.5, 0.6)
+            ax.plot([c[0], c[0] + d[0]], [c[1], c[1] + d[1]], color="k", lw=0.6)
+    ego = box_corners_2d(np.array([[ex, ey]]), scene.ego.size[None, :2], np.array([scene.ego.yaw]))[0]
+    ax.add_patch(MplPolygon(ego, closed=True, facecolor="black", edgecolor="yellow", lw=1.0))
+    # camera field of view (90 deg, ZED-like) as a hint of where the sensors look
+    yaw = scene.ego.yaw
+    for da in (-np.pi / 4, np.pi / 4):
+        ax.plot([ex, ex + 60 * np.cos(yaw + da)], [ey, ey + 60 * np.sin(yaw + da)], color="yellow", lw=0.5, ls=":")
+    ax.set_xlim(ex - half_extent, ex + half_extent)
+    ax.set_ylim(ey - half_extent, ey + half_extent)
+    ax.set_aspect("equal")
+    ax.set_xlabel("x east [m]")
+    ax.set_ylabel("y north [m]")
+
+
+def weather_title(scene) -> str:
+    w = scene.weather
+    parts = [f"{scene.context.name} (layout {scene.context.layout}), severity {scene.severity}"]
+    parts.append(
+        f"visibility {w.visibility_m:,.0f} m, rain {w.rain_mm_h:.1f} mm/h, snow {w.snow_mm_h:.2f} mm/h, "
+        f"film {w.water_film_mm:.2f} mm"
+    )
+    parts.append(
+        f"illuminance {w.illuminance_lux:,.3g} lx (sun {scene.light.sun_elevation_deg:.0f} deg), lens "
+        f"{w.lens_coverage_pct[0]:.0f}/{w.lens_coverage_pct[1]:.0f} %, t = {scene.timestamp_s:.1f} s"
+    )
+    return "\n".join(parts)
+
+
+def plot_scene(scene, path: str, half_extent: float = 70.0) -> None:
+    fig, ax = plt.subplots(figsize=(8, 8.6), dpi=110)
+    draw_topdown(ax, scene, half_extent)
+    ax.set_title(weather_title(scene), fontsize=8.5)
+    handles = [plt.Line2D([], [], marker="s", ls="", color=CLASS_COLORS[c], label=c) for c in CLASSES]
+    handles.append(plt.Line2D([], [], marker="s", ls="", color="black", mec="yellow", label="ego"))
+    ax.legend(handles=handles, loc="lower left", fontsize=7, ncol=3, framealpha=0.8)
+    fig.tight_layout()
+    savefig_atomic(fig, path)
+    plt.close(fig)
