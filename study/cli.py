@@ -94,8 +94,12 @@ def _json_default(obj):
 # `hydrabench --help` and light commands never import torch.
 
 COMMANDS: dict[str, tuple[str, str]] = {
-    "scenes": ("study.cmd_scenes", "simulate scenes of a context, summarise and draw them top-down"),
-    "bench": ("study.bench", "measure throughput (sim, ...) and print the figures"),
+    "scenes": ("study.cmd_scenes:add_parser", "simulate scenes of a context, summarise and draw them top-down"),
+    "generate": ("study.cmd_dataset:add_generate", "generate a sharded sensor dataset (cameras, lidar, radar, labels)"),
+    "verify": ("study.cmd_dataset:add_verify", "check a dataset's shards against its manifest checksums"),
+    "export-coco": ("study.cmd_dataset:add_export", "write a dataset's FWD labels as COCO JSON"),
+    "show": ("study.cmd_dataset:add_show", "draw one frame of a dataset with every sensor and its labels"),
+    "bench": ("study.bench:add_parser", "measure throughput (sim, generate, ...) and print the figures"),
 }
 
 
@@ -112,9 +116,10 @@ def build_parser() -> Parser:
     )
     sub = parser.add_subparsers(dest="command", metavar="<command>", parser_class=Parser)
     sub.required = True
-    for name, (module, help_text) in COMMANDS.items():
-        mod = __import__(module, fromlist=["add_parser"])
-        mod.add_parser(sub, name, help_text)
+    for name, (target, help_text) in COMMANDS.items():
+        module, func = target.split(":")
+        mod = __import__(module, fromlist=[func])
+        getattr(mod, func)(sub, name, help_text)
     return parser
 
 

@@ -116,3 +116,90 @@ def plot_scene(scene, path: str, half_extent: float = 70.0) -> None:
     fig.tight_layout()
     savefig_atomic(fig, path)
     plt.close(fig)
+
+
+def _draw_boxes(ax, boxes, labels, difficult, lw=1.0):
+    from matplotlib.patches import Rectangle
+
+    for b, lab, d in zip(boxes, labels, difficult):
+        color = CLASS_COLORS[CLASSES[int(lab) - 1]]
+        ax.add_patch(Rectangle((b[0], b[1]), b[2] - b[0], b[3] - b[1], fill=False, edgecolor=color, lw=lw,
+                               ls="--" if d else "-"))
+
+
+def _rotated(ax, rotated, labels, difficult):
+    for (cx, cy, length, width, ang), lab, d in zip(rotated, labels, difficult):
+        # image axes: up = forward; the box's length lies along `ang` ccw from up
+        fwd = np.array([-np.sin(ang), -np.cos(ang)])
+        left = np.array([-np.cos(ang), np.sin(ang)])
+        c = np.array([cx, cy])
+        pts = np.array([c + fwd * length / 2 + left * width / 2, c + fwd * length / 2 - left * width / 2,
+                        c - fwd * length / 2 - left * width / 2, c - fwd * length / 2 + left * width / 2])
+        ax.add_patch(MplPolygon(pts, closed=True, fill=False, edgecolor=CLASS_COLORS[CLASSES[int(lab) - 1]],
+                                lw=0.9, ls="--" if d else "-"))
+
+
+def frame_caption(meta: dict) -> str:
+    w = meta["weather"]
+    lines = [
+        f"{meta['context']} (layout {meta['layout']}), severity {meta['severity']}, sequence {meta['sequence_id']} "
+        f"frame {meta['frame_index']}, t = {meta['timestamp_s']:.1f} s, profile {meta['profile']}",
+        f"visibility {w['visibility_m']:,.0f} m (fog {w['fog_visibility_m']:,.0f} m), rain {w['rain_mm_h']} mm/h, "
+        f"snow {w['snow_mm_h']} mm/h, water film {w['water_film_mm']} mm, {w['illuminance_lux']:.3g} lx, "
+        f"lens cover {w['lens_coverage_pct']} %",
+    ]
+    deg = meta.get("degradation") or {}
+    if deg:
+        parts = []
+        for name, params in deg.items():
+            if isinstance(params, dict):
+                shown = ", ".join(f"{k}={_fmt(v)}" for k, v in params.items() if not isinstance(v, list | dict))
+                parts.append(f"{name}({shown})")
+            else:
+                parts.append(f"{name}={_fmt(params)}")
+        text = "degradation: " + "; ".join(parts)
+        lines += [text[i:i + 190] for i in range(0, len(text), 190)]
+    else:
+        lines.append("degradation: none")
+    return "\n".join(lines)
+
+
+def _fmt(v) -> str:
+    if isinstance(v, float):
+        return f"{v:.3g}"
+    return str(v)
+
+
+def plot_frame(frame: dict, path: str) -> None:
+    """All sensors of one stored frame with their labels and a caption (for `hydrabench show`)."""
+    meta, labels = frame["meta"], frame["labels"]
+    fig = plt.figure(figsize=(15, 9.5), dpi=100)
+    gs = fig.add_gridspec(2, 6, height_ratios=[1.0, 1.55])
+    axes = [fig.add_subplot(gs[0, 0:3]), fig.add_subplot(gs[0, 3:6]), fig.add_subplot(gs[1, 0:2]),
+            fig.add_subplot(gs[1, 2:4]), fig.add_subplot(gs[1, 4:6])]
+    for ax, name in zip(axes[:2], ("camera_left", "camera_right")):
+        ax.imshow(frame[name], interpolation="nearest")
+        lab = labels[name]
+        _draw_boxes(ax, lab["boxes"], lab["labels"], lab["difficult"])
+        ax.set_title(f"{name} ({len(lab['boxes'])} boxes, dashed = difficult)", fontsize=9)
+    bev = labels["bev"]
+    axes[2].imshow(frame["lidar_bev"], interpolation="nearest")
+    _rotated(axes[2], bev["rotated"], bev["labels"], bev["difficult"])
+    axes[2].set_title("lidar BEV (height, density, intensity) + BEV boxes", fontsize=9)
+    radar = np.asarray(frame["radar_bev"], float)
+    axes[3].imshow(np.clip((radar - 15) / 90, 0, 1), cmap="gray", interpolation="nearest")
+    _rotated(axes[3], bev["rotated"], bev["labels"], bev["difficult"])
+    axes[3].set_title("radar BEV (0.5 dB/count, stretched)", fontsize=9)
+    axes[4].imshow(frame["fwd_lidar"], interpolation="nearest")
+    lab = labels["camera_right"]
+    _draw_boxes(axes[4], lab["boxes"], lab["labels"], lab["difficult"], lw=0.7)
+    axes[4].set_title("forward lidar in camera_right (closeness, intensity, height)", fontsize=9)
+    for ax in axes:
+        ax.set_xticks([])
+        ax.set_yticks([])
+    handles = [plt.Line2D([], [], color=CLASS_COLORS[c], lw=2, label=c) for c in CLASSES]
+    fig.legend(handles=handles, loc="lower center", ncol=8, fontsize=8, frameon=False)
+    fig.suptitle(frame_caption(meta), fontsize=8.5, x=0.01, ha="left", y=0.995, va="top")
+    fig.tight_layout(rect=(0, 0.03, 1, 0.9))
+    savefig_atomic(fig, path)
+    plt.close(fig)

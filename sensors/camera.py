@@ -1,0 +1,401 @@
+"""Stereo camera: pyrender (EGL) visibility pass + physically based deferred shading.
+
+Rendering is split in two:
+1. pyrender draws the world once per camera with flat colours that encode, per pixel, the
+   instance index (16 bits in R, G) and the material id (B), and returns the depth. Multisampling
+   is switched off for this pass so the codes are exact (pyrender only does that for SEG passes).
+2. numpy shades every pixel in physical units: radiance L = albedo / pi * E + L_emissive [cd/m^2],
+   with E the illuminance [lx] from the sky (isotropic hemisphere), the sun (Embree shadow rays),
+   street lamps and headlights (inverse-square with beam patterns), so night scenes can have any
+   number of lights. Emissive lamp heads and lights glow when switched on.
+
+The observation keeps the HDR radiance, depth, instance and material maps: weather degradations act
+on radiance with the true depth (Koschmieder) before the camera model (auto-exposure with a
+maximum exposure, lens blur, sRGB encoding) turns it into an 8-bit image.
+"""
+
+from __future__ import annotations
+
+import os
+
+os.environ["PYOPENGL_PLATFORM"] = os.environ.get("PYOPENGL_PLATFORM", "egl") or "egl"
+
+import contextlib  # noqa: E402
+from dataclasses import dataclass  # noqa: E402
+
+import numpy as np  # noqa: E402
+import pyrender  # noqa: E402
+import pyrender.renderer as _pr  # noqa: E402
+from OpenGL import GL  # noqa: E402
+from scipy.ndimage import gaussian_filter  # noqa: E402
+
+from sensors.materials import ALBEDO, EMISSIVE, MATERIAL_ID, MATERIALS, PER_INSTANCE, instance_colour  # noqa: E402
+from sensors.rig import CameraCalibration, transform_points  # noqa: E402
+from sensors.world_mesh import MeshSoup  # noqa: E402
+
+OPTICAL_TO_GL = np.diag([1.0, -1.0, -1.0, 1.0])  # OpenCV optical frame -> OpenGL camera frame
+Z_NEAR, Z_FAR = 0.3, 400.0  # [m]
+
+# Light sources (photometric, typical values)
+SUN_COLOUR = np.array([1.0, 0.96, 0.88], np.float32)
+SKY_COLOUR = np.array([0.80, 0.90, 1.10], np.float32)
+LAMP_COLOUR = np.array([1.0, 0.86, 0.62], np.float32)  # warm-white / high-pressure sodium look
+HEADLIGHT_COLOUR = np.array([1.0, 1.0, 0.95], np.float32)
+LAMP_INTENSITY_CD = 4000.0  # peak luminous intensity of a 10 klm street lamp [cd]
+HEADLIGHT_INTENSITY_CD = 20000.0  # peak of a dipped (low) beam [cd] (UN R112 ~ 10-30 kcd)
+GROUND_ALBEDO = 0.12  # for the light reflected up from the ground
+LIGHT_RANGE_M = 70.0  # lights farther than this from the camera are ignored
+EXPOSURE_KEY = 0.18  # mid-grey target of the auto-exposure (Reinhard's key)
+MAX_EXPOSURE = 0.02  # [1/(cd/m^2)]: longest exposure x base gain the camera allows
+MIN_EXPOSURE = 1e-6
+PSF_SIGMA_PX = 0.5  # lens blur (also hides the aliasing of the single-sample pass)
+
+
+@contextlib.contextmanager
+def _no_multisample():
+    """pyrender enables GL_MULTISAMPLE for every non-SEG pass; keep it off so codes stay exact."""
+    original = _pr.glEnable
+
+    def enable(cap):
+        if cap == GL.GL_MULTISAMPLE:
+            GL.glDisable(cap)
+            return
+        original(cap)
+
+    _pr.glEnable = enable
+    try:
+        yield
+    finally:
+        _pr.glEnable = original
+
+
+def _code_colours(soup: MeshSoup) -> np.ndarray:
+    inst = soup.instance.astype(np.int64)
+    col = np.empty((len(inst), 4), np.uint8)
+    col[:, 0] = inst & 255
+    col[:, 1] = (inst >> 8) & 255
+    col[:, 2] = soup.material
+    col[:, 3] = 255
+    return col
+
+
+def _pyrender_mesh(soup: MeshSoup) -> pyrender.Mesh:
+    material = pyrender.MetallicRoughnessMaterial(baseColorFactor=[1.0, 1.0, 1.0, 1.0], doubleSided=True)
+    prim = pyrender.Primitive(
+        positions=soup.vertices.astype(np.float32),
+        indices=soup.faces.astype(np.uint32),
+        color_0=_code_colours(soup),
+        material=material,
+        mode=pyrender.constants.GLTF.TRIANGLES,
+    )
+    return pyrender.Mesh([prim])
+
+
+_RENDERERS: dict[tuple[int, int], pyrender.OffscreenRenderer] = {}
+
+
+def _renderer(width: int, height: int) -> pyrender.OffscreenRenderer:
+    key = (width, height)
+    if key not in _RENDERERS:
+        _RENDERERS[key] = pyrender.OffscreenRenderer(width, height)
+    return _RENDERERS[key]
+
+
+@dataclass
+class CameraObservation:
+    """What one camera sees of a frame, before the camera model.
+
+    Fields:
+        radiance: (H, W, 3) float32 scene radiance reaching the lens [cd/m^2] (linear RGB).
+        depth: (H, W) float32 depth along the optical axis [m]; inf where the ray sees the sky.
+        instance: (H, W) int64 simulator actor id of the surface (0 = static world / sky).
+        material: (H, W) uint8 material id (sensors.materials; 0 = sky).
+        sky_radiance: (3,) float32 radiance of the horizon sky [cd/m^2] (the airlight of fog).
+        exposure: the auto-exposure the camera model chose [1/(cd/m^2)] (filled by `expose`).
+        sensor_noise: low-light sensor parameters (full_well_e, read_noise_e, max_gain, seed) set by
+            the low-light degradation; None = noise-free camera model.
+        gain: analogue gain the camera model applied (filled by `expose`).
+    """
+
+    radiance: np.ndarray
+    depth: np.ndarray
+    instance: np.ndarray
+    material: np.ndarray
+    sky_radiance: np.ndarray
+    exposure: float = 0.0
+    sensor_noise: dict | None = None
+    gain: float = 1.0
+
+
+class StereoRenderer:
+    """Renders both cameras of a sequence: the static mesh is uploaded once, actors per frame."""
+
+    def __init__(self, static: MeshSoup, width: int, height: int) -> None:
+        self.width, self.height = width, height
+        self.scene = pyrender.Scene(bg_color=[0.0, 0.0, 0.0, 0.0], ambient_light=[1.0, 1.0, 1.0])
+        self.static_node = self.scene.add(_pyrender_mesh(static)) if len(static.faces) else None
+        self.dynamic_node = None
+        self.cam_node = None
+
+    def set_actors(self, soup: MeshSoup) -> None:
+        if self.dynamic_node is not None:
+            self.scene.remove_node(self.dynamic_node)
+            self.dynamic_node = None
+        if len(soup.faces):
+            self.dynamic_node = self.scene.add(_pyrender_mesh(soup))
+
+    def codes(self, cam: CameraCalibration, world_from_ego: np.ndarray):
+        """(instance index (H,W) int64, material (H,W) uint8, depth (H,W) float32 [m], inf = sky)."""
+        K = cam.K
+        camera = pyrender.IntrinsicsCamera(K[0, 0], K[1, 1], K[0, 2], K[1, 2], znear=Z_NEAR, zfar=Z_FAR)
+        pose = world_from_ego @ cam.ego_from_camera @ OPTICAL_TO_GL
+        if self.cam_node is not None:
+            self.scene.remove_node(self.cam_node)
+        self.cam_node = self.scene.add(camera, pose=pose)
+        r = _renderer(cam.width, cam.height)
+        with _no_multisample():
+            colour, depth = r.render(self.scene, flags=pyrender.RenderFlags.FLAT | pyrender.RenderFlags.RGBA)
+        valid = colour[..., 3] == 255
+        index = colour[..., 0].astype(np.int64) | (colour[..., 1].astype(np.int64) << 8)
+        index[~valid] = 0
+        material = np.where(valid, colour[..., 2], 0).astype(np.uint8)
+        depth = np.where(valid & (depth > 0), depth, np.inf).astype(np.float32)
+        return index, material, depth
+
+
+# ---------------------------------------------------------------------------------------------
+# shading
+
+
+_RAYS: dict = {}
+
+
+def _rays(cam: CameraCalibration) -> np.ndarray:
+    key = (cam.width, cam.height, cam.K.tobytes())
+    if key not in _RAYS:
+        _RAYS[key] = cam.rays().astype(np.float32)
+    return _RAYS[key]
+
+
+def _normals_from_points(P: np.ndarray, depth: np.ndarray) -> np.ndarray:
+    """Per-pixel surface normals (H, W, 3) from a point map, using the neighbour on the side with
+    the smaller depth jump so object edges do not bleed."""
+
+    def diff(axis: int) -> np.ndarray:
+        fwd = np.roll(P, -1, axis) - P
+        bwd = P - np.roll(P, 1, axis)
+        dz_f = np.abs(np.roll(depth, -1, axis) - depth)
+        dz_b = np.abs(depth - np.roll(depth, 1, axis))
+        use_f = (dz_f <= dz_b) | ~np.isfinite(dz_b)
+        return np.where(use_f[..., None], fwd, bwd)
+
+    n = np.cross(diff(1), diff(0))
+    norm = np.linalg.norm(n, axis=-1, keepdims=True)
+    return np.divide(n, norm, out=np.zeros_like(n), where=norm > 1e-12)
+
+
+def _beam(direction: np.ndarray, axis: np.ndarray, up: np.ndarray, h_width_deg: float, v_width_deg: float,
+          cutoff_up: bool) -> np.ndarray:
+    """Relative intensity of a beam towards `direction` (N, 3) around `axis` (3,)."""
+    cos_axis = direction @ axis
+    side = np.cross(axis, up)
+    h = np.degrees(np.arctan2(direction @ side, cos_axis))
+    v = np.degrees(np.arctan2(direction @ up, cos_axis))
+    w = np.exp(-((h / h_width_deg) ** 2) - ((v / v_width_deg) ** 2))
+    if cutoff_up:  # dipped beam: sharp cut-off above the horizon
+        w = w * np.where(v > 0.5, 0.03, 1.0)
+    return np.where(cos_axis > 0, w, 0.0)
+
+
+@dataclass
+class Lighting:
+    """Illumination of a frame in photometric units.
+
+    sun_dir: (3,) unit vector towards the sun (world); sun_normal_lux: direct normal illuminance [lx];
+    sky_lux: diffuse horizontal illuminance from the sky [lx]; lamps: (N, 3) lamp head positions;
+    headlights: list of (position (3,), axis (3,)) for every lit headlight [m].
+    """
+
+    sun_dir: np.ndarray
+    sun_normal_lux: float
+    sky_lux: float
+    lamps: np.ndarray
+    headlights: list
+    lamps_on: bool
+    headlights_on: bool
+
+
+def lighting_for(weather, light, lamp_positions: np.ndarray, headlights: list) -> Lighting:
+    elev = np.radians(light.sun_elevation_deg)
+    az = np.radians(light.sun_azimuth_deg)
+    sun_dir = np.array([np.cos(elev) * np.cos(az), np.cos(elev) * np.sin(az), np.sin(elev)])
+    overcast = weather.rain_mm_h > 0 or weather.snow_mm_h > 0 or weather.fog_visibility_m < 2000
+    direct_share = 0.0 if (overcast or elev <= np.radians(2)) else 0.75
+    E = weather.illuminance_lux
+    sun_normal = E * direct_share / max(np.sin(elev), 0.05) if direct_share else 0.0
+    return Lighting(sun_dir, float(sun_normal), float(E * (1 - direct_share)), lamp_positions, headlights,
+                    light.street_lamps_on, light.headlights_on)
+
+
+def shade(
+    index: np.ndarray,
+    material: np.ndarray,
+    depth: np.ndarray,
+    cam: CameraCalibration,
+    world_from_ego: np.ndarray,
+    actor_ids: np.ndarray,
+    lighting: Lighting,
+    caster=None,
+) -> CameraObservation:
+    """Radiance of every pixel [cd/m^2] from the visibility pass and the frame's lighting."""
+    H, W = depth.shape
+    geo = np.isfinite(depth)
+    rays = _rays(cam)  # unit, optical frame
+    z = np.where(geo, depth, 0.0)[..., None]
+    P_cam = rays / rays[..., 2:3] * z
+    world_from_cam = (world_from_ego @ cam.ego_from_camera).astype(np.float32)
+    P = P_cam @ world_from_cam[:3, :3].T + world_from_cam[:3, 3]
+    n = _normals_from_points(P, np.where(geo, depth, np.float32(1e6)))
+    cam_pos = world_from_cam[:3, 3]
+    to_cam = cam_pos - P
+    flip = np.einsum("hwc,hwc->hw", n, to_cam) < 0
+    n[flip] *= -1
+    ground = np.isin(material, [MATERIAL_ID[m] for m in ("asphalt", "lane_paint", "grass", "sidewalk")])
+    snap = ground & (n[..., 2] > 0.95)
+    n[snap] = (0.0, 0.0, 1.0)
+
+    # albedo, with per-actor paint / clothing colours
+    albedo = ALBEDO[material].copy()
+    per_inst = PER_INSTANCE[material] & (index > 0)
+    if per_inst.any():
+        ids = np.concatenate([[0], actor_ids])
+        mats = np.flatnonzero(PER_INSTANCE)
+        table = np.zeros((len(ids), len(ALBEDO), 3), np.float32)
+        for i in range(1, len(ids)):
+            for m in mats:
+                table[i, m] = instance_colour(int(ids[i]), int(m))
+        albedo[per_inst] = table[index[per_inst], material[per_inst]]
+
+    E = np.zeros((H, W, 3), np.float32)
+    nz = n[..., 2]
+    E += (lighting.sky_lux * (1 + nz) / 2)[..., None] * SKY_COLOUR
+    E += (lighting.sky_lux * GROUND_ALBEDO * (1 - nz) / 2)[..., None] * SKY_COLOUR
+    if lighting.sun_normal_lux > 0:
+        cos_s = np.einsum("hwc,c->hw", n, lighting.sun_dir)
+        lit = geo & (cos_s > 0)
+        if caster is not None and lit.any():
+            pts = P[lit] + n[lit] * 0.05
+            hits = caster.cast(pts, np.broadcast_to(lighting.sun_dir, pts.shape), max_range=300.0)
+            shadow = np.isfinite(hits.range)
+            lit_idx = np.flatnonzero(lit)
+            lit.flat[lit_idx[shadow]] = False
+        E += (np.where(lit, cos_s, 0.0) * lighting.sun_normal_lux)[..., None] * SUN_COLOUR
+    up = np.array([0.0, 0.0, 1.0])
+    pix = geo.reshape(-1)
+    Pf, nf = P.reshape(-1, 3)[pix], n.reshape(-1, 3)[pix]
+    Ef = np.zeros((pix.sum(), 3), np.float32)
+
+    def add_light(pos, intensity_fn, colour):
+        d = pos - Pf
+        dist2 = np.einsum("ij,ij->i", d, d)
+        dist = np.sqrt(dist2)
+        to_light = d / np.maximum(dist, 1e-6)[:, None]
+        cos_i = np.einsum("ij,ij->i", nf, to_light)
+        e = np.where(cos_i > 0, intensity_fn(-to_light) * cos_i / np.maximum(dist2, 0.25), 0.0)
+        Ef[:] += e[:, None].astype(np.float32) * colour
+
+    if lighting.lamps_on and len(lighting.lamps):
+        near = np.linalg.norm(lighting.lamps - cam_pos, axis=1) < LIGHT_RANGE_M
+        for pos in lighting.lamps[near]:
+            # a cut-off luminaire: strongest straight down, nothing above the horizontal
+            add_light(pos, lambda dirs: LAMP_INTENSITY_CD * np.clip(-dirs[:, 2], 0, 1) ** 0.7, LAMP_COLOUR)
+    if lighting.headlights_on:
+        for pos, axis in lighting.headlights:
+            if np.linalg.norm(pos - cam_pos) > LIGHT_RANGE_M:
+                continue
+            add_light(pos, lambda dirs, a=axis: HEADLIGHT_INTENSITY_CD * _beam(dirs, a, up, 12.0, 5.0, True),
+                      HEADLIGHT_COLOUR)
+    E.reshape(-1, 3)[pix] += Ef
+
+    L = albedo * E / np.pi
+    # emissive surfaces that are switched on
+    for m in MATERIALS:
+        if m.emits_when and ((m.emits_when == "lamps" and lighting.lamps_on) or
+                             (m.emits_when == "headlights" and lighting.headlights_on)):
+            sel = material == MATERIAL_ID[m.name]
+            L[sel] += EMISSIVE[MATERIAL_ID[m.name]]
+
+    # sky: brighter towards the horizon; its horizon value is the airlight used by fog
+    sky_h = (lighting.sky_lux + 0.2 * lighting.sun_normal_lux * max(lighting.sun_dir[2], 0)) / np.pi
+    sky_h = max(sky_h, 1e-4)
+    ray_w = rays @ world_from_cam[:3, :3].T
+    elev = np.clip(ray_w[..., 2], 0, 1)
+    sky = (sky_h * (1.0 - 0.5 * elev))[..., None] * SKY_COLOUR
+    L = np.where(geo[..., None], L, sky).astype(np.float32)
+    instance = np.where(index > 0, np.concatenate([[0], actor_ids])[np.clip(index, 0, len(actor_ids))], 0)
+    return CameraObservation(L, depth, instance.astype(np.int64), material, (sky_h * SKY_COLOUR).astype(np.float32))
+
+
+# ---------------------------------------------------------------------------------------------
+# camera model
+
+
+def wanted_exposure(radiance: np.ndarray) -> float:
+    """Exposure k that maps the log-average luminance to mid-grey (Reinhard's key) [1/(cd/m^2)]."""
+    lum = radiance @ np.array([0.2126, 0.7152, 0.0722], np.float32)
+    log_avg = float(np.exp(np.mean(np.log(lum + 1e-4))))
+    return EXPOSURE_KEY / max(log_avg, 1e-9)
+
+
+def auto_exposure(radiance: np.ndarray) -> float:
+    """The wanted exposure within the camera's limits (longest exposure x base gain)."""
+    return float(np.clip(wanted_exposure(radiance), MIN_EXPOSURE, MAX_EXPOSURE))
+
+
+def srgb_encode(x: np.ndarray) -> np.ndarray:
+    x = np.clip(x, 0.0, 1.0)
+    return np.where(x <= 0.0031308, 12.92 * x, 1.055 * np.power(x, 1 / 2.4) - 0.055)
+
+
+def expose(obs: CameraObservation, exposure: float | None = None) -> np.ndarray:
+    """Camera model: lens blur, exposure, (low light: gain and Poisson-Gaussian noise), clipping,
+    sRGB -> (H, W, 3) float in 0..1."""
+    k = auto_exposure(obs.radiance) if exposure is None else exposure
+    obs.exposure = k
+    blurred = gaussian_filter(obs.radiance, sigma=(PSF_SIGMA_PX, PSF_SIGMA_PX, 0))
+    signal = blurred * k  # fraction of the full well
+    p = obs.sensor_noise
+    if p:
+        gain = float(np.clip(wanted_exposure(obs.radiance) / k, 1.0, p["max_gain"]))
+        obs.gain = gain
+        rng = np.random.default_rng(p["seed"])
+        electrons = np.clip(signal, 0, 1) * p["full_well_e"]
+        electrons = rng.poisson(electrons).astype(np.float32) + rng.normal(0, p["read_noise_e"], electrons.shape)
+        signal = electrons / p["full_well_e"] * gain
+    return srgb_encode(signal)
+
+
+def to_uint8(img01: np.ndarray) -> np.ndarray:
+    return np.round(np.clip(img01, 0, 1) * 255).astype(np.uint8)
+
+
+def headlights_of(actors, ego_pose: np.ndarray, ego_size: np.ndarray) -> list:
+    """(position, axis) of both headlights of every motor vehicle and of the ego (world frame)."""
+    out = []
+    names = actors.class_names()
+    for c, size, yaw, cls, parked in zip(actors.centers, actors.sizes, actors.yaws, names, actors.parked):
+        if parked or cls in ("pedestrian", "group_of_pedestrians", "bicycle"):
+            continue
+        axis = np.array([np.cos(yaw), np.sin(yaw), -0.02])
+        axis /= np.linalg.norm(axis)
+        left = np.array([-np.sin(yaw), np.cos(yaw), 0.0])
+        front = c[:2] + axis[:2] * size[0] / 2
+        for s in ((-1, 1) if cls != "motorbike" else (0,)):
+            out.append((np.array([*(front + left[:2] * s * size[1] * 0.35), 0.75]), axis))
+    yaw = np.arctan2(ego_pose[1, 0], ego_pose[0, 0])
+    axis = np.array([np.cos(yaw), np.sin(yaw), -0.02])
+    axis /= np.linalg.norm(axis)
+    for s in (-1, 1):
+        p = transform_points(ego_pose, np.array([[ego_size[0] / 2, s * ego_size[1] * 0.35, 0.75]]))[0]
+        out.append((p, axis))
+    return out

@@ -1,0 +1,429 @@
+"""Camera degradations, in the radiance domain (before exposure) unless stated.
+
+Order of application (registration order) follows the light path: wet road -> atmosphere
+(Koschmieder) -> rain streaks / snow flakes in the air -> glare -> lens (drops, snow, soiling)
+-> failures -> sensor (exposure gain and Poisson-Gaussian noise, applied by the camera model).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from functools import lru_cache
+
+import numpy as np
+from scipy.ndimage import gaussian_filter, map_coordinates
+
+from sensors.camera import CameraObservation, _rays
+from sensors.degrade.base import Degradation, obstruction_probability, persistent, register
+from sensors.materials import MATERIAL_ID
+
+ROAD_MATERIALS = [MATERIAL_ID[m] for m in ("asphalt", "lane_paint")]
+
+
+def _copy(obs: CameraObservation, **changes) -> CameraObservation:
+    return dataclasses.replace(obs, **changes)
+
+
+def pixel_range(obs: CameraObservation, cam) -> np.ndarray:
+    """Distance along each pixel's ray [m] (depth / cos of the off-axis angle); inf for sky."""
+    return obs.depth / _rays(cam)[..., 2]
+
+
+def _scale(ctx) -> float:
+    return ctx.calib.camera(ctx.camera).height / 188.0  # sizes are given at the cpu profile
+
+
+@register
+class WetRoad(Degradation):
+    """A water film darkens the road (wet asphalt absorbs more) and mirrors the scene in it.
+
+    Wetness w = min(1, film / 0.5 mm); diffuse radiance x (1 - 0.45 w); a mirror image about the
+    horizon row with Fresnel reflectance ~0.15 at grazing incidence adds reflections of the sky,
+    vehicles and lights.
+    """
+
+    name = "wet_road"
+    sensor = "camera"
+
+    def sample_params(self, rng, weather, ctx):
+        if weather.water_film_mm <= 0:
+            return None
+        return {"wetness": float(min(1.0, weather.water_film_mm / 0.5)), "fresnel": 0.15}
+
+    def apply(self, obs, params, ctx):
+        cam = ctx.calib.camera(ctx.camera)
+        road = np.isin(obs.material, ROAD_MATERIALS)
+        w = params["wetness"]
+        L = obs.radiance.copy()
+        H = L.shape[0]
+        horizon = cam.K[1, 2]
+        rows = np.clip(np.round(2 * horizon - np.arange(H) - 1).astype(int), 0, H - 1)
+        mirror = obs.radiance[rows]
+        L[road] = L[road] * (1 - 0.45 * w) + params["fresnel"] * w * mirror[road]
+        return _copy(obs, radiance=L)
+
+
+@register
+class Atmosphere(Degradation):
+    """Koschmieder's law with the rendered depth: L = L0 t + A (1 - t), t = exp(-beta d).
+
+    beta is the frame's total optical extinction (fog ln(20)/MOR + rain + snow, sim.weather), d the
+    distance along the ray, A the horizon sky radiance (airlight). Apparent contrast against the
+    airlight therefore falls as exp(-beta d) exactly.
+    """
+
+    name = "atmosphere"
+    sensor = "camera"
+
+    def sample_params(self, rng, weather, ctx):
+        return {"beta_per_m": float(weather.extinction_per_m)}
+
+    def apply(self, obs, params, ctx):
+        d = pixel_range(obs, ctx.calib.camera(ctx.camera))
+        t = np.exp(-params["beta_per_m"] * np.where(np.isfinite(d), d, np.inf)).astype(np.float32)
+        A = obs.sky_radiance[None, None, :]
+        L = obs.radiance * t[..., None] + A * (1 - t[..., None])
+        return _copy(obs, radiance=L.astype(np.float32))
+
+
+def _segments(L, depth, p0, p1, z, radiance, alpha, samples_per_px=2.0):
+    """Alpha-blend line segments (n, 2) -> (n, 2) with per-segment radiance (n, 3) and alpha (n,),
+    behind-geometry parts hidden by the depth buffer."""
+    H, W = depth.shape
+    length = np.maximum(np.linalg.norm(p1 - p0, axis=1), 1.0)
+    n_s = np.ceil(length * samples_per_px).astype(int)
+    idx = np.repeat(np.arange(len(p0)), n_s)
+    starts = np.repeat(np.cumsum(n_s) - n_s, n_s)
+    t = (np.arange(len(idx)) - starts) / np.maximum(np.repeat(n_s - 1, n_s), 1)
+    pts = p0[idx] + (p1[idx] - p0[idx]) * t[:, None]
+    u, v = np.floor(pts[:, 0]).astype(int), np.floor(pts[:, 1]).astype(int)
+    ok = (u >= 0) & (u < W) & (v >= 0) & (v < H)
+    u, v, idx = u[ok], v[ok], idx[ok]
+    front = z[idx] < depth[v, u]
+    u, v, idx = u[front], v[front], idx[front]
+    a = (alpha[idx] / np.maximum(n_s[idx] / (length[idx] * samples_per_px) * 1.0, 1.0))[:, None]
+    # blend once per pixel per segment: combine duplicates by keeping the strongest
+    flat = v * W + u
+    order = np.lexsort((-a[:, 0], flat))
+    first = np.r_[True, flat[order][1:] != flat[order][:-1]]
+    sel = order[first]
+    Lf = L.reshape(-1, 3)
+    Lf[flat[sel]] = (1 - a[sel]) * Lf[flat[sel]] + a[sel] * radiance[idx[sel]]
+
+
+def _air_particles(rng_seed, n, cam, depth_range, fall_speed, exposure_s, size_m):
+    """Random particles in the camera frustum: image start/end points, depth, size [px]."""
+    rng = np.random.default_rng(rng_seed)
+    W, H = cam.width, cam.height
+    z = depth_range[0] + (depth_range[1] - depth_range[0]) * rng.uniform(0, 1, n) ** (1 / 3)  # uniform in volume
+    u = rng.uniform(0, W, n)
+    v = rng.uniform(0, H, n)
+    fall_px = cam.K[1, 1] * fall_speed * exposure_s / z  # image y points down, like gravity here
+    drift = rng.normal(0, 0.15, n) * fall_px
+    p0 = np.column_stack([u, v])
+    p1 = np.column_stack([u + drift, v + fall_px])
+    size_px = cam.K[0, 0] * size_m / z
+    return p0, p1, z, size_px
+
+
+@register
+class RainStreaks(Degradation):
+    """Falling drops imaged as streaks during the exposure (Garg & Nayar style).
+
+    n = 150 R^0.6 visible drops per 63k pixels (R in mm/h), 0.3-12 m from the lens, terminal velocity
+    6-9 m/s, exposure 5 ms by day and 30 ms at night; a streak carries the airlight refracted
+    through the drop (0.9 A) and its opacity falls with distance.
+    """
+
+    name = "rain_streaks"
+    sensor = "camera"
+
+    def sample_params(self, rng, weather, ctx):
+        if weather.rain_mm_h <= 0:
+            return None
+        cam = ctx.calib.camera(ctx.camera)
+        n = int(150 * weather.rain_mm_h**0.6 * cam.width * cam.height / 63168)
+        return {"drops": n, "exposure_s": 0.005 if weather.illuminance_lux > 400 else 0.03,
+                "fall_speed_m_s": float(rng.uniform(6, 9)), "seed": int(rng.integers(2**31))}
+
+    def apply(self, obs, params, ctx):
+        cam = ctx.calib.camera(ctx.camera)
+        p0, p1, z, _ = _air_particles(params["seed"], params["drops"], cam, (0.3, 12.0),
+                                      params["fall_speed_m_s"], params["exposure_s"], 0.002)
+        alpha = np.clip(0.25 * (1.0 / z), 0.03, 0.35)
+        radiance = np.repeat(0.9 * obs.sky_radiance[None], len(z), 0)
+        L = obs.radiance.copy()
+        _segments(L, obs.depth, p0, p1, z, radiance, alpha)
+        return _copy(obs, radiance=L)
+
+
+@register
+class SnowFlakes(Degradation):
+    """Snowflakes in the air: bright, slowly falling discs (size D ~ 2-8 mm, 1-1.5 m/s).
+
+    n = 3000 S^0.8 flakes per 63k pixels (S in mm/h water equivalent), lit by the sky (0.9 A) and by
+    lamps/headlights (a floor on their radiance at night), opacity = disc area / pixel area.
+    """
+
+    name = "snow_flakes"
+    sensor = "camera"
+
+    def sample_params(self, rng, weather, ctx):
+        if weather.snow_mm_h <= 0:
+            return None
+        cam = ctx.calib.camera(ctx.camera)
+        n = int(3000 * weather.snow_mm_h**0.8 * cam.width * cam.height / 63168)
+        return {"flakes": n, "exposure_s": 0.005 if weather.illuminance_lux > 400 else 0.03,
+                "seed": int(rng.integers(2**31))}
+
+    def apply(self, obs, params, ctx):
+        cam = ctx.calib.camera(ctx.camera)
+        rng = np.random.default_rng(params["seed"] + 1)
+        size_m = rng.uniform(0.002, 0.008, params["flakes"])
+        p0, p1, z, size_px = _air_particles(params["seed"], params["flakes"], cam, (0.3, 20.0), 1.2,
+                                            params["exposure_s"], size_m)
+        alpha = np.clip(size_px**2, 0.05, 1.0)
+        lum = np.maximum(0.9 * obs.sky_radiance, 0.5 * np.percentile(obs.radiance, 99, axis=(0, 1)))
+        radiance = np.repeat(lum[None], len(z), 0)
+        L = obs.radiance.copy()
+        _segments(L, obs.depth, p0, p1, z, radiance, alpha)
+        big = size_px > 1.5  # near flakes cover several pixels: paint discs
+        for (u, v), r, zz in zip(p0[big], size_px[big] / 2, z[big]):
+            u0, u1 = int(max(0, u - r)), int(min(cam.width, u + r + 1))
+            v0, v1 = int(max(0, v - r)), int(min(cam.height, v + r + 1))
+            if u1 <= u0 or v1 <= v0:
+                continue
+            yy, xx = np.mgrid[v0:v1, u0:u1]
+            m = ((xx + 0.5 - u) ** 2 + (yy + 0.5 - v) ** 2 <= r**2) & (obs.depth[v0:v1, u0:u1] > zz)
+            L[v0:v1, u0:u1][m] = 0.3 * L[v0:v1, u0:u1][m] + 0.7 * lum
+        return _copy(obs, radiance=L)
+
+
+@register
+class Glare(Degradation):
+    """Veiling glare at night: light from bright sources (head lamps, street lamps) scattered in the
+    lens and by fog droplets. Radiance above `threshold` is convolved with a wide kernel
+    (Gaussian halo of `radius_px`) and `strength` of it added; fog widens and strengthens halos."""
+
+    name = "glare"
+    sensor = "camera"
+
+    def sample_params(self, rng, weather, ctx):
+        if weather.illuminance_lux >= 400:
+            return None
+        scale = _scale(ctx)
+        fog = min(1.0, 300.0 / weather.visibility_m)
+        return {"threshold_cd_m2": 500.0, "radius_px": float(4 * scale * (1 + 2 * fog)),
+                "strength": float(0.04 * (1 + 3 * fog))}
+
+    def apply(self, obs, params, ctx):
+        from scipy.ndimage import zoom
+
+        bright = np.clip(obs.radiance - params["threshold_cd_m2"], 0, None)
+        if not bright.any():
+            return obs
+        f = 4  # the halo is smooth: blur a 4x smaller image (energy preserved by the mean pooling)
+        H, W = bright.shape[:2]
+        Hc, Wc = H // f * f, W // f * f
+        small = bright[:Hc, :Wc].reshape(Hc // f, f, Wc // f, f, 3).mean(axis=(1, 3))
+        r = params["radius_px"] / f
+        halo_small = gaussian_filter(small, sigma=(r, r, 0))
+        halo = np.zeros_like(bright)
+        halo[:Hc, :Wc] = zoom(halo_small, (f, f, 1), order=1)[:Hc, :Wc]
+        return _copy(obs, radiance=(obs.radiance + params["strength"] * halo).astype(np.float32))
+
+
+def _blobs(rng, n, H, W, r_range, scale):
+    return [[float(rng.uniform(0, W)), float(rng.uniform(0, H)), float(rng.uniform(*r_range) * scale)]
+            for _ in range(n)]
+
+
+def _coverage_blobs(rng, coverage_pct, H, W, r_range, scale, cap=400):
+    blobs, area = [], 0.0
+    target = coverage_pct / 100.0 * H * W
+    while area < target and len(blobs) < cap:
+        b = _blobs(rng, 1, H, W, r_range, scale)[0]
+        blobs.append(b)
+        area += np.pi * b[2] ** 2
+    return blobs
+
+
+@lru_cache(maxsize=64)
+def _blobs_cached(seed: int, coverage_pct: float, H: int, W: int, r_range: tuple, scale: float):
+    """Blob layout and masks for a seed (lens faults persist over a sequence: compute once)."""
+    blobs = _coverage_blobs(np.random.default_rng(seed), coverage_pct, H, W, r_range, scale)
+    which, rad = _blob_mask(blobs, H, W)
+    return blobs, which, rad
+
+
+def _blob_mask(blobs, H, W):
+    """(H, W) index of the blob covering each pixel (-1 none) and normalised radius r / R."""
+    yy, xx = np.mgrid[0:H, 0:W] + 0.5
+    which = np.full((H, W), -1, np.int32)
+    rad = np.ones((H, W), np.float32)
+    for k, (u, v, R) in enumerate(blobs):
+        u0, u1 = int(max(0, u - R)), int(min(W, u + R + 1))
+        v0, v1 = int(max(0, v - R)), int(min(H, v + R + 1))
+        if u1 <= u0 or v1 <= v0:
+            continue
+        d = np.hypot(xx[v0:v1, u0:u1] - u, yy[v0:v1, u0:u1] - v) / R
+        m = d < 1
+        which[v0:v1, u0:u1][m] = k
+        rad[v0:v1, u0:u1][m] = d[m]
+    return which, rad
+
+
+@register
+class LensDrops(Degradation):
+    """Raindrops on the lens: out-of-focus refractive blobs that do not move with the scene.
+
+    Inside a drop the image is a blurred, inverted and minified view of its surroundings (a
+    drop is a tiny fisheye lens), darker towards the rim. The drops cover the camera's
+    lens_coverage_pct (sim.weather); their layout persists over the sequence.
+    """
+
+    name = "lens_drops"
+    sensor = "camera"
+
+    def sample_params(self, rng, weather, ctx):
+        cov = weather.lens_coverage_pct[0 if ctx.camera == "camera_left" else 1]
+        if weather.rain_mm_h <= 0 or cov <= 0:
+            return None
+        seed = persistent(ctx, f"lens_drops/{ctx.camera}", lambda r: int(r.integers(2**31)))
+        return {"coverage_pct": float(cov), "seed": seed}
+
+    def apply(self, obs, params, ctx):
+        H, W = obs.depth.shape
+        blobs, which, rad = _blobs_cached(params["seed"], round(params["coverage_pct"], 1), H, W, (2.0, 10.0),
+                                          _scale(ctx))
+        inside = which >= 0
+        if not inside.any():
+            return obs
+        centres = np.array([[b[0], b[1]] for b in blobs])
+        yy, xx = np.mgrid[0:H, 0:W] + 0.5
+        cu, cv = centres[which[inside], 0], centres[which[inside], 1]
+        su = cu - (xx[inside] - cu) * 2.5  # inverted, minified view of a wider neighbourhood
+        sv = cv - (yy[inside] - cv) * 2.5
+        blurred = gaussian_filter(obs.radiance, sigma=(2.0 * _scale(ctx), 2.0 * _scale(ctx), 0))
+        L = obs.radiance.copy()
+        for c in range(3):
+            L[..., c][inside] = map_coordinates(blurred[..., c], [sv - 0.5, su - 0.5], order=1, mode="nearest")
+        L[inside] *= (0.55 + 0.45 * (1 - rad[inside] ** 2))[:, None]
+        return _copy(obs, radiance=L)
+
+
+@register
+class LensSnow(Degradation):
+    """Snow on the lens: translucent white patches scattering ambient light (persist per sequence)."""
+
+    name = "lens_snow"
+    sensor = "camera"
+
+    def sample_params(self, rng, weather, ctx):
+        cov = weather.lens_coverage_pct[0 if ctx.camera == "camera_left" else 1]
+        if weather.snow_mm_h <= 0 or cov <= 0:
+            return None
+        seed = persistent(ctx, f"lens_snow/{ctx.camera}", lambda r: int(r.integers(2**31)))
+        return {"coverage_pct": float(cov), "seed": seed, "transmission": 0.25}
+
+    def apply(self, obs, params, ctx):
+        H, W = obs.depth.shape
+        blobs, which, rad = _blobs_cached(params["seed"], round(params["coverage_pct"], 1), H, W, (4.0, 14.0),
+                                          _scale(ctx))
+        inside = which >= 0
+        if not inside.any():
+            return obs
+        blurred = gaussian_filter(obs.radiance, sigma=(4.0 * _scale(ctx), 4.0 * _scale(ctx), 0))
+        # snow is white and lit from everywhere: brighter than the average scene
+        ambient = np.maximum(obs.sky_radiance, np.mean(obs.radiance, axis=(0, 1))) * 1.2
+        soft = np.clip((1 - rad) * 3, 0, 1)[..., None]  # soft edges
+        t = params["transmission"]
+        L = obs.radiance.copy()
+        mix = t * blurred + (1 - t) * ambient
+        L = np.where(inside[..., None], (1 - soft) * L + soft * mix, L)
+        return _copy(obs, radiance=L.astype(np.float32))
+
+
+@register
+class LensSoiling(Degradation):
+    """Dirt on the lens (WoodScape soiling types): opaque patches (mud) and semi-transparent ones
+    (dried water, dust) that blur and dim the scene. Drawn once per sequence with the context's
+    probability (degrade.base.OBSTRUCTION_PROBABILITY)."""
+
+    name = "lens_soiling"
+    sensor = "camera"
+    kind = "obstruction"
+
+    def sample_params(self, rng, weather, ctx):
+        p = obstruction_probability("lens_soiling", ctx.context)
+
+        def draw(r):
+            if r.uniform() >= p:
+                return None
+            return {"coverage_pct": float(r.uniform(5, 35)), "opaque_share": float(r.uniform(0, 1)),
+                    "seed": int(r.integers(2**31))}
+
+        return persistent(ctx, f"lens_soiling/{ctx.camera}", draw)
+
+    def apply(self, obs, params, ctx):
+        H, W = obs.depth.shape
+        rng = np.random.default_rng(params["seed"])
+        blobs = _coverage_blobs(rng, params["coverage_pct"], H, W, (6.0, 30.0), _scale(ctx))
+        which, rad = _blob_mask(blobs, H, W)
+        inside = which >= 0
+        opaque = np.array([rng.uniform() < params["opaque_share"] for _ in blobs] + [False])
+        L = obs.radiance.copy()
+        blurred = gaussian_filter(obs.radiance, sigma=(5.0 * _scale(ctx), 5.0 * _scale(ctx), 0))
+        soft = np.clip((1 - rad) * 4, 0, 1)[..., None]
+        is_opaque = inside & opaque[which]
+        semi = inside & ~opaque[which]
+        mud = np.array([0.02, 0.015, 0.01], np.float32) * np.mean(obs.radiance)
+        L = np.where(is_opaque[..., None], (1 - soft) * L + soft * mud, L)
+        L = np.where(semi[..., None], (1 - soft) * L + soft * 0.5 * blurred, L)
+        return _copy(obs, radiance=L.astype(np.float32))
+
+
+@register
+class CameraBlackout(Degradation):
+    """Camera failure (RoboBEV 'camera crash'): the image is black for a span of the sequence."""
+
+    name = "camera_blackout"
+    sensor = "camera"
+    kind = "obstruction"
+
+    def sample_params(self, rng, weather, ctx):
+        p = obstruction_probability("camera_blackout", ctx.context)
+
+        def draw(r):
+            if r.uniform() >= p:
+                return None
+            start = int(r.integers(0, 10))
+            return {"from_frame": start, "to_frame": start + int(r.integers(2, 20))}
+
+        span = persistent(ctx, f"camera_blackout/{ctx.camera}", draw)
+        if span is None or not span["from_frame"] <= ctx.frame_index < span["to_frame"]:
+            return None
+        return dict(span)
+
+    def apply(self, obs, params, ctx):
+        return _copy(obs, radiance=np.zeros_like(obs.radiance), sky_radiance=np.zeros(3, np.float32))
+
+
+@register
+class LowLightSensor(Degradation):
+    """Low light: the exposure hits the camera's limit (sensors.camera.MAX_EXPOSURE), the camera
+    raises its analogue gain up to 8x, and the image gets Poisson-Gaussian noise (photon shot
+    noise on a 6,000 e- full well plus 4 e- read noise, multiplied by the gain), as in the
+    low-light corruptions of MultiCorrupt and RoboBEV, but from the frame's illuminance.
+    """
+
+    name = "low_light_sensor"
+    sensor = "camera"
+
+    def sample_params(self, rng, weather, ctx):
+        if weather.illuminance_lux >= 400:
+            return None
+        return {"full_well_e": 6000.0, "read_noise_e": 4.0, "max_gain": 8.0, "seed": int(rng.integers(2**31))}
+
+    def apply(self, obs, params, ctx):
+        return _copy(obs, sensor_noise=dict(params))

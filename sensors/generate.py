@@ -1,0 +1,289 @@
+"""Dataset generation: a plan of shards, each a pure function of (config, shard index).
+
+`plan(config)` lists the shards (one sequence each): context, severity, sequence seed, frames.
+`generate_shard(config, index, out)` simulates the sequence, renders every sensor, writes the
+shard atomically and returns its checksum and timings. `generate(config, out, workers)` runs the
+missing shards in parallel processes (results do not depend on the number of workers) and writes
+the manifest last, so an interrupted run (even kill -9) is completed by running it again.
+"""
+
+from __future__ import annotations
+
+import math
+import os
+import time
+from collections.abc import Callable
+from dataclasses import asdict, dataclass
+from pathlib import Path
+
+from sim.config import from_dict
+from sim.errors import UserError
+from sim.scenario import CONTEXT_NAMES, Context, ScenarioSpec, Simulator, stream
+from sim.weather import TRANSITIONS, WeatherState
+
+
+@dataclass(frozen=True)
+class GenerateConfig:
+    """What `hydrabench generate` builds. Every field is part of the manifest.
+
+    Fields:
+        contexts: context names or combinations ("fog", "city+night+rain"); "all" = the eight.
+        frames_per_context: frames per context (>= 1).
+        seed: root seed; shard seeds derive from (seed, context, sequence index).
+        profile: sensor profile ("cpu" or "paper").
+        sequence_length: frames per sequence = per shard.
+        frame_rate_hz: recording rate within a sequence [Hz].
+        severities: severity levels drawn uniformly per sequence for contexts with conditions
+            (layout-only contexts always use 0).
+        transitions: weather transitions drawn uniformly per sequence ("none" = constant weather).
+        twins: also render every frame in clear weather (counterfactual pairs, `clear/`).
+        degrade: apply the weather/obstruction degradation models (sensors.degrade).
+    """
+
+    contexts: tuple[str, ...] = CONTEXT_NAMES
+    frames_per_context: int = 20
+    seed: int = 0
+    profile: str = "cpu"
+    sequence_length: int = 10
+    frame_rate_hz: float = 2.0
+    severities: tuple[int, ...] = (1, 2, 3, 4, 5)
+    transitions: tuple[str, ...] = ("none",)
+    twins: bool = False
+    degrade: bool = True
+
+    def __post_init__(self) -> None:
+        if not self.contexts:
+            raise UserError("contexts must name at least one context")
+        for c in self.contexts:
+            Context.parse(c)
+        if self.frames_per_context < 1:
+            raise UserError(f"frames_per_context must be >= 1, got {self.frames_per_context}")
+        if self.sequence_length < 1:
+            raise UserError(f"sequence_length must be >= 1, got {self.sequence_length}")
+        if not self.frame_rate_hz > 0:
+            raise UserError(f"frame_rate_hz must be > 0, got {self.frame_rate_hz}")
+        if self.seed < 0:
+            raise UserError(f"seed must be >= 0, got {self.seed}")
+        if not self.severities or any(not 0 <= s <= 5 for s in self.severities):
+            raise UserError(f"severities must be values in 0..5, got {list(self.severities)}")
+        bad = [t for t in self.transitions if t not in TRANSITIONS]
+        if bad or not self.transitions:
+            raise UserError(f"unknown weather transition {bad[0] if bad else ''!r} (choose from: {', '.join(TRANSITIONS)})")
+        from sensors.rig import profile_names
+
+        if self.profile not in profile_names():
+            raise UserError(f"unknown profile {self.profile!r} (choose from: {', '.join(profile_names())})")
+
+    def to_dict(self) -> dict:
+        d = asdict(self)
+        return {k: list(v) if isinstance(v, tuple) else v for k, v in d.items()}
+
+    @staticmethod
+    def from_mapping(data: dict) -> GenerateConfig:
+        return from_dict(GenerateConfig, data, "generate config")
+
+
+@dataclass(frozen=True)
+class ShardSpec:
+    index: int
+    context: str
+    severity: int
+    seed: int
+    frames: int
+    transition: str
+
+    @property
+    def name(self) -> str:
+        from sensors.dataset import shard_name
+
+        return shard_name(self.index)
+
+
+def plan(config: GenerateConfig) -> list[ShardSpec]:
+    """The shards of a dataset, in a fixed order (context by context)."""
+    shards = []
+    for context in config.contexts:
+        ctx = Context.parse(context)
+        n_seq = math.ceil(config.frames_per_context / config.sequence_length)
+        for j in range(n_seq):
+            rng = stream(config.seed, "sequence", ctx.name, j)
+            seed = int(rng.integers(2**31 - 1))
+            severity = int(rng.choice(config.severities)) if ctx.conditions else 0
+            weather_like = set(ctx.conditions) - {"night"}
+            transition = str(rng.choice(config.transitions)) if (severity and weather_like) else "none"
+            frames = min(config.sequence_length, config.frames_per_context - j * config.sequence_length)
+            shards.append(ShardSpec(len(shards), ctx.name, severity, seed, frames, transition))
+    return shards
+
+
+def render_sequence(spec: ShardSpec, config: GenerateConfig, on_frame: Callable[[], None] | None = None):
+    """Simulate and render one shard's sequence. Returns (frames, twin frames or None, timings)."""
+    from sensors.frame import SequenceRenderer
+    from sensors.rig import load_profile
+
+    t0 = time.perf_counter()
+    sim = Simulator(ScenarioSpec(context=spec.context, severity=spec.severity, seed=spec.seed, frames=spec.frames,
+                                 frame_rate_hz=config.frame_rate_hz, profile=config.profile,
+                                 transition=spec.transition))
+    scenes = sim.scenes()
+    first = next(scenes)
+    t_sim = time.perf_counter() - t0
+    renderer = SequenceRenderer(first, load_profile(config.profile), seed=spec.seed)
+    degrader = None
+    if config.degrade:
+        from sensors.degrade import Degrader
+
+        degrader = Degrader(renderer.calib, spec.context, spec.seed)
+    frames, twins = [], [] if config.twins else None
+    clear = WeatherState(illuminance_lux=30_000.0)
+    scene = first
+    while True:
+        obs = renderer.observe(scene)
+        params = {}
+        if degrader is not None:
+            t = time.perf_counter()
+            obs, params = degrader.apply(scene, obs, scene.frame_index)
+            renderer.timings["degradation"] += time.perf_counter() - t
+        frames.append(renderer.finalize(scene, obs, params))
+        if twins is not None:  # the same moment in clear weather (persistent faults stay)
+            twin_obs, twin_params = renderer.observe(scene, clear), {}
+            if degrader is not None:
+                twin_obs, twin_params = degrader.apply(scene, twin_obs, scene.frame_index)
+            twins.append(renderer.finalize(scene, twin_obs, twin_params))
+        if on_frame:
+            on_frame()
+        t = time.perf_counter()
+        scene = next(scenes, None)
+        t_sim += time.perf_counter() - t
+        if scene is None:
+            break
+    timings = dict(renderer.timings)
+    timings["simulation"] = t_sim
+    if degrader is not None:
+        timings.update({f"degrade/{k}": v for k, v in degrader.timings.items()})
+    return frames, twins, timings
+
+
+def generate_shard(config_dict: dict, spec_dict: dict, out: str) -> dict:
+    """Worker entry point: render shard `spec` of `config` into `out` (atomic). Returns its record."""
+    from sensors.dataset import commit_shard, shard_digest, write_frames
+
+    config = GenerateConfig.from_mapping(config_dict)
+    spec = ShardSpec(**spec_dict)
+    root = Path(out)
+    final = root / spec.name
+    tmp = root / f"{spec.name}.tmp-{os.getpid()}"
+    t0 = time.perf_counter()
+    frames, twins, timings = render_sequence(spec, config)
+    t_write = time.perf_counter()
+    extra = {"shard": asdict(spec), "config": config.to_dict()}
+    write_frames(tmp, frames, extra)
+    if twins is not None:
+        write_frames(tmp / "clear", twins, {**extra, "twin": "clear"})
+    digest = shard_digest(tmp)
+    commit_shard(tmp, final)
+    timings["write"] = time.perf_counter() - t_write
+    return {"name": spec.name, "sha256": digest, "frames": len(frames), **asdict(spec),
+            "seconds": time.perf_counter() - t0, "timings": timings}
+
+
+def _init_worker(threads: int) -> None:
+    os.environ["LP_NUM_THREADS"] = str(threads)
+    os.environ["OMP_NUM_THREADS"] = str(threads)
+    os.environ["OPENBLAS_NUM_THREADS"] = str(threads)
+
+
+def existing_record(root: Path, spec: ShardSpec, config: GenerateConfig) -> dict | None:
+    """The record of an already complete shard, if it was made by the same config."""
+    import json
+
+    from sensors.dataset import shard_digest
+
+    d = root / spec.name
+    fj = d / "frames.json"
+    if not fj.exists():
+        return None
+    try:
+        head = json.loads(fj.read_text())
+    except json.JSONDecodeError:
+        return None
+    if head.get("config") != config.to_dict() or head.get("shard") != asdict(spec):
+        raise UserError(
+            f"{root} holds shard {spec.name} of a different generation config; use an empty --out directory"
+        )
+    return {"name": spec.name, "sha256": shard_digest(d), "frames": len(head["frames"]), **asdict(spec),
+            "seconds": 0.0, "timings": {}}
+
+
+def generate(config: GenerateConfig, out: str | Path, workers: int = 1, progress: bool = True) -> dict:
+    """Generate (or complete) the dataset in `out`. Returns a summary with timings."""
+    import multiprocessing as mp
+    import sys
+
+    from tqdm import tqdm
+
+    from sensors.dataset import FORMAT_VERSION, clean_partial, write_manifest
+
+    root = Path(out)
+    root.mkdir(parents=True, exist_ok=True)
+    clean_partial(root)
+    shards = plan(config)
+    records: dict[str, dict] = {}
+    todo = []
+    for s in shards:
+        rec = existing_record(root, s, config)
+        if rec is None:
+            todo.append(s)
+        else:
+            records[s.name] = rec
+    total = sum(s.frames for s in shards)
+    bar = tqdm(total=total, initial=sum(r["frames"] for r in records.values()), unit="frame",
+               desc="generate", file=sys.stderr, disable=not progress or None, dynamic_ncols=True)
+    t0 = time.perf_counter()
+    timings: dict[str, float] = {}
+
+    def collect(rec: dict) -> None:
+        records[rec["name"]] = rec
+        for k, v in rec["timings"].items():
+            timings[k] = timings.get(k, 0.0) + v
+        bar.update(rec["frames"])
+
+    cfg = config.to_dict()
+    if workers <= 1 or len(todo) <= 1:
+        _init_worker(max(1, os.cpu_count() or 1))
+        for s in todo:
+            collect(generate_shard(cfg, asdict(s), str(root)))
+    else:
+        ctx = mp.get_context("spawn")
+        threads = max(1, (os.cpu_count() or 1) // workers)
+        with ctx.Pool(workers, initializer=_init_worker, initargs=(threads,), maxtasksperchild=None) as pool:
+            results = [pool.apply_async(generate_shard, (cfg, asdict(s), str(root))) for s in todo]
+            for r in results:
+                collect(r.get())
+    bar.close()
+    seconds = time.perf_counter() - t0
+    frames_index = []
+    for s in shards:
+        for k in range(s.frames):
+            frames_index.append({"shard": s.name, "index": k, "context": s.context, "severity": s.severity})
+    manifest = {
+        "format_version": FORMAT_VERSION,
+        "created_by": "hydrabench generate",
+        "config": cfg,
+        "seed": config.seed,
+        "profile": config.profile,
+        "shards": [{k: v for k, v in records[s.name].items() if k not in ("timings", "seconds")} for s in shards],
+        "frames": frames_index,
+    }
+    write_manifest(root, manifest)
+    rendered = sum(records[s.name]["frames"] for s in todo)
+    return {
+        "frames": total,
+        "frames_rendered": rendered,
+        "seconds": round(seconds, 3),
+        "frames_per_second": round(rendered / seconds, 3) if seconds > 0 and rendered else None,
+        "profile": config.profile,
+        "workers": workers,
+        "ms_per_frame": {k: round(1000 * v / max(rendered, 1), 2) for k, v in sorted(timings.items())},
+        "out": str(root),
+    }

@@ -1,0 +1,166 @@
+"""Exact ground truth: FWD boxes per camera and BEV boxes on the radar/lidar grid.
+
+FWD (per camera): the tight box of the object's *visible* pixels in the instance map, so occlusion
+comes from the segmentation and truncation from the image border. For each box we also report
+- occlusion: the share of the object's mesh sample points that are in the image but hidden by
+  something else (depth-buffer test; self-occlusion does not count),
+- truncation: 1 - (area of the projected 3D box inside the image) / (its full area),
+- difficult: boxes a detector at this resolution cannot be expected to find (too small, mostly
+  hidden or cut). VOC AP ignores difficult boxes (PASCAL VOC convention); every table says so.
+
+BEV: every actor whose footprint centre lies on the BEV grid: the rotated box (cx, cy, length,
+width, angle; pixels, angle counter-clockwise from the image's up = forward axis) and its
+axis-aligned bounding box clipped to the image; `lidar_points` and `radar_visible` record whether
+the active sensors saw it; it is difficult when neither did or when it is under 3 px.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from scipy import ndimage
+
+from sensors.rig import Calibration, CameraCalibration, invert, transform_points
+from sensors.world_mesh import class_template
+from sim.actors import CLASSES, box_corners_2d
+
+MIN_VISIBLE_PX = 6
+DIFFICULT_HEIGHT_PX_AT_188 = 8.0  # boxes shorter than this at 188 rows are difficult (scaled by H)
+DIFFICULT_OCCLUSION = 0.8
+DIFFICULT_TRUNCATION = 0.6
+BEV_MIN_SIZE_PX = 3.0
+
+
+def _corners3d(center: np.ndarray, size: np.ndarray, yaw: float) -> np.ndarray:
+    """(8, 3) corners of an actor box (bottom 4 then top 4), world frame."""
+    xy = box_corners_2d(center[None, :2], size[None, :2], np.array([yaw]))[0]
+    z0, z1 = center[2] - size[2] / 2, center[2] + size[2] / 2
+    return np.vstack([np.column_stack([xy, np.full(4, z0)]), np.column_stack([xy, np.full(4, z1)])])
+
+
+def _projected_area(corners_ego: np.ndarray, cam: CameraCalibration) -> tuple[float, float]:
+    """(full area, area inside the image) of the projected 3D box [px^2] (points in front only)."""
+    uv, z = cam.project(corners_ego)
+    front = z > 0.1
+    if front.sum() < 2:
+        return 0.0, 0.0
+    u, v = uv[front, 0], uv[front, 1]
+    full = (u.max() - u.min()) * (v.max() - v.min())
+    cu = np.clip([u.min(), u.max()], 0, cam.width)
+    cv = np.clip([v.min(), v.max()], 0, cam.height)
+    inside = max(0.0, cu[1] - cu[0]) * max(0.0, cv[1] - cv[0])
+    return float(full), float(inside)
+
+
+def _sample_points(cls: str, center, size, yaw) -> np.ndarray:
+    if cls == "group_of_pedestrians":
+        tpl = class_template("pedestrian")
+        # the group's members are not needed for a visibility estimate: sample the box volume
+        g = np.stack(np.meshgrid(np.linspace(-0.4, 0.4, 4), np.linspace(-0.4, 0.4, 4), np.linspace(0.1, 0.9, 4)), -1)
+        v = g.reshape(-1, 3)
+        del tpl
+    else:
+        v = class_template(cls).vertices
+    c, s = np.cos(yaw), np.sin(yaw)
+    R = np.array([[c, -s, 0], [s, c, 0], [0, 0, 1]])
+    return (v * size) @ R.T + (center - np.array([0, 0, size[2] / 2]))
+
+
+def fwd_labels(instance: np.ndarray, depth: np.ndarray, actors, cam: CameraCalibration,
+               world_from_ego: np.ndarray) -> dict:
+    """Ground-truth boxes of one camera. Returns columnar lists (JSON-ready):
+    ids, labels (class ids 1..8), boxes [x1, y1, x2, y2] px, visible_px, occlusion, truncation,
+    distance_m (camera to box centre), difficult (bool)."""
+    H = instance.shape[0]
+    out = {k: [] for k in ("ids", "labels", "boxes", "visible_px", "occlusion", "truncation", "distance_m", "difficult")}
+    ids, counts = np.unique(instance[instance > 0], return_counts=True)
+    if len(ids) == 0:
+        return out
+    compact = np.zeros(instance.shape, np.int32)
+    lut = {int(a): i + 1 for i, a in enumerate(ids)}
+    sel = instance > 0
+    compact[sel] = np.searchsorted(ids, instance[sel]) + 1
+    slices = ndimage.find_objects(compact)
+    row_of = {int(a): i for i, a in enumerate(actors.ids)}
+    ego_from_world = invert(world_from_ego)
+    names = actors.class_names()
+    min_h = DIFFICULT_HEIGHT_PX_AT_188 * H / 188.0
+    cam_from_world = invert(world_from_ego @ cam.ego_from_camera)
+    for actor_id, count in zip(ids.tolist(), counts.tolist()):
+        if count < MIN_VISIBLE_PX or actor_id not in row_of:
+            continue
+        i = row_of[actor_id]
+        sl = slices[lut[actor_id] - 1]
+        box = [float(sl[1].start), float(sl[0].start), float(sl[1].stop), float(sl[0].stop)]
+        center, size, yaw = actors.centers[i], actors.sizes[i], float(actors.yaws[i])
+        corners_ego = transform_points(ego_from_world, _corners3d(center, size, yaw))
+        full, inside = _projected_area(corners_ego, cam)
+        truncation = 1.0 - inside / full if full > 0 else 1.0
+        pts = transform_points(ego_from_world, _sample_points(names[i], center, size, yaw))
+        uv, z = cam.project(pts)
+        u = np.floor(uv[:, 0]).astype(int)
+        v = np.floor(uv[:, 1]).astype(int)
+        inimg = (z > 0.3) & (u >= 0) & (u < cam.width) & (v >= 0) & (v < cam.height)
+        if inimg.any():
+            du, dv, dz = u[inimg], v[inimg], z[inimg]
+            seen = (instance[dv, du] == actor_id) | (depth[dv, du] >= dz - (0.3 + 0.02 * dz))
+            occlusion = 1.0 - float(seen.mean())
+        else:
+            occlusion = 1.0
+        dist = float(np.linalg.norm(transform_points(cam_from_world, center[None])[0]))
+        difficult = (box[3] - box[1] < min_h) or occlusion > DIFFICULT_OCCLUSION or truncation > DIFFICULT_TRUNCATION
+        out["ids"].append(int(actor_id))
+        out["labels"].append(int(actors.classes[i]))
+        out["boxes"].append([round(b, 2) for b in box])
+        out["visible_px"].append(int(count))
+        out["occlusion"].append(round(occlusion, 3))
+        out["truncation"].append(round(max(0.0, truncation), 3))
+        out["distance_m"].append(round(dist, 2))
+        out["difficult"].append(bool(difficult))
+    return out
+
+
+def bev_labels(actors, calib: Calibration, world_from_ego: np.ndarray, lidar_obs=None, radar_obs=None) -> dict:
+    """BEV ground truth on the radar grid (see module docstring). Columnar, JSON-ready."""
+    out = {k: [] for k in ("ids", "labels", "boxes", "rotated", "lidar_points", "radar_visible", "difficult")}
+    if len(actors) == 0:
+        return out
+    S = calib.bev_size_px
+    res = calib.bev_resolution_m
+    radar_from_world = invert(world_from_ego @ calib.ego_from_radar)
+    centers = transform_points(radar_from_world, actors.centers)
+    ego_yaw = np.arctan2(world_from_ego[1, 0], world_from_ego[0, 0])
+    yaws = actors.yaws - ego_yaw
+    uv_c = calib.radar_to_bev(centers[:, :2])
+    on = (uv_c[:, 0] >= 0) & (uv_c[:, 0] < S) & (uv_c[:, 1] >= 0) & (uv_c[:, 1] < S)
+    lid_counts: dict[int, int] = {}
+    if lidar_obs is not None:
+        ids, cnt = np.unique(lidar_obs.instance[lidar_obs.returned & (lidar_obs.instance > 0)], return_counts=True)
+        lid_counts = dict(zip(ids.tolist(), cnt.tolist()))
+    radar_seen: set[int] = set()
+    if radar_obs is not None:
+        strong = (radar_obs.instance > 0) & (radar_obs.signal > 3.0 * radar_obs.noise.mean())
+        radar_seen = set(np.unique(radar_obs.instance[strong]).tolist())
+    for i in np.flatnonzero(on):
+        corners = box_corners_2d(centers[i:i + 1, :2], actors.sizes[i:i + 1, :2], yaws[i:i + 1])[0]
+        uv = calib.radar_to_bev(corners)
+        x1, y1 = np.clip(uv.min(axis=0), 0, S)
+        x2, y2 = np.clip(uv.max(axis=0), 0, S)
+        if x2 - x1 <= 0 or y2 - y1 <= 0:
+            continue
+        aid = int(actors.ids[i])
+        n_lidar = int(lid_counts.get(aid, 0))
+        r_vis = aid in radar_seen
+        length_px, width_px = actors.sizes[i, 0] / res, actors.sizes[i, 1] / res
+        small = max(x2 - x1, y2 - y1) < BEV_MIN_SIZE_PX
+        out["ids"].append(aid)
+        out["labels"].append(int(actors.classes[i]))
+        out["boxes"].append([round(float(x1), 2), round(float(y1), 2), round(float(x2), 2), round(float(y2), 2)])
+        out["rotated"].append([round(float(uv_c[i, 0]), 2), round(float(uv_c[i, 1]), 2), round(float(length_px), 2),
+                               round(float(width_px), 2), round(float(np.arctan2(np.sin(yaws[i]), np.cos(yaws[i]))), 4)])
+        out["lidar_points"].append(n_lidar)
+        out["radar_visible"].append(bool(r_vis))
+        out["difficult"].append(bool((n_lidar == 0 and not r_vis) or small))
+    return out
+
+
+__all__ = ["fwd_labels", "bev_labels", "CLASSES"]

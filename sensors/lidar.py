@@ -1,0 +1,146 @@
+"""HDL-32E-like lidar: Embree ray casting, a physical return-power model, BEV and forward images.
+
+Return model (clean air). A ray hits a Lambertian surface of NIR reflectance rho at range R and
+incidence theta; the received power relative to a reference is
+
+    P = rho * cos(theta) * (R_ref / R)^2                      (extended target, lidar equation)
+
+and the return is detected when P >= P_min. P_min is set so a 10 % target at normal incidence is
+detected out to 50 m (equivalently a 40 % target to 100 m, the HDL-32E's rated range), which also
+makes dark road surfaces at grazing incidence fade with range as on real scans. The reported
+intensity is P / P_sat clipped to 1 (P_sat: a white target at 5 m). Atmospheric attenuation
+(fog, rain, snow) multiplies P by exp(-2 alpha R) in sensors.degrade.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from sensors.materials import NIR
+from sensors.raycast import WorldCaster
+from sensors.rig import LIDAR_MAX_RANGE_M, LIDAR_MIN_RANGE_M, Calibration, invert, transform_points
+
+R_REF_M = 1.0
+P_MIN = 0.10 / 50.0**2  # a 10 % target at 50 m
+P_SAT = 1.0 / 5.0**2  # a white target at 5 m saturates the intensity
+HEIGHT_RANGE_M = (-0.5, 3.5)  # BEV height channel span above the road [m]
+FWD_DEPTH_MAX_M = 80.0
+
+
+@dataclass
+class LidarObservation:
+    """One sweep on the (beam, azimuth) grid, lidar frame.
+
+    Fields (all (32, A)):
+        range: hit distance [m], inf for no surface within 100 m.
+        power: received power relative to R_ref (see module docstring); 0 for no hit.
+        instance: simulator actor id hit (0 = static world / nothing).
+        material: material id hit.
+        cos_incidence: cos of the angle between the ray and the surface normal.
+        returned: bool, the return is detected (power >= P_MIN and range within 0.05-100 m).
+    Extra returns that do not come from the first surface (fog backscatter, snow flakes) are in
+    `extra_points` (K, 5): x, y, z [m] in the lidar frame, intensity, ring.
+    """
+
+    range: np.ndarray
+    power: np.ndarray
+    instance: np.ndarray
+    material: np.ndarray
+    cos_incidence: np.ndarray
+    returned: np.ndarray
+    extra_points: np.ndarray
+
+    def copy(self) -> LidarObservation:
+        return LidarObservation(*(np.copy(getattr(self, f)) for f in self.__dataclass_fields__))
+
+
+def beam_directions(calib: Calibration) -> np.ndarray:
+    """(32, A, 3) unit ray directions in the lidar frame; azimuth a * 360 / A deg ccw from +x."""
+    el = np.radians(calib.lidar_elevations_deg)[:, None]
+    az = 2 * np.pi * np.arange(calib.lidar_azimuth_steps)[None, :] / calib.lidar_azimuth_steps
+    return np.stack([np.cos(el) * np.cos(az), np.cos(el) * np.sin(az), np.sin(el) * np.ones_like(az)], -1)
+
+
+def detect(range_m: np.ndarray, power: np.ndarray) -> np.ndarray:
+    return (power >= P_MIN) & (range_m >= LIDAR_MIN_RANGE_M) & (range_m <= LIDAR_MAX_RANGE_M)
+
+
+def scan(caster: WorldCaster, calib: Calibration, world_from_ego: np.ndarray,
+         actor_ids: np.ndarray, directions: np.ndarray | None = None) -> LidarObservation:
+    """Cast the whole sweep at one instant (rolling-shutter motion is not modelled)."""
+    dirs = beam_directions(calib) if directions is None else directions
+    shape = dirs.shape[:2]
+    world_from_lidar = world_from_ego @ calib.ego_from_lidar
+    d_world = dirs.reshape(-1, 3) @ world_from_lidar[:3, :3].T
+    hits = caster.cast(world_from_lidar[:3, 3], d_world, max_range=LIDAR_MAX_RANGE_M)
+    rng = hits.range.reshape(shape)
+    cos_i = np.abs(np.einsum("ij,ij->i", hits.normal, d_world)).reshape(shape)
+    rho = NIR[hits.material].reshape(shape)
+    with np.errstate(divide="ignore"):
+        power = np.where(np.isfinite(rng), rho * cos_i * (R_REF_M / rng) ** 2, 0.0)
+    ids = np.concatenate([[0], actor_ids])
+    instance = ids[np.clip(hits.instance, 0, len(actor_ids))].reshape(shape)
+    return LidarObservation(
+        range=rng.astype(np.float32),
+        power=power.astype(np.float32),
+        instance=instance.astype(np.int64),
+        material=hits.material.reshape(shape),
+        cos_incidence=cos_i.astype(np.float32),
+        returned=detect(rng, power),
+        extra_points=np.zeros((0, 5), np.float32),
+    )
+
+
+def points(obs: LidarObservation, calib: Calibration) -> np.ndarray:
+    """(N, 5) detected points in the lidar frame: x, y, z [m], intensity (0..1), ring (0..31)."""
+    dirs = beam_directions(calib)
+    m = obs.returned
+    xyz = dirs[m] * obs.range[m][:, None]
+    inten = np.clip(obs.power[m] / P_SAT, 0, 1)
+    ring = np.broadcast_to(np.arange(dirs.shape[0])[:, None], m.shape)[m]
+    pts = np.column_stack([xyz, inten, ring]).astype(np.float32)
+    if len(obs.extra_points):
+        pts = np.vstack([pts, obs.extra_points.astype(np.float32)])
+    return pts
+
+
+def bev_image(pts: np.ndarray, calib: Calibration) -> np.ndarray:
+    """(S, S, 3) uint8 BEV on the radar grid: max height above the road, log density, max intensity."""
+    S = calib.bev_size_px
+    xyz = transform_points(invert(calib.ego_from_radar) @ calib.ego_from_lidar, pts[:, :3])
+    uv = calib.radar_to_bev(xyz[:, :2])
+    u, v = np.floor(uv[:, 0]).astype(int), np.floor(uv[:, 1]).astype(int)
+    ok = (u >= 0) & (u < S) & (v >= 0) & (v < S)
+    u, v = u[ok], v[ok]
+    height = xyz[ok, 2] + calib.radar_height_m  # above the road
+    lin = v * S + u
+    img = np.zeros((3, S * S), np.float32)
+    h01 = np.clip((height - HEIGHT_RANGE_M[0]) / (HEIGHT_RANGE_M[1] - HEIGHT_RANGE_M[0]), 0, 1)
+    np.maximum.at(img[0], lin, h01)
+    np.add.at(img[1], lin, 1.0)
+    np.maximum.at(img[2], lin, pts[ok, 3])
+    img[1] = np.log1p(img[1]) / np.log(64.0)
+    return np.round(np.clip(img, 0, 1) * 255).astype(np.uint8).reshape(3, S, S).transpose(1, 2, 0)
+
+
+def forward_image(pts: np.ndarray, calib: Calibration, camera: str = "camera_right") -> np.ndarray:
+    """(H, W, 3) uint8 points projected into a camera (HydraFusion's forward lidar input):
+    closeness 1 - depth / 80 m, intensity, height above the road / 4 m; nearest point wins."""
+    cam = calib.camera(camera)
+    ego = transform_points(calib.ego_from_lidar, pts[:, :3])
+    uv, z = cam.project(ego)
+    ok = z > 0.5
+    u = np.floor(uv[ok, 0]).astype(int)
+    v = np.floor(uv[ok, 1]).astype(int)
+    inb = (u >= 0) & (u < cam.width) & (v >= 0) & (v < cam.height)
+    u, v, zz = u[inb], v[inb], z[ok][inb]
+    inten = pts[ok, 3][inb]
+    height = ego[ok, 2][inb]
+    order = np.argsort(-zz)  # far first, near overwrites
+    img = np.zeros((cam.height, cam.width, 3), np.float32)
+    img[v[order], u[order], 0] = np.clip(1 - zz[order] / FWD_DEPTH_MAX_M, 0, 1)
+    img[v[order], u[order], 1] = inten[order]
+    img[v[order], u[order], 2] = np.clip(height[order] / 4.0, 0, 1)
+    return np.round(img * 255).astype(np.uint8)
