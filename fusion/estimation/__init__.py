@@ -3,21 +3,37 @@
 - `wls`: batch weighted least squares, HydraFusion Eq. 5 (`wls`, `WLSFusion`, `information`).
 - `sequential`: the same fusion as Kalman updates of a static state (`sequential_fusion`,
   `SequentialFusion`), equal to `wls` to round-off.
+- `mismatch`: the true error of a fusion built on wrong R (`fused_error`, `wls_gains`,
+  `scalar_fused_variance`, `subset_errors`, `best_subset`): when fusing more sensors hurts.
 
 Names follow the textbook: x state, P its covariance, F transition, Q process noise, H measurement
 matrix, R measurement noise, y innovation, S its covariance, K gain.
 """
 
 from fusion.estimation._linalg import NotObservableError
+from fusion.estimation.mismatch import (
+    FusedError,
+    best_subset,
+    fused_error,
+    scalar_fused_variance,
+    subset_errors,
+    wls_gains,
+)
 from fusion.estimation.sequential import SequentialFusion, sequential_fusion, static_kalman_filter
 from fusion.estimation.wls import WLSFusion, information, wls
 
 __all__ = [
+    "FusedError",
     "NotObservableError",
     "SequentialFusion",
     "WLSFusion",
+    "best_subset",
+    "fused_error",
     "information",
+    "scalar_fused_variance",
     "sequential_fusion",
     "static_kalman_filter",
+    "subset_errors",
     "wls",
+    "wls_gains",
 ]
