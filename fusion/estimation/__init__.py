@@ -5,12 +5,23 @@
   `SequentialFusion`), equal to `wls` to round-off.
 - `mismatch`: the true error of a fusion built on wrong R (`fused_error`, `wls_gains`,
   `scalar_fused_variance`, `subset_errors`, `best_subset`): when fusing more sensors hurts.
+- `consistency`: NEES / NIS and their chi-square bounds (`nees`, `nis`, `chi2_interval`,
+  `mean_chi2_interval`, `consistency_report`, `is_consistent`).
 
 Names follow the textbook: x state, P its covariance, F transition, Q process noise, H measurement
 matrix, R measurement noise, y innovation, S its covariance, K gain.
 """
 
 from fusion.estimation._linalg import NotObservableError
+from fusion.estimation.consistency import (
+    ConsistencyReport,
+    chi2_interval,
+    consistency_report,
+    is_consistent,
+    mean_chi2_interval,
+    nees,
+    nis,
+)
 from fusion.estimation.mismatch import (
     FusedError,
     best_subset,
@@ -23,13 +34,20 @@ from fusion.estimation.sequential import SequentialFusion, sequential_fusion, st
 from fusion.estimation.wls import WLSFusion, information, wls
 
 __all__ = [
+    "ConsistencyReport",
     "FusedError",
     "NotObservableError",
     "SequentialFusion",
     "WLSFusion",
     "best_subset",
+    "chi2_interval",
+    "consistency_report",
     "fused_error",
     "information",
+    "is_consistent",
+    "mean_chi2_interval",
+    "nees",
+    "nis",
     "scalar_fused_variance",
     "sequential_fusion",
     "static_kalman_filter",
