@@ -7,6 +7,7 @@
   `scalar_fused_variance`, `subset_errors`, `best_subset`): when fusing more sensors hurts.
 - `consistency`: NEES / NIS and their chi-square bounds (`nees`, `nis`, `chi2_interval`,
   `mean_chi2_interval`, `consistency_report`, `is_consistent`).
+- `gating`: chi-square innovation gating (`gate_threshold`, `gated_update`, `gated_wls`).
 
 Names follow the textbook: x state, P its covariance, F transition, Q process noise, H measurement
 matrix, R measurement noise, y innovation, S its covariance, K gain.
@@ -22,6 +23,7 @@ from fusion.estimation.consistency import (
     nees,
     nis,
 )
+from fusion.estimation.gating import GatedFusion, gate_threshold, gated_update, gated_wls, innovation
 from fusion.estimation.mismatch import (
     FusedError,
     best_subset,
@@ -36,6 +38,7 @@ from fusion.estimation.wls import WLSFusion, information, wls
 __all__ = [
     "ConsistencyReport",
     "FusedError",
+    "GatedFusion",
     "NotObservableError",
     "SequentialFusion",
     "WLSFusion",
@@ -43,7 +46,11 @@ __all__ = [
     "chi2_interval",
     "consistency_report",
     "fused_error",
+    "gate_threshold",
+    "gated_update",
+    "gated_wls",
     "information",
+    "innovation",
     "is_consistent",
     "mean_chi2_interval",
     "nees",
