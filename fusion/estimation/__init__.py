@@ -8,12 +8,15 @@
 - `consistency`: NEES / NIS and their chi-square bounds (`nees`, `nis`, `chi2_interval`,
   `mean_chi2_interval`, `consistency_report`, `is_consistent`).
 - `gating`: chi-square innovation gating (`gate_threshold`, `gated_update`, `gated_wls`).
+- `ci`: covariance intersection for unknown correlation (`covariance_intersection`,
+  `covariance_intersection_n`, `ci_combine`, `naive_fusion`).
 
 Names follow the textbook: x state, P its covariance, F transition, Q process noise, H measurement
 matrix, R measurement noise, y innovation, S its covariance, K gain.
 """
 
 from fusion.estimation._linalg import NotObservableError
+from fusion.estimation.ci import ci_combine, covariance_intersection, covariance_intersection_n, naive_fusion
 from fusion.estimation.consistency import (
     ConsistencyReport,
     chi2_interval,
@@ -44,7 +47,10 @@ __all__ = [
     "WLSFusion",
     "best_subset",
     "chi2_interval",
+    "ci_combine",
     "consistency_report",
+    "covariance_intersection",
+    "covariance_intersection_n",
     "fused_error",
     "gate_threshold",
     "gated_update",
@@ -53,6 +59,7 @@ __all__ = [
     "innovation",
     "is_consistent",
     "mean_chi2_interval",
+    "naive_fusion",
     "nees",
     "nis",
     "scalar_fused_variance",
