@@ -10,6 +10,9 @@
 - `gating`: chi-square innovation gating (`gate_threshold`, `gated_update`, `gated_wls`).
 - `ci`: covariance intersection for unknown correlation (`covariance_intersection`,
   `covariance_intersection_n`, `ci_combine`, `naive_fusion`).
+- `tracker`: a constant-velocity Kalman tracker per object fed by several sensors (`CVTracker`,
+  `run_cv_tracker`, `run_cv_trackers`, `cv_model`, `cv_predict`, `position_update`,
+  `simulate_cv_truth`, `Measurement`, `TrackHistory`).
 
 Names follow the textbook: x state, P its covariance, F transition, Q process noise, H measurement
 matrix, R measurement noise, y innovation, S its covariance, K gain.
@@ -36,14 +39,28 @@ from fusion.estimation.mismatch import (
     wls_gains,
 )
 from fusion.estimation.sequential import SequentialFusion, sequential_fusion, static_kalman_filter
+from fusion.estimation.tracker import (
+    CVTracker,
+    Measurement,
+    TrackHistory,
+    cv_model,
+    cv_predict,
+    position_update,
+    run_cv_tracker,
+    run_cv_trackers,
+    simulate_cv_truth,
+)
 from fusion.estimation.wls import WLSFusion, information, wls
 
 __all__ = [
+    "CVTracker",
     "ConsistencyReport",
     "FusedError",
     "GatedFusion",
+    "Measurement",
     "NotObservableError",
     "SequentialFusion",
+    "TrackHistory",
     "WLSFusion",
     "best_subset",
     "chi2_interval",
@@ -51,6 +68,8 @@ __all__ = [
     "consistency_report",
     "covariance_intersection",
     "covariance_intersection_n",
+    "cv_model",
+    "cv_predict",
     "fused_error",
     "gate_threshold",
     "gated_update",
@@ -62,8 +81,12 @@ __all__ = [
     "naive_fusion",
     "nees",
     "nis",
+    "position_update",
+    "run_cv_tracker",
+    "run_cv_trackers",
     "scalar_fused_variance",
     "sequential_fusion",
+    "simulate_cv_truth",
     "static_kalman_filter",
     "subset_errors",
     "wls",
