@@ -83,7 +83,9 @@ def elevation_weights() -> np.ndarray:
 
 
 def scan(caster: WorldCaster, calib: Calibration, world_from_ego: np.ndarray, actor_ids: np.ndarray,
-         rng: np.random.Generator) -> RadarObservation:
+         rng: np.random.Generator, speckle: bool = True) -> RadarObservation:
+    """One scan of the radar at the ego pose (see module docstring). `speckle=False` returns the
+    mean (unspeckled) signal, for tests of the radar equation."""
     A, B, dr = calib.radar_azimuths, calib.radar_range_bins, calib.radar_range_resolution_m
     n_fine = A * OVERSAMPLE
     az = 2 * np.pi * np.arange(n_fine) / n_fine
@@ -115,7 +117,6 @@ def scan(caster: WorldCaster, calib: Calibration, world_from_ego: np.ndarray, ac
     b0 = np.floor(x).astype(int)
     frac = x - b0
     grid = np.zeros((n_fine, B))
-    inst_grid = np.zeros((n_fine, B))  # best per-actor power per cell
     for b, w in ((b0, 1 - frac), (b0 + 1, frac)):
         sel = ok & (b >= 0) & (b < B)
         np.add.at(grid, (fine_az[sel], b[sel]), p[sel] * w[sel])
@@ -130,16 +131,15 @@ def scan(caster: WorldCaster, calib: Calibration, world_from_ego: np.ndarray, ac
         order = np.lexsort((pw, cell))  # by cell, then power ascending
         last = np.r_[cell[order][1:] != cell[order][:-1], True]
         instance.reshape(-1)[cell[order][last]] = ids[hits.instance[act][order][last]]
-    del inst_grid
     # two-way azimuth pattern (circular convolution), then integrate into the coarse bins
     K = np.fft.rfft(azimuth_kernel(n_fine))
     smeared = np.fft.irfft(np.fft.rfft(grid, axis=0) * K[:, None], n=n_fine, axis=0)
     smeared = np.clip(smeared, 0, None)
-    coarse_signal = smeared.reshape(A, OVERSAMPLE, B).sum(axis=1) / 1.0
-    speckle = rng.exponential(1.0, size=(A, B))
+    coarse_signal = smeared.reshape(A, OVERSAMPLE, B).sum(axis=1)
+    speckle_draw = rng.exponential(1.0, size=(A, B))
     noise = NOISE_POWER * rng.exponential(1.0, size=(A, B))
     return RadarObservation(
-        signal=(coarse_signal * speckle).astype(np.float32),
+        signal=(coarse_signal * (speckle_draw if speckle else 1.0)).astype(np.float32),
         noise=noise.astype(np.float32),
         instance=instance,
         clutter=np.zeros((A, B), np.float32),

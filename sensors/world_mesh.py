@@ -107,13 +107,25 @@ def _lights(length, y_in, y_out, z0, z1) -> list[MeshSoup]:
 
 
 def _pedestrian(height: float = 1.72) -> MeshSoup:
+    """A walking adult mid-stride (legs and arms apart), so it fills its 0.5 x 0.6 m class box."""
     s = height / 1.72
+    hip, shoulder = 0.86 * s, 1.44 * s
+
+    def limb(x_foot, y0, y1, z0, z1, lean, material):
+        # a slanted leg/arm: a box rotated about y around its top (hip/shoulder) joint
+        part = _box(-0.06, 0.06, y0, y1, z0, z1, material)
+        ang = np.arctan2(x_foot, z1 - z0) * lean
+        c, sn = np.cos(ang), np.sin(ang)
+        v = part.vertices - [0, 0, z1]
+        part.vertices = np.column_stack([c * v[:, 0] + sn * v[:, 2], v[:, 1], -sn * v[:, 0] + c * v[:, 2]]) + [0, 0, z1]
+        return part
+
     parts = [
-        _box(-0.09, 0.09, -0.16, -0.03, 0.0, 0.86 * s, "clothing"),
-        _box(-0.09, 0.09, 0.03, 0.16, 0.0, 0.86 * s, "clothing"),
-        _box(-0.12, 0.12, -0.20, 0.20, 0.86 * s, 1.44 * s, "clothing"),
-        _box(-0.05, 0.05, -0.27, -0.20, 0.88 * s, 1.42 * s, "clothing"),
-        _box(-0.05, 0.05, 0.20, 0.27, 0.88 * s, 1.42 * s, "clothing"),
+        limb(0.19, -0.15, -0.03, 0.0, hip, -1.0, "clothing"),
+        limb(0.19, 0.03, 0.15, 0.0, hip, 1.0, "clothing"),
+        _box(-0.12, 0.12, -0.20, 0.20, hip, shoulder, "clothing"),
+        limb(0.14, -0.28, -0.20, 0.86 * s, 1.42 * s, 1.0, "clothing"),
+        limb(0.14, 0.20, 0.28, 0.86 * s, 1.42 * s, -1.0, "clothing"),
         _cylinder(0.05, 0.08, (0, 0, 1.48 * s), "z", "skin", 6),
         _sphere(0.11 * s, (0.0, 0.0, 1.61 * s), "skin"),
     ]
@@ -166,7 +178,7 @@ def class_template(cls: str) -> MeshSoup:
               _box(-0.22, 0.18, -0.20, 0.20, 0.95, 1.45, "clothing"),
               _sphere(0.11, (0.0, 0.0, 1.60), "skin")]
     elif cls == "pedestrian":
-        return _pedestrian()
+        p.append(_pedestrian(H))
     else:
         raise ValueError(f"no single template for class {cls!r}")
     soup = MeshSoup.concat(p)
@@ -184,6 +196,8 @@ def group_template(actor_id: int, members: int, size: np.ndarray) -> MeshSoup:
     for _ in range(members):
         for _try in range(30):
             xy = rng.uniform([-L / 2 + 0.25, -W / 2 + 0.3], [L / 2 - 0.25, W / 2 - 0.3])
+            # spread towards the footprint's edges, so the group fills its box
+            xy = np.sign(xy) * np.maximum(np.abs(xy), rng.uniform(0.3, 1.0) * np.array([L / 2 - 0.25, W / 2 - 0.3]))
             if all(np.linalg.norm(xy - q) > 0.55 for q in placed):
                 break
         placed.append(xy)
