@@ -41,12 +41,12 @@ SUN_COLOUR = np.array([1.0, 0.96, 0.88], np.float32)
 SKY_COLOUR = np.array([0.80, 0.90, 1.10], np.float32)
 LAMP_COLOUR = np.array([1.0, 0.86, 0.62], np.float32)  # warm-white / high-pressure sodium look
 HEADLIGHT_COLOUR = np.array([1.0, 1.0, 0.95], np.float32)
-LAMP_INTENSITY_CD = 4000.0  # peak luminous intensity of a 10 klm street lamp [cd]
+LAMP_INTENSITY_CD = 2500.0  # peak luminous intensity of an ~8 klm urban street lantern [cd]
 HEADLIGHT_INTENSITY_CD = 20000.0  # peak of a dipped (low) beam [cd] (UN R112 ~ 10-30 kcd)
 GROUND_ALBEDO = 0.12  # for the light reflected up from the ground
 LIGHT_RANGE_M = 70.0  # lights farther than this from the camera are ignored
 EXPOSURE_KEY = 0.18  # mid-grey target of the auto-exposure (Reinhard's key)
-MAX_EXPOSURE = 0.02  # [1/(cd/m^2)]: longest exposure x base gain the camera allows
+MAX_EXPOSURE = 0.01  # [1/(cd/m^2)]: longest exposure x base gain (~150x the daylight exposure)
 MIN_EXPOSURE = 1e-6
 PSF_SIGMA_PX = 0.5  # lens blur (also hides the aliasing of the single-sample pass)
 
@@ -308,7 +308,7 @@ def shade(
         near = np.linalg.norm(lighting.lamps - cam_pos, axis=1) < LIGHT_RANGE_M
         for pos in lighting.lamps[near]:
             # a cut-off luminaire: strongest straight down, nothing above the horizontal
-            add_light(pos, lambda dirs: LAMP_INTENSITY_CD * np.clip(-dirs[:, 2], 0, 1) ** 0.7, LAMP_COLOUR)
+            add_light(pos, lambda dirs: LAMP_INTENSITY_CD * np.clip(-dirs[:, 2], 0, 1) ** 1.5, LAMP_COLOUR)
     if lighting.headlights_on:
         for pos, axis in lighting.headlights:
             if np.linalg.norm(pos - cam_pos) > LIGHT_RANGE_M:

@@ -33,9 +33,9 @@ ELEVATIONS_DEG = np.array([-3.0, -2.0, -1.2, -0.6, 0.0, 0.6, 1.2, 2.0])  # fan a
 ELEVATION_BEAMWIDTH_DEG = 1.8  # one-way -3 dB (assumed equal to the azimuth width)
 SPECULAR_WIDTH_DEG = 5.0
 NOISE_POWER = 1.0  # receiver noise per cell (the unit of power)
-# C such that a 10 m^2 target (a car) at 100 m sits 35 dB above the noise, i.e. 13 dB at the
-# CTS350-X's rated 350 m: C * 10 / 100^4 = 10^3.5 N0
-RADAR_CONSTANT = 10**3.5 * NOISE_POWER * 100.0**4 / 10.0
+# C such that a 10 m^2 target (a car) at 100 m sits 25 dB above the noise (3 dB at the CTS350-X's
+# rated 350 m): C * 10 / 100^4 = 10^2.5 N0
+RADAR_CONSTANT = 10**2.5 * NOISE_POWER * 100.0**4 / 10.0
 DB_PER_COUNT = 0.5
 DB_OFFSET = -10.0  # count 0 = -10 dB relative to the noise power
 

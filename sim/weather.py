@@ -367,3 +367,28 @@ class WeatherTrack:
         if f <= 0.0:
             return self.clear
         return interpolate_weather(self.clear, self.target, f)
+
+
+def representative_weather(condition: str, severity: int) -> WeatherState:
+    """A typical state of one condition at one severity (no randomness): the interval's centre
+    (geometric for log-scaled quantities), lens coverage at 65 % of the level's maximum, overcast
+    daylight (8 klx) for rain/fog/snow. Severity 0 is clear daylight (30 klx)."""
+    if severity == 0:
+        return WeatherState(illuminance_lux=30_000.0)
+    lo, hi = severity_interval(condition, severity)
+    spec = SEVERITY_TABLE[condition]
+    value = math.sqrt(lo * hi) if spec["scale"] == "log" else (lo + hi) / 2
+    state = {"fog_visibility_m": 20_000.0, "illuminance_lux": 8_000.0}
+    state[spec["quantity"]] = value
+    cover = 0.65 * LENS_COVERAGE_MAX_PCT[condition][severity - 1] if condition in LENS_COVERAGE_MAX_PCT else 0.0
+    film = water_film_from_rain(state.get("rain_mm_h", 0.0))
+    if condition == "snow":
+        film = 0.3 * state["snow_mm_h"]
+    return WeatherState(
+        fog_visibility_m=state["fog_visibility_m"],
+        rain_mm_h=state.get("rain_mm_h", 0.0),
+        snow_mm_h=state.get("snow_mm_h", 0.0),
+        water_film_mm=film,
+        illuminance_lux=state["illuminance_lux"],
+        lens_coverage_pct=(cover, cover * 0.8),
+    )

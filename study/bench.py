@@ -26,6 +26,18 @@ def add_parser(sub, name, help_text):
     s.add_argument("--seed", type=int, default=0)
     s.add_argument("--json", action="store_true", help="print one JSON object on stdout")
     s.set_defaults(run=run_sim)
+    g = what.add_parser("generate", help="full frames per second (cameras, lidar, radar, labels, degradation)",
+                        description="Generate a temporary dataset over every context for each profile and "
+                        "worker count, and report frames per second plus milliseconds per pipeline component "
+                        "and per degradation model (summed over workers, per rendered frame).",
+                        formatter_class=Formatter)
+    g.add_argument("--profiles", default="cpu,paper", help="comma-separated sensor profiles")
+    g.add_argument("--workers", default="1,2", help="comma-separated worker counts")
+    g.add_argument("--frames-per-context", type=pos_int, default=10, help="frames per context per run")
+    g.add_argument("--sequence-length", type=pos_int, default=10, help="frames per sequence (setup is amortised over it)")
+    g.add_argument("--seed", type=int, default=0)
+    g.add_argument("--json", action="store_true", help="print one JSON object on stdout")
+    g.set_defaults(run=run_generate)
 
 
 def run_sim(args) -> int:
@@ -53,4 +65,54 @@ def run_sim(args) -> int:
     emit(result, args.json, lambda r: "\n".join(
         [f"{c:9s} {v:8.1f} scenes/s  (setup {r['setup_seconds'][c]:.2f} s incl. warm-up)"
          for c, v in r["scenes_per_second"].items()]))
+    return 0
+
+
+def run_generate(args) -> int:
+    import tempfile
+
+    from sensors.generate import GenerateConfig, generate
+    from sim.errors import UserError
+
+    profiles = [p.strip() for p in args.profiles.split(",") if p.strip()]
+    try:
+        workers = [int(w) for w in args.workers.split(",") if w.strip()]
+    except ValueError:
+        raise UserError(f"--workers must be integers separated by commas, got {args.workers!r}") from None
+    if not workers or min(workers) < 1:
+        raise UserError("--workers must list positive integers")
+    runs, components = [], {}
+    for profile in profiles:
+        for w in workers:
+            config = GenerateConfig(frames_per_context=args.frames_per_context, sequence_length=args.sequence_length,
+                                    seed=args.seed, profile=profile)
+            with tempfile.TemporaryDirectory(prefix="hydrabench-bench-") as tmp:
+                r = generate(config, tmp, workers=w, progress=True)
+            runs.append({"profile": profile, "workers": w, "frames": r["frames"], "seconds": r["seconds"],
+                         "frames_per_second": r["frames_per_second"]})
+            if w == workers[0]:
+                components[profile] = r["ms_per_frame"]
+    degradation = {}
+    for profile, ms in components.items():
+        total = sum(v for k, v in ms.items() if not k.startswith("degrade/") and k != "degradation")
+        total += ms.get("degradation", 0.0)
+        degradation[profile] = {
+            "ms_per_model": {k.split("/", 1)[1]: v for k, v in ms.items() if k.startswith("degrade/")},
+            "ms_total": ms.get("degradation", 0.0),
+            "share_of_frame": round(ms.get("degradation", 0.0) / total, 3) if total else None,
+        }
+    result = {"runs": runs, "ms_per_component": components, "degradation": degradation,
+              "frames_per_context": args.frames_per_context, "sequence_length": args.sequence_length, **machine()}
+
+    def text(r):
+        lines = [f"{x['profile']:6s} workers {x['workers']}: {x['frames_per_second']} frames/s "
+                 f"({x['frames']} frames in {x['seconds']} s)" for x in r["runs"]]
+        for p, ms in r["ms_per_component"].items():
+            lines.append(f"{p} ms per frame: " + ", ".join(f"{k} {v}" for k, v in ms.items() if not k.startswith("degrade/")))
+            d = r["degradation"][p]
+            lines.append(f"{p} degradation {d['ms_total']} ms ({d['share_of_frame']} of a frame): "
+                         + ", ".join(f"{k} {v}" for k, v in d["ms_per_model"].items()))
+        return "\n".join(lines)
+
+    emit(result, args.json, text)
     return 0

@@ -99,6 +99,7 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "verify": ("study.cmd_dataset:add_verify", "check a dataset's shards against its manifest checksums"),
     "export-coco": ("study.cmd_dataset:add_export", "write a dataset's FWD labels as COCO JSON"),
     "show": ("study.cmd_dataset:add_show", "draw one frame of a dataset with every sensor and its labels"),
+    "gallery": ("study.cmd_gallery:add_parser", "one scene under every condition and severity, all sensors side by side"),
     "bench": ("study.bench:add_parser", "measure throughput (sim, generate, ...) and print the figures"),
 }
 

@@ -203,3 +203,45 @@ def plot_frame(frame: dict, path: str) -> None:
     fig.tight_layout(rect=(0, 0.03, 1, 0.9))
     savefig_atomic(fig, path)
     plt.close(fig)
+
+
+def _weather_label(cond: str, sev: int, w) -> str:
+    if cond == "clear":
+        return "clear (severity 0)"
+    if cond == "fog":
+        q = f"visibility {w.fog_visibility_m:.0f} m"
+    elif cond == "rain":
+        q = f"{w.rain_mm_h:.1f} mm/h"
+    elif cond == "snow":
+        q = f"{w.snow_mm_h:.2f} mm/h"
+    else:
+        q = f"{w.illuminance_lux:.3g} lx"
+    return f"{cond} {sev}\n{q}"
+
+
+def plot_gallery(panels: list, path: str, title: str = "") -> None:
+    """Rows of (condition, severity), columns: right camera, forward lidar, lidar BEV, radar BEV."""
+    n = len(panels)
+    fig, axes = plt.subplots(n, 4, figsize=(13, 1.95 * n), dpi=70,
+                             gridspec_kw={"width_ratios": [1.79, 1.79, 1, 1]})
+    axes = np.atleast_2d(axes)
+    cols = ("camera_right", "forward lidar", "lidar BEV", "radar BEV")
+    for r, p in enumerate(panels):
+        fr = p["frame"]
+        S = fr.lidar_bev.shape[0]
+        c0, c1 = S // 4, 3 * S // 4  # central half of the BEV: +-25 m at the cpu profile
+        imgs = [fr.camera_right, fr.fwd_lidar, fr.lidar_bev[c0:c1, c0:c1],
+                np.clip((fr.radar_bev[c0:c1, c0:c1].astype(float) - 15) / 90, 0, 1)]
+        for c, (ax, img) in enumerate(zip(axes[r], imgs)):
+            ax.imshow(img, cmap="gray" if img.ndim == 2 else None, interpolation="nearest", aspect="auto")
+            ax.set_xticks([])
+            ax.set_yticks([])
+            if r == 0:
+                ax.set_title(cols[c], fontsize=10)
+        axes[r, 0].set_ylabel(_weather_label(p["condition"], p["severity"], p["weather"]), fontsize=9,
+                              rotation=0, ha="right", va="center")
+    if title:
+        fig.suptitle(title, fontsize=11)
+    fig.tight_layout(rect=(0.04, 0, 1, 0.995 if not title else 1 - 0.6 / (1.95 * n)))
+    savefig_atomic(fig, path)
+    plt.close(fig)

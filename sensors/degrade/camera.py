@@ -38,8 +38,9 @@ class WetRoad(Degradation):
     """A water film darkens the road (wet asphalt absorbs more) and mirrors the scene in it.
 
     Wetness w = min(1, film / 0.5 mm); diffuse radiance x (1 - 0.45 w); a mirror image about the
-    horizon row with Fresnel reflectance ~0.15 at grazing incidence adds reflections of the sky,
-    vehicles and lights.
+    horizon row, blurred by the asphalt's roughness (mostly vertically, the streaks of lights on wet
+    roads) and weighted by a Fresnel reflectance ~0.08, adds reflections of the sky, vehicles and
+    lights.
     """
 
     name = "wet_road"
@@ -48,7 +49,7 @@ class WetRoad(Degradation):
     def sample_params(self, rng, weather, ctx):
         if weather.water_film_mm <= 0:
             return None
-        return {"wetness": float(min(1.0, weather.water_film_mm / 0.5)), "fresnel": 0.15}
+        return {"wetness": float(min(1.0, weather.water_film_mm / 0.5)), "fresnel": 0.08}
 
     def apply(self, obs, params, ctx):
         cam = ctx.calib.camera(ctx.camera)
@@ -58,7 +59,8 @@ class WetRoad(Degradation):
         H = L.shape[0]
         horizon = cam.K[1, 2]
         rows = np.clip(np.round(2 * horizon - np.arange(H) - 1).astype(int), 0, H - 1)
-        mirror = obs.radiance[rows]
+        sc = _scale(ctx)
+        mirror = gaussian_filter(obs.radiance[rows], sigma=(4.0 * sc, 1.5 * sc, 0))
         L[road] = L[road] * (1 - 0.45 * w) + params["fresnel"] * w * mirror[road]
         return _copy(obs, radiance=L)
 
@@ -161,8 +163,9 @@ class RainStreaks(Degradation):
 class SnowFlakes(Degradation):
     """Snowflakes in the air: bright, slowly falling discs (size D ~ 2-8 mm, 1-1.5 m/s).
 
-    n = 3000 S^0.8 flakes per 63k pixels (S in mm/h water equivalent), lit by the sky (0.9 A) and by
-    lamps/headlights (a floor on their radiance at night), opacity = disc area / pixel area.
+    n = 6000 S^0.8 flakes per 63k pixels (S in mm/h water equivalent) 0.8-20 m away, lit by the sky
+    (0.9 A) and by lamps/headlights (a floor on their radiance at night), opacity = disc area / pixel
+    area, and at most 0.6 for the near, defocused ones.
     """
 
     name = "snow_flakes"
@@ -172,17 +175,17 @@ class SnowFlakes(Degradation):
         if weather.snow_mm_h <= 0:
             return None
         cam = ctx.calib.camera(ctx.camera)
-        n = int(3000 * weather.snow_mm_h**0.8 * cam.width * cam.height / 63168)
+        n = int(6000 * weather.snow_mm_h**0.8 * cam.width * cam.height / 63168)
         return {"flakes": n, "exposure_s": 0.005 if weather.illuminance_lux > 400 else 0.03,
                 "seed": int(rng.integers(2**31))}
 
     def apply(self, obs, params, ctx):
         cam = ctx.calib.camera(ctx.camera)
         rng = np.random.default_rng(params["seed"] + 1)
-        size_m = rng.uniform(0.002, 0.008, params["flakes"])
-        p0, p1, z, size_px = _air_particles(params["seed"], params["flakes"], cam, (0.3, 20.0), 1.2,
+        size_m = rng.uniform(0.002, 0.006, params["flakes"])
+        p0, p1, z, size_px = _air_particles(params["seed"], params["flakes"], cam, (0.8, 20.0), 1.2,
                                             params["exposure_s"], size_m)
-        alpha = np.clip(size_px**2, 0.05, 1.0)
+        alpha = np.clip(size_px**2, 0.15, 0.6)
         lum = np.maximum(0.9 * obs.sky_radiance, 0.5 * np.percentile(obs.radiance, 99, axis=(0, 1)))
         radiance = np.repeat(lum[None], len(z), 0)
         L = obs.radiance.copy()
@@ -195,7 +198,7 @@ class SnowFlakes(Degradation):
                 continue
             yy, xx = np.mgrid[v0:v1, u0:u1]
             m = ((xx + 0.5 - u) ** 2 + (yy + 0.5 - v) ** 2 <= r**2) & (obs.depth[v0:v1, u0:u1] > zz)
-            L[v0:v1, u0:u1][m] = 0.3 * L[v0:v1, u0:u1][m] + 0.7 * lum
+            L[v0:v1, u0:u1][m] = 0.5 * L[v0:v1, u0:u1][m] + 0.5 * lum
         return _copy(obs, radiance=L)
 
 
@@ -213,8 +216,8 @@ class Glare(Degradation):
             return None
         scale = _scale(ctx)
         fog = min(1.0, 300.0 / weather.visibility_m)
-        return {"threshold_cd_m2": 500.0, "radius_px": float(4 * scale * (1 + 2 * fog)),
-                "strength": float(0.04 * (1 + 3 * fog))}
+        return {"threshold_cd_m2": 500.0, "radius_px": float(3 * scale * (1 + 2 * fog)),
+                "strength": float(0.015 * (1 + 3 * fog))}
 
     def apply(self, obs, params, ctx):
         from scipy.ndimage import zoom
@@ -238,20 +241,29 @@ def _blobs(rng, n, H, W, r_range, scale):
             for _ in range(n)]
 
 
-def _coverage_blobs(rng, coverage_pct, H, W, r_range, scale, cap=400):
+def _coverage_blobs(rng, coverage_pct, H, W, r_range, scale, cap=400, cluster=1):
+    """Blobs [u, v, r] covering about coverage_pct of the image; with cluster > 1 each patch is a
+    clump of `cluster` overlapping smaller blobs (irregular outlines, e.g. snow)."""
     blobs, area = [], 0.0
     target = coverage_pct / 100.0 * H * W
     while area < target and len(blobs) < cap:
-        b = _blobs(rng, 1, H, W, r_range, scale)[0]
-        blobs.append(b)
-        area += np.pi * b[2] ** 2
+        u, v, r = _blobs(rng, 1, H, W, r_range, scale)[0]
+        if cluster > 1:
+            for _ in range(cluster):
+                rr = r * rng.uniform(0.35, 0.6)
+                du, dv = rng.normal(0, 0.45 * r, 2)
+                blobs.append([u + du, v + dv, rr])
+            area += 0.6 * np.pi * r**2
+        else:
+            blobs.append([u, v, r])
+            area += np.pi * r**2
     return blobs
 
 
 @lru_cache(maxsize=64)
-def _blobs_cached(seed: int, coverage_pct: float, H: int, W: int, r_range: tuple, scale: float):
+def _blobs_cached(seed: int, coverage_pct: float, H: int, W: int, r_range: tuple, scale: float, cluster: int = 1):
     """Blob layout and masks for a seed (lens faults persist over a sequence: compute once)."""
-    blobs = _coverage_blobs(np.random.default_rng(seed), coverage_pct, H, W, r_range, scale)
+    blobs = _coverage_blobs(np.random.default_rng(seed), coverage_pct, H, W, r_range, scale, cluster=cluster)
     which, rad = _blob_mask(blobs, H, W)
     return blobs, which, rad
 
@@ -324,19 +336,19 @@ class LensSnow(Degradation):
         if weather.snow_mm_h <= 0 or cov <= 0:
             return None
         seed = persistent(ctx, f"lens_snow/{ctx.camera}", lambda r: int(r.integers(2**31)))
-        return {"coverage_pct": float(cov), "seed": seed, "transmission": 0.25}
+        return {"coverage_pct": float(cov), "seed": seed, "transmission": 0.4}
 
     def apply(self, obs, params, ctx):
         H, W = obs.depth.shape
-        blobs, which, rad = _blobs_cached(params["seed"], round(params["coverage_pct"], 1), H, W, (4.0, 14.0),
-                                          _scale(ctx))
+        blobs, which, rad = _blobs_cached(params["seed"], round(params["coverage_pct"], 1), H, W, (5.0, 16.0),
+                                          _scale(ctx), 4)
         inside = which >= 0
         if not inside.any():
             return obs
         blurred = gaussian_filter(obs.radiance, sigma=(4.0 * _scale(ctx), 4.0 * _scale(ctx), 0))
         # snow is white and lit from everywhere: brighter than the average scene
         ambient = np.maximum(obs.sky_radiance, np.mean(obs.radiance, axis=(0, 1))) * 1.2
-        soft = np.clip((1 - rad) * 3, 0, 1)[..., None]  # soft edges
+        soft = (0.85 * np.clip(1 - rad, 0, 1) ** 0.6)[..., None]  # out of focus: soft, never fully opaque
         t = params["transmission"]
         L = obs.radiance.copy()
         mix = t * blurred + (1 - t) * ambient
@@ -412,7 +424,7 @@ class CameraBlackout(Degradation):
 @register
 class LowLightSensor(Degradation):
     """Low light: the exposure hits the camera's limit (sensors.camera.MAX_EXPOSURE), the camera
-    raises its analogue gain up to 8x, and the image gets Poisson-Gaussian noise (photon shot
+    raises its analogue gain up to 4x, and the image gets Poisson-Gaussian noise (photon shot
     noise on a 6,000 e- full well plus 4 e- read noise, multiplied by the gain), as in the
     low-light corruptions of MultiCorrupt and RoboBEV, but from the frame's illuminance.
     """
@@ -423,7 +435,7 @@ class LowLightSensor(Degradation):
     def sample_params(self, rng, weather, ctx):
         if weather.illuminance_lux >= 400:
             return None
-        return {"full_well_e": 6000.0, "read_noise_e": 4.0, "max_gain": 8.0, "seed": int(rng.integers(2**31))}
+        return {"full_well_e": 6000.0, "read_noise_e": 4.0, "max_gain": 4.0, "seed": int(rng.integers(2**31))}
 
     def apply(self, obs, params, ctx):
         return _copy(obs, sensor_noise=dict(params))

@@ -7,7 +7,7 @@ import math
 import numpy as np
 import pytest
 
-from sensors.degrade import DEGRADATIONS, Degrader, DegradeContext
+from sensors.degrade import DEGRADATIONS, DegradeContext, Degrader
 from sensors.degrade.base import OBSTRUCTION_PROBABILITY
 from sensors.degrade.camera import pixel_range
 from sensors.degrade.radar import p838_gamma, range_centres, two_way_loss_db

@@ -1,0 +1,162 @@
+"""The on-disk dataset: deterministic whatever the workers, resumable after kill -9, verifiable,
+readable with numpy + json alone, exportable to COCO."""
+
+import json
+import os
+import shutil
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from sensors.dataset import ARRAYS, DatasetReader, verify
+from sensors.generate import GenerateConfig, generate, plan
+from study.cli import main
+
+CONFIG = GenerateConfig(contexts=("junction", "fog"), frames_per_context=2, sequence_length=1, seed=5, twins=True)
+ARGS = ["--contexts", "junction,fog", "--frames-per-context", "2", "--sequence-length", "1", "--seed", "5", "--twins"]
+
+
+@pytest.fixture(scope="module")
+def reference(tmp_path_factory):
+    out = tmp_path_factory.mktemp("ref")
+    summary = generate(CONFIG, out, workers=2, progress=False)
+    return out, summary
+
+
+def _digests(root: Path) -> dict:
+    return {s["name"]: s["sha256"] for s in json.loads((root / "manifest.json").read_text())["shards"]}
+
+
+def test_same_bytes_whatever_the_number_of_workers(reference, tmp_path):
+    ref, summary = reference
+    assert summary["frames"] == 4 and summary["workers"] == 2
+    one = tmp_path / "one"
+    generate(CONFIG, one, workers=1, progress=False)
+    assert _digests(one) == _digests(ref)
+    for shard in _digests(ref):
+        for name in ARRAYS + ("lidar_points",):
+            a, b = np.load(ref / shard / f"{name}.npy"), np.load(one / shard / f"{name}.npy")
+            assert a.dtype == b.dtype and np.array_equal(a, b), (shard, name)
+
+
+def test_kill_9_then_rerun_completes_identically(reference, tmp_path):
+    ref, _ = reference
+    out = tmp_path / "killed"
+    cmd = [sys.executable, "-m", "study.cli", "generate", "--out", str(out), *ARGS]
+    env = dict(os.environ)
+    proc = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, env=env)
+    deadline = time.time() + 240
+    while time.time() < deadline and not (out / "shard-00000").exists():
+        time.sleep(0.2)
+    proc.send_signal(signal.SIGKILL)
+    proc.wait()
+    assert (out / "shard-00000").exists(), "the first shard never appeared"
+    assert not (out / "manifest.json").exists()
+    code = subprocess.run(cmd + ["--json"], capture_output=True, text=True, env=env)
+    assert code.returncode == 0, code.stderr[-2000:]
+    result = json.loads(code.stdout)
+    assert result["frames"] == 4 and result["frames_rendered"] < 4  # the finished shard was kept
+    assert _digests(out) == _digests(ref)
+    assert not list(out.glob("*.tmp-*"))
+
+
+def test_verify_names_corrupted_and_missing_shards(reference, tmp_path, capsys):
+    ref, _ = reference
+    copy = tmp_path / "copy"
+    shutil.copytree(ref, copy)
+    assert verify(copy) == []
+    assert main(["verify", str(copy), "--json"]) == 0
+    assert json.loads(capsys.readouterr().out)["ok"] is True
+    f = copy / "shard-00001" / "radar_polar.npy"
+    data = bytearray(f.read_bytes())
+    data[-1] ^= 0xFF
+    f.write_bytes(bytes(data))
+    shutil.rmtree(copy / "shard-00002")
+    assert main(["verify", str(copy)]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "shard-00001: checksum mismatch" in err[0] and "shard-00002: missing" in err[0]
+
+
+def test_reader_is_numpy_and_json_only(reference):
+    ref, _ = reference
+    r = DatasetReader(ref)
+    assert len(r) == 4
+    frame = r[1]
+    assert frame["camera_left"].shape == (188, 336, 3) and frame["camera_left"].dtype == np.uint8
+    assert frame["lidar_bev"].shape == (256, 256, 3) and frame["radar_polar"].shape == (400, 288)
+    assert frame["lidar_points"].shape[1] == 5 and len(frame["lidar_points"]) == len(frame["lidar_instance"])
+    assert isinstance(r._arrays[(r.index[1][0], "camera_left")], np.memmap)
+    meta = frame["meta"]
+    assert meta["context"] == "junction" and "calibration" in meta and "degradation" in meta
+    labels = frame["labels"]
+    assert set(labels) == {"camera_left", "camera_right", "bev"}
+    for name in ("camera_left", "camera_right"):
+        boxes = np.array(labels[name]["boxes"]).reshape(-1, 4)
+        assert np.all(boxes[:, 2] > boxes[:, 0]) and np.all(boxes[:, 3] > boxes[:, 1])
+    probe = subprocess.run([sys.executable, "-c", "import sys; from sensors.dataset import DatasetReader; "
+                            f"r = DatasetReader({str(ref)!r}); r[0]; print('torch' in sys.modules)"],
+                           capture_output=True, text=True)
+    assert probe.stdout.strip() == "False", probe.stderr[-500:]  # sensors/ stays free of torch
+    twins = DatasetReader(ref, clear=True)
+    assert twins[2]["meta"]["weather"]["fog_visibility_m"] >= 10_000 > r[2]["meta"]["weather"]["fog_visibility_m"]
+    np.testing.assert_array_equal(twins[2]["lidar_points"].shape[1], 5)
+    # the manifest indexes every frame with its context and severity
+    m = json.loads((ref / "manifest.json").read_text())
+    assert [f["context"] for f in m["frames"]] == ["junction", "junction", "fog", "fog"]
+    assert m["config"]["seed"] == 5 and len(m["shards"]) == len(plan(CONFIG))
+
+
+def test_coco_export_loads_in_pycocotools(reference, tmp_path, capsys):
+    from pycocotools.coco import COCO
+
+    ref, _ = reference
+    out = tmp_path / "coco" / "labels.json"
+    assert main(["export-coco", str(ref), "--out", str(out)]) == 0
+    coco = COCO(str(out))
+    assert len(coco.getImgIds()) == 4
+    r = DatasetReader(ref)
+    n = sum(len(r.labels(i)["camera_right"]["ids"]) for i in range(len(r)))
+    assert len(coco.getAnnIds()) == n
+    ann = coco.loadAnns(coco.getAnnIds(imgIds=[1]))
+    first = r.labels(0)["camera_right"]
+    if first["boxes"]:
+        x1, y1, x2, y2 = first["boxes"][0]
+        np.testing.assert_allclose(ann[0]["bbox"], [x1, y1, x2 - x1, y2 - y1])
+
+
+def test_show_draws_a_frame(reference, tmp_path):
+    ref, _ = reference
+    png = tmp_path / "f.png"
+    assert main(["show", str(ref), "--index", "-1", "--out", str(png)]) == 0
+    assert png.read_bytes()[:4] == b"\x89PNG"
+    assert main(["show", str(ref), "--index", "9", "--out", str(png)]) == 2
+
+
+@pytest.mark.parametrize("argv, needle", [
+    (["generate", "--out", "{tmp}/x", "--contexts", "volcano"], "unknown context"),
+    (["generate", "--out", "{tmp}/x", "--severities", "2,9"], "severities"),
+    (["generate", "--out", "/proc/nope/x"], "cannot create directory"),
+    (["generate", "--out", "{tmp}/x", "--profile", "gpu"], "unknown profile"),
+    (["generate", "--out", "{tmp}/x", "--config", "{tmp}/bad.yaml"], "unknown key 'framez'"),
+    (["verify", "{tmp}/nothing"], "is not a directory"),
+])
+def test_generate_bad_input_is_one_line_exit_2(argv, needle, tmp_path, capsys):
+    (tmp_path / "bad.yaml").write_text("framez: 3\n")
+    code = main([a.replace("{tmp}", str(tmp_path)) for a in argv])
+    err = capsys.readouterr().err.strip().splitlines()
+    assert code == 2 and len(err) == 1 and needle in err[0], err
+    assert not (tmp_path / "x" / "manifest.json").exists()
+
+
+def test_a_directory_from_another_config_is_refused(reference, tmp_path, capsys):
+    ref, _ = reference
+    copy = tmp_path / "other"
+    shutil.copytree(ref, copy)
+    code = main(["generate", "--out", str(copy), "--contexts", "junction,fog", "--frames-per-context", "2",
+                 "--sequence-length", "1", "--seed", "6"])
+    assert code == 2 and "different generation config" in capsys.readouterr().err
