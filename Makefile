@@ -23,10 +23,14 @@ $(STAMP): requirements.lock constraints.txt pyproject.toml
 
 demo: $(STAMP)
 	@mkdir -p $(DEMO)
+	$(BIN)/hydrabench scenes --context all --frames 20 --seed 0 --plot $(DEMO)/scenes
+	$(BIN)/hydrabench generate --out $(DEMO)/data --frames-per-context 10 --seed 0 --workers 2 --twins
+	$(BIN)/hydrabench verify $(DEMO)/data
 	@for c in $(CONTEXTS); do \
-	  $(BIN)/hydrabench scenes --context $$c --frames 20 --seed 0 --plot $(DEMO)/scene_$$c.png || exit $$?; \
+	  $(BIN)/hydrabench show $(DEMO)/data --context $$c --index 0 --out $(DEMO)/frame_$$c.png || exit $$?; \
 	done
-	@echo "demo: top-down scene pictures in $(DEMO)/" >&2
+	$(BIN)/hydrabench gallery $(DEMO)/data --context city --out $(DEMO)/gallery.png
+	@echo "demo: scenes in $(DEMO)/scenes, dataset in $(DEMO)/data, frames and gallery in $(DEMO)/" >&2
 
 lint: $(STAMP)
 	$(BIN)/ruff check .

@@ -33,7 +33,7 @@ from shapely.geometry import LineString, Polygon  # noqa: E402
 
 from sim.actors import sample_size  # noqa: E402
 from sim.registry import Registry  # noqa: E402
-from sim.traffic import HydraVehicle, adopt, new_vehicle  # noqa: E402
+from sim.traffic import HydraVehicle, adopt, new_vehicle, preserve_idm_defaults  # noqa: E402
 from sim.world import (  # noqa: E402
     guardrail_segments,
     hw_to_world,
@@ -131,8 +131,9 @@ class Layout:
     # --- hooks --------------------------------------------------------------------------------
     def make_road(self, rng: np.random.Generator) -> tuple[Road, HydraVehicle]:
         """Build the highway-env road with classified traffic; returns (road, ego)."""
-        env = gym.make(self.env_id, config=dict(self.env_config))
-        env.reset(seed=int(rng.integers(2**31 - 1)))
+        with preserve_idm_defaults():
+            env = gym.make(self.env_id, config=dict(self.env_config))
+            env.reset(seed=int(rng.integers(2**31 - 1)))
         road = env.unwrapped.road
         ego_hw = env.unwrapped.vehicle
         vehicles = []
@@ -300,6 +301,17 @@ class Junction(Layout):
         _remove_near(road, ego, 15.0)
         road.vehicles.append(ego)
         return road, ego
+
+    def classify(self, rng, vehicle, cls=None):
+        v = super().classify(rng, vehicle, cls)
+        v.COMFORT_ACC_MAX, v.COMFORT_ACC_MIN = 6.0, -3.0  # as highway-env's intersection-v2 drivers
+        return v
+
+    def spawn(self, rng, road, ego, dt):
+        n = len(road.vehicles)
+        super().spawn(rng, road, ego, dt)
+        for v in road.vehicles[n:]:
+            v.COMFORT_ACC_MAX, v.COMFORT_ACC_MIN = 6.0, -3.0
 
     def entries(self):
         return [((f"o{k}", f"ir{k}", 0), [f"o{j}" for j in range(4) if j != k]) for k in range(4)]

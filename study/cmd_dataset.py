@@ -136,7 +136,9 @@ def add_show(sub, name, help_text):
                        "lidar and radar BEV with BEV boxes, the forward-lidar projection, and a caption with the "
                        "context, weather and degradation parameters.", formatter_class=Formatter)
     p.add_argument("dir", help="dataset directory")
-    p.add_argument("--index", type=int, default=0, help="frame index (negative counts from the end)")
+    p.add_argument("--index", type=int, default=0,
+                   help="frame index (negative counts from the end); with --context, the index among that context's frames")
+    p.add_argument("--context", default=None, help="pick the frame among this context's frames")
     p.add_argument("--out", required=True, help="PNG to write")
     p.add_argument("--clear", action="store_true", help="show the clear-weather twin of the frame")
     p.set_defaults(run=run_show)
@@ -149,8 +151,17 @@ def run_show(args) -> int:
 
     out = check_writable_file(args.out)
     reader = DatasetReader(Path(args.dir), clear=args.clear)
-    if not -len(reader) <= args.index < len(reader):
-        raise UserError(f"--index {args.index} is out of range (dataset has {len(reader)} frames)")
-    plot_frame(reader[args.index], str(out))
+    candidates = list(range(len(reader)))
+    if args.context is not None:
+        from sim.scenario import Context
+
+        name = Context.parse(args.context).name
+        candidates = [i for i, f in enumerate(reader.manifest["frames"]) if f["context"] == name]
+        if not candidates:
+            present = sorted({f["context"] for f in reader.manifest["frames"]})
+            raise UserError(f"the dataset has no {name!r} frames (it has: {', '.join(present)})")
+    if not -len(candidates) <= args.index < len(candidates):
+        raise UserError(f"--index {args.index} is out of range ({len(candidates)} frames to choose from)")
+    plot_frame(reader[candidates[args.index]], str(out))
     sys.stderr.write(f"wrote {out}\n")
     return 0

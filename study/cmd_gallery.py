@@ -25,6 +25,7 @@ def add_parser(sub, name, help_text):
     p.add_argument("dir", help="dataset directory (its manifest gives the scene's seed and profile)")
     p.add_argument("--out", required=True, help="PNG to write")
     p.add_argument("--index", type=int, default=0, help="frame of the dataset to use as the scene")
+    p.add_argument("--context", default=None, help="take the --index-th frame of this context instead")
     p.add_argument("--conditions", default="rain,fog,snow,night", help="comma-separated conditions (rows)")
     p.add_argument("--json", action="store_true", help="print one JSON object (what was rendered) on stdout")
     p.set_defaults(run=run)
@@ -65,7 +66,16 @@ def run(args) -> int:
     if bad or not conditions:
         raise UserError(f"unknown condition {bad[0] if bad else ''!r} (choose from: {', '.join(CONDITIONS)})")
     manifest = read_manifest(Path(args.dir))
-    first, scene, shard = scene_of(manifest, args.index)
+    index = args.index
+    if args.context is not None:
+        from sim.scenario import Context
+
+        name = Context.parse(args.context).name
+        picks = [i for i, f in enumerate(manifest["frames"]) if f["context"] == name]
+        if not -len(picks) <= args.index < len(picks):
+            raise UserError(f"the dataset has {len(picks)} {name!r} frames; --index {args.index} is out of range")
+        index = picks[args.index]
+    first, scene, shard = scene_of(manifest, index)
     renderer = SequenceRenderer(first, load_profile(manifest["profile"]), seed=shard["seed"])
     layout = Context.parse(shard["context"]).layout
     rows = [("clear", 0)] + [(c, s) for c in conditions for s in range(1, 6)]

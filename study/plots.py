@@ -152,13 +152,18 @@ def frame_caption(meta: dict) -> str:
     if deg:
         parts = []
         for name, params in deg.items():
-            if isinstance(params, dict):
-                shown = ", ".join(f"{k}={_fmt(v)}" for k, v in params.items() if not isinstance(v, list | dict))
+            if isinstance(params, dict) and set(params) <= {"camera_left", "camera_right"}:
+                cams = "/".join("L" if c == "camera_left" else "R" for c in params)
+                first = next(iter(params.values()))
+                shown = ", ".join(f"{k}={_fmt(v)}" for k, v in first.items() if not isinstance(v, list | dict) and k != "seed")
+                parts.append(f"{name}[{cams}]({shown})")
+            elif isinstance(params, dict):
+                shown = ", ".join(f"{k}={_fmt(v)}" for k, v in params.items() if not isinstance(v, list | dict) and k != "seed")
                 parts.append(f"{name}({shown})")
             else:
                 parts.append(f"{name}={_fmt(params)}")
         text = "degradation: " + "; ".join(parts)
-        lines += [text[i:i + 190] for i in range(0, len(text), 190)]
+        lines += [text[i:i + 200] for i in range(0, len(text), 200)]
     else:
         lines.append("degradation: none")
     return "\n".join(lines)
@@ -173,8 +178,8 @@ def _fmt(v) -> str:
 def plot_frame(frame: dict, path: str) -> None:
     """All sensors of one stored frame with their labels and a caption (for `hydrabench show`)."""
     meta, labels = frame["meta"], frame["labels"]
-    fig = plt.figure(figsize=(15, 9.5), dpi=100)
-    gs = fig.add_gridspec(2, 6, height_ratios=[1.0, 1.55])
+    fig = plt.figure(figsize=(15, 8.6), dpi=100)
+    gs = fig.add_gridspec(2, 6, height_ratios=[1.0, 1.45])
     axes = [fig.add_subplot(gs[0, 0:3]), fig.add_subplot(gs[0, 3:6]), fig.add_subplot(gs[1, 0:2]),
             fig.add_subplot(gs[1, 2:4]), fig.add_subplot(gs[1, 4:6])]
     for ax, name in zip(axes[:2], ("camera_left", "camera_right")):
@@ -199,8 +204,10 @@ def plot_frame(frame: dict, path: str) -> None:
         ax.set_yticks([])
     handles = [plt.Line2D([], [], color=CLASS_COLORS[c], lw=2, label=c) for c in CLASSES]
     fig.legend(handles=handles, loc="lower center", ncol=8, fontsize=8, frameon=False)
-    fig.suptitle(frame_caption(meta), fontsize=8.5, x=0.01, ha="left", y=0.995, va="top")
-    fig.tight_layout(rect=(0, 0.03, 1, 0.9))
+    caption = frame_caption(meta)
+    fig.suptitle(caption, fontsize=8.5, x=0.01, ha="left", y=0.995, va="top")
+    top = 1.0 - 0.022 * (caption.count("\n") + 1)
+    fig.tight_layout(rect=(0, 0.03, 1, top))
     savefig_atomic(fig, path)
     plt.close(fig)
 
