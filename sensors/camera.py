@@ -189,8 +189,11 @@ def _normals_from_points(P: np.ndarray, depth: np.ndarray) -> np.ndarray:
         use_f = (dz_f <= dz_b) | ~np.isfinite(dz_b)
         return np.where(use_f[..., None], fwd, bwd)
 
-    n = np.cross(diff(1), diff(0))
-    norm = np.linalg.norm(n, axis=-1, keepdims=True)
+    a, b = diff(1), diff(0)
+    n = np.stack([a[..., 1] * b[..., 2] - a[..., 2] * b[..., 1],
+                  a[..., 2] * b[..., 0] - a[..., 0] * b[..., 2],
+                  a[..., 0] * b[..., 1] - a[..., 1] * b[..., 0]], -1)
+    norm = np.sqrt(np.einsum("hwc,hwc->hw", n, n))[..., None]
     return np.divide(n, norm, out=np.zeros_like(n), where=norm > 1e-12)
 
 
@@ -259,7 +262,7 @@ def shade(
     cam_pos = world_from_cam[:3, 3]
     to_cam = cam_pos - P
     flip = np.einsum("hwc,hwc->hw", n, to_cam) < 0
-    n[flip] *= -1
+    n = np.where(flip[..., None], -n, n)
     ground = np.isin(material, [MATERIAL_ID[m] for m in ("asphalt", "lane_paint", "grass", "sidewalk")])
     snap = ground & (n[..., 2] > 0.95)
     n[snap] = (0.0, 0.0, 1.0)
@@ -284,16 +287,23 @@ def shade(
         cos_s = np.einsum("hwc,c->hw", n, lighting.sun_dir)
         lit = geo & (cos_s > 0)
         if caster is not None and lit.any():
-            pts = P[lit] + n[lit] * 0.05
+            # shadow rays towards the sun on a 2x2-subsampled grid, spread to each 2x2 block (the
+            # lens blur is 0.5 px; shadow edges move by at most a pixel)
+            sub = np.zeros_like(lit)
+            sub[::2, ::2] = lit[::2, ::2]
+            pts = P[sub] + n[sub] * 0.05
             hits = caster.cast(pts, np.broadcast_to(lighting.sun_dir, pts.shape), max_range=300.0)
-            shadow = np.isfinite(hits.range)
-            lit_idx = np.flatnonzero(lit)
-            lit.flat[lit_idx[shadow]] = False
+            shadow_sub = np.zeros(lit[::2, ::2].shape, bool)
+            shadow_sub[lit[::2, ::2]] = np.isfinite(hits.range)
+            shadow = np.repeat(np.repeat(shadow_sub, 2, 0), 2, 1)[:H, :W]
+            lit &= ~shadow
         E += (np.where(lit, cos_s, 0.0) * lighting.sun_normal_lux)[..., None] * SUN_COLOUR
     up = np.array([0.0, 0.0, 1.0])
-    pix = geo.reshape(-1)
-    Pf, nf = P.reshape(-1, 3)[pix], n.reshape(-1, 3)[pix]
-    Ef = np.zeros((pix.sum(), 3), np.float32)
+    artificial = (lighting.lamps_on and len(lighting.lamps)) or lighting.headlights_on
+    if artificial:
+        pix = geo.reshape(-1)
+        Pf, nf = P.reshape(-1, 3)[pix], n.reshape(-1, 3)[pix]
+        Ef = np.zeros((pix.sum(), 3), np.float32)
 
     def add_light(pos, intensity_fn, colour):
         d = pos - Pf
@@ -315,7 +325,8 @@ def shade(
                 continue
             add_light(pos, lambda dirs, a=axis: HEADLIGHT_INTENSITY_CD * _beam(dirs, a, up, 12.0, 5.0, True),
                       HEADLIGHT_COLOUR)
-    E.reshape(-1, 3)[pix] += Ef
+    if artificial:
+        E.reshape(-1, 3)[pix] += Ef
 
     L = albedo * E / np.pi
     # emissive surfaces that are switched on

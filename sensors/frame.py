@@ -14,6 +14,7 @@ from collections import defaultdict
 from dataclasses import dataclass, field
 
 import numpy as np
+import shapely
 
 from sensors import camera as cam_mod
 from sensors import lidar as lidar_mod
@@ -21,7 +22,7 @@ from sensors import radar as radar_mod
 from sensors.labels import bev_labels, fwd_labels
 from sensors.raycast import WorldCaster
 from sensors.rig import Calibration, SensorProfile, make_calibration
-from sensors.world_mesh import actors_mesh, lamp_heads, static_mesh
+from sensors.world_mesh import MeshSoup, actors_mesh, lamp_heads, static_mesh
 from sim.scenario import Scene, stream
 from sim.weather import WeatherState, light_for
 
@@ -75,12 +76,26 @@ ARRAY_FIELDS = ("camera_left", "camera_right", "lidar_bev", "fwd_lidar", "radar_
 class SequenceRenderer:
     """Sensors of one sequence. Build it from the sequence's first scene."""
 
-    def __init__(self, scene: Scene, profile: SensorProfile, seed: int = 0) -> None:
+    def __init__(self, scene: Scene, profile: SensorProfile, seed: int = 0,
+                 ego_path: np.ndarray | None = None) -> None:
+        """`ego_path` (N, 2): the ego's positions over the sequence; the static world is then built
+        only within SENSOR_RANGE_M + 20 m of it (default: everything the simulator laid out)."""
         t0 = time.perf_counter()
         self.profile = profile
         self.calib: Calibration = make_calibration(profile)
         self.seed = int(seed)
-        self.static = static_mesh(scene, rng_seed=int(stream(self.seed, "static-mesh").integers(2**31)))
+        # instance indices are stable over the sequence: index k <-> self._ids[k] (0 = none)
+        self._ids: list[int] = [0]
+        self._index: dict[int, int] = {}
+        focus = None
+        if ego_path is not None:
+            path = np.asarray(ego_path, float).reshape(-1, 2)
+            geom = shapely.LineString(path) if len(path) > 1 and np.ptp(path, axis=0).max() > 0 else shapely.Point(path[0])
+            focus = geom.buffer(SENSOR_RANGE_M + 20.0)
+        world = static_mesh(scene, rng_seed=int(stream(self.seed, "static-mesh").integers(2**31)), focus=focus)
+        # parked cars never move: they join the static meshes once, with their instance indices
+        parked_soup, _ = actors_mesh(scene.actors[scene.actors.parked], index_of=self.index_of)
+        self.static = MeshSoup.concat([world, parked_soup])
         self.caster = WorldCaster(self.static)
         self.stereo = cam_mod.StereoRenderer(self.static, profile.camera.width, profile.camera.height)
         self.lamps = lamp_heads(scene.structures)
@@ -95,15 +110,23 @@ class SequenceRenderer:
         self.timings[name] += t - t0
         return t
 
+    def index_of(self, actor_id: int) -> int:
+        """The sequence-stable instance index of an actor (assigned on first sight)."""
+        if actor_id not in self._index:
+            self._index[actor_id] = len(self._ids)
+            self._ids.append(actor_id)
+        return self._index[actor_id]
+
     def _set_actors(self, scene: Scene):
+        """Mesh the moving actors of this frame; returns the index -> actor id table (without 0)."""
         key = (scene.sequence_id, scene.frame_index)
         if key != self._actors_key:
-            soup, ids = actors_mesh(scene.actors, SENSOR_RANGE_M, scene.ego.position)
+            moving = scene.actors[~scene.actors.parked]
+            soup, _ = actors_mesh(moving, SENSOR_RANGE_M, scene.ego.position, index_of=self.index_of)
             self.caster.set_actors(soup)
             self.stereo.set_actors(soup)
-            self._actor_ids = ids
             self._actors_key = key
-        return self._actor_ids
+        return np.array(self._ids[1:], np.int64)
 
     def observe(self, scene: Scene, weather: WeatherState | None = None) -> Observations:
         """Raw observations of `scene` under `weather` (default: the scene's own weather)."""

@@ -16,6 +16,8 @@ from collections.abc import Callable
 from dataclasses import asdict, dataclass
 from pathlib import Path
 
+import numpy as np
+
 from sim.config import from_dict
 from sim.errors import UserError
 from sim.scenario import CONTEXT_NAMES, Context, ScenarioSpec, Simulator, stream
@@ -125,10 +127,12 @@ def render_sequence(spec: ShardSpec, config: GenerateConfig, on_frame: Callable[
     sim = Simulator(ScenarioSpec(context=spec.context, severity=spec.severity, seed=spec.seed, frames=spec.frames,
                                  frame_rate_hz=config.frame_rate_hz, profile=config.profile,
                                  transition=spec.transition))
-    scenes = sim.scenes()
-    first = next(scenes)
+    all_scenes = list(sim.scenes())  # simulate first: the world is then built around the ego's path
     t_sim = time.perf_counter() - t0
-    renderer = SequenceRenderer(first, load_profile(config.profile), seed=spec.seed)
+    first = all_scenes[0]
+    scenes = iter(all_scenes[1:])
+    renderer = SequenceRenderer(first, load_profile(config.profile), seed=spec.seed,
+                                ego_path=np.array([s.ego.position[:2] for s in all_scenes]))
     degrader = None
     if config.degrade:
         from sensors.degrade import Degrader
@@ -152,9 +156,7 @@ def render_sequence(spec: ShardSpec, config: GenerateConfig, on_frame: Callable[
             twins.append(renderer.finalize(scene, twin_obs, twin_params))
         if on_frame:
             on_frame()
-        t = time.perf_counter()
         scene = next(scenes, None)
-        t_sim += time.perf_counter() - t
         if scene is None:
             break
     timings = dict(renderer.timings)

@@ -118,11 +118,22 @@ def bev_image(pts: np.ndarray, calib: Calibration) -> np.ndarray:
     lin = v * S + u
     img = np.zeros((3, S * S), np.float32)
     h01 = np.clip((height - HEIGHT_RANGE_M[0]) / (HEIGHT_RANGE_M[1] - HEIGHT_RANGE_M[0]), 0, 1)
-    np.maximum.at(img[0], lin, h01)
-    np.add.at(img[1], lin, 1.0)
-    np.maximum.at(img[2], lin, pts[ok, 3])
-    img[1] = np.log1p(img[1]) / np.log(64.0)
+    img[0] = _cell_max(lin, h01, S * S)
+    img[1] = np.log1p(np.bincount(lin, minlength=S * S)) / np.log(64.0)
+    img[2] = _cell_max(lin, pts[ok, 3], S * S)
     return np.round(np.clip(img, 0, 1) * 255).astype(np.uint8).reshape(3, S, S).transpose(1, 2, 0)
+
+
+def _cell_max(cells: np.ndarray, values: np.ndarray, n: int) -> np.ndarray:
+    """Per-cell maximum of values (0 where a cell has none), by sorting instead of ufunc.at."""
+    out = np.zeros(n, np.float32)
+    if len(cells) == 0:
+        return out
+    order = np.lexsort((values, cells))
+    c = cells[order]
+    last = np.r_[c[1:] != c[:-1], True]
+    out[c[last]] = values[order][last]
+    return out
 
 
 def forward_image(pts: np.ndarray, calib: Calibration, camera: str = "camera_right") -> np.ndarray:

@@ -20,8 +20,10 @@ The image is stored like Navtech's: 8-bit power with 0.5 dB per count.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from functools import lru_cache
 
 import numpy as np
+import scipy.fft as sfft
 from scipy.ndimage import map_coordinates
 
 from sensors.materials import RADAR_GAMMA, RADAR_SPECULAR
@@ -78,6 +80,11 @@ def azimuth_kernel(n_fine: int) -> np.ndarray:
     return np.roll(k / k.sum(), -(n_fine // 2))
 
 
+@lru_cache(maxsize=8)
+def _kernel_spectrum(n_fine: int) -> np.ndarray:
+    return sfft.rfft(azimuth_kernel(n_fine).astype(np.float32))
+
+
 def elevation_weights() -> np.ndarray:
     return _one_way_gain(ELEVATIONS_DEG, ELEVATION_BEAMWIDTH_DEG) ** 2
 
@@ -116,10 +123,11 @@ def scan(caster: WorldCaster, calib: Calibration, world_from_ego: np.ndarray, ac
     x = np.where(ok, R / dr - 0.5, 0.0)
     b0 = np.floor(x).astype(int)
     frac = x - b0
-    grid = np.zeros((n_fine, B))
+    grid = np.zeros(n_fine * B)
     for b, w in ((b0, 1 - frac), (b0 + 1, frac)):
         sel = ok & (b >= 0) & (b < B)
-        np.add.at(grid, (fine_az[sel], b[sel]), p[sel] * w[sel])
+        grid += np.bincount(fine_az[sel] * B + b[sel], weights=p[sel] * w[sel], minlength=n_fine * B)
+    grid = grid.reshape(n_fine, B)
     # dominant actor per coarse cell
     ids = np.concatenate([[0], actor_ids])
     act = ok & (hits.instance > 0)
@@ -132,8 +140,8 @@ def scan(caster: WorldCaster, calib: Calibration, world_from_ego: np.ndarray, ac
         last = np.r_[cell[order][1:] != cell[order][:-1], True]
         instance.reshape(-1)[cell[order][last]] = ids[hits.instance[act][order][last]]
     # two-way azimuth pattern (circular convolution), then integrate into the coarse bins
-    K = np.fft.rfft(azimuth_kernel(n_fine))
-    smeared = np.fft.irfft(np.fft.rfft(grid, axis=0) * K[:, None], n=n_fine, axis=0)
+    K = _kernel_spectrum(n_fine)
+    smeared = sfft.irfft(sfft.rfft(grid.astype(np.float32), axis=0) * K[:, None], n=n_fine, axis=0)
     smeared = np.clip(smeared, 0, None)
     coarse_signal = smeared.reshape(A, OVERSAMPLE, B).sum(axis=1)
     speckle_draw = rng.exponential(1.0, size=(A, B))

@@ -65,32 +65,43 @@ class MeshSoup:
         return self.instance[self.faces[:, 0]]
 
 
-def _part(mesh: trimesh.Trimesh, material: str, instance: int = 0) -> MeshSoup:
-    v = np.asarray(mesh.vertices, float)
-    return MeshSoup(v, np.asarray(mesh.faces, np.int64), np.full(len(v), M[material], np.uint8),
-                    np.full(len(v), instance, np.int32))
+def _soup(vertices: np.ndarray, faces: np.ndarray, material: str, instance: int = 0) -> MeshSoup:
+    v = np.asarray(vertices, float)
+    return MeshSoup(v, faces, np.full(len(v), M[material], np.uint8), np.full(len(v), instance, np.int32))
+
+
+@cache
+def _unit(kind: str, sections: int = 10) -> tuple[np.ndarray, np.ndarray]:
+    """Unit primitives built once with trimesh: a cube [-0.5, 0.5]^3, a cylinder of radius 1 and
+    height 1 along z centred at the origin, an icosphere of radius 1."""
+    if kind == "box":
+        m = trimesh.creation.box(extents=(1.0, 1.0, 1.0))
+    elif kind == "cylinder":
+        m = trimesh.creation.cylinder(radius=1.0, height=1.0, sections=sections)
+    else:
+        m = trimesh.creation.icosphere(subdivisions=1, radius=1.0)
+    return np.asarray(m.vertices, float), np.asarray(m.faces, np.int64)
 
 
 def _box(x0, x1, y0, y1, z0, z1, material: str) -> MeshSoup:
-    b = trimesh.creation.box(extents=(x1 - x0, y1 - y0, z1 - z0))
-    b.apply_translation(((x0 + x1) / 2, (y0 + y1) / 2, (z0 + z1) / 2))
-    return _part(b, material)
+    v, f = _unit("box")
+    ext = np.array([x1 - x0, y1 - y0, z1 - z0])
+    return _soup(v * ext + [(x0 + x1) / 2, (y0 + y1) / 2, (z0 + z1) / 2], f, material)
+
+
+_AXES = {"z": np.eye(3), "y": np.array([[1.0, 0, 0], [0, 0, 1.0], [0, 1.0, 0]]),
+         "x": np.array([[0, 0, 1.0], [0, 1.0, 0], [1.0, 0, 0]])}
 
 
 def _cylinder(radius, length, center, axis: str, material: str, sections: int = 10) -> MeshSoup:
-    c = trimesh.creation.cylinder(radius=radius, height=length, sections=sections)
-    if axis == "y":
-        c.apply_transform(trimesh.transformations.rotation_matrix(np.pi / 2, (1, 0, 0)))
-    elif axis == "x":
-        c.apply_transform(trimesh.transformations.rotation_matrix(np.pi / 2, (0, 1, 0)))
-    c.apply_translation(center)
-    return _part(c, material)
+    v, f = _unit("cylinder", sections)
+    local = v * [radius, radius, length]
+    return _soup(local @ _AXES[axis].T + center, f, material)
 
 
 def _sphere(radius, center, material: str) -> MeshSoup:
-    s = trimesh.creation.icosphere(subdivisions=1, radius=radius)
-    s.apply_translation(center)
-    return _part(s, material)
+    v, f = _unit("sphere")
+    return _soup(v * radius + center, f, material)
 
 
 def _wheels(xs, half_track, radius, width) -> list[MeshSoup]:
@@ -211,10 +222,13 @@ def group_template(actor_id: int, members: int, size: np.ndarray) -> MeshSoup:
     return soup
 
 
-def actors_mesh(actors, max_range: float | None = None, origin: np.ndarray | None = None) -> tuple[MeshSoup, np.ndarray]:
-    """Mesh of the actors of one frame; returns (soup, actor_ids) where instance k+1 = actor_ids[k].
+def actors_mesh(actors, max_range: float | None = None, origin: np.ndarray | None = None,
+                index_of=None) -> tuple[MeshSoup, np.ndarray]:
+    """Mesh of the actors of one frame; returns (soup, actor_ids).
 
-    Actors farther than `max_range` from `origin` (xy) are left out.
+    Instance indices: `index_of(actor_id)` when given (a per-sequence table, so indices stay
+    stable), else k + 1 for the k-th mesh actor, with actor_ids[k] its id. Actors farther than
+    `max_range` from `origin` (xy) are left out.
     """
     sel = np.arange(len(actors))
     if max_range is not None and origin is not None and len(actors):
@@ -233,7 +247,8 @@ def actors_mesh(actors, max_range: float | None = None, origin: np.ndarray | Non
         R = np.array([[c, -s, 0], [s, c, 0], [0, 0, 1]])
         base = actors.centers[i] - np.array([0, 0, size[2] / 2])
         v = (tpl.vertices * size) @ R.T + base
-        parts.append(MeshSoup(v, tpl.faces, tpl.material, np.full(len(v), k + 1, np.int32)))
+        index = k + 1 if index_of is None else index_of(int(actors.ids[i]))
+        parts.append(MeshSoup(v, tpl.faces, tpl.material, np.full(len(v), index, np.int32)))
         ids.append(int(actors.ids[i]))
     return MeshSoup.concat(parts), np.array(ids, np.int64)
 
@@ -257,25 +272,44 @@ def _polys(geom) -> list[Polygon]:
     return [g for g in getattr(geom, "geoms", []) if isinstance(g, Polygon)]
 
 
+TILE_M = 20.0  # flat surfaces are cut into tiles so no triangle spans more than ~20 m
+
+
+def _tiles(geom, tile: float = TILE_M) -> list:
+    """Cut a (Multi)Polygon along a `tile`-metre grid (keeps Embree's BVH and the depth buffer
+    well conditioned: long skinny triangles across a 500 m ground make every ray slow)."""
+    polys = []
+    for poly in _polys(geom):
+        x0, y0, x1, y1 = poly.bounds
+        if x1 - x0 <= tile and y1 - y0 <= tile:
+            polys.append(poly)
+            continue
+        xs = np.arange(np.floor(x0 / tile) * tile, x1, tile)
+        ys = np.arange(np.floor(y0 / tile) * tile, y1, tile)
+        cells = shapely.box(*np.meshgrid(xs, ys), *np.meshgrid(xs + tile, ys + tile)).ravel()
+        shapely.prepare(poly)
+        hit = cells[shapely.intersects(poly, cells)]
+        for piece in shapely.intersection(poly, hit):
+            polys += [q for q in _polys(piece) if q.area > 1e-6]
+    return polys
+
+
 def _flat(geom, z: float, material: str) -> MeshSoup:
     """Triangulate a (Multi)Polygon into a horizontal surface at height z (normals up)."""
-    parts = []
-    for poly in _polys(geom):
-        if poly.area < 1e-6:
-            continue
-        tris = shapely.constrained_delaunay_triangles(poly)
-        coords = np.array([np.asarray(t.exterior.coords)[:3] for t in tris.geoms])
-        if len(coords) == 0:
-            continue
-        v = coords.reshape(-1, 2)
-        # counter-clockwise seen from above -> normal +z
-        a, b, c = coords[:, 0], coords[:, 1], coords[:, 2]
-        cross = (b[:, 0] - a[:, 0]) * (c[:, 1] - a[:, 1]) - (b[:, 1] - a[:, 1]) * (c[:, 0] - a[:, 0])
-        faces = np.arange(len(v)).reshape(-1, 3)
-        faces[cross < 0] = faces[cross < 0][:, ::-1]
-        verts = np.column_stack([v, np.full(len(v), z)])
-        parts.append(MeshSoup(verts, faces, np.full(len(v), M[material], np.uint8), np.zeros(len(v), np.int32)))
-    return MeshSoup.concat(parts)
+    tiles = _tiles(geom)
+    if not tiles:
+        return MeshSoup.empty()
+    tris = shapely.get_parts(shapely.constrained_delaunay_triangles(np.array(tiles, dtype=object)))
+    if len(tris) == 0:
+        return MeshSoup.empty()
+    coords = shapely.get_coordinates(tris).reshape(len(tris), 4, 2)[:, :3]  # closed rings
+    a, b, c = coords[:, 0], coords[:, 1], coords[:, 2]
+    cross = (b[:, 0] - a[:, 0]) * (c[:, 1] - a[:, 1]) - (b[:, 1] - a[:, 1]) * (c[:, 0] - a[:, 0])
+    faces = np.arange(3 * len(tris)).reshape(-1, 3)
+    faces[cross < 0] = faces[cross < 0][:, ::-1]  # counter-clockwise seen from above -> normal +z
+    v = coords.reshape(-1, 2)
+    return MeshSoup(np.column_stack([v, np.full(len(v), z)]), faces, np.full(len(v), M[material], np.uint8),
+                    np.zeros(len(v), np.int32))
 
 
 def _walls(geom, z0: float, z1: float, material: str) -> MeshSoup:
@@ -313,6 +347,17 @@ def _stripes(lines: list[np.ndarray], dashed: np.ndarray, z: float) -> MeshSoup:
             poly = seg.buffer(PAINT_WIDTH / 2, cap_style="flat")
             parts.append(_flat(poly, z, "lane_paint"))
     return MeshSoup.concat(parts)
+
+
+def _clip_lines(lines, dashed, window):
+    out, out_dashed = [], []
+    for line, d in zip(lines, dashed):
+        clipped = shapely.LineString(line).intersection(window)
+        for part in getattr(clipped, "geoms", [clipped]):
+            if part.geom_type == "LineString" and not part.is_empty and part.length > 0.5:
+                out.append(np.asarray(part.coords))
+                out_dashed.append(d)
+    return out, np.array(out_dashed, bool)
 
 
 def _zebra(rect: np.ndarray, z: float) -> MeshSoup:
@@ -377,23 +422,35 @@ def lamp_heads(structures) -> np.ndarray:
     return np.array(out).reshape(-1, 3)
 
 
-def static_mesh(scene, rng_seed: int = 0) -> MeshSoup:
-    """Static world of a sequence: ground, road, paint, kerbed sidewalks, zebras, structures."""
+def static_mesh(scene, rng_seed: int = 0, focus=None) -> MeshSoup:
+    """Static world of a sequence: ground, road, paint, kerbed sidewalks, zebras, structures.
+
+    `focus`: an optional shapely polygon (e.g. the ego's path buffered by the sensor range); only
+    geometry inside it is built.
+    """
     rng = np.random.default_rng(rng_seed)
-    road, walks = scene.road.road, scene.road.sidewalks
     window = box(*scene.road.region)
+    if focus is not None:
+        window = window.intersection(focus)
+    road = scene.road.road.intersection(window)
+    walks = scene.road.sidewalks.intersection(window) if not scene.road.sidewalks.is_empty else scene.road.sidewalks
     paved = shapely.unary_union([road, walks])
     ground = window.difference(paved)
     parts = [
         _flat(ground, 0.0, "grass"),
         _flat(road, 0.0, "asphalt"),
-        _stripes(list(scene.road.markings), scene.road.marking_dashed, PAINT_LIFT),
+        _stripes(*_clip_lines(scene.road.markings, scene.road.marking_dashed, window), PAINT_LIFT),
     ]
     if not walks.is_empty:
         parts += [_flat(walks, CURB_HEIGHT, "sidewalk"), _walls(walks, 0.0, CURB_HEIGHT, "sidewalk")]
     for cw in scene.road.crosswalks:
-        parts.append(_zebra(np.asarray(cw), PAINT_LIFT))
+        if window.intersects(shapely.Polygon(cw)):
+            parts.append(_zebra(np.asarray(cw), PAINT_LIFT))
     st = scene.structures
+    if focus is not None and len(st):
+        reach = np.maximum(st.sizes[:, 0], st.sizes[:, 1])
+        inside = shapely.dwithin(window, shapely.points(st.centers[:, :2]), reach)
+        st = st[inside]
     for kind, c, size, yaw in zip(st.kinds, st.centers, st.sizes, st.yaws):
         if kind == STRUCTURE_ID["building"]:
             parts.append(_building(c, size, yaw, rng))

@@ -10,6 +10,7 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 
 import numpy as np
+import shapely
 from highway_env.vehicle.objects import Obstacle
 from shapely.geometry import LineString, Point
 
@@ -69,10 +70,10 @@ class PedestrianModel:
         # Spawn near the ego (within `radius`) so walkers are where the sensors look.
         candidates = []
         for i, p in enumerate(self.paths):
-            for s in np.arange(0.0, p.length, 2.0):
-                q = np.asarray(p.interpolate(s).coords[0])
-                if np.linalg.norm(q - near) < radius:
-                    candidates.append((i, s))
+            s_all = np.arange(0.0, p.length, 2.0)
+            q = shapely.get_coordinates(shapely.line_interpolate_point(p, s_all))
+            close = np.linalg.norm(q - near, axis=1) < radius
+            candidates += [(i, float(s)) for s in s_all[close]]
         if not candidates:
             candidates = [(int(np.argmax(lengths)), 0.0)]
         taken: list[tuple[np.ndarray, float]] = []  # (position, radius) of placed walkers

@@ -236,9 +236,10 @@ def _tangents(line: np.ndarray) -> np.ndarray:
 
 
 def resample(line: np.ndarray, step: float) -> np.ndarray:
+    """Points every ~`step` metres along a polyline (end points included)."""
     ls = LineString(line)
     n = max(2, int(ls.length / step) + 1)
-    return np.array([ls.interpolate(t).coords[0] for t in np.linspace(0, ls.length, n)])
+    return shapely.get_coordinates(shapely.line_interpolate_point(ls, np.linspace(0, ls.length, n)))
 
 
 def ring_lines(geom, offset: float, window: Polygon) -> list[np.ndarray]:
