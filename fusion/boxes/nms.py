@@ -15,6 +15,8 @@ Differences (each measured in `study.bench_boxes.compat_map_effect`):
   other methods; ensemble-boxes runs its plain NMS instead and ignores `thresh`.
 - Output order: here best score first; ensemble-boxes returns class by class (ascending class id),
   in selection order within a class.
+- Equal scores: here the box from the earlier source (then earlier row) wins; ensemble-boxes
+  visits equal scores in the order of numba's quicksort, which compat mode reproduces.
 - Boxes with x2 < x1 or y2 < y1: ValueError here; ensemble-boxes swaps the corners.
 - Bad input: ValueError naming the field here (NaN, inf, negative scores, mismatched lengths,
   wrong weights, in both modes); ensemble-boxes prints a warning and ignores weights of the
@@ -38,8 +40,12 @@ from fusion.boxes.kernels import nms_kernel, prepare_kernel, soft_nms_kernel
 def _prepare(boxes_list, scores_list, labels_list, weights, compat):
     """Checked, clipped, weighted detections grouped by class (see kernels.prepare_kernel)."""
     flat = flatten(boxes_list, scores_list, labels_list, weights)
-    w = flat.weights
-    scale = float(w.sum() if compat else w.max()) if flat.weighted and len(w) else 1.0
+    w, scale = flat.weights, 1.0
+    if flat.weighted and len(w):
+        if compat:
+            scale = float(w.sum())  # the package's (score * w_t) / sum(w)
+        else:
+            w = w / w.max()  # score * (w_t / max(w)): exactly the score when the weights are equal
     status, bad_row, rows, boxes, scores, _, starts = prepare_kernel(
         flat.boxes, flat.scores, label_keys(flat), flat.counts, w, scale, compat, -math.inf, False)
     raise_bad_value(flat, status, bad_row)
