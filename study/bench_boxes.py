@@ -112,13 +112,15 @@ def _methods() -> dict[str, tuple[Callable, Callable, dict]]:
 
 
 def _time_per_call(fn: Callable, args_fn: Callable, n: int) -> float:
-    """Seconds per call of fn(*args_fn()) over n calls (argument copies made outside the clock)."""
+    """CPU seconds per call of fn(*args_fn()) over n calls (argument copies made outside the
+    clock). Process CPU time, not wall time: on a shared machine, time spent waiting for a core
+    would otherwise be charged to whichever implementation happened to be running."""
     total = 0.0
     for _ in range(n):
         args = args_fn()
-        t0 = time.perf_counter()
+        t0 = time.process_time()
         fn(*args)
-        total += time.perf_counter() - t0
+        total += time.process_time() - t0
     return total / n
 
 
@@ -129,9 +131,10 @@ def bench_box_fusion(n_lists: int = 7, n_boxes: int = 100, repeats: int = 30, se
     Inputs: one synthetic scene (30 objects, `n_classes` classes) seen by `n_lists` detectors of
     `n_boxes` boxes each (`synthetic_detections`), fused with HydraFusion's parameters (IoU 0.4,
     skip 0.01, sigma 0.5) and equal weights. Each implementation runs once before timing (numba
-    compilation and caches), then `rounds` alternating rounds of `repeats` calls each; the figure
-    is the median round, so a busy shared machine slows both sides alike. ensemble-boxes gets fresh
-    copies of its inputs every call (it overwrites its `scores` list when given weights).
+    compilation and caches), then `rounds` alternating rounds of `repeats` calls each, timed in
+    process CPU time; the figure is the median round, so a busy shared machine slows both sides
+    alike. ensemble-boxes gets fresh copies of its inputs every call (it overwrites its `scores`
+    list when given weights).
 
     Returns:
         {"methods": {method: {"ours_ms", "ensemble_boxes_ms", "speedup", "equal_output",

@@ -167,7 +167,7 @@ def check_range(name: str, value, lo: float | None = None, hi: float | None = No
         v = float(value)
     except (TypeError, ValueError):
         raise ValueError(f"{name} must be a number, got {value!r}") from None
-    ok = bool(np.isfinite(v))
+    ok = math.isfinite(v)
     if lo is not None:
         ok = ok and (v > lo if open_lo else v >= lo)
     if hi is not None:

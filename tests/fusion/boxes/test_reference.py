@@ -83,8 +83,8 @@ def test_wbf_matches_ensemble_boxes(conf_type):
                ordered=True)
 
 
-def test_large_inputs_take_the_sweep_paths():
-    """7 x 100 boxes of one class: groups above the small-group cut-offs (sort-and-sweep pairs)."""
+def test_large_single_class_inputs():
+    """Up to 7 x 150 boxes of one class: long inner loops, many suppressions per kept box."""
     rng = np.random.default_rng(5)
     for k in range(6):
         case = random_case(rng, max_boxes=150, messy=False)
