@@ -1,9 +1,11 @@
 """NMS and Soft-NMS over the detections of several sources, per class (HydraFusion Sec. 4.4).
 
 Same arguments as `ensemble_boxes.nms` / `ensemble_boxes.soft_nms` 1.0.9 (boxes normalised to
-0..1, one list entry per source), plus a keyword-only `compat` switch: ``compat=False`` (default)
-is the textbook behaviour, ``compat=True`` reproduces ensemble-boxes where it deviates.
-Differences (each measured in `study.bench_boxes.compat_map_effect`):
+0..1, one list entry per source; the package calls the first three ``boxes, scores, labels``,
+so only callers passing those by keyword need to rename them), plus a keyword-only `compat`
+switch: ``compat=False`` (default) is the textbook behaviour, ``compat=True`` reproduces
+ensemble-boxes where it deviates. Differences (their effect on mAP is measured by
+`study.bench_boxes.compat_map_effect`; figures in BENCHMARKS.md):
 
 - Soft-NMS scores: Bodla et al. return every kept box with its *decayed* score; ensemble-boxes
   decays scores only to decide which boxes pass `thresh` and returns the kept boxes with their
@@ -26,7 +28,8 @@ Differences (each measured in `study.bench_boxes.compat_map_effect`):
 Shared by both modes (as in ensemble-boxes): coordinates are clipped to [0, 1], boxes with zero
 area after clipping are dropped, classes are processed independently, IoU > iou_thr suppresses
 (IoU == iou_thr does not), and the Gaussian Soft-NMS decays every overlapping box, whatever its
-IoU (iou_thr is used only by the linear and hard methods).
+IoU (iou_thr is used only by the linear and hard methods). That is Bodla et al.'s Gaussian;
+HydraFusion Sec. 4.4 describes it loosely as decaying boxes "above a threshold IoU value".
 """
 
 from __future__ import annotations

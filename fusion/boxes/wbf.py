@@ -16,6 +16,8 @@ Differences from ensemble-boxes (``compat=True`` reproduces it):
   classes are the given values, returned with the input dtype.
 - Output order: both best first; ties in score are kept in cluster order here.
 - Boxes with x2 < x1 or y2 < y1: ValueError here; ensemble-boxes swaps the corners.
+- Out-of-range corners are clipped silently here; ensemble-boxes issues one `warnings.warn` per
+  corner, which also costs time.
 - Bad input: ValueError naming the field here, in both modes (NaN, inf, negative scores,
   mismatched lengths, weights of the wrong length, unknown conf_type); ensemble-boxes prints and
   calls ``exit()``, or silently resets weights of the wrong length to ones.
