@@ -1,0 +1,105 @@
+"""Torch side of the dataset: frames as model inputs and training targets.
+
+`sensors.dataset.DatasetReader` stays numpy-only; this module is the one place where dataset
+arrays become tensors (the network boundary). Input contract of fusion.nets (per frame):
+    camera_left, camera_right, fwd_lidar: (3, H, W) float32 in 0..1
+    radar: (1, S, S) float32 in 0..1 (8-bit radar BEV / 255)
+    lidar: (3, S, S) float32 in 0..1 (height, density, intensity)
+Targets: {"camera_left" | "camera_right" | "bev": {"boxes": (N, 4) float32 px, "labels": (N,) int64}},
+without the boxes marked difficult (a detector at this resolution cannot be expected to find them;
+VOC evaluation ignores them too).
+"""
+
+from __future__ import annotations
+
+from collections import defaultdict
+
+import numpy as np
+import torch
+from torch.utils.data import Dataset
+
+from sensors.dataset import DatasetReader
+
+SENSORS = ("camera_left", "camera_right", "fwd_lidar", "radar", "lidar")
+ARRAY_OF = {"camera_left": "camera_left", "camera_right": "camera_right", "fwd_lidar": "fwd_lidar",
+            "radar": "radar_bev", "lidar": "lidar_bev"}
+FRAMES = ("camera_left", "camera_right", "bev")
+
+
+def split_by_sequence(reader: DatasetReader, train_fraction: float = 0.7, seed: int = 0) -> tuple[list[int], list[int]]:
+    """Frame indices of a train/test split with no sequence (shard) in both (HydraFusion 5.1: 70:30).
+
+    Shards are split per context (stratified), so every context is in both sets when it has at
+    least two sequences. Deterministic in `seed`.
+    """
+    if not 0 < train_fraction < 1:
+        raise ValueError(f"train_fraction must be in (0, 1), got {train_fraction}")
+    by_context: dict[str, list[str]] = defaultdict(list)
+    frames_of: dict[str, list[int]] = defaultdict(list)
+    for i, f in enumerate(reader.manifest["frames"]):
+        if f["shard"] not in frames_of:
+            by_context[f["context"]].append(f["shard"])
+        frames_of[f["shard"]].append(i)
+    rng = np.random.default_rng(seed)
+    train, test = [], []
+    for context in sorted(by_context):
+        shards = list(by_context[context])
+        rng.shuffle(shards)
+        n_train = int(round(train_fraction * len(shards)))
+        if len(shards) >= 2:
+            n_train = min(max(n_train, 1), len(shards) - 1)
+        for k, shard in enumerate(shards):
+            (train if k < n_train else test).extend(frames_of[shard])
+    return sorted(train), sorted(test)
+
+
+def frame_targets(labels: dict, keep_difficult: bool = False) -> dict:
+    out = {}
+    for frame in FRAMES:
+        lab = labels[frame]
+        keep = [i for i, d in enumerate(lab["difficult"]) if keep_difficult or not d]
+        boxes = np.array([lab["boxes"][i] for i in keep], np.float32).reshape(-1, 4)
+        out[frame] = {"boxes": torch.from_numpy(boxes),
+                      "labels": torch.tensor([lab["labels"][i] for i in keep], dtype=torch.int64)}
+    return out
+
+
+def frame_inputs(frame: dict, sensors=SENSORS) -> dict:
+    out = {}
+    for s in sensors:
+        arr = np.asarray(frame[ARRAY_OF[s]], np.float32) / 255.0
+        if arr.ndim == 2:
+            arr = arr[None]
+        else:
+            arr = arr.transpose(2, 0, 1)
+        out[s] = torch.from_numpy(np.ascontiguousarray(arr))
+    return out
+
+
+class FrameDataset(Dataset):
+    """Frames `indices` of a dataset directory as (inputs, targets, meta)."""
+
+    def __init__(self, root, indices=None, sensors=SENSORS, clear: bool = False, keep_difficult: bool = False):
+        self.reader = DatasetReader(root, clear=clear)
+        self.indices = list(range(len(self.reader))) if indices is None else list(indices)
+        unknown = [s for s in sensors if s not in SENSORS]
+        if unknown:
+            raise ValueError(f"unknown sensor {unknown[0]!r} (choose from: {', '.join(SENSORS)})")
+        self.sensors = tuple(sensors)
+        self.keep_difficult = keep_difficult
+
+    def __len__(self) -> int:
+        return len(self.indices)
+
+    def __getitem__(self, k: int):
+        i = self.indices[k]
+        frame = self.reader[i]
+        meta = dict(frame["meta"])
+        meta["dataset_index"] = i
+        return frame_inputs(frame, self.sensors), frame_targets(frame["labels"], self.keep_difficult), meta
+
+
+def collate(batch):
+    """List of (inputs, targets, meta) -> (batched inputs dict, list of targets, list of metas)."""
+    inputs = {s: torch.stack([b[0][s] for b in batch]) for s in batch[0][0]}
+    return inputs, [b[1] for b in batch], [b[2] for b in batch]
