@@ -14,6 +14,7 @@ from fusion.nets import (
     ModelProfile,
     available_profiles,
     build_branch,
+    build_hydrafusion,
     load_profile,
 )
 from sim.config import load_yaml
@@ -114,6 +115,8 @@ def test_overrides_merge_deeply_and_are_checked():
 def test_bad_branch_configs_fail_naming_the_field(branches, message):
     with pytest.raises(UserError, match=message):
         load_profile("cpu", branches=branches)
+    with pytest.raises(ValueError, match=message):  # UserError is a ValueError
+        build_hydrafusion(profile="cpu", branches=branches)
 
 
 class _Backbone(nn.Module):
