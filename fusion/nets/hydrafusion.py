@@ -188,24 +188,21 @@ class HydraFusion(nn.Module):
         names = list(self.branches)
         if selection is None:
             return [tuple(names)] * batch_size
-        if isinstance(selection, str) or not isinstance(selection, Sequence):
+        if isinstance(selection, str) or not isinstance(selection, Sequence) or len(selection) == 0:
             raise ValueError(
-                f"selection: expected a list of branch names or a list of per-sample lists, got {selection!r}"
+                "selection: expected a non-empty list of branch names or a list of per-sample lists, "
+                f"got {selection!r}"
             )
-        if len(selection) > 0 and all(isinstance(s, str) for s in selection):
+        if all(isinstance(s, str) for s in selection):
             per_sample = [selection] * batch_size
             fields = ["selection"] * batch_size
-        elif (
-            all(isinstance(s, Sequence) and not isinstance(s, str) for s in selection) and len(selection) > 0
-        ):
+        elif all(isinstance(s, Sequence) and not isinstance(s, str) for s in selection):
             if len(selection) != batch_size:
                 raise ValueError(f"selection: {len(selection)} per-sample lists for a batch of {batch_size}")
             per_sample = list(selection)
             fields = [f"selection[{i}]" for i in range(batch_size)]
         else:
-            raise ValueError(
-                f"selection: expected a non-empty list of branch names or of per-sample lists, got {selection!r}"
-            )
+            raise ValueError(f"selection: mixes branch names and per-sample lists: {selection!r}")
         out = []
         for field, chosen in zip(fields, per_sample):
             if len(chosen) == 0:
