@@ -135,6 +135,17 @@ class ViewSettings:
             raise ValueError(f"anchor_sizes: expected positive sizes, got {self.anchor_sizes}")
         if not self.aspect_ratios or min(self.aspect_ratios) <= 0:
             raise ValueError(f"aspect_ratios: expected positive ratios, got {self.aspect_ratios}")
+        # A box lying between anchors has IoU 0 with all of them, and torchvision's low-quality
+        # matching then makes every anchor with IoU 0 (almost all) a positive for the first box.
+        if not any(
+            min(a / r**0.5, a * r**0.5) >= self.output_stride
+            for a in self.anchor_sizes
+            for r in self.aspect_ratios
+        ):
+            raise ValueError(
+                f"anchor_sizes: no anchor is at least {self.output_stride} px (output_stride) in both width and "
+                "height, so anchors leave gaps between grid cells and a box in a gap would match no anchor"
+            )
 
     @property
     def padded_size(self) -> tuple[int, int]:
