@@ -69,8 +69,8 @@ class SensorTransform(nn.Module):
         field = f"inputs[{sensor!r}]"
         if not isinstance(x, Tensor):
             raise ValueError(f"{field}: expected a torch.Tensor, got {type(x).__name__}")
-        if not x.is_floating_point():
-            raise ValueError(f"{field}: expected a floating-point tensor (values about 0..1), got {x.dtype}")
+        if x.dtype != torch.float32:
+            raise ValueError(f"{field}: expected a float32 tensor (values about 0..1), got {x.dtype}")
         c = SENSORS[sensor].channels
         h, w = self.image_size(sensor)
         if x.dim() != 4 or tuple(x.shape[1:]) != (c, h, w) or x.shape[0] < 1:
@@ -106,7 +106,7 @@ class HydraFusion(nn.Module):
         profile: the ModelProfile `build_hydrafusion` built it from (None when built by hand).
 
     `forward(inputs, targets=None, selection=None, meta=None)`:
-        inputs: dict sensor name -> float tensor (B, C, H, W), values about 0..1, any subset of
+        inputs: dict sensor name -> float32 tensor (B, C, H, W), values about 0..1, any subset of
             "camera_left", "camera_right" (B, 3, Hc, Wc), "fwd_lidar" (B, 3, Hc, Wc),
             "radar" (B, 1, Hb, Wb), "lidar" (B, 3, Hb, Wb); (Hc, Wc) and (Hb, Wb) are the profile's
             camera and bev sizes. Only the sensors of the selected branches must be present.
@@ -343,11 +343,11 @@ class HydraFusion(nn.Module):
         boxes, labels = t["boxes"], t["labels"]
         if (
             not isinstance(boxes, Tensor)
-            or not boxes.is_floating_point()
+            or boxes.dtype != torch.float32
             or boxes.dim() != 2
             or boxes.shape[1] != 4
         ):
-            raise ValueError(f"{field}['boxes']: expected a float tensor (N, 4), got {_describe(boxes)}")
+            raise ValueError(f"{field}['boxes']: expected a float32 tensor (N, 4), got {_describe(boxes)}")
         if not isinstance(labels, Tensor) or labels.dtype != torch.int64 or labels.dim() != 1:
             raise ValueError(f"{field}['labels']: expected an int64 tensor (N,), got {_describe(labels)}")
         if labels.shape[0] != boxes.shape[0]:

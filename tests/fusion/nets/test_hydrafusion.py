@@ -334,7 +334,7 @@ def test_bad_inputs_selections_and_targets_raise_value_errors_naming_the_field(m
     )
     fails(r"inputs\['lidar'\]: expected shape", inputs={**inputs, "lidar": torch.rand(3, 64, 64)})
     fails(
-        r"inputs\['lidar'\]: expected a floating-point",
+        r"inputs\['lidar'\]: expected a float32 tensor",
         inputs={**inputs, "lidar": torch.zeros(2, 3, 64, 64, dtype=torch.uint8)},
     )
     fails(r"inputs\['lidar'\]: batch size 1 differs", inputs={**inputs, "lidar": torch.rand(1, 3, 64, 64)})
@@ -381,7 +381,10 @@ def test_bad_inputs_selections_and_targets_raise_value_errors_naming_the_field(m
         boxes=_box(1, 1, 9, 70),
         labels=torch.tensor([1]),
     )
-    bad_target(r"\['boxes'\]: expected a float tensor \(N, 4\)", 1, "bev", boxes=torch.zeros(3, 5))
+    bad_target(r"\['boxes'\]: expected a float32 tensor \(N, 4\)", 1, "bev", boxes=torch.zeros(3, 5))
+    bad_target(
+        r"\['boxes'\]: expected a float32 tensor", 1, "bev", boxes=torch.zeros(3, 4, dtype=torch.float64)
+    )
     typo = [dict(t, BEV=t["bev"]) for t in good]
     fails(r"targets\[0\]: unknown frame 'BEV'", targets=typo, train=True)
     fails(r"targets: 1 entries for a batch of 2", targets=good[:1], train=True)
