@@ -222,8 +222,11 @@ class HydraFusion(nn.Module):
         return tuple(s for s in SENSORS if s in used)
 
     def stems_for(self, selection: Any = None) -> tuple[str, ...]:
-        """Stems the selected branches need (any sample), in `stems` order."""
-        used = {SENSORS[s].stem for s in self.sensors_for(selection)}
+        """Shared stems the selected branches need (any sample), in `stems` order (branches that fuse
+        their inputs, fusion "input", bring their own stem)."""
+        per_sample = self.expand_selection(selection, _batch_of(selection))
+        used = {SENSORS[s].stem for chosen in per_sample for n in chosen
+                if self.branches[n].fusion == "features" for s in self.branches[n].sensors}
         return tuple(k for k in self.stems if k in used)
 
     # ----- stems -----------------------------------------------------------------------------
@@ -310,7 +313,8 @@ class HydraFusion(nn.Module):
                     raise ValueError(
                         f"inputs: sensor {s!r} is missing; branch {name!r} needs it for sample(s) {idx}"
                     )
-                needs.setdefault(s, set()).update(idx)
+                if self.branches[name].fusion == "features":  # input-fused branches have their own stem
+                    needs.setdefault(s, set()).update(idx)
         return groups, {s: sorted(v) for s, v in needs.items()}
 
     def _check_targets(self, targets: Any, per_sample: list[tuple[str, ...]]) -> None:
@@ -374,9 +378,13 @@ class HydraFusion(nn.Module):
                 )
 
     def _branch_inputs(
-        self, name: str, idx: list[int], feats: dict[str, tuple[Tensor, dict[int, int]]]
+        self, name: str, idx: list[int], feats: dict[str, tuple[Tensor, dict[int, int]]],
+        inputs: Mapping[str, Tensor] | None = None,
     ) -> list[Tensor]:
         xs = []
+        if self.branches[name].fusion == "input":
+            rows = torch.as_tensor(idx, device=next(iter(inputs.values())).device)
+            return [self.transform(s, inputs[s].index_select(0, rows)) for s in self.branches[name].sensors]
         for s in self.branches[name].sensors:
             f, rows = feats[s]
             r = [rows[i] for i in idx]
@@ -419,14 +427,14 @@ class HydraFusion(nn.Module):
             for name, idx in groups.items():
                 branch = self.branches[name]
                 branch_targets = [targets[i][branch.frame] for i in idx]
-                losses[name] = branch(self._branch_inputs(name, idx, feats), branch_targets)
+                losses[name] = branch(self._branch_inputs(name, idx, feats, inputs), branch_targets)
                 term = (len(idx) / batch) * sum(losses[name].values())
                 total = term if total is None else total + term
             return {"total": total, "branches": losses}
 
         detections: list[dict[str, dict[str, Tensor]]] = [{} for _ in range(batch)]
         for name, idx in groups.items():
-            results = self.branches[name](self._branch_inputs(name, idx, feats))
+            results = self.branches[name](self._branch_inputs(name, idx, feats, inputs))
             for i, result in zip(idx, results):
                 detections[i][name] = result
         if self.fusion_block is not None:
@@ -473,7 +481,7 @@ class HydraFusion(nn.Module):
         for name, idx in groups.items():
             branch = self.branches[name]
             per = branch.per_sample_losses(
-                self._branch_inputs(name, idx, feats), [targets[i][branch.frame] for i in idx], seed=seed
+                self._branch_inputs(name, idx, feats, inputs), [targets[i][branch.frame] for i in idx], seed=seed
             )
             for i, losses in zip(idx, per):
                 out[i][name] = losses
@@ -520,7 +528,7 @@ def build_hydrafusion(
     if branches is not None:
         overrides["branches"] = list(branches)
     prof = load_profile(profile, **overrides)
-    used = {SENSORS[s].stem for b in prof.branches for s in b.sensors}
+    used = {SENSORS[s].stem for b in prof.branches if b.fusion == "features" for s in b.sensors}
     stems = {
         name: build_stem(name, prof)
         for name in dict.fromkeys(s.stem for s in SENSORS.values())

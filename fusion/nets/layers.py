@@ -112,10 +112,13 @@ class Branch(nn.Module):
         neck: nn.Module | None,
         rpn: RegionProposalNetwork,
         roi_heads: RoIHeads,
+        input_stem: nn.Module | None = None,
     ) -> None:
         super().__init__()
         self.name = spec.name
         self.sensors = tuple(spec.sensors)
+        self.fusion = spec.fusion
+        self.input_stem = input_stem
         self.frame = spec.frame
         self.image_size = (int(image_size[0]), int(image_size[1]))
         self.output_stride = int(output_stride)
@@ -128,12 +131,17 @@ class Branch(nn.Module):
         self.roi_heads = roi_heads
 
     def features(self, xs: list[Tensor]) -> Tensor:
-        """Stem features -> the (N, C, H_pad/stride, W_pad/stride) map seen by RPN and RoIAlign."""
+        """Stem features (fusion "features") or normalised, padded input images (fusion "input"),
+        one per sensor -> the (N, C, H_pad/stride, W_pad/stride) map seen by RPN and RoIAlign."""
         if isinstance(xs, Tensor) or len(xs) != len(self.sensors):
             raise ValueError(
-                f"branch {self.name!r}: expected a list of {len(self.sensors)} stem feature maps"
+                f"branch {self.name!r}: expected a list of {len(self.sensors)} "
+                + ("input images" if self.fusion == "input" else "stem feature maps")
             )
-        x = xs[0] if self.merge is None else self.merge(torch.cat(xs, dim=1))
+        if self.input_stem is not None:  # early fusion of the raw inputs (Table 2 (ii))
+            x = self.input_stem(torch.cat(xs, dim=1))
+        else:
+            x = xs[0] if self.merge is None else self.merge(torch.cat(xs, dim=1))
         x = self.layer4(self.layer3(self.layer2(x)))
         return x if self.neck is None else self.neck(x)
 
@@ -206,7 +214,10 @@ def build_branch(spec: BranchSpec, profile: ModelProfile) -> Branch:
     if view.output_stride <= 8:
         _set_stride_one(r.layer3)
     k = len(spec.sensors)
-    merge = nn.Conv2d(STEM_CHANNELS * k, STEM_CHANNELS, kernel_size=3, padding=1) if k > 1 else None
+    merge = (nn.Conv2d(STEM_CHANNELS * k, STEM_CHANNELS, kernel_size=3, padding=1)
+             if k > 1 and spec.fusion == "features" else None)
+    input_stem = (Stem(sum(SENSORS[s].channels for s in spec.sensors), norm=profile.norm)
+                  if spec.fusion == "input" else None)
     channels = profile.roi_channels
     neck = nn.Conv2d(512, channels, kernel_size=1) if channels != 512 else None
     anchors = AnchorGenerator(sizes=(tuple(view.anchor_sizes),), aspect_ratios=(tuple(view.aspect_ratios),))
@@ -253,4 +264,5 @@ def build_branch(spec: BranchSpec, profile: ModelProfile) -> Branch:
         neck=neck,
         rpn=rpn,
         roi_heads=roi_heads,
+        input_stem=input_stem,
     )

@@ -74,11 +74,15 @@ class BranchSpec:
             by a 3x3 conv back to 64 channels when there is more than one.
         frame: name from `FRAMES`; its boxes are in this frame's pixels and its targets are
             `targets[i][frame]`.
+        fusion: "features" (HydraFusion's early-fusion branches: shared modality stems, stem
+            features concatenated and merged) or "input" (the early-fusion baseline of Table 2 (ii):
+            one network on the channel-stacked, normalised input images, with its own stem).
     """
 
     name: str
     sensors: tuple[str, ...]
     frame: Literal["camera_left", "camera_right", "bev"]
+    fusion: Literal["features", "input"] = "features"
 
     def __post_init__(self) -> None:
         if not isinstance(self.name, str) or not _NAME.match(self.name):
@@ -97,6 +101,8 @@ class BranchSpec:
             raise ValueError(f"sensors: branch {self.name!r} lists a sensor twice: {list(self.sensors)}")
         if self.frame not in FRAMES:
             raise ValueError(f"frame: {self.frame!r} is not one of {list(FRAMES)}")
+        if self.fusion not in ("features", "input"):
+            raise ValueError(f"fusion: {self.fusion!r} is not 'features' or 'input'")
         view = FRAMES[self.frame]
         for s in self.sensors:
             if SENSORS[s].view != view:

@@ -18,12 +18,16 @@ class Outer:
     name: str = "x"
     inner: Inner = field(default_factory=Inner)
     sizes: tuple[int, ...] = (1, 2)
+    pair: tuple[int, float] = (1, 2.0)
 
 
 def test_strict_loader_roundtrip_and_errors(tmp_path):
     o = from_dict(Outer, {"name": "a", "inner": {"width": 3}, "sizes": [4, 5]})
     assert o == Outer("a", Inner(3, 1.0), (4, 5))
     assert from_dict(Outer, to_dict(o)) == o
+    assert from_dict(Outer, {"pair": [3, 4]}).pair == (3, 4.0)  # fixed-length tuples keep their values
+    with pytest.raises(UserError, match="expected 2 items"):
+        from_dict(Outer, {"pair": [3]})
     with pytest.raises(UserError, match="unknown key 'widht'"):
         from_dict(Outer, {"inner": {"widht": 3}})
     with pytest.raises(UserError, match=r"config.inner.width: expected an integer"):

@@ -250,7 +250,7 @@ def test_output_stride_is_real_at_profile_sizes():
         cam = cpu.branches["cam"].features([feats["camera_right"]])
         bev = cpu.branches["bev"].features([feats["radar"]])
     assert cam.shape == (1, 128, 12, 21)  # 192 / 16, 336 / 16
-    assert bev.shape == (1, 128, 16, 16)
+    assert bev.shape == (1, 128, 32, 32)  # BEV at output stride 8 (configs/model/cpu.yaml)
     images = cpu.branches["cam"]._images(1, cam)
     anchors = cpu.branches["cam"].rpn.anchor_generator(images, [cam])[0]
     centres = ((anchors[:, 0] + anchors[:, 2]) / 2).unique()
@@ -394,3 +394,34 @@ def test_bad_inputs_selections_and_targets_raise_value_errors_naming_the_field(m
     out = model(inputs, [{"bev": empty}, {"bev": empty}], selection=["radar"])
     assert torch.isfinite(out["total"])
     model.eval()
+
+
+def test_input_level_early_fusion_branch_has_its_own_stem_and_trains():
+    """Table 2 (ii): one network on channel-stacked inputs (fusion "input"), no shared stems."""
+    from fusion.nets import build_hydrafusion
+    from fusion.nets.profile import BranchSpec
+    from tests.fusion.nets.conftest import TINY, make_inputs, make_targets
+
+    torch.manual_seed(0)
+    spec = BranchSpec("early_cams", ("camera_left", "camera_right"), "camera_right", fusion="input")
+    model = build_hydrafusion(profile="cpu", branches=[spec], **TINY)
+    branch = model.branches["early_cams"]
+    assert branch.input_stem is not None and branch.input_stem.in_channels == 6 and branch.merge is None
+    assert model.stems_for(["early_cams"]) == () and len(model.stems) == 0
+    calls = []
+    hooks = [stem.register_forward_hook(lambda *a: calls.append(1)) for stem in model.stems.values()]
+    model.train()
+    inputs = make_inputs(model, 2, sensors=("camera_left", "camera_right"))
+    out = model(inputs, make_targets(model, 2))
+    out["total"].backward()
+    assert calls == [] and torch.isfinite(out["total"])
+    assert branch.input_stem.conv1.weight.grad is not None
+    # the stacked input really carries both cameras: changing the left image changes the output
+    model.eval()
+    with torch.no_grad():
+        f1 = branch.features([model.transform(s, inputs[s]) for s in ("camera_left", "camera_right")])
+        inputs2 = dict(inputs, camera_left=torch.zeros_like(inputs["camera_left"]))
+        f2 = branch.features([model.transform(s, inputs2[s]) for s in ("camera_left", "camera_right")])
+    assert not torch.allclose(f1, f2)
+    for h in hooks:
+        h.remove()
