@@ -150,7 +150,7 @@ class HydraFusion(nn.Module):
             for s in branch.sensors:
                 if s not in SENSORS:
                     raise ValueError(f"branches: branch {name!r} needs unknown sensor {s!r}")
-                if SENSORS[s].stem not in self.stems:
+                if getattr(branch, "fusion", "features") == "features" and SENSORS[s].stem not in self.stems:
                     raise ValueError(
                         f"stems: branch {name!r} needs stem {SENSORS[s].stem!r} for sensor {s!r}"
                     )

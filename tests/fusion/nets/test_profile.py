@@ -72,8 +72,8 @@ def test_overrides_merge_deeply_and_are_checked():
         load_profile("cpu", camera={"output_stride": 12})
     with pytest.raises(UserError, match=r"cpu.camera: size: expected \(H, W\)"):
         load_profile("cpu", camera={"size": (64, 96, 3)})
-    with pytest.raises(UserError, match=r"cpu.bev: anchor_sizes: no anchor is at least 16 px"):
-        load_profile("cpu", bev={"anchor_sizes": [8, 12]})
+    with pytest.raises(UserError, match=r"cpu.bev: anchor_sizes: no anchor is at least 8 px"):
+        load_profile("cpu", bev={"anchor_sizes": [4, 6]})  # the cpu BEV grid step is 8 px
     with pytest.raises(UserError, match="unknown normalisation layer 'instance'"):
         load_profile("cpu", norm="instance")
     with pytest.raises(UserError, match="normalization.radar: expected 1 mean and 1 std"):
