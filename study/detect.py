@@ -1,0 +1,136 @@
+"""Running a trained HydraFusion on dataset frames: load a run, batch frames, collect detections,
+fuse them in the reference frame and score them (VOC mAP@0.5, difficult boxes ignored)."""
+
+from __future__ import annotations
+
+import json
+import sys
+from collections import defaultdict
+from pathlib import Path
+
+import numpy as np
+import torch
+from torch.utils.data import DataLoader
+
+from fusion.data import FrameDataset, collate, split_by_sequence
+from fusion.late import Detections, fuse
+from sensors.dataset import DatasetReader
+from sensors.rig import Calibration
+from sim.actors import CLASSES
+from sim.errors import UserError
+from study.metrics import evaluate_detections
+
+FUSION_ALIASES = {"nms": "nms", "soft-nms": "soft_nms", "soft_nms": "soft_nms", "wbf": "wbf"}
+
+
+def fusion_method(name: str) -> str:
+    if name not in FUSION_ALIASES:
+        raise UserError(f"unknown fusion method {name!r} (choose from: nms, soft-nms, wbf)")
+    return FUSION_ALIASES[name]
+
+
+def load_run(run: str | Path, which: str = "latest"):
+    """(model in eval mode, run config dict) from a training run directory."""
+    from fusion.nets import build_hydrafusion
+    from fusion.nets.profile import BranchSpec
+
+    run = Path(run)
+    cfg_path = run / "config.json"
+    ckpt = run / ("checkpoint.pt" if which == "latest" else f"{which}.pt")
+    if not cfg_path.exists() or not ckpt.exists():
+        raise UserError(f"{run} is not a training run (needs config.json and {ckpt.name})")
+    cfg = json.loads(cfg_path.read_text())
+    branches = [BranchSpec(b["name"], tuple(b["sensors"]), b["frame"], b.get("fusion", "features"))
+                for b in cfg["branch_specs"]]
+    model = build_hydrafusion(profile=cfg["model_profile"], branches=branches)
+    state = torch.load(ckpt, map_location="cpu", weights_only=False)
+    model.load_state_dict(state["model"])
+    model.eval()
+    return model, cfg
+
+
+def frames_for(run_cfg: dict, data: str | Path, split: str = "auto") -> tuple[list[int], str]:
+    """Which frames of `data` to evaluate: the run's test split when `data` is its training dataset
+    (same generation config), every frame otherwise; `split` = "test" | "train" | "all" forces it."""
+    reader = DatasetReader(data)
+    same = reader.manifest["config"] == run_cfg.get("data_config")
+    if split == "auto":
+        split = "test" if same else "all"
+    if split == "all":
+        return list(range(len(reader))), "all"
+    if not same:
+        raise UserError(f"--split {split} needs the run's training dataset ({run_cfg.get('data')})")
+    train, test = split_by_sequence(reader, run_cfg["train_fraction"], run_cfg["split_seed"])
+    return (test if split == "test" else train), split
+
+
+def to_detections(d: dict) -> Detections:
+    return Detections(d["boxes"].detach().cpu().numpy().astype(np.float64),
+                      d["scores"].detach().cpu().numpy().astype(np.float64),
+                      d["labels"].detach().cpu().numpy().astype(np.int64))
+
+
+def run_branches(model, data, indices, branches, batch_size: int = 4, progress: str = "detect",
+                 sensors=None):
+    """Per-frame detections of each branch in its own frame: list of (meta, labels, {branch: Detections})."""
+    need = sensors or model.sensors_for(list(branches))
+    ds = FrameDataset(data, indices, sensors=need)
+    loader = DataLoader(ds, batch_size=batch_size, shuffle=False, collate_fn=collate, num_workers=0)
+    from tqdm import tqdm
+
+    out = []
+    with torch.no_grad():
+        for inputs, _targets, metas in tqdm(loader, desc=progress, file=sys.stderr, disable=None, leave=False):
+            dets = model(inputs, selection=list(branches))
+            for meta, per in zip(metas, dets):
+                out.append((meta, {n: to_detections(d) for n, d in per.items()}))
+    return out
+
+
+def ground_truth(labels: dict, frame: str) -> dict:
+    lab = labels[frame]
+    return {"boxes": np.array(lab["boxes"], float).reshape(-1, 4), "labels": np.array(lab["labels"], np.int64),
+            "difficult": np.array(lab["difficult"], bool)}
+
+
+def score(per_frame: list, reader: DatasetReader, frame: str = "camera_right") -> dict:
+    """VOC mAP@0.5 of detections already in `frame`: overall, per class, per context."""
+    dets, gts, contexts = [], [], []
+    for meta, d in per_frame:
+        i = meta["dataset_index"]
+        gts.append(ground_truth(reader.labels(i), frame))
+        dets.append({"boxes": d.boxes, "scores": d.scores, "labels": d.labels})
+        contexts.append(meta["context"])
+    res = evaluate_detections(dets, gts, classes=range(1, len(CLASSES) + 1))
+    per_ctx = {}
+    by_ctx = defaultdict(list)
+    for k, c in enumerate(contexts):
+        by_ctx[c].append(k)
+    for c, ks in sorted(by_ctx.items()):
+        r = evaluate_detections([dets[k] for k in ks], [gts[k] for k in ks], classes=range(1, len(CLASSES) + 1))
+        per_ctx[c] = _round(r.mean_ap)
+    return {
+        "map": _round(res.mean_ap),
+        "ap_per_class": {CLASSES[c - 1]: _round(v) for c, v in res.ap.items()},
+        "map_per_context": per_ctx,
+        "positives_per_class": {CLASSES[c - 1]: int(n) for c, n in res.n_positives.items()},
+        "frames": len(per_frame),
+    }
+
+
+def _round(v):
+    return None if v is None or (isinstance(v, float) and np.isnan(v)) else round(float(v), 4)
+
+
+def fused(per_frame: list, branches, frames: dict, method: str, weights=None) -> list:
+    """Late fusion of each frame's selected branches in the right camera frame."""
+    out = []
+    for meta, per in per_frame:
+        calib = Calibration.from_dict(meta["calibration"])
+        chosen = {n: per[n] for n in branches if n in per}
+        out.append((meta, fuse(chosen, frames, calib, method=method, weights=weights)))
+    return out
+
+
+def native(per_frame: list, branch: str) -> list:
+    return [(meta, per[branch]) for meta, per in per_frame if branch in per]

@@ -1,0 +1,291 @@
+"""`hydrabench train`: stems and branches jointly with the Faster R-CNN multi-task loss.
+
+HydraFusion Section 5.3: SGD at lr 5e-3, a 70:30 train/test split (by sequence here, so no
+sequence is in both), all branches trained together on every sample. Everything a resumed run needs
+is in the run directory:
+
+    RUN/config.json        the training config, the branch set, the dataset's generation config
+    RUN/checkpoint.pt      latest state (model, optimiser, epoch, step in epoch, RNG states),
+                           written atomically every `checkpoint_steps` steps and at each epoch end
+    RUN/epoch-XXX.pt       the model at the end of each epoch
+    RUN/metrics.csv        one row per epoch: mean losses per branch, lr, test mAP@0.5 per branch
+                           (in its own frame) and of their late fusion (right camera), seconds
+
+Interrupted (even kill -9) and run again with the same arguments, training continues from the last
+checkpoint; a larger --epochs extends a finished run.
+"""
+
+from __future__ import annotations
+
+import csv
+import dataclasses
+import json
+import os
+import sys
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from fusion.data import FrameDataset, collate, split_by_sequence
+from sensors.dataset import DatasetReader
+from sim.errors import UserError
+from study.cli import Formatter, emit, pos_float, pos_int
+
+EPILOG = """\
+examples:
+  hydrabench train data/train1k --out runs/cam_radar --branches camera_right,radar --epochs 12
+  hydrabench train data/train1k --out runs/all --epochs 10          (all seven branches)
+  hydrabench train data/train1k --out runs/early --branch-set early_fusion
+Branch sets (--branch-set): paper (the seven), single (one branch per sensor), early_fusion
+(input-level: cameras, cameras + forward lidar, radar + lidar), late_fusion (= single, fused at
+evaluation). --branches picks a subset of the set by name.
+"""
+
+
+@dataclass(frozen=True)
+class TrainConfig:
+    """One training run.
+
+    Fields:
+        data: dataset directory (hydrabench generate).
+        model_profile: configs/model/<profile>.yaml (cpu or paper).
+        branch_set: paper | single | early_fusion | late_fusion (see EPILOG).
+        branches: names from the set to train (empty = the whole set).
+        epochs: passes over the training split.
+        batch_size: frames per step.
+        lr: SGD learning rate (HydraFusion 5.3: 5e-3); momentum 0.9, weight decay 1e-4.
+        warmup_steps: linear warm-up from lr / 1000 (detection from scratch diverges without it).
+        lr_drop_epoch: lr x 0.1 from this epoch on (0 = 3/4 of `epochs`).
+        clip_grad: gradient-norm clipping (0 = off).
+        train_fraction, split_seed: the by-sequence split.
+        seed: model initialisation and data order.
+        checkpoint_steps: also checkpoint every this many steps within an epoch.
+        eval_frames: evaluate on at most this many test frames per epoch (0 = all).
+        threads: torch CPU threads.
+    """
+
+    data: str
+    model_profile: str = "cpu"
+    branch_set: str = "paper"
+    branches: tuple[str, ...] = ()
+    epochs: int = 10
+    batch_size: int = 4
+    lr: float = 5e-3
+    warmup_steps: int = 100
+    lr_drop_epoch: int = 0
+    clip_grad: float = 10.0
+    train_fraction: float = 0.7
+    split_seed: int = 0
+    seed: int = 0
+    checkpoint_steps: int = 100
+    eval_frames: int = 0
+    threads: int = 2
+
+
+def branch_set(name: str, profile: str):
+    """The BranchSpecs of a named set for a model profile."""
+    from fusion.nets import load_profile as load_model_profile
+    from fusion.nets.profile import BranchSpec
+
+    paper = list(load_model_profile(profile).branches)
+    single = [b for b in paper if len(b.sensors) == 1]
+    if name == "paper":
+        return paper
+    if name in ("single", "late_fusion"):
+        return single
+    if name == "early_fusion":
+        return [
+            BranchSpec("early_cameras", ("camera_left", "camera_right"), "camera_right", fusion="input"),
+            BranchSpec("early_camera_lidar", ("camera_left", "camera_right", "fwd_lidar"), "camera_right", fusion="input"),
+            BranchSpec("early_radar_lidar", ("radar", "lidar"), "bev", fusion="input"),
+        ]
+    raise UserError(f"unknown branch set {name!r} (choose from: paper, single, early_fusion, late_fusion)")
+
+
+def add_parser(sub, name, help_text):
+    p = sub.add_parser(name, help=help_text, description=__doc__.split("\n\n", 1)[1], epilog=EPILOG,
+                       formatter_class=Formatter)
+    p.add_argument("data", help="dataset directory")
+    p.add_argument("--out", required=True, help="run directory (created; an existing run is resumed)")
+    p.add_argument("--profile", default="cpu", help="model profile (configs/model)")
+    p.add_argument("--branch-set", default="paper", help="paper | single | early_fusion | late_fusion")
+    p.add_argument("--branches", default="", help="comma-separated branch names from the set (default: all)")
+    p.add_argument("--epochs", type=pos_int, default=10)
+    p.add_argument("--batch-size", type=pos_int, default=4)
+    p.add_argument("--lr", type=pos_float, default=5e-3, help="SGD learning rate (HydraFusion 5.3)")
+    p.add_argument("--warmup-steps", type=int, default=100)
+    p.add_argument("--lr-drop-epoch", type=int, default=0, help="lr x 0.1 from this epoch (0: 3/4 of --epochs)")
+    p.add_argument("--clip-grad", type=float, default=10.0)
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--eval-frames", type=int, default=0, help="test frames evaluated per epoch (0 = all)")
+    p.add_argument("--threads", type=pos_int, default=2, help="torch CPU threads")
+    p.add_argument("--json", action="store_true", help="print one JSON object (final metrics) on stdout")
+    p.set_defaults(run=run)
+
+
+def _atomic_save(obj, path: Path) -> None:
+    tmp = path.with_name(f".{path.name}.tmp-{os.getpid()}")
+    torch.save(obj, tmp)
+    os.replace(tmp, path)
+
+
+def _lr_at(cfg: TrainConfig, epoch: int, step: int) -> float:
+    drop = cfg.lr_drop_epoch or max(1, int(round(0.75 * cfg.epochs)))
+    lr = cfg.lr * (0.1 if epoch >= drop else 1.0)
+    if step < cfg.warmup_steps:
+        lr *= 1e-3 + (1 - 1e-3) * step / cfg.warmup_steps
+    return lr
+
+
+def evaluate_epoch(model, cfg: TrainConfig, reader, test_idx, branches) -> dict:
+    from study.detect import fused, native, run_branches, score
+
+    idx = test_idx if not cfg.eval_frames else test_idx[: cfg.eval_frames]
+    model.eval()
+    per_frame = run_branches(model, cfg.data, idx, branches, batch_size=cfg.batch_size, progress="evaluate")
+    out = {}
+    frames = model.branch_frames
+    for b in branches:
+        out[f"map_{b}"] = score(native(per_frame, b), reader, frames[b] if frames[b] != "bev" else "bev")["map"]
+    out["map_fused"] = score(fused(per_frame, branches, frames, "soft_nms"), reader, "camera_right")["map"]
+    model.train()
+    return out
+
+
+def train(cfg: TrainConfig, out: Path, progress: bool = True) -> dict:
+    from tqdm import tqdm
+
+    from fusion.nets import build_hydrafusion
+
+    torch.set_num_threads(cfg.threads)
+    reader = DatasetReader(cfg.data)
+    specs = branch_set(cfg.branch_set, cfg.model_profile)
+    names = [s.name for s in specs]
+    chosen = list(cfg.branches) or names
+    bad = [b for b in chosen if b not in names]
+    if bad:
+        raise UserError(f"unknown branch {bad[0]!r} in set {cfg.branch_set!r} (choose from: {', '.join(names)})")
+    specs = [s for s in specs if s.name in chosen]
+    if reader.manifest["profile"] != cfg.model_profile:
+        raise UserError(f"dataset profile {reader.manifest['profile']!r} does not match model profile {cfg.model_profile!r}")
+    run_cfg = {**dataclasses.asdict(cfg), "branches": chosen, "branch_specs": [dataclasses.asdict(s) for s in specs],
+               "data_config": reader.manifest["config"]}
+    out.mkdir(parents=True, exist_ok=True)
+    cfg_path = out / "config.json"
+    if cfg_path.exists():
+        old = json.loads(cfg_path.read_text())
+        comparable = {k: v for k, v in old.items() if k not in ("epochs", "lr_drop_epoch", "eval_frames", "threads")}
+        now = {k: v for k, v in run_cfg.items() if k not in ("epochs", "lr_drop_epoch", "eval_frames", "threads")}
+        if comparable != now:
+            diff = sorted(k for k in now if comparable.get(k) != now.get(k))
+            raise UserError(f"{out} holds a run with a different config ({', '.join(diff)}); use another --out")
+    tmp = cfg_path.with_name(".config.json.tmp")
+    tmp.write_text(json.dumps(run_cfg, indent=1))
+    os.replace(tmp, cfg_path)
+
+    train_idx, test_idx = split_by_sequence(reader, cfg.train_fraction, cfg.split_seed)
+    torch.manual_seed(cfg.seed)
+    model = build_hydrafusion(profile=cfg.model_profile, branches=specs)
+    model.train()
+    params = [p for p in model.parameters() if p.requires_grad]
+    opt = torch.optim.SGD(params, lr=cfg.lr, momentum=0.9, weight_decay=1e-4)
+    epoch, step_in_epoch, global_step = 0, 0, 0
+    ckpt_path = out / "checkpoint.pt"
+    if ckpt_path.exists():
+        state = torch.load(ckpt_path, map_location="cpu", weights_only=False)
+        model.load_state_dict(state["model"])
+        opt.load_state_dict(state["optimizer"])
+        epoch, step_in_epoch, global_step = state["epoch"], state["step_in_epoch"], state["global_step"]
+        torch.set_rng_state(state["torch_rng"])
+        if progress:
+            sys.stderr.write(f"resuming {out} at epoch {epoch + 1}, step {step_in_epoch}\n")
+    sensors = model.sensors_for(None)
+    dataset = FrameDataset(cfg.data, train_idx, sensors=sensors)
+    steps_per_epoch = (len(dataset) + cfg.batch_size - 1) // cfg.batch_size
+    metrics_path = out / "metrics.csv"
+    result = {}
+    while epoch < cfg.epochs:
+        order = np.random.default_rng([cfg.seed, epoch]).permutation(len(dataset))
+        batches = [order[k:k + cfg.batch_size] for k in range(0, len(order), cfg.batch_size)]
+        sums: dict[str, float] = {}
+        counts = 0
+        t0 = time.perf_counter()
+        bar = tqdm(total=steps_per_epoch, initial=step_in_epoch, desc=f"epoch {epoch + 1}/{cfg.epochs}",
+                   file=sys.stderr, disable=not progress or None, dynamic_ncols=True)
+        for k in range(step_in_epoch, len(batches)):
+            inputs, targets, _ = collate([dataset[int(i)] for i in batches[k]])
+            for g in opt.param_groups:
+                g["lr"] = _lr_at(cfg, epoch, global_step)
+            losses = model(inputs, targets)
+            total = losses["total"]
+            if not torch.isfinite(total):
+                raise RuntimeError(f"non-finite loss at epoch {epoch + 1} step {k} (lower --lr?)")
+            opt.zero_grad(set_to_none=True)
+            total.backward()
+            if cfg.clip_grad > 0:
+                torch.nn.utils.clip_grad_norm_(params, cfg.clip_grad)
+            opt.step()
+            global_step += 1
+            counts += 1
+            for b, ld in losses["branches"].items():
+                sums[b] = sums.get(b, 0.0) + float(sum(v.detach() for v in ld.values()))
+            sums["total"] = sums.get("total", 0.0) + float(total.detach())
+            bar.set_postfix(loss=f"{float(total):.3f}", lr=f"{opt.param_groups[0]['lr']:.2e}")
+            bar.update(1)
+            if (k + 1) % cfg.checkpoint_steps == 0 and k + 1 < len(batches):
+                _atomic_save({"model": model.state_dict(), "optimizer": opt.state_dict(), "epoch": epoch,
+                              "step_in_epoch": k + 1, "global_step": global_step,
+                              "torch_rng": torch.get_rng_state()}, ckpt_path)
+        bar.close()
+        epoch += 1
+        step_in_epoch = 0
+        _atomic_save({"model": model.state_dict()}, out / f"epoch-{epoch:03d}.pt")
+        evals = evaluate_epoch(model, cfg, reader, test_idx, chosen)
+        row = {"epoch": epoch, "steps": global_step, "lr": opt.param_groups[0]["lr"],
+               **{f"loss_{b}": round(v / max(counts, 1), 4) for b, v in sums.items()}, **evals,
+               "seconds": round(time.perf_counter() - t0, 1)}
+        _append_row(metrics_path, row)
+        _atomic_save({"model": model.state_dict(), "optimizer": opt.state_dict(), "epoch": epoch, "step_in_epoch": 0,
+                      "global_step": global_step, "torch_rng": torch.get_rng_state()}, ckpt_path)
+        if progress:
+            sys.stderr.write(json.dumps(row) + "\n")
+        result = row
+    if not result and metrics_path.exists():
+        with open(metrics_path) as fh:
+            rows = list(csv.DictReader(fh))
+        result = rows[-1] if rows else {}
+    return {"run": str(out), "epochs": cfg.epochs, "train_frames": len(train_idx), "test_frames": len(test_idx),
+            "branches": chosen, "last": result}
+
+
+def _append_row(path: Path, row: dict) -> None:
+    rows = []
+    if path.exists():
+        with open(path) as fh:
+            rows = list(csv.DictReader(fh))
+    rows = [r for r in rows if int(r["epoch"]) < row["epoch"]] + [{k: str(v) for k, v in row.items()}]
+    keys = list(dict.fromkeys(k for r in rows for k in r))
+    tmp = path.with_name(f".{path.name}.tmp")
+    with open(tmp, "w", newline="") as fh:
+        w = csv.DictWriter(fh, fieldnames=keys)
+        w.writeheader()
+        w.writerows(rows)
+    os.replace(tmp, path)
+
+
+def run(args) -> int:
+    from study.outputs import check_writable_dir
+
+    cfg = TrainConfig(
+        data=str(Path(args.data).resolve()), model_profile=args.profile, branch_set=args.branch_set,
+        branches=tuple(b.strip() for b in args.branches.split(",") if b.strip()), epochs=args.epochs,
+        batch_size=args.batch_size, lr=args.lr, warmup_steps=args.warmup_steps, lr_drop_epoch=args.lr_drop_epoch,
+        clip_grad=args.clip_grad, seed=args.seed, eval_frames=args.eval_frames, threads=args.threads,
+    )
+    out = check_writable_dir(args.out)
+    result = train(cfg, out)
+    emit(result, args.json, lambda r: f"run {r['run']}: {r['epochs']} epochs, last epoch {r['last']}")
+    return 0
