@@ -192,6 +192,7 @@ class SequenceRenderer:
                       "street_lamps_on": obs.weather.illuminance_lux < 50.0,
                       "headlights_on": obs.weather.illuminance_lux < 400.0},
             "exposure": {"camera_left": obs.camera_left.exposure, "camera_right": obs.camera_right.exposure},
+            "camera_gain": {"camera_left": obs.camera_left.gain, "camera_right": obs.camera_right.gain},
             "degradation": degradation or {},
             "ego_pose": np.round(scene.ego.pose, 6).tolist(),
             "profile": self.profile.name,

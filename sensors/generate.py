@@ -18,6 +18,7 @@ from pathlib import Path
 
 import numpy as np
 
+from sensors import SENSOR_MODEL_VERSION
 from sim.config import from_dict
 from sim.errors import UserError
 from sim.scenario import CONTEXT_NAMES, Context, ScenarioSpec, Simulator, stream
@@ -178,7 +179,7 @@ def generate_shard(config_dict: dict, spec_dict: dict, out: str) -> dict:
     t0 = time.perf_counter()
     frames, twins, timings = render_sequence(spec, config)
     t_write = time.perf_counter()
-    extra = {"shard": asdict(spec), "config": config.to_dict()}
+    extra = {"shard": asdict(spec), "config": config.to_dict(), "sensor_model_version": SENSOR_MODEL_VERSION}
     write_frames(tmp, frames, extra)
     if twins is not None:
         write_frames(tmp / "clear", twins, {**extra, "twin": "clear"})
@@ -212,6 +213,11 @@ def existing_record(root: Path, spec: ShardSpec, config: GenerateConfig) -> dict
     if head.get("config") != config.to_dict() or head.get("shard") != asdict(spec):
         raise UserError(
             f"{root} holds shard {spec.name} of a different generation config; use an empty --out directory"
+        )
+    if head.get("sensor_model_version") != SENSOR_MODEL_VERSION:
+        raise UserError(
+            f"{root} holds shard {spec.name} made by sensor model version {head.get('sensor_model_version')!r} "
+            f"(this code: {SENSOR_MODEL_VERSION!r}); use an empty --out directory"
         )
     return {"name": spec.name, "sha256": shard_digest(d), "frames": len(head["frames"]), **asdict(spec),
             "seconds": 0.0, "timings": {}}
@@ -270,6 +276,7 @@ def generate(config: GenerateConfig, out: str | Path, workers: int = 1, progress
             frames_index.append({"shard": s.name, "index": k, "context": s.context, "severity": s.severity})
     manifest = {
         "format_version": FORMAT_VERSION,
+        "sensor_model_version": SENSOR_MODEL_VERSION,
         "created_by": "hydrabench generate",
         "config": cfg,
         "seed": config.seed,

@@ -95,7 +95,8 @@ def scan(caster: WorldCaster, calib: Calibration, world_from_ego: np.ndarray, ac
     mean (unspeckled) signal, for tests of the radar equation."""
     A, B, dr = calib.radar_azimuths, calib.radar_range_bins, calib.radar_range_resolution_m
     n_fine = A * OVERSAMPLE
-    az = 2 * np.pi * np.arange(n_fine) / n_fine
+    # fine rays centred on their bin: row a = azimuth a * 360 / A (rig.py convention)
+    az = 2 * np.pi * (np.arange(n_fine) - (OVERSAMPLE - 1) / 2) / n_fine
     el = np.radians(ELEVATIONS_DEG)
     dirs = np.stack(np.broadcast_arrays(
         (np.cos(el)[:, None] * np.cos(az)[None, :]),

@@ -100,6 +100,7 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "export-coco": ("study.cmd_dataset:add_export", "write a dataset's FWD labels as COCO JSON"),
     "show": ("study.cmd_dataset:add_show", "draw one frame of a dataset with every sensor and its labels"),
     "gallery": ("study.cmd_gallery:add_parser", "one scene under every condition and severity, all sensors side by side"),
+    "theory": ("study.theory:add_parser", "HydraFusion Sec. 1.1 measured: single sensors vs full, selective and gated fusion per weather"),
     "train": ("study.train:add_parser", "train HydraFusion stems and branches (resumable, per-epoch CSV and checkpoints)"),
     "bench": ("study.bench:add_parser", "measure throughput (sim, generate, ...) and print the figures"),
 }

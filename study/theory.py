@@ -33,6 +33,7 @@ from pathlib import Path
 
 import numpy as np
 
+from sensors import SENSOR_MODEL_VERSION
 from sim.errors import UserError
 from study.cli import Formatter, emit, nonneg_int, pos_int, severity_arg
 
@@ -201,7 +202,8 @@ def cache_key(spec, sequence: int) -> dict:
     """Everything that determines a sequence's measurements."""
     from fusion.estimation.measurements import EXTRACTOR_VERSION
 
-    return {"extractor_version": EXTRACTOR_VERSION, "context": spec.context, "severity": spec.severity,
+    return {"extractor_version": EXTRACTOR_VERSION, "sensor_model_version": SENSOR_MODEL_VERSION,
+            "context": spec.context, "severity": spec.severity,
             "seed": spec.seed, "frames": spec.frames, "frame_rate_hz": spec.frame_rate_hz,
             "profile": spec.profile, "transition": spec.transition, "warmup_s": spec.warmup_s,
             "obstructions": False, "sequence": sequence}

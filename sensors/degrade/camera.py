@@ -2,7 +2,7 @@
 
 Order of application (registration order) follows the light path: wet road -> atmosphere
 (Koschmieder) -> rain streaks / snow flakes in the air -> glare -> lens (drops, snow, soiling)
--> failures -> sensor (exposure gain and Poisson-Gaussian noise, applied by the camera model).
+-> failures -> sensor noise (exposure gain and Poisson-Gaussian noise, applied by the camera model).
 """
 
 from __future__ import annotations
@@ -422,19 +422,19 @@ class CameraBlackout(Degradation):
 
 
 @register
-class LowLightSensor(Degradation):
-    """Low light: the exposure hits the camera's limit (sensors.camera.MAX_EXPOSURE), the camera
-    raises its analogue gain up to 4x, and the image gets Poisson-Gaussian noise (photon shot
-    noise on a 6,000 e- full well plus 4 e- read noise, multiplied by the gain), as in the
-    low-light corruptions of MultiCorrupt and RoboBEV, but from the frame's illuminance.
+class CameraNoise(Degradation):
+    """Image sensor noise at every light level: Poisson photon shot noise on a 6,000 e- full well
+    plus 4 e- read noise (Poisson-Gaussian, as in the low-light corruptions of MultiCorrupt and
+    RoboBEV, but driven by the frame's illuminance). By day the auto-exposure keeps mid-grey at
+    ~1,100 e- (about 3 % noise); when the exposure hits the camera's limit
+    (sensors.camera.MAX_EXPOSURE, dusk and night) the camera raises its analogue gain up to 4x, which
+    brightens the image and its noise together. Applied by the camera model (sensors.camera.expose).
     """
 
-    name = "low_light_sensor"
+    name = "camera_noise"
     sensor = "camera"
 
     def sample_params(self, rng, weather, ctx):
-        if weather.illuminance_lux >= 400:
-            return None
         return {"full_well_e": 6000.0, "read_noise_e": 4.0, "max_gain": 4.0, "seed": int(rng.integers(2**31))}
 
     def apply(self, obs, params, ctx):

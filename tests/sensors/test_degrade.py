@@ -119,7 +119,9 @@ def test_night_leaves_lidar_and_radar_bit_identical(motorway):
         assert np.array_equal(getattr(fa, name), getattr(fb, name)), name
     assert not np.array_equal(fa.camera_right, fb.camera_right)
     assert fb.camera_right.mean() < 0.5 * fa.camera_right.mean()  # and the camera does see the night
-    assert "low_light_sensor" in pb and "low_light_sensor" not in pa
+    # sensor noise is on in both; at night the exposure limit forces analogue gain (and more noise)
+    assert "camera_noise" in pa and "camera_noise" in pb
+    assert fa.meta["camera_gain"]["camera_right"] == 1.0 < fb.meta["camera_gain"]["camera_right"]
 
 
 @pytest.mark.parametrize("name", DEGRADATIONS.names())
