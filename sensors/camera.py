@@ -17,8 +17,14 @@ maximum exposure, lens blur, sRGB encoding) turns it into an 8-bit image.
 from __future__ import annotations
 
 import os
+import sys
 
 os.environ["PYOPENGL_PLATFORM"] = os.environ.get("PYOPENGL_PLATFORM", "egl") or "egl"
+# Mesa's llvmpipe (EGL) and triton (pulled in by torch/torchvision) each load their own LLVM; when
+# triton is imported after llvmpipe is up, the process segfaults. triton is only for GPU kernels,
+# which hydrabench never uses: if it is not loaded yet, mark it unavailable for this process.
+if "triton" not in sys.modules:
+    sys.modules["triton"] = None  # type: ignore[assignment]
 
 import contextlib  # noqa: E402
 from dataclasses import dataclass  # noqa: E402

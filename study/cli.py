@@ -102,6 +102,7 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "gallery": ("study.cmd_gallery:add_parser", "one scene under every condition and severity, all sensors side by side"),
     "theory": ("study.theory:add_parser", "HydraFusion Sec. 1.1 measured: single sensors vs full, selective and gated fusion per weather"),
     "train": ("study.train:add_parser", "train HydraFusion stems and branches (resumable, per-epoch CSV and checkpoints)"),
+    "evaluate": ("study.evaluate:add_parser", "VOC mAP@0.5 of a run's branches fused in the right camera (per class, per context)"),
     "bench": ("study.bench:add_parser", "measure throughput (sim, generate, ...) and print the figures"),
 }
 

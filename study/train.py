@@ -121,6 +121,7 @@ def add_parser(sub, name, help_text):
     p.add_argument("--clip-grad", type=float, default=10.0)
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--eval-frames", type=int, default=0, help="test frames evaluated per epoch (0 = all)")
+    p.add_argument("--checkpoint-steps", type=pos_int, default=100, help="also checkpoint every N steps within an epoch")
     p.add_argument("--threads", type=pos_int, default=2, help="torch CPU threads")
     p.add_argument("--json", action="store_true", help="print one JSON object (final metrics) on stdout")
     p.set_defaults(run=run)
@@ -173,12 +174,14 @@ def train(cfg: TrainConfig, out: Path, progress: bool = True) -> dict:
         raise UserError(f"dataset profile {reader.manifest['profile']!r} does not match model profile {cfg.model_profile!r}")
     run_cfg = {**dataclasses.asdict(cfg), "branches": chosen, "branch_specs": [dataclasses.asdict(s) for s in specs],
                "data_config": reader.manifest["config"]}
+    run_cfg = json.loads(json.dumps(run_cfg))  # the form it has on disk (tuples become lists)
     out.mkdir(parents=True, exist_ok=True)
     cfg_path = out / "config.json"
     if cfg_path.exists():
         old = json.loads(cfg_path.read_text())
-        comparable = {k: v for k, v in old.items() if k not in ("epochs", "lr_drop_epoch", "eval_frames", "threads")}
-        now = {k: v for k, v in run_cfg.items() if k not in ("epochs", "lr_drop_epoch", "eval_frames", "threads")}
+        free = ("epochs", "lr_drop_epoch", "eval_frames", "threads", "checkpoint_steps")  # may change on resume
+        comparable = {k: v for k, v in old.items() if k not in free}
+        now = {k: v for k, v in run_cfg.items() if k not in free}
         if comparable != now:
             diff = sorted(k for k in now if comparable.get(k) != now.get(k))
             raise UserError(f"{out} holds a run with a different config ({', '.join(diff)}); use another --out")
@@ -284,6 +287,7 @@ def run(args) -> int:
         branches=tuple(b.strip() for b in args.branches.split(",") if b.strip()), epochs=args.epochs,
         batch_size=args.batch_size, lr=args.lr, warmup_steps=args.warmup_steps, lr_drop_epoch=args.lr_drop_epoch,
         clip_grad=args.clip_grad, seed=args.seed, eval_frames=args.eval_frames, threads=args.threads,
+        checkpoint_steps=args.checkpoint_steps,
     )
     out = check_writable_dir(args.out)
     result = train(cfg, out)
