@@ -53,10 +53,36 @@ def split_by_sequence(reader: DatasetReader, train_fraction: float = 0.7, seed: 
     return sorted(train), sorted(test)
 
 
-def frame_targets(labels: dict, keep_difficult: bool = False) -> dict:
+def crop_bev_labels(lab: dict, size: tuple[int, int], full: int) -> dict:
+    """BEV labels of the crop a model sees: rows [0, H) from the top (forward) and W columns centred.
+
+    Pixel coordinates do not move for a top crop of full width, so calibration-based mappings
+    (Appendix A) stay valid; boxes are clipped to the crop and dropped when less than half of
+    their area remains.
+    """
+    H, W = size
+    if (H, W) == (full, full):
+        return lab
+    x0 = (full - W) / 2
+    out = {k: [] for k in lab}
+    for i, (x1, y1, x2, y2) in enumerate(lab["boxes"]):
+        cx1, cy1, cx2, cy2 = max(x1, x0), max(y1, 0.0), min(x2, x0 + W), min(y2, float(H))
+        area = (x2 - x1) * (y2 - y1)
+        if cx2 <= cx1 or cy2 <= cy1 or (cx2 - cx1) * (cy2 - cy1) < 0.5 * area:
+            continue
+        for k in lab:
+            out[k].append(lab[k][i])
+        out["boxes"][-1] = [cx1 - x0, cy1, cx2 - x0, cy2]
+    return out
+
+
+def frame_targets(labels: dict, keep_difficult: bool = False, bev_size: tuple[int, int] | None = None,
+                  bev_full: int | None = None) -> dict:
     out = {}
     for frame in FRAMES:
         lab = labels[frame]
+        if frame == "bev" and bev_size is not None:
+            lab = crop_bev_labels(lab, bev_size, bev_full)
         keep = [i for i, d in enumerate(lab["difficult"]) if keep_difficult or not d]
         boxes = np.array([lab["boxes"][i] for i in keep], np.float32).reshape(-1, 4)
         out[frame] = {"boxes": torch.from_numpy(boxes),
@@ -64,10 +90,14 @@ def frame_targets(labels: dict, keep_difficult: bool = False) -> dict:
     return out
 
 
-def frame_inputs(frame: dict, sensors=SENSORS) -> dict:
+def frame_inputs(frame: dict, sensors=SENSORS, bev_size: tuple[int, int] | None = None) -> dict:
     out = {}
     for s in sensors:
         arr = np.asarray(frame[ARRAY_OF[s]], np.float32) / 255.0
+        if s in ("radar", "lidar") and bev_size is not None:
+            full = arr.shape[0]
+            x0 = (full - bev_size[1]) // 2
+            arr = arr[: bev_size[0], x0:x0 + bev_size[1]]
         if arr.ndim == 2:
             arr = arr[None]
         else:
@@ -79,8 +109,14 @@ def frame_inputs(frame: dict, sensors=SENSORS) -> dict:
 class FrameDataset(Dataset):
     """Frames `indices` of a dataset directory as (inputs, targets, meta)."""
 
-    def __init__(self, root, indices=None, sensors=SENSORS, clear: bool = False, keep_difficult: bool = False):
+    def __init__(self, root, indices=None, sensors=SENSORS, clear: bool = False, keep_difficult: bool = False,
+                 bev_size: tuple[int, int] | None = None):
+        """`bev_size` (H, W): the BEV crop the model reads (forward rows, centred columns); None = all."""
         self.reader = DatasetReader(root, clear=clear)
+        self.bev_full = int(self.reader.manifest.get("bev_size_px") or self.reader.meta(0)["calibration"]["bev_size_px"])
+        self.bev_size = None if bev_size is None else (int(bev_size[0]), int(bev_size[1]))
+        if self.bev_size is not None and (self.bev_size[0] > self.bev_full or self.bev_size[1] > self.bev_full):
+            raise ValueError(f"bev_size {self.bev_size} exceeds the dataset's {self.bev_full} x {self.bev_full} BEV")
         self.indices = list(range(len(self.reader))) if indices is None else list(indices)
         unknown = [s for s in sensors if s not in SENSORS]
         if unknown:
@@ -96,7 +132,8 @@ class FrameDataset(Dataset):
         frame = self.reader[i]
         meta = dict(frame["meta"])
         meta["dataset_index"] = i
-        return frame_inputs(frame, self.sensors), frame_targets(frame["labels"], self.keep_difficult), meta
+        return (frame_inputs(frame, self.sensors, self.bev_size),
+                frame_targets(frame["labels"], self.keep_difficult, self.bev_size, self.bev_full), meta)
 
 
 def collate(batch):

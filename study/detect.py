@@ -74,7 +74,7 @@ def run_branches(model, data, indices, branches, batch_size: int = 4, progress: 
                  sensors=None):
     """Per-frame detections of each branch in its own frame: list of (meta, labels, {branch: Detections})."""
     need = sensors or model.sensors_for(list(branches))
-    ds = FrameDataset(data, indices, sensors=need)
+    ds = FrameDataset(data, indices, sensors=need, bev_size=model.transform.image_size("radar"))
     loader = DataLoader(ds, batch_size=batch_size, shuffle=False, collate_fn=collate, num_workers=0)
     from tqdm import tqdm
 
@@ -87,18 +87,23 @@ def run_branches(model, data, indices, branches, batch_size: int = 4, progress: 
     return out
 
 
-def ground_truth(labels: dict, frame: str) -> dict:
+def ground_truth(labels: dict, frame: str, bev_crop: tuple | None = None) -> dict:
+    """Ground truth of one frame; `bev_crop` = ((H, W), full size) of the BEV crop a model sees."""
     lab = labels[frame]
+    if frame == "bev" and bev_crop is not None:
+        from fusion.data import crop_bev_labels
+
+        lab = crop_bev_labels(lab, bev_crop[0], bev_crop[1])
     return {"boxes": np.array(lab["boxes"], float).reshape(-1, 4), "labels": np.array(lab["labels"], np.int64),
             "difficult": np.array(lab["difficult"], bool)}
 
 
-def score(per_frame: list, reader: DatasetReader, frame: str = "camera_right") -> dict:
+def score(per_frame: list, reader: DatasetReader, frame: str = "camera_right", bev_crop: tuple | None = None) -> dict:
     """VOC mAP@0.5 of detections already in `frame`: overall, per class, per context."""
     dets, gts, contexts = [], [], []
     for meta, d in per_frame:
         i = meta["dataset_index"]
-        gts.append(ground_truth(reader.labels(i), frame))
+        gts.append(ground_truth(reader.labels(i), frame, bev_crop))
         dets.append({"boxes": d.boxes, "scores": d.scores, "labels": d.labels})
         contexts.append(meta["context"])
     res = evaluate_detections(dets, gts, classes=range(1, len(CLASSES) + 1))
@@ -130,6 +135,10 @@ def fused(per_frame: list, branches, frames: dict, method: str, weights=None) ->
         chosen = {n: per[n] for n in branches if n in per}
         out.append((meta, fuse(chosen, frames, calib, method=method, weights=weights)))
     return out
+
+
+def bev_crop_of(model, reader: DatasetReader) -> tuple:
+    return (model.transform.image_size("radar"), int(reader.meta(0)["calibration"]["bev_size_px"]))
 
 
 def native(per_frame: list, branch: str) -> list:

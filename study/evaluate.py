@@ -54,7 +54,16 @@ def evaluate(run_dir, data, branches="all", fusion="soft-nms", split="auto", wei
              batch_size: int = 4) -> dict:
     import torch
 
-    from study.detect import frames_for, fused, fusion_method, load_run, native, run_branches, score
+    from study.detect import (
+        bev_crop_of,
+        frames_for,
+        fused,
+        fusion_method,
+        load_run,
+        native,
+        run_branches,
+        score,
+    )
 
     torch.set_num_threads(2)
     method = fusion_method(fusion)
@@ -76,7 +85,8 @@ def evaluate(run_dir, data, branches="all", fusion="soft-nms", split="auto", wei
     result = score(fused(per_frame, names, frames, method, weights), reader, "camera_right")
     result.update({
         "branches": names, "fusion": method, "split": used_split, "run": str(run_dir), "data": str(data),
-        "map_per_branch_native": {b: score(native(per_frame, b), reader, frames[b])["map"] for b in names},
+        "map_per_branch_native": {b: score(native(per_frame, b), reader, frames[b], bev_crop_of(model, reader))["map"]
+                                  for b in names},
         "map_per_branch_reference": {b: score(fused(per_frame, [b], frames, method), reader, "camera_right")["map"]
                                      for b in names},
         "metric": "VOC all-point AP at IoU 0.5, difficult ground truth ignored, mean over classes with ground truth",

@@ -142,15 +142,16 @@ def _lr_at(cfg: TrainConfig, epoch: int, step: int) -> float:
 
 
 def evaluate_epoch(model, cfg: TrainConfig, reader, test_idx, branches) -> dict:
-    from study.detect import fused, native, run_branches, score
+    from study.detect import bev_crop_of, fused, native, run_branches, score
 
     idx = test_idx if not cfg.eval_frames else test_idx[: cfg.eval_frames]
     model.eval()
     per_frame = run_branches(model, cfg.data, idx, branches, batch_size=cfg.batch_size, progress="evaluate")
     out = {}
     frames = model.branch_frames
+    crop = bev_crop_of(model, reader)
     for b in branches:
-        out[f"map_{b}"] = score(native(per_frame, b), reader, frames[b] if frames[b] != "bev" else "bev")["map"]
+        out[f"map_{b}"] = score(native(per_frame, b), reader, frames[b], crop)["map"]
     out["map_fused"] = score(fused(per_frame, branches, frames, "soft_nms"), reader, "camera_right")["map"]
     model.train()
     return out
@@ -206,7 +207,7 @@ def train(cfg: TrainConfig, out: Path, progress: bool = True) -> dict:
         if progress:
             sys.stderr.write(f"resuming {out} at epoch {epoch + 1}, step {step_in_epoch}\n")
     sensors = model.sensors_for(None)
-    dataset = FrameDataset(cfg.data, train_idx, sensors=sensors)
+    dataset = FrameDataset(cfg.data, train_idx, sensors=sensors, bev_size=model.transform.image_size("radar"))
     steps_per_epoch = (len(dataset) + cfg.batch_size - 1) // cfg.batch_size
     metrics_path = out / "metrics.csv"
     result = {}

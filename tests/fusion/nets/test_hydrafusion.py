@@ -242,15 +242,15 @@ def test_output_stride_is_real_at_profile_sizes():
             {"name": "bev", "sensors": ["radar"], "frame": "bev"},
         ],
     ).eval()
-    inputs = {"camera_right": torch.rand(1, 3, 188, 336), "radar": torch.rand(1, 1, 256, 256)}
+    inputs = {"camera_right": torch.rand(1, 3, 188, 336), "radar": torch.rand(1, 1, 128, 256)}  # forward BEV half
     with torch.no_grad():
         feats = cpu.extract_features(inputs)
         assert feats["camera_right"].shape == (1, 64, 48, 84)  # 188 padded to 192, stride 4
-        assert feats["radar"].shape == (1, 64, 64, 64)
+        assert feats["radar"].shape == (1, 64, 32, 64)
         cam = cpu.branches["cam"].features([feats["camera_right"]])
         bev = cpu.branches["bev"].features([feats["radar"]])
     assert cam.shape == (1, 128, 12, 21)  # 192 / 16, 336 / 16
-    assert bev.shape == (1, 128, 32, 32)  # BEV at output stride 8 (configs/model/cpu.yaml)
+    assert bev.shape == (1, 128, 16, 32)  # BEV at output stride 8 (configs/model/cpu.yaml)
     images = cpu.branches["cam"]._images(1, cam)
     anchors = cpu.branches["cam"].rpn.anchor_generator(images, [cam])[0]
     centres = ((anchors[:, 0] + anchors[:, 2]) / 2).unique()
