@@ -49,6 +49,17 @@ def add_parser(sub, name, help_text):
     b.add_argument("--seed", type=int, default=0)
     b.add_argument("--json", action="store_true", help="print one JSON object on stdout")
     b.set_defaults(run=run_boxes)
+    n = what.add_parser("inference", help="latency, peak memory and training speed per model configuration",
+                        description="HydraFusion Table 4 on this CPU: latency (median, batch 1 and 8) and peak "
+                        "resident memory of single-sensor, early-fusion, late-fusion, three-branch and seven-branch "
+                        "configurations (each in a fresh process), training images per second per branch, and the "
+                        "late-fusion block against ensemble-boxes.", formatter_class=Formatter)
+    n.add_argument("--profile", default="cpu", help="model profile")
+    n.add_argument("--repeats", type=pos_int, default=5, help="timed forwards per configuration")
+    n.add_argument("--run", default=None, help="load these trained weights (default: random initialisation)")
+    n.add_argument("--threads", type=pos_int, default=2)
+    n.add_argument("--json", action="store_true", help="print one JSON object on stdout")
+    n.set_defaults(run=run_inference)
 
 
 def run_sim(args) -> int:
@@ -148,4 +159,31 @@ def run_boxes(args) -> int:
         return "\n".join(lines)
 
     emit(result, args.json, text)
+    return 0
+
+
+def run_inference(args) -> int:
+    from study.bench_boxes import bench_box_fusion
+    from study.bench_nets import bench_inference
+
+    r = bench_inference(args.profile, args.repeats, args.threads, args.run)
+    boxes = bench_box_fusion(repeats=10)
+    r["fusion_block_vs_ensemble_boxes"] = {m: {"ours_ms": v["ours_ms"], "ensemble_boxes_ms": v["ensemble_boxes_ms"],
+                                               "speedup": v["speedup"], "equal_output": v["equal_output"]}
+                                           for m, v in boxes["methods"].items()}
+    r.update(machine())
+
+    def text(r):
+        lines = [f"{'configuration':28s} {'batch 1 [ms]':>12s} {'batch 8 [ms/frame]':>18s} {'peak RSS [MB]':>13s}"]
+        for name, ms in r["latency_ms"].items():
+            lines.append(f"{name:28s} {ms:12.1f} {r['latency_ms_per_frame_batch_8'].get(name, float('nan')):18.1f} "
+                         f"{r['peak_rss_mb'][name]:13.0f}")
+        lines.append(f"ratio_top3_to_all {r['ratio_top3_to_all']} (worst case, three early-fusion branches: "
+                     f"{r['ratio_top3_worst_to_all']})")
+        lines.append("training images/s per branch: " + ", ".join(f"{k} {v:.2f}" for k, v in r["training_images_per_second"].items()))
+        lines.append("fusion block vs ensemble-boxes: " + ", ".join(
+            f"{m} x{v['speedup']}" for m, v in r["fusion_block_vs_ensemble_boxes"].items()))
+        return "\n".join(lines)
+
+    emit(r, args.json, text)
     return 0

@@ -217,8 +217,10 @@ def train(cfg: TrainConfig, out: Path, progress: bool = True) -> dict:
         sums: dict[str, float] = {}
         counts = 0
         t0 = time.perf_counter()
+        # on a terminal a live bar; in a log file (nohup, CI) a line every 60 s
+        tty = sys.stderr.isatty()
         bar = tqdm(total=steps_per_epoch, initial=step_in_epoch, desc=f"epoch {epoch + 1}/{cfg.epochs}",
-                   file=sys.stderr, disable=not progress or None, dynamic_ncols=True)
+                   file=sys.stderr, disable=not progress, dynamic_ncols=tty, mininterval=0.1 if tty else 60.0)
         for k in range(step_in_epoch, len(batches)):
             inputs, targets, _ = collate([dataset[int(i)] for i in batches[k]])
             for g in opt.param_groups:
@@ -237,7 +239,7 @@ def train(cfg: TrainConfig, out: Path, progress: bool = True) -> dict:
             for b, ld in losses["branches"].items():
                 sums[b] = sums.get(b, 0.0) + float(sum(v.detach() for v in ld.values()))
             sums["total"] = sums.get("total", 0.0) + float(total.detach())
-            bar.set_postfix(loss=f"{float(total):.3f}", lr=f"{opt.param_groups[0]['lr']:.2e}")
+            bar.set_postfix(loss=f"{total.item():.3f}", lr=f"{opt.param_groups[0]['lr']:.2e}")
             bar.update(1)
             if (k + 1) % cfg.checkpoint_steps == 0 and k + 1 < len(batches):
                 _atomic_save({"model": model.state_dict(), "optimizer": opt.state_dict(), "epoch": epoch,

@@ -1,0 +1,171 @@
+"""Network benchmarks (`hydrabench bench inference`): latency, peak memory and training speed per
+model configuration, the analogue of HydraFusion Table 4 on this CPU.
+
+Each configuration is measured in a fresh process (spawned), so its peak resident memory
+(ru_maxrss) belongs to it alone; latency is the median of `repeats` timed forwards after warm-up.
+A configuration is a set of branches run in one forward, plus the late-fusion block when it has
+several branches (HydraFusion's Algorithm 1: stems -> selected branches -> fusion block).
+"""
+
+from __future__ import annotations
+
+import multiprocessing as mp
+import resource
+import statistics
+import time
+
+import numpy as np
+
+CONFIGURATIONS = {
+    # name: (branch set, branch names, description)
+    "single_camera": ("paper", ["camera_right"], "no fusion: one camera branch"),
+    "single_radar": ("paper", ["radar"], "no fusion: the radar branch"),
+    "early_fusion_cameras": ("early_fusion", ["early_cameras"], "one network on the stacked L/R camera images"),
+    "early_fusion_cameras_lidar": ("early_fusion", ["early_camera_lidar"], "one network on L/R cameras + forward lidar"),
+    "late_fusion": ("paper", ["camera_left", "camera_right", "lidar", "radar"], "four single-sensor branches + fusion"),
+    "hydra_top3_typical": ("paper", ["camera_right", "radar", "radar_lidar"], "stems + three selected branches + fusion"),
+    "hydra_top3_worst": ("paper", ["camera_both", "camera_lidar", "radar_lidar"], "stems + three early-fusion branches + fusion"),
+    "all_branches": ("paper", None, "stems + all seven branches + fusion"),
+}
+
+
+def _inputs(model, batch: int, seed: int = 0):
+    import torch
+
+    from fusion.nets import SENSORS
+
+    g = torch.Generator().manual_seed(seed)
+    out = {}
+    for s in model.sensors:
+        h, w = model.transform.image_size(s)
+        out[s] = torch.rand(batch, SENSORS[s].channels, h, w, generator=g)
+    return out
+
+
+def _meta(calib_dict, batch):
+    return [{"calibration": calib_dict} for _ in range(batch)]
+
+
+def _worker(args) -> dict:
+    """Fresh process: build the configuration, time `repeats` forwards at `batch`, report peak RSS."""
+    profile, set_name, names, batch, repeats, threads, run_dir = args
+    import torch
+
+    from fusion.late import Detections, fuse
+    from fusion.nets import build_hydrafusion
+    from sensors.rig import load_profile as sensor_profile
+    from sensors.rig import make_calibration
+    from study.train import branch_set
+
+    torch.set_num_threads(threads)
+    specs = branch_set(set_name, profile)
+    if names is not None:
+        specs = [s for s in specs if s.name in names]
+    torch.manual_seed(0)
+    model = build_hydrafusion(profile=profile, branches=specs).eval()
+    if run_dir:
+        from study.detect import load_run
+
+        trained, _ = load_run(run_dir)
+        own = model.state_dict()
+        model.load_state_dict({k: v for k, v in trained.state_dict().items() if k in own}, strict=False)
+    calib = make_calibration(sensor_profile(profile))
+    inputs = _inputs(model, batch)
+    frames = model.branch_frames
+    selection = [s.name for s in specs]
+    base_rss = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
+
+    def once():
+        with torch.no_grad():
+            dets = model(inputs, selection=selection)
+        if len(selection) > 1:
+            for per in dets:
+                fuse({n: Detections(d["boxes"].numpy().astype(float), d["scores"].numpy().astype(float),
+                                    d["labels"].numpy()) for n, d in per.items()}, frames, calib, "soft_nms")
+
+    once()  # warm-up (allocator, first-call overheads)
+    times = []
+    for _ in range(repeats):
+        t = time.perf_counter()
+        once()
+        times.append(time.perf_counter() - t)
+    peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
+    params = sum(p.numel() for p in model.parameters())
+    return {"latency_ms": 1000 * statistics.median(times), "latency_ms_min": 1000 * min(times),
+            "peak_rss_mb": peak / 1024, "forward_rss_mb": (peak - base_rss) / 1024, "params_m": params / 1e6}
+
+
+def _train_worker(args) -> dict:
+    profile, name, batch, steps, threads = args
+    import torch
+
+    from fusion.nets import build_hydrafusion
+    from study.train import branch_set
+
+    torch.set_num_threads(threads)
+    spec = [s for s in branch_set("paper", profile) if s.name == name]
+    torch.manual_seed(0)
+    model = build_hydrafusion(profile=profile, branches=spec).train()
+    inputs = _inputs(model, batch)
+    targets = []
+    rng = np.random.default_rng(0)
+    for _ in range(batch):
+        t = {}
+        for frame, size in (("camera_left", model.transform.sizes["camera"]), ("camera_right", model.transform.sizes["camera"]),
+                            ("bev", model.transform.sizes["bev"])):
+            h, w = size
+            xy = rng.uniform(0, [w - 40, h - 30], (4, 2))
+            wh = rng.uniform([8, 8], [40, 30], (4, 2))
+            t[frame] = {"boxes": torch.tensor(np.hstack([xy, xy + wh]), dtype=torch.float32),
+                        "labels": torch.tensor(rng.integers(1, 9, 4))}
+        targets.append(t)
+    opt = torch.optim.SGD(model.parameters(), lr=1e-3, momentum=0.9)
+    times = []
+    for k in range(steps + 1):
+        t0 = time.perf_counter()
+        loss = model(inputs, targets)["total"]
+        opt.zero_grad()
+        loss.backward()
+        opt.step()
+        if k:
+            times.append(time.perf_counter() - t0)
+    return {"images_per_second": batch / statistics.median(times), "step_s": statistics.median(times)}
+
+
+def bench_inference(profile: str = "cpu", repeats: int = 5, threads: int = 2, run_dir: str | None = None,
+                    train_steps: int = 3, batches=(1, 8)) -> dict:
+    ctx = mp.get_context("spawn")
+    results: dict = {}
+    with ctx.Pool(1, maxtasksperchild=1) as pool:
+        for name, (set_name, names, _desc) in CONFIGURATIONS.items():
+            results[name] = {}
+            for b in batches:
+                r = pool.apply(_worker, ((profile, set_name, names, b, repeats, threads, run_dir),))
+                results[name][f"batch_{b}"] = {k: round(v, 2) for k, v in r.items()}
+        training = {}
+        from study.train import branch_set
+
+        for spec in branch_set("paper", profile):
+            r = pool.apply(_train_worker, ((profile, spec.name, 4, train_steps, threads),))
+            training[spec.name] = {k: round(v, 3) for k, v in r.items()}
+    lat = {n: r["batch_1"]["latency_ms"] for n, r in results.items()}
+    out = {
+        "latency_ms": lat,
+        "latency_ms_per_frame_batch_8": {n: round(r["batch_8"]["latency_ms"] / 8, 2) for n, r in results.items()}
+        if 8 in batches else {},
+        "peak_rss_mb": {n: r["batch_1"]["peak_rss_mb"] for n, r in results.items()},
+        "params_m": {n: r["batch_1"]["params_m"] for n, r in results.items()},
+        "ratio_top3_to_all": round(lat["hydra_top3_typical"] / lat["all_branches"], 3),
+        "ratio_top3_worst_to_all": round(lat["hydra_top3_worst"] / lat["all_branches"], 3),
+        "batch8_throughput_gain": {n: round(r["batch_1"]["latency_ms"] / (r["batch_8"]["latency_ms"] / 8), 2)
+                                   for n, r in results.items()} if 8 in batches else {},
+        "training_images_per_second": {n: v["images_per_second"] for n, v in training.items()},
+        "configurations": {n: d for n, (_, _, d) in CONFIGURATIONS.items()},
+        "details": results,
+        "profile": profile,
+        "weights": run_dir or "random initialisation",
+    }
+    return out
+
+
+__all__ = ["bench_inference", "CONFIGURATIONS"]
