@@ -184,6 +184,18 @@ class Layout:
         return self.max_speed * duration_s + RETIRE_RADIUS_M + 10.0
 
 
+def _axis_crossings(layout: Layout, distance: float, road_half_width: float = 4.0) -> list[np.ndarray]:
+    """Zebra crossings across the four approach roads of a junction centred at the origin, at
+    `distance` from the centre, reaching the middle of the sidewalks on both sides."""
+    half = road_half_width + layout.parking_width + layout.sidewalk_offset + layout.sidewalk_width / 2
+    segs = []
+    for u in (np.array([1.0, 0]), np.array([0, 1.0]), np.array([-1.0, 0]), np.array([0, -1.0])):
+        v = np.array([-u[1], u[0]])
+        c = u * distance
+        segs.append(np.array([c - v * half, c + v * half]))
+    return segs
+
+
 def _remove_near(road: Road, ego, radius: float) -> None:
     road.vehicles = [
         v for v in road.vehicles if v is ego or np.linalg.norm(v.position - ego.position) > radius
@@ -317,13 +329,7 @@ class Junction(Layout):
         return [((f"o{k}", f"ir{k}", 0), [f"o{j}" for j in range(4) if j != k]) for k in range(4)]
 
     def crossings(self):
-        half = 4.0 + self.sidewalk_offset + self.sidewalk_width / 2
-        segs = []
-        for u in (np.array([1.0, 0]), np.array([0, 1.0]), np.array([-1.0, 0]), np.array([0, -1.0])):
-            v = np.array([-u[1], u[0]])
-            c = u * self.CROSS_AT
-            segs.append(np.array([c - v * half, c + v * half]))
-        return segs
+        return _axis_crossings(self, self.CROSS_AT)
 
     def structures(self, rng, geometry, window):
         road = geometry.road
@@ -376,21 +382,12 @@ class City(Layout):
         return [((f"{n}er", f"{n}es", 0), [f"{m}xr" for m in names if m != n]) for n in names]
 
     def crossings(self):
-        half = 4.0 + self.parking_width + self.sidewalk_offset + self.sidewalk_width / 2
-        segs = []
-        for u in (np.array([1.0, 0]), np.array([0, 1.0]), np.array([-1.0, 0]), np.array([0, -1.0])):
-            v = np.array([-u[1], u[0]])
-            c = u * self.CROSS_AT
-            segs.append(np.array([c - v * half, c + v * half]))
-        return segs
+        return _axis_crossings(self, self.CROSS_AT)
 
     def structures(self, rng, geometry, window):
         road = geometry.road
         clearance = self.sidewalk_offset + self.sidewalk_width + 0.3
-        island = shapely.Point(0, 0).buffer(12.0)  # keep the roundabout's central island free
-        rows = place_buildings(
-            rng, road, window, clearance=clearance, gap=(0.5, 4.0), height=(8.0, 30.0), keep_clear=None
-        )
+        rows = place_buildings(rng, road, window, clearance=clearance, gap=(0.5, 4.0), height=(8.0, 30.0))
         rows += place_along(
             rng, ring_lines(road, self.sidewalk_offset + 0.4, window), "street_lamp", (22.0, 32.0),
             _lamp((6.0, 8.0)), normals_from=road,
@@ -400,7 +397,6 @@ class City(Layout):
             (12.0, 30.0), lambda r: (r.uniform(2.5, 4.5),) * 2 + (r.uniform(5.0, 9.0),),
         )
         rows += [("tree", float(x), float(y), 5.0, 5.0, 8.0, 0.0) for x, y in rng.uniform(-6, 6, (2, 2))]
-        del island
         return rows
 
     def parking_slots(self, rng, geometry, lanes_union):

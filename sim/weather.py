@@ -267,16 +267,24 @@ def sample_weather(
         state[spec["quantity"]] = value
         if c in LENS_COVERAGE_MAX_PCT:
             lens = np.maximum(lens, lens_u * LENS_COVERAGE_MAX_PCT[c][severity - 1])
-    film = water_film_from_rain(state.get("rain_mm_h", 0.0))
-    if "snow" in active:  # melting snow wets the road; thinner than rain
-        film = max(film, 0.3 * state["snow_mm_h"])
+    return _state(state, (float(lens[0]), float(lens[1])))
+
+
+def road_film(rain_mm_h: float, snow_mm_h: float) -> float:
+    """Water on the road [mm]: from rain (Gallaway), or melting snow (thinner: 0.3 mm per mm/h)."""
+    return max(water_film_from_rain(rain_mm_h), 0.3 * snow_mm_h)
+
+
+def _state(values: dict, lens: tuple[float, float]) -> WeatherState:
+    """A WeatherState from primary quantities; the road film follows from rain and snow."""
+    rain, snow = values.get("rain_mm_h", 0.0), values.get("snow_mm_h", 0.0)
     return WeatherState(
-        fog_visibility_m=state["fog_visibility_m"],
-        rain_mm_h=state.get("rain_mm_h", 0.0),
-        snow_mm_h=state.get("snow_mm_h", 0.0),
-        water_film_mm=film,
-        illuminance_lux=state["illuminance_lux"],
-        lens_coverage_pct=(float(lens[0]), float(lens[1])),
+        fog_visibility_m=values["fog_visibility_m"],
+        rain_mm_h=rain,
+        snow_mm_h=snow,
+        water_film_mm=road_film(rain, snow),
+        illuminance_lux=values["illuminance_lux"],
+        lens_coverage_pct=lens,
     )
 
 
@@ -381,14 +389,4 @@ def representative_weather(condition: str, severity: int) -> WeatherState:
     state = {"fog_visibility_m": 20_000.0, "illuminance_lux": 8_000.0}
     state[spec["quantity"]] = value
     cover = 0.65 * LENS_COVERAGE_MAX_PCT[condition][severity - 1] if condition in LENS_COVERAGE_MAX_PCT else 0.0
-    film = water_film_from_rain(state.get("rain_mm_h", 0.0))
-    if condition == "snow":
-        film = 0.3 * state["snow_mm_h"]
-    return WeatherState(
-        fog_visibility_m=state["fog_visibility_m"],
-        rain_mm_h=state.get("rain_mm_h", 0.0),
-        snow_mm_h=state.get("snow_mm_h", 0.0),
-        water_film_mm=film,
-        illuminance_lux=state["illuminance_lux"],
-        lens_coverage_pct=(cover, cover * 0.8),
-    )
+    return _state(state, (cover, cover * 0.8))
