@@ -65,6 +65,7 @@ class TrainConfig:
         checkpoint_steps: also checkpoint every this many steps within an epoch.
         eval_frames: evaluate on at most this many test frames per epoch (0 = all).
         threads: torch CPU threads.
+        init_from: a trained run whose weights initialise this one (see `warm_start`); "" = scratch.
     """
 
     data: str
@@ -83,6 +84,49 @@ class TrainConfig:
     checkpoint_steps: int = 100
     eval_frames: int = 0
     threads: int = 2
+    init_from: str = ""
+
+
+# Which trained module initialises which new one when warm-starting (`--init-from`): the paper's
+# branches share one architecture (ResNet-18 layer2..4 + RPN + RoI heads), so a trained camera
+# branch is a good start for the other camera-view branches, a trained radar branch for the BEV ones.
+WARM_START_BRANCH = {
+    "camera_left": "camera_right", "camera_both": "camera_right", "camera_lidar": "camera_right",
+    "early_cameras": "camera_right", "early_camera_lidar": "camera_right",
+    "lidar": "radar", "radar_lidar": "radar", "early_radar_lidar": "radar",
+}
+WARM_START_STEM = {"fwd_lidar": "camera", "lidar": "radar"}
+
+
+def warm_start(model, source_state: dict) -> dict:
+    """Copy matching parameters from a trained model's state dict into `model`.
+
+    Same-named modules are copied as they are; a branch missing in the source is initialised from
+    WARM_START_BRANCH[name], a stem from WARM_START_STEM[name]. Tensors whose shapes differ (the
+    first conv of a stem with other input channels, early-fusion merge convs, input stems) keep
+    their fresh initialisation. Returns {"copied": n, "from": {target prefix: source prefix}, "kept": [...]}.
+    """
+    own = model.state_dict()
+    src_branches = {k.split(".")[1] for k in source_state if k.startswith("branches.")}
+    src_stems = {k.split(".")[1] for k in source_state if k.startswith("stems.")}
+    mapping = {}
+    for name in model.branches:
+        origin = name if name in src_branches else WARM_START_BRANCH.get(name)
+        if origin in src_branches:
+            mapping[f"branches.{name}."] = f"branches.{origin}."
+    for name in model.stems:
+        origin = name if name in src_stems else WARM_START_STEM.get(name)
+        if origin in src_stems:
+            mapping[f"stems.{name}."] = f"stems.{origin}."
+    new, kept = {}, []
+    for key, value in own.items():
+        src_key = next((src + key[len(dst):] for dst, src in mapping.items() if key.startswith(dst)), key)
+        if src_key in source_state and source_state[src_key].shape == value.shape:
+            new[key] = source_state[src_key]
+        else:
+            kept.append(key)
+    model.load_state_dict({**own, **new})
+    return {"copied": len(new), "from": mapping, "kept": kept}
 
 
 def branch_set(name: str, profile: str):
@@ -122,6 +166,8 @@ def add_parser(sub, name, help_text):
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--eval-frames", type=int, default=0, help="test frames evaluated per epoch (0 = all)")
     p.add_argument("--checkpoint-steps", type=pos_int, default=100, help="also checkpoint every N steps within an epoch")
+    p.add_argument("--init-from", default="", help="initialise from a trained run (same-named modules; other "
+                   "camera-view branches from camera_right, BEV ones from radar)")
     p.add_argument("--threads", type=pos_int, default=2, help="torch CPU threads")
     p.add_argument("--json", action="store_true", help="print one JSON object (final metrics) on stdout")
     p.set_defaults(run=run)
@@ -193,6 +239,14 @@ def train(cfg: TrainConfig, out: Path, progress: bool = True) -> dict:
     train_idx, test_idx = split_by_sequence(reader, cfg.train_fraction, cfg.split_seed)
     torch.manual_seed(cfg.seed)
     model = build_hydrafusion(profile=cfg.model_profile, branches=specs)
+    if cfg.init_from and not (out / "checkpoint.pt").exists():
+        src = Path(cfg.init_from) / "checkpoint.pt"
+        if not src.exists():
+            raise UserError(f"--init-from {cfg.init_from}: no checkpoint.pt there")
+        report = warm_start(model, torch.load(src, map_location="cpu", weights_only=False)["model"])
+        (out / "warm_start.json").write_text(json.dumps({"source": str(src), **report}, indent=1))
+        if progress:
+            sys.stderr.write(f"warm start from {src}: {report['copied']} tensors copied, {len(report['kept'])} fresh\n")
     model.train()
     params = [p for p in model.parameters() if p.requires_grad]
     opt = torch.optim.SGD(params, lr=cfg.lr, momentum=0.9, weight_decay=1e-4)
@@ -290,7 +344,7 @@ def run(args) -> int:
         branches=tuple(b.strip() for b in args.branches.split(",") if b.strip()), epochs=args.epochs,
         batch_size=args.batch_size, lr=args.lr, warmup_steps=args.warmup_steps, lr_drop_epoch=args.lr_drop_epoch,
         clip_grad=args.clip_grad, seed=args.seed, eval_frames=args.eval_frames, threads=args.threads,
-        checkpoint_steps=args.checkpoint_steps,
+        checkpoint_steps=args.checkpoint_steps, init_from=str(Path(args.init_from).resolve()) if args.init_from else "",
     )
     out = check_writable_dir(args.out)
     result = train(cfg, out)

@@ -102,3 +102,23 @@ def test_evaluate_reports_map_per_class_and_context(data, reference_run, capsys)
                         (["--weights", "radar=x"], "not name=number")):
         assert main(["evaluate", str(ref), str(data), *bad]) == 2
         assert needle in capsys.readouterr().err
+
+
+def test_warm_start_copies_matching_modules_and_maps_branches(reference_run):
+    from fusion.nets import build_hydrafusion
+    from study.train import branch_set, warm_start
+
+    ref, _ = reference_run
+    source = torch.load(ref / "checkpoint.pt", weights_only=False)["model"]
+    torch.manual_seed(1)
+    model = build_hydrafusion(profile="cpu", branches=branch_set("paper", "cpu"))
+    report = warm_start(model, source)
+    state = model.state_dict()
+    # same-named and mapped branches carry the trained weights
+    for dst, src in (("camera_right", "camera_right"), ("camera_both", "camera_right"), ("lidar", "radar")):
+        k = f"branches.{dst}.layer4.0.conv1.weight"
+        torch.testing.assert_close(state[k], source[f"branches.{src}.layer4.0.conv1.weight"])
+    assert report["from"]["branches.camera_lidar."] == "branches.camera_right."
+    # tensors of other shapes stay fresh: the lidar stem's 3-channel conv1 (radar's has 1 channel)
+    assert "stems.lidar.conv1.weight" in report["kept"] and "branches.camera_both.merge.weight" in report["kept"]
+    assert report["copied"] > 100
