@@ -521,7 +521,7 @@ class ConvGate(Gate):
         self.input_mean.copy_(x.mean(dim=(0, 2, 3)))
         self.input_std.copy_(x.std(dim=(0, 2, 3), unbiased=False).clamp_min(1e-3))
         losses = losses.float()
-        center = losses.median(dim=0).values
+        center = torch.quantile(losses, 0.5, dim=0)  # the median (midpoint of the two middle values)
         self.target_center.copy_(center)
         self.target_scale.copy_((losses - center).abs().mean(dim=0).clamp_min(1e-3))
 
