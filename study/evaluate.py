@@ -46,7 +46,7 @@ def add_parser(sub, name, help_text):
     p.add_argument("--batch-size", type=pos_int, default=4)
     p.add_argument("--gate", default=None, help="knowledge | deep | attention | optimal: the gate selects the branches")
     p.add_argument("--k", default=None, help="branches the gate keeps per frame: 1..number of branches, or all "
-                   "(default 3)")
+                   "(default 3, or all when the run has fewer)")
     p.add_argument("--all-gates", action="store_true",
                    help="Tables 6 and 7: every gate x nms/soft-nms/wbf x k in 1, 3, 5, all")
     p.add_argument("--json", action="store_true", help="print one JSON object on stdout")
@@ -123,8 +123,8 @@ def run_gates(args) -> int:
                                           checkpoint=args.checkpoint, batch_size=args.batch_size)
         emit(result, args.json, gates.format_tables)
         return 0
-    result = gates.evaluate_gate(Path(args.run_dir), Path(args.data), args.gate, args.k if args.k is not None else "3",
-                                 args.fusion, args.split, weights, args.checkpoint, args.batch_size)
+    result = gates.evaluate_gate(Path(args.run_dir), Path(args.data), args.gate, args.k, args.fusion, args.split,
+                                 weights, args.checkpoint, args.batch_size)
 
     def text(r):
         k = str(r["k"])

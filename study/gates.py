@@ -571,11 +571,15 @@ def _rates_per_context(selections, contexts, branches) -> dict[str, dict[str, fl
 def _setup(run_dir, data, split, weights, checkpoint):
     import torch
 
+    from fusion.nets.gates import gate_sensors
     from sensors.dataset import DatasetReader
     from study.detect import frames_for, load_run
 
     torch.set_num_threads(2)
     model, cfg = load_run(run_dir, checkpoint)
+    if not gate_sensors(model):
+        raise UserError("gates need HydraFusion's shared stems (a gate reads every stem before choosing branches); "
+                        f"this run's branches ({', '.join(model.branches)}) fuse their inputs and have none")
     indices, used_split = frames_for(cfg, data, split)
     if not indices:
         raise UserError(f"no frames to evaluate in the {used_split!r} split of {data}")
@@ -600,17 +604,18 @@ def _optimal_losses(run_dir, data, model, checkpoint, indices, progress) -> dict
     return dict(zip((int(i) for i in indices), gd.branch_losses(indices)))
 
 
-def evaluate_gate(run_dir, data, gate: str, k="3", fusion: str = "soft-nms", split: str = "auto", weights=None,
+def evaluate_gate(run_dir, data, gate: str, k=None, fusion: str = "soft-nms", split: str = "auto", weights=None,
                   checkpoint: str = "latest", batch_size: int = 4, progress: bool = True) -> dict:
-    """mAP of one gate at one k with one fusion method, the gate wired into the network
-    (`model.gate`): per frame only the k branches it selects run, then they are fused."""
+    """mAP of one gate at one k (None: 3, or every branch when there are fewer) with one fusion
+    method, the gate wired into the network (`model.gate`): per frame only the k branches it
+    selects run, then they are fused."""
     import torch
 
     from study.detect import fused, fusion_method, score, to_detections
 
     method = fusion_method(fusion)
     model, _cfg, indices, used_split, reader = _setup(run_dir, data, split, weights, checkpoint)
-    k = parse_k(k, len(model.branches))
+    k = parse_k(min(3, len(model.branches)) if k is None else k, len(model.branches))
     g = make_gate(gate, model, run_dir, checkpoint, k)
     losses = _optimal_losses(run_dir, data, model, checkpoint, indices, progress) if g.reads == "losses" else None
     calls: dict[str, int] = defaultdict(int)

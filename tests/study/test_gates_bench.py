@@ -29,3 +29,26 @@ def test_bench_gates_reports_overhead_per_gate_and_topk_latency():
     assert set(r["topk_branches"]["knowledge"]["1"]) <= {"radar", "radar_lidar"}
     # untrained learned gates predict a constant: ties keep the branch order
     assert r["topk_branches"]["deep"]["3"] == ["radar", "camera_left", "camera_right"]
+
+
+def test_bench_inference_prints_and_emits_the_gate_figures(monkeypatch, capsys):
+    """The command's text and JSON carry bench_gates' figures (the slow parts replaced by stubs)."""
+    import json
+
+    import study.bench_boxes
+    import study.bench_nets
+    from study.cli import main
+
+    gates = bench_gates("cpu", repeats=1, threads=1, overrides=TINY, ks=(1, 3, 5))
+    fake = {"latency_ms": {"all_branches": 10.0}, "latency_ms_per_frame_batch_8": {"all_branches": 5.0},
+            "peak_rss_mb": {"all_branches": 100.0}, "ratio_top3_to_all": 0.5, "ratio_top3_worst_to_all": 0.6,
+            "training_images_per_second": {"radar": 1.0}, **gates}
+    monkeypatch.setattr(study.bench_nets, "bench_inference", lambda *a, **k: dict(fake))
+    monkeypatch.setattr(study.bench_boxes, "bench_box_fusion", lambda **k: {"methods": {}})
+    assert main(["bench", "inference"]) == 0
+    out = capsys.readouterr().out
+    assert "gate overhead [ms]: knowledge" in out and "optimal - (needs ground truth)" in out
+    assert "top-k with the attention gate [ms]: k=1" in out and "% of top-3" in out
+    assert main(["bench", "inference", "--json"]) == 0
+    r = json.loads(capsys.readouterr().out)
+    assert r["gate_overhead_ms"] == gates["gate_overhead_ms"] and set(r["topk_latency_ms"]["deep"]) == {"1", "3", "5"}
