@@ -186,3 +186,16 @@ def test_detect_threshold_definition():
     r = np.array([10.0, 50.0, 50.0, 120.0])
     p = np.array([1e-3, 0.1 / 2500, 0.099 / 2500, 1.0])
     np.testing.assert_array_equal(detect(r, p), [True, True, False, False])
+
+
+def test_camera_noise_is_poisson_gaussian():
+    """Variance = mean + read noise^2 (photon counting), whichever branch of the sampler is used."""
+    from sensors.camera import shot_and_read_noise, srgb_encode, srgb_encode_fast
+
+    rng = np.random.default_rng(0)
+    for lam in (3.0, 25.0, 40.0, 1000.0):
+        e = shot_and_read_noise(rng, np.full(200_000, lam), 4.0)
+        assert e.mean() == pytest.approx(lam, rel=0.01, abs=0.05)
+        assert e.var() == pytest.approx(lam + 16.0, rel=0.03)
+    x = np.random.default_rng(1).uniform(0, 1, 10_000)
+    assert np.max(np.abs(srgb_encode_fast(x) - srgb_encode(x))) < 0.2 / 255
