@@ -52,8 +52,10 @@ def add_parser(sub, name, help_text):
     n = what.add_parser("inference", help="latency, peak memory and training speed per model configuration",
                         description="HydraFusion Table 4 on this CPU: latency (median, batch 1 and 8) and peak "
                         "resident memory of single-sensor, early-fusion, late-fusion, three-branch and seven-branch "
-                        "configurations (each in a fresh process), training images per second per branch, and the "
-                        "late-fusion block against ensemble-boxes.", formatter_class=Formatter)
+                        "configurations (each in a fresh process), training images per second per branch, the "
+                        "late-fusion block against ensemble-boxes, each gate's overhead (gate_overhead_ms) and the "
+                        "end-to-end latency of top-k HydraFusion with it, k = 1, 3, 5 (topk_latency_ms).",
+                        formatter_class=Formatter)
     n.add_argument("--profile", default="cpu", help="model profile")
     n.add_argument("--repeats", type=pos_int, default=5, help="timed forwards per configuration")
     n.add_argument("--run", default=None, help="load these trained weights (default: random initialisation)")
@@ -181,6 +183,12 @@ def run_inference(args) -> int:
         lines.append(f"ratio_top3_to_all {r['ratio_top3_to_all']} (worst case, three early-fusion branches: "
                      f"{r['ratio_top3_worst_to_all']})")
         lines.append("training images/s per branch: " + ", ".join(f"{k} {v:.2f}" for k, v in r["training_images_per_second"].items()))
+        lines.append("gate overhead [ms]: " + ", ".join(
+            f"{g} {v}" if v is not None else f"{g} - (needs ground truth)" for g, v in r["gate_overhead_ms"].items())
+            + f"; all stems {r['stems_ms']} ms")
+        for g, per in r["topk_latency_ms"].items():
+            lines.append(f"top-k with the {g} gate [ms]: " + ", ".join(f"k={k} {v}" for k, v in per.items())
+                         + f" (overhead {100 * r['gate_overhead_share_of_top3'].get(g, float('nan')):.2f} % of top-3)")
         lines.append("fusion block vs ensemble-boxes: " + ", ".join(
             f"{m} x{v['speedup']}" for m, v in r["fusion_block_vs_ensemble_boxes"].items()))
         return "\n".join(lines)

@@ -5,6 +5,8 @@ Each configuration is measured in a fresh process (spawned), so its peak residen
 (ru_maxrss) belongs to it alone; latency is the median of `repeats` timed forwards after warm-up.
 A configuration is a set of branches run in one forward, plus the late-fusion block when it has
 several branches (HydraFusion's Algorithm 1: stems -> selected branches -> fusion block).
+`bench_gates` adds each gate's overhead and the end-to-end latency of top-k HydraFusion with the
+gate wired in (stems -> gate -> k branches -> fusion block).
 """
 
 from __future__ import annotations
@@ -132,6 +134,103 @@ def _train_worker(args) -> dict:
     return {"images_per_second": batch / statistics.median(times), "step_s": statistics.median(times)}
 
 
+GATE_CONTEXT = {"layout": "motorway", "conditions": ["fog"], "severity": 4}
+"""The frame context handed to the knowledge gate when timing it (any context costs the same)."""
+
+
+def bench_gates(profile: str = "cpu", repeats: int = 5, threads: int = 2, run_dir: str | None = None,
+                ks=(1, 3, 5), overrides: dict | None = None) -> dict:
+    """Gate overhead and top-k latency on the seven-branch network, batch 1.
+
+    `gate_overhead_ms[gate]`: the gate alone, from stem features to its selection (median of
+    `repeats`). The optimal gate has none: it needs every branch's loss against ground truth.
+    `topk_latency_ms[gate][k]`: HydraFusion end to end with the gate wired in (every stem, since
+    the gate reads all modalities; the gate; the k branches it selects; late fusion, Soft-NMS).
+    `stems_ms`: every stem once. Trained weights and trained gates come from `run_dir` when given
+    (gates only if trained for its latest checkpoint); otherwise random initialisation, whose
+    untrained learned gates predict a constant and so pick the first k branches.
+    """
+    import torch
+
+    from fusion.late import Detections, fuse
+    from fusion.nets import build_hydrafusion
+    from fusion.nets.gates import GATES, build_gate
+    from sensors.rig import load_profile as sensor_profile
+    from sensors.rig import make_calibration
+    from study.train import branch_set
+
+    torch.set_num_threads(threads)
+    torch.manual_seed(0)
+    model = build_hydrafusion(profile=profile, branches=branch_set("paper", profile), **(overrides or {})).eval()
+    gates_from = "random initialisation"
+    if run_dir:
+        from study.detect import load_run
+
+        trained, _ = load_run(run_dir)
+        own = model.state_dict()
+        model.load_state_dict({k: v for k, v in trained.state_dict().items() if k in own}, strict=False)
+    calib = make_calibration(sensor_profile(profile))
+    inputs = _inputs(model, 1)
+    meta = [dict(GATE_CONTEXT)]
+    frames = model.branch_frames
+
+    def median_ms(fn):
+        fn()  # warm-up
+        times = []
+        for _ in range(repeats):
+            t = time.perf_counter()
+            fn()
+            times.append(time.perf_counter() - t)
+        return round(1000 * statistics.median(times), 3)
+
+    with torch.no_grad():
+        features = model.extract_features(inputs)
+        stems_ms = median_ms(lambda: model.extract_features(inputs))
+    overhead, topk, chosen, source = {}, {}, {}, {}
+    for name in GATES.names():
+        cls = GATES.get(name)
+        if cls.reads == "losses":
+            overhead[name] = None  # needs ground truth: not a deployable gate
+            continue
+        gate = build_gate(name, model)
+        source[name] = "table" if not cls.trainable else gates_from
+        if cls.trainable and run_dir:
+            from pathlib import Path
+
+            from study.gates import load_trained_gate
+
+            if (Path(run_dir) / "gates" / name / "gate.pt").exists():
+                gate = load_trained_gate(run_dir, name, model)
+                source[name] = f"trained ({run_dir}/gates/{name})"
+        with torch.no_grad():
+            overhead[name] = median_ms(lambda g=gate: g(features, meta))
+        model.gate = gate
+        topk[name], chosen[name] = {}, {}
+        for k in ks:
+            gate.k = k
+
+            def once():
+                with torch.no_grad():
+                    dets = model(inputs, meta=meta)
+                for per in dets:
+                    fuse({n: Detections(d["boxes"].numpy().astype(float), d["scores"].numpy().astype(float),
+                                        d["labels"].numpy()) for n, d in per.items()}, frames, calib, "soft_nms")
+
+            topk[name][str(k)] = median_ms(once)
+            with torch.no_grad():
+                chosen[name][str(k)] = list(gate(features, meta)[0])
+        model.gate = None
+    share = {g: round(overhead[g] / topk[g]["3"], 6) for g in topk if "3" in topk[g] and overhead[g] is not None}
+    return {"gate_overhead_ms": overhead, "topk_latency_ms": topk, "topk_branches": chosen, "stems_ms": stems_ms,
+            "gate_overhead_share_of_top3": share, "gate_weights": source, "gate_context": GATE_CONTEXT}
+
+
+def _gate_worker(args) -> dict:
+    """Fresh process: `bench_gates`."""
+    profile, repeats, threads, run_dir = args
+    return bench_gates(profile, repeats, threads, run_dir)
+
+
 def bench_inference(profile: str = "cpu", repeats: int = 5, threads: int = 2, run_dir: str | None = None,
                     train_steps: int = 3, batches=(1, 8)) -> dict:
     ctx = mp.get_context("spawn")
@@ -148,6 +247,7 @@ def bench_inference(profile: str = "cpu", repeats: int = 5, threads: int = 2, ru
         for spec in branch_set("paper", profile):
             r = pool.apply(_train_worker, ((profile, spec.name, 4, train_steps, threads),))
             training[spec.name] = {k: round(v, 3) for k, v in r.items()}
+        gates = pool.apply(_gate_worker, ((profile, repeats, threads, run_dir),))
     lat = {n: r["batch_1"]["latency_ms"] for n, r in results.items()}
     out = {
         "latency_ms": lat,
@@ -164,8 +264,9 @@ def bench_inference(profile: str = "cpu", repeats: int = 5, threads: int = 2, ru
         "details": results,
         "profile": profile,
         "weights": run_dir or "random initialisation",
+        **gates,
     }
     return out
 
 
-__all__ = ["bench_inference", "CONFIGURATIONS"]
+__all__ = ["bench_gates", "bench_inference", "CONFIGURATIONS"]

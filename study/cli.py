@@ -103,6 +103,7 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "theory": ("study.theory:add_parser", "HydraFusion Sec. 1.1 measured: single sensors vs full, selective and gated fusion per weather"),
     "train": ("study.train:add_parser", "train HydraFusion stems and branches (resumable, per-epoch CSV and checkpoints)"),
     "evaluate": ("study.evaluate:add_parser", "VOC mAP@0.5 of a run's branches fused in the right camera (per class, per context)"),
+    "train-gate": ("study.gates:add_train_gate", "train the deep or attention gate on a run's stem features and branch losses"),
     "bench": ("study.bench:add_parser", "measure throughput (sim, generate, ...) and print the figures"),
 }
 

@@ -6,6 +6,13 @@ the stereo disparity) and fused with NMS, Soft-NMS or WBF (HydraFusion 4.4 / 5.2
 IoU 0.4, skip 0.01, sigma 0.5). Ground truth is the right camera's boxes; boxes marked difficult
 (under 8 px tall at 188 rows, > 80 % occluded or > 60 % truncated) are ignored, as VOC does.
 mAP is the mean of all-point interpolated AP over the classes that have ground truth.
+
+Gates (HydraFusion 4.2, Tables 6 and 7): --gate NAME --k K wires that gate into the network, so
+per frame only the K branches it selects run, and fuses them; --all-gates reports mAP for every
+gate x fusion method x k in 1, 3, 5, all (`map_table`: gate -> fusion -> k -> mAP) and how often
+each gate selects each branch (`selection_rate`: gate -> k -> branch -> percent). The deep and
+attention gates must be trained first (hydrabench train-gate); the optimal gate reads each frame's
+a-posteriori branch losses from the run's gate dataset (built when missing).
 """
 
 from __future__ import annotations
@@ -21,6 +28,8 @@ examples:
   hydrabench evaluate runs/all data/train1600 --branches all --fusion soft-nms --json
   hydrabench evaluate runs/all data/train1600 --branches radar,camera_right --fusion wbf
   hydrabench evaluate runs/all data/fog_only --branches camera_right        (another dataset: all frames)
+  hydrabench evaluate runs/all data/train1600 --gate attention --k 3 --fusion soft-nms --json
+  hydrabench evaluate runs/all data/train1600 --all-gates --json                      (Tables 6 and 7)
 """
 
 
@@ -35,6 +44,11 @@ def add_parser(sub, name, help_text):
     p.add_argument("--weights", default="", help="per-branch fusion weights, e.g. radar=2,camera_right=1")
     p.add_argument("--checkpoint", default="latest", help="latest, or epoch-NNN")
     p.add_argument("--batch-size", type=pos_int, default=4)
+    p.add_argument("--gate", default=None, help="knowledge | deep | attention | optimal: the gate selects the branches")
+    p.add_argument("--k", default=None, help="branches the gate keeps per frame: 1..number of branches, or all "
+                   "(default 3, or all when the run has fewer)")
+    p.add_argument("--all-gates", action="store_true",
+                   help="Tables 6 and 7: every gate x nms/soft-nms/wbf x k in 1, 3, 5, all")
     p.add_argument("--json", action="store_true", help="print one JSON object on stdout")
     p.set_defaults(run=run)
 
@@ -94,7 +108,44 @@ def evaluate(run_dir, data, branches="all", fusion="soft-nms", split="auto", wei
     return result
 
 
+def run_gates(args) -> int:
+    from study import gates
+
+    if args.gate and args.all_gates:
+        raise UserError("--gate and --all-gates exclude each other (--all-gates evaluates every gate)")
+    if args.branches not in ("all", ""):
+        raise UserError("--branches cannot be combined with a gate: the gate chooses among all of the run's branches")
+    weights = parse_weights(args.weights)
+    if args.all_gates:
+        if args.k is not None:
+            raise UserError("--k is for --gate; --all-gates evaluates k = 1, 3, 5 and all")
+        result = gates.evaluate_all_gates(Path(args.run_dir), Path(args.data), split=args.split, weights=weights,
+                                          checkpoint=args.checkpoint, batch_size=args.batch_size)
+        emit(result, args.json, gates.format_tables)
+        return 0
+    result = gates.evaluate_gate(Path(args.run_dir), Path(args.data), args.gate, args.k, args.fusion, args.split,
+                                 weights, args.checkpoint, args.batch_size)
+
+    def text(r):
+        k = str(r["k"])
+        rates = r["selection_rate"][r["gate"]][k]
+        return "\n".join([
+            f"mAP@0.5 {r['map']} ({r['gate']} gate, top {k}, {r['fusion']}; {r['frames']} {r['split']} frames, "
+            f"right camera, difficult boxes ignored; {r['branch_runs_per_frame']} branch runs per frame)",
+            "  per class: " + ", ".join(f"{c} {v}" for c, v in r["ap_per_class"].items() if v is not None),
+            "  per context: " + ", ".join(f"{c} {v}" for c, v in r["map_per_context"].items()),
+            "  selected [% of frames]: " + ", ".join(f"{b} {v}" for b, v in rates.items()),
+        ])
+
+    emit(result, args.json, text)
+    return 0
+
+
 def run(args) -> int:
+    if args.gate is not None or args.all_gates:
+        return run_gates(args)
+    if args.k is not None:
+        raise UserError("--k needs --gate (the number of branches a gate keeps)")
     result = evaluate(Path(args.run_dir), Path(args.data), args.branches, args.fusion, args.split,
                       parse_weights(args.weights), args.checkpoint, args.batch_size)
 

@@ -1,0 +1,856 @@
+"""Gates on a trained run: the gate dataset, `hydrabench train-gate`, and the gate tables
+(HydraFusion Section 5.2.2, Tables 3, 6 and 7).
+
+**Gate dataset** (Section 5.2.2: "the stem outputs and branch losses of a fully trained HydraFusion
+model as the inputs and targets for the gate"). For every frame of a dataset, what the learned
+gates consume, `fusion.nets.gates.pool_features` of the stem outputs (float16, 64 channels per
+sensor on an 8 x 16 grid by default: 80 kB a frame for five sensors), and each branch's four
+Faster R-CNN losses from `HydraFusion.per_sample_losses` (seed 0; the gate target is their sum).
+Cached under the run directory, keyed by the checkpoint's SHA-256, the dataset manifest's SHA-256,
+the grid, the sensors, the branches and the seed:
+
+    RUN/gate_data/<key>/info.json         what the key was made of
+    RUN/gate_data/<key>/chunk-NNNNN.npz   indices (n,), features (n, C, rows, cols) float16,
+                                          losses (n, n_branches, 4) float32; written atomically
+
+Interrupted, it continues with the frames no chunk holds yet.
+
+**train-gate** trains the deep or attention gate on the run's train split (minus a validation
+share of its sequences, which picks the epoch) by regression of the per-branch loss with mean
+absolute error, Adam at lr 5e-5 (Section 5.3 gives the rate; the optimiser is ours), and reports
+the test split's MAE against constant predictors (per-branch training mean and median).
+
+    RUN/gates/<gate>/checkpoint.pt   latest state (gate, optimiser, epoch, RNG), every epoch
+    RUN/gates/<gate>/gate.pt         the gate of the best validation epoch (what evaluate loads)
+    RUN/gates/<gate>/metrics.csv     per epoch: train and validation MAE
+    RUN/gates/<gate>/result.json     held-out MAE against the constant predictors
+
+**Tables.** `evaluate_gate` wires one gate into the network (`model.gate`), so only the branches
+it selects run, and fuses them. `evaluate_all_gates` runs every branch once per frame and selects
+and fuses subsets afterwards: the same numbers, because a branch's detections depend only on the
+stem features of its own sensors (stems run on every frame either way, the gate reads all of
+them), never on which other branches run; the tests check this equality.
+"""
+
+from __future__ import annotations
+
+import csv
+import dataclasses
+import hashlib
+import json
+import os
+import sys
+from collections import defaultdict
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from sim.errors import UserError
+from study.cli import Formatter, emit, nonneg_int, pos_float, pos_int
+
+GATE_DATA_VERSION = 1
+LOSS_SEED = 0
+TABLE_KS = (1, 3, 5, "all")
+TABLE_FUSIONS = ("nms", "soft_nms", "wbf")
+FUSION_LABEL = {"nms": "nms", "soft_nms": "soft-nms", "wbf": "wbf"}
+
+
+# ----- identities and small helpers -----------------------------------------------------------
+
+
+def file_sha256(path: Path) -> str:
+    h = hashlib.sha256()
+    with open(path, "rb") as fh:
+        for block in iter(lambda: fh.read(1 << 22), b""):
+            h.update(block)
+    return h.hexdigest()
+
+
+_SHA_CACHE: dict[tuple[str, int, int], str] = {}
+
+
+def cached_sha256(path: Path) -> str:
+    """file_sha256, remembered per (resolved path, size, mtime) within the process (checkpoints are
+    hundreds of MB)."""
+    st = Path(path).stat()
+    key = (str(Path(path).resolve()), st.st_size, st.st_mtime_ns)
+    if key not in _SHA_CACHE:
+        _SHA_CACHE[key] = file_sha256(path)
+    return _SHA_CACHE[key]
+
+
+def checkpoint_path(run_dir: Path, checkpoint: str = "latest") -> Path:
+    return Path(run_dir) / ("checkpoint.pt" if checkpoint == "latest" else f"{checkpoint}.pt")
+
+
+def _atomic_torch_save(obj, path: Path) -> None:
+    import torch
+
+    tmp = path.with_name(f".{path.name}.tmp-{os.getpid()}")
+    torch.save(obj, tmp)
+    os.replace(tmp, path)
+
+
+def _atomic_text(path: Path, text: str) -> None:
+    tmp = path.with_name(f".{path.name}.tmp-{os.getpid()}")
+    tmp.write_text(text)
+    os.replace(tmp, path)
+
+
+def _bar(total: int, desc: str, progress: bool):
+    from tqdm import tqdm
+
+    tty = sys.stderr.isatty()
+    return tqdm(total=total, desc=desc, file=sys.stderr, disable=not progress, dynamic_ncols=tty,
+                mininterval=0.1 if tty else 30.0, leave=False)
+
+
+def parse_k(text: Any, n_branches: int, field: str = "--k") -> int | str:
+    """An int 1..n_branches or "all" (the table's column name); UserError naming `field` otherwise."""
+    from fusion.nets.gates import check_k
+
+    if isinstance(text, str) and text.strip().lower() == "all":
+        return "all"
+    try:
+        k = int(text)
+    except (TypeError, ValueError):
+        raise UserError(f"{field}: expected an integer 1..{n_branches} or 'all', got {text!r}") from None
+    try:
+        check_k(k, n_branches, field)
+    except ValueError as exc:
+        raise UserError(str(exc)) from None
+    return k
+
+
+def table_ks(n_branches: int) -> list[int | str]:
+    """The table's k columns that exist for this many branches: 1, 3, 5 below n, then all."""
+    return [k for k in TABLE_KS if k == "all" or k < n_branches]
+
+
+# ----- the gate dataset -----------------------------------------------------------------------
+
+
+class GateData:
+    """Pooled stem features and per-branch losses of a dataset's frames under one run checkpoint.
+
+    Args:
+        run_dir: the training run; the cache lives in `run_dir/gate_data/<key>/`.
+        data: dataset directory.
+        model: the run's network at `checkpoint` (eval mode), as `study.detect.load_run` gives it.
+        checkpoint: "latest" or "epoch-NNN" (its file's SHA-256 is part of the key).
+        grid: the pooling grid of `pool_features` (rows, columns).
+        seed: RNG seed of the per-sample loss sampling.
+    """
+
+    def __init__(self, run_dir, data, model, checkpoint: str = "latest", grid=None, seed: int = LOSS_SEED) -> None:
+        from fusion.nets.gates import DEFAULT_GRID, gate_sensors
+
+        self.run_dir, self.data, self.model = Path(run_dir), Path(data), model
+        self.grid = tuple(int(g) for g in (grid or DEFAULT_GRID))
+        self.seed = int(seed)
+        self.sensors = gate_sensors(model)
+        if not self.sensors:
+            raise UserError("gates read stem features, and this run's branches have no shared stems")
+        self.branches = tuple(model.branches)
+        ckpt = checkpoint_path(self.run_dir, checkpoint)
+        if not ckpt.exists():
+            raise UserError(f"{ckpt} does not exist")
+        manifest = self.data / "manifest.json"
+        if not manifest.exists():
+            raise UserError(f"{self.data} has no manifest.json (not a dataset)")
+        self.identity = {
+            "version": GATE_DATA_VERSION, "checkpoint": checkpoint, "checkpoint_sha256": cached_sha256(ckpt),
+            "dataset_manifest_sha256": cached_sha256(manifest), "grid": list(self.grid), "sensors": list(self.sensors),
+            "branches": list(self.branches), "loss_seed": self.seed,
+            "bev_size": list(model.transform.image_size("radar")),
+        }
+        self.key = hashlib.sha256(json.dumps(self.identity, sort_keys=True).encode()).hexdigest()[:16]
+        self.dir = self.run_dir / "gate_data" / self.key
+        self._index: dict[int, tuple[Path, int]] | None = None
+
+    # -- what is on disk
+    def _chunks(self) -> list[Path]:
+        return sorted(self.dir.glob("chunk-*.npz")) if self.dir.is_dir() else []
+
+    def index(self) -> dict[int, tuple[Path, int]]:
+        """Dataset frame index -> (chunk file, row) for every frame already cached."""
+        if self._index is None:
+            out: dict[int, tuple[Path, int]] = {}
+            for path in self._chunks():
+                with np.load(path) as z:
+                    for row, i in enumerate(z["indices"].tolist()):
+                        out.setdefault(int(i), (path, row))
+            self._index = out
+        return self._index
+
+    def missing(self, indices) -> list[int]:
+        have = self.index()
+        return sorted({int(i) for i in indices} - set(have))
+
+    # -- building
+    def ensure(self, indices, batch_size: int = 4, chunk_frames: int = 32, progress: bool = True) -> int:
+        """Compute and cache every frame of `indices` not cached yet; returns how many were computed."""
+        import torch
+
+        from fusion.data import FrameDataset, collate
+        from fusion.nets.gates import pool_features
+
+        todo = self.missing(indices)
+        if not todo:
+            return 0
+        self.dir.mkdir(parents=True, exist_ok=True)
+        info = self.dir / "info.json"
+        if not info.exists():
+            _atomic_text(info, json.dumps({**self.identity, "key": self.key, "run": str(self.run_dir),
+                                           "data": str(self.data)}, indent=1))
+        model = self.model.eval()
+        ds = FrameDataset(self.data, todo, sensors=model.sensors, bev_size=model.transform.image_size("radar"))
+        n_chunk = len(self._chunks())
+        bar = _bar(len(todo), "gate dataset", progress)
+        pending: dict[str, list] = {"indices": [], "features": [], "losses": []}
+
+        def flush():
+            nonlocal n_chunk
+            if not pending["indices"]:
+                return
+            while (self.dir / f"chunk-{n_chunk:05d}.npz").exists():
+                n_chunk += 1
+            path = self.dir / f"chunk-{n_chunk:05d}.npz"
+            tmp = self.dir / f".chunk-{n_chunk:05d}.tmp-{os.getpid()}.npz"
+            np.savez(tmp, indices=np.asarray(pending["indices"], np.int64),
+                     features=np.concatenate(pending["features"]).astype(np.float16),
+                     losses=np.concatenate(pending["losses"]).astype(np.float32))
+            os.replace(tmp, path)
+            n_chunk += 1
+            for v in pending.values():
+                v.clear()
+
+        with torch.no_grad():
+            for start in range(0, len(todo), batch_size):
+                items = [ds[k] for k in range(start, min(start + batch_size, len(todo)))]
+                inputs, targets, metas = collate(items)
+                feats = model.extract_features(inputs, self.sensors)
+                pooled = pool_features(feats, self.sensors, self.grid)
+                per = model.per_sample_losses(inputs, targets, seed=self.seed)
+                from fusion.nets import LOSS_NAMES
+
+                losses = np.array([[[float(p[b][n]) for n in LOSS_NAMES] for b in self.branches] for p in per])
+                pending["indices"].extend(int(m["dataset_index"]) for m in metas)
+                pending["features"].append(pooled.half().numpy())
+                pending["losses"].append(losses)
+                bar.update(len(items))
+                if len(pending["indices"]) >= chunk_frames:
+                    flush()
+        flush()
+        bar.close()
+        self._index = None
+        return len(todo)
+
+    # -- reading
+    def load(self, indices) -> tuple[np.ndarray, np.ndarray]:
+        """(features (n, C, rows, cols) float16, losses (n, n_branches) float32, the sum of the four
+        Faster R-CNN losses) for `indices`, in that order. Every frame must be cached (`ensure`)."""
+        idx = self.index()
+        missing = [i for i in indices if int(i) not in idx]
+        if missing:
+            raise UserError(f"gate dataset {self.dir} has no frame {missing[0]} (build it first)")
+        by_chunk: dict[Path, list[tuple[int, int]]] = defaultdict(list)
+        for k, i in enumerate(indices):
+            path, row = idx[int(i)]
+            by_chunk[path].append((k, row))
+        feats = losses = None
+        for path, pairs in by_chunk.items():
+            with np.load(path) as z:
+                f, lo = z["features"], z["losses"]
+                if feats is None:
+                    feats = np.empty((len(indices), *f.shape[1:]), np.float16)
+                    losses = np.empty((len(indices), lo.shape[1]), np.float32)
+                ks = [k for k, _ in pairs]
+                rows = [r for _, r in pairs]
+                feats[ks] = f[rows]
+                losses[ks] = lo[rows].sum(axis=2)
+        if feats is None:
+            c = 64 * len(self.sensors)
+            return np.zeros((0, c, *self.grid), np.float16), np.zeros((0, len(self.branches)), np.float32)
+        return feats, losses
+
+    def branch_losses(self, indices) -> list[dict[str, float]]:
+        """Per frame: branch name -> a-posteriori loss (what the optimal gate reads)."""
+        _, losses = self.load(indices)
+        return [dict(zip(self.branches, map(float, row))) for row in losses]
+
+
+# ----- training -------------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class GateTrainConfig:
+    """One gate training run.
+
+    Fields:
+        gate: "deep" or "attention" (fusion.nets.gates.GATES entries that learn).
+        epochs: passes over the training frames.
+        batch_size: frames per step.
+        lr: Adam learning rate (HydraFusion 5.3 trains its gates at 5e-5).
+        weight_decay: Adam L2 penalty.
+        val_fraction: share of the train split's sequences (per context) held out to pick the epoch.
+        seed: initialisation, data order and validation split.
+        grid: pooling grid (rows, columns) of the stem features.
+        channels: widths of the three convs.
+        hidden: MLP hidden width.
+        dropout: before the MLP.
+        checkpoint: which run checkpoint the gate serves ("latest" or "epoch-NNN").
+        threads: torch CPU threads.
+    """
+
+    gate: str = "deep"
+    epochs: int = 100
+    batch_size: int = 32
+    lr: float = 5e-5
+    weight_decay: float = 0.0
+    val_fraction: float = 0.15
+    seed: int = 0
+    grid: tuple[int, int] = (8, 16)
+    channels: tuple[int, int, int] = (64, 32, 16)
+    hidden: int = 64
+    dropout: float = 0.2
+    checkpoint: str = "latest"
+    threads: int = 2
+
+    def gate_options(self) -> dict:
+        return {"grid": list(self.grid), "channels": list(self.channels), "hidden": self.hidden,
+                "dropout": self.dropout}
+
+
+def validation_split(reader, indices, fraction: float, seed: int) -> tuple[list[int], list[int]]:
+    """Split frames into (fit, validation) by sequence (shard), per context, deterministic in seed.
+    A context with fewer than 3 sequences keeps them all for fitting."""
+    shards: dict[str, dict[str, list[int]]] = defaultdict(lambda: defaultdict(list))
+    for i in indices:
+        f = reader.manifest["frames"][int(i)]
+        shards[f["context"]][f["shard"]].append(int(i))
+    rng = np.random.default_rng([seed, 7])
+    fit, val = [], []
+    for ctx in sorted(shards):
+        names = sorted(shards[ctx])
+        rng.shuffle(names)
+        n_val = int(round(fraction * len(names))) if len(names) >= 3 else 0
+        if len(names) >= 3 and fraction > 0:
+            n_val = max(1, n_val)
+        for j, name in enumerate(names):
+            (val if j < n_val else fit).extend(shards[ctx][name])
+    return sorted(fit), sorted(val)
+
+
+def mae(pred: np.ndarray, target: np.ndarray) -> float:
+    return float(np.abs(np.asarray(pred, np.float64) - np.asarray(target, np.float64)).mean()) if len(target) else float("nan")
+
+
+def _predict(gate, feats: np.ndarray, batch: int = 256) -> np.ndarray:
+    import torch
+
+    gate.eval()
+    out = []
+    with torch.no_grad():
+        for k in range(0, len(feats), batch):
+            out.append(gate.predict_prepared(torch.from_numpy(feats[k:k + batch])).numpy())
+    return np.concatenate(out) if out else np.zeros((0, len(gate.branches)), np.float32)
+
+
+def ranking_agreement(pred: np.ndarray, truth: np.ndarray, k: int) -> float:
+    """Mean share of the true k lowest-loss branches that the prediction also puts in its top k."""
+    if not len(truth):
+        return float("nan")
+    p = np.argsort(pred, axis=1, kind="stable")[:, :k]
+    t = np.argsort(truth, axis=1, kind="stable")[:, :k]
+    return float(np.mean([len(set(a) & set(b)) / k for a, b in zip(p, t)]))
+
+
+def fit_gate(gate, x_fit: np.ndarray, y_fit: np.ndarray, x_val: np.ndarray, y_val: np.ndarray, cfg: GateTrainConfig,
+             out: Path | None = None, progress: bool = True, state: dict | None = None,
+             extra: dict | None = None) -> dict:
+    """Train `gate` (a ConvGate) with MAE and Adam; checkpoint to `out` every epoch (resumable from
+    the checkpoint dict `state`; `extra` is stored in every checkpoint).
+
+    Returns {"best_epoch", "best_val_mae", "history"}; the gate holds the weights of the best
+    validation epoch (the last epoch when there is no validation set).
+    """
+    import torch
+
+    torch.manual_seed(cfg.seed)
+    if state is None:
+        gate.fit_normalization(torch.from_numpy(x_fit), torch.from_numpy(y_fit))
+    opt = torch.optim.Adam(gate.parameters(), lr=cfg.lr, weight_decay=cfg.weight_decay)
+    epoch, best_val, best_epoch, best_state, history = 0, float("inf"), 0, None, []
+    if state is not None:
+        gate.load_state_dict(state["gate"])
+        opt.load_state_dict(state["optimizer"])
+        epoch, best_val, best_epoch = state["epoch"], state["best_val"], state["best_epoch"]
+        best_state, history = state["best_state"], state["history"]
+        torch.set_rng_state(state["torch_rng"])
+    y_fit_t = torch.from_numpy(y_fit)
+    while epoch < cfg.epochs:
+        gate.train()
+        order = np.random.default_rng([cfg.seed, epoch]).permutation(len(x_fit))
+        total, n = 0.0, 0
+        # a live bar on a terminal; in a log file only the per-epoch JSON line below
+        bar = _bar(len(order), f"train-gate {gate.name} epoch {epoch + 1}/{cfg.epochs}", progress and sys.stderr.isatty())
+        for k in range(0, len(order), cfg.batch_size):
+            b = order[k:k + cfg.batch_size]
+            pred = gate.predict_prepared(torch.from_numpy(x_fit[b]))
+            loss = (pred - y_fit_t[b]).abs().mean()  # mean absolute error (Section 5.2.2)
+            opt.zero_grad(set_to_none=True)
+            loss.backward()
+            opt.step()
+            total += float(loss.detach()) * len(b)
+            n += len(b)
+            bar.update(len(b))
+            bar.set_postfix(mae=f"{total / max(n, 1):.4f}")
+        bar.close()
+        epoch += 1
+        val = mae(_predict(gate, x_val), y_val) if len(x_val) else float("nan")
+        row = {"epoch": epoch, "train_mae": round(total / max(n, 1), 6), "val_mae": round(val, 6) if val == val else ""}
+        history.append(row)
+        if not len(x_val) or val < best_val:
+            best_val, best_epoch = (val if len(x_val) else float("nan")), epoch
+            best_state = {k: v.detach().clone() for k, v in gate.state_dict().items()}
+        if out is not None:
+            _atomic_torch_save({"gate": gate.state_dict(), "optimizer": opt.state_dict(), "epoch": epoch,
+                                "best_val": best_val, "best_epoch": best_epoch, "best_state": best_state,
+                                "history": history, "torch_rng": torch.get_rng_state(),
+                                "config": dataclasses.asdict(cfg), **(extra or {})}, out / "checkpoint.pt")
+            _write_csv(out / "metrics.csv", history)
+        if progress:
+            sys.stderr.write(json.dumps(row) + "\n")
+    if best_state is not None:
+        gate.load_state_dict(best_state)
+    gate.eval()
+    return {"best_epoch": best_epoch, "best_val_mae": None if best_val != best_val else round(best_val, 6),
+            "history": history}
+
+
+def _write_csv(path: Path, rows: list[dict]) -> None:
+    tmp = path.with_name(f".{path.name}.tmp-{os.getpid()}")
+    with open(tmp, "w", newline="") as fh:
+        w = csv.DictWriter(fh, fieldnames=list(rows[0]))
+        w.writeheader()
+        w.writerows(rows)
+    os.replace(tmp, path)
+
+
+def train_gate(run_dir, data, cfg: GateTrainConfig, progress: bool = True, fresh: bool = False) -> dict:
+    """Build the gate dataset when missing, train the gate, report held-out MAE (see module doc)."""
+    import torch
+
+    from fusion.nets.gates import GATES, build_gate
+    from sensors.dataset import DatasetReader
+    from study.detect import frames_for, load_run
+
+    cls = GATES.get(cfg.gate)
+    if not cls.trainable:
+        what = ("ranks by the a-posteriori losses, which need ground truth" if cfg.gate == "optimal"
+                else "ranks from its knowledge table")
+        raise UserError(f"--gate {cfg.gate}: nothing to train, the {cfg.gate} gate {what} (train deep or attention)")
+    torch.set_num_threads(cfg.threads)
+    run_dir, data = Path(run_dir), Path(data)
+    model, run_cfg = load_run(run_dir, cfg.checkpoint)
+    reader = DatasetReader(data)
+    if reader.manifest["config"] != run_cfg.get("data_config"):
+        raise UserError(f"train-gate needs the run's training dataset ({run_cfg.get('data')}), not {data}: the gate "
+                        "trains on the run's train split and is tested on its test split")
+    train_idx, _ = frames_for(run_cfg, data, "train")
+    test_idx, _ = frames_for(run_cfg, data, "test")
+    if not train_idx or not test_idx:
+        raise UserError(f"the run's split of {data} has {len(train_idx)} train and {len(test_idx)} test frames; "
+                        "a gate needs both")
+    gd = GateData(run_dir, data, model, cfg.checkpoint, cfg.grid)
+    out = run_dir / "gates" / cfg.gate
+    state = None
+    ckpt = out / "checkpoint.pt"
+    settings = {**dataclasses.asdict(cfg), "data_key": gd.key}
+    settings.pop("epochs")
+    settings.pop("threads")
+    if ckpt.exists() and not fresh:
+        state = torch.load(ckpt, map_location="cpu", weights_only=False)
+        old = {**state["config"], "data_key": state.get("data_key")}
+        old.pop("epochs", None)
+        old.pop("threads", None)
+        if json.loads(json.dumps(old)) != json.loads(json.dumps(settings)):
+            diff = sorted(k for k in settings if json.loads(json.dumps(old.get(k))) != json.loads(json.dumps(settings[k])))
+            raise UserError(f"{out} holds a {cfg.gate} gate trained with other settings or on another checkpoint or "
+                            f"dataset ({', '.join(diff)}); pass --fresh to train it again")
+        if progress:
+            sys.stderr.write(f"resuming {out} at epoch {state['epoch'] + 1}\n")
+    gd.ensure(train_idx + test_idx, progress=progress)
+    fit_idx, val_idx = validation_split(reader, train_idx, cfg.val_fraction, cfg.seed)
+    x_fit, y_fit = gd.load(fit_idx)
+    x_val, y_val = gd.load(val_idx)
+    x_test, y_test = gd.load(test_idx)
+    out.mkdir(parents=True, exist_ok=True)
+    torch.manual_seed(cfg.seed)
+    gate = build_gate(cfg.gate, model, sensors=list(gd.sensors), **cfg.gate_options())
+    fitted = fit_gate(gate, x_fit, y_fit, x_val, y_val, cfg, out=out, progress=progress, state=state,
+                      extra={"data_key": gd.key})
+
+    pred = _predict(gate, x_test)
+    mean_c, median_c = y_fit.mean(axis=0), np.median(y_fit, axis=0)
+    branches = list(model.branches)
+    result = {
+        "gate": cfg.gate, "run": str(run_dir), "data": str(data), "checkpoint": cfg.checkpoint,
+        "optimizer": "Adam", "lr": cfg.lr, "loss": "mean absolute error", "epochs": cfg.epochs,
+        "best_epoch": fitted["best_epoch"], "val_mae": fitted["best_val_mae"],
+        "train_frames": len(fit_idx), "val_frames": len(val_idx), "test_frames": len(test_idx),
+        "test_mae": round(mae(pred, y_test), 6),
+        "constant_mean_mae": round(mae(np.broadcast_to(mean_c, y_test.shape), y_test), 6),
+        "constant_median_mae": round(mae(np.broadcast_to(median_c, y_test.shape), y_test), 6),
+        "test_mae_per_branch": {b: round(mae(pred[:, j], y_test[:, j]), 6) for j, b in enumerate(branches)},
+        "constant_mean_mae_per_branch": {b: round(mae(np.full(len(y_test), mean_c[j]), y_test[:, j]), 6)
+                                         for j, b in enumerate(branches)},
+        "top1_agreement_with_optimal": round(ranking_agreement(pred, y_test, 1), 4),
+        "top3_overlap_with_optimal": round(ranking_agreement(pred, y_test, min(3, len(branches))), 4),
+        "mean_test_loss_per_branch": {b: round(float(y_test[:, j].mean()), 6) for j, b in enumerate(branches)},
+        "gate_data": str(gd.dir), "gate_path": str(out / "gate.pt"),
+    }
+    result["beats_constant"] = result["test_mae"] < result["constant_mean_mae"]
+    _atomic_torch_save({"name": cfg.gate, "options": {**cfg.gate_options(), "sensors": list(gd.sensors)},
+                        "branches": branches, "state": gate.state_dict(), "data_key": gd.key,
+                        "checkpoint": cfg.checkpoint, "checkpoint_sha256": gd.identity["checkpoint_sha256"],
+                        "result": result}, out / "gate.pt")
+    _atomic_text(out / "result.json", json.dumps(result, indent=1))
+    return result
+
+
+# ----- gates for evaluation -------------------------------------------------------------------
+
+def load_trained_gate(run_dir, name: str, model, checkpoint: str = "latest"):
+    """The gate `train_gate` saved in RUN/gates/<name>/gate.pt, for this checkpoint of the run."""
+    import torch
+
+    from fusion.nets.gates import build_gate
+
+    run_dir = Path(run_dir)
+    path = run_dir / "gates" / name / "gate.pt"
+    if not path.exists():
+        raise UserError(f"no trained {name} gate in {run_dir} (run: hydrabench train-gate {run_dir} DATA --gate {name})")
+    saved = torch.load(path, map_location="cpu", weights_only=False)
+    if saved.get("checkpoint_sha256") != cached_sha256(checkpoint_path(run_dir, checkpoint)):
+        raise UserError(f"{path} was trained for another checkpoint of this run than {checkpoint!r}; "
+                        f"train it again (hydrabench train-gate {run_dir} DATA --gate {name} --fresh)")
+    if list(saved["branches"]) != list(model.branches):
+        raise UserError(f"{path} ranks branches {saved['branches']}, the run has {list(model.branches)}")
+    gate = build_gate(name, model, **saved["options"])
+    gate.load_state_dict(saved["state"])
+    return gate.eval()
+
+
+def make_gate(name: str, model, run_dir, checkpoint: str = "latest", k: int | str | None = None):
+    """A ready gate: trained ones loaded from the run, the others built from the model."""
+    from fusion.nets.gates import GATES, build_gate
+
+    cls = GATES.get(name)
+    gate = load_trained_gate(run_dir, name, model, checkpoint) if cls.trainable else build_gate(name, model).eval()
+    gate.k = None if k in (None, "all") else int(k)
+    return gate
+
+
+def selection_rates(selections: list[tuple[str, ...]], branches) -> dict[str, float]:
+    """Branch -> percent of frames whose selection contains it (HydraFusion Table 7)."""
+    n = max(len(selections), 1)
+    return {b: round(100.0 * sum(b in s for s in selections) / n, 2) for b in branches}
+
+
+def _rates_per_context(selections, contexts, branches) -> dict[str, dict[str, float]]:
+    by: dict[str, list] = defaultdict(list)
+    for s, c in zip(selections, contexts):
+        by[c].append(s)
+    return {c: selection_rates(v, branches) for c, v in sorted(by.items())}
+
+
+def _setup(run_dir, data, split, weights, checkpoint):
+    import torch
+
+    from fusion.nets.gates import gate_sensors
+    from sensors.dataset import DatasetReader
+    from study.detect import frames_for, load_run
+
+    torch.set_num_threads(2)
+    model, cfg = load_run(run_dir, checkpoint)
+    if not gate_sensors(model):
+        raise UserError("gates need HydraFusion's shared stems (a gate reads every stem before choosing branches); "
+                        f"this run's branches ({', '.join(model.branches)}) fuse their inputs and have none")
+    indices, used_split = frames_for(cfg, data, split)
+    if not indices:
+        raise UserError(f"no frames to evaluate in the {used_split!r} split of {data}")
+    bad = [b for b in (weights or {}) if b not in model.branches]
+    if bad:
+        raise UserError(f"--weights names {bad[0]!r}, which is not a branch of this run")
+    return model, cfg, indices, used_split, DatasetReader(data)
+
+
+def _loader(model, data, indices, batch_size):
+    from torch.utils.data import DataLoader
+
+    from fusion.data import FrameDataset, collate
+
+    ds = FrameDataset(data, indices, sensors=model.sensors, bev_size=model.transform.image_size("radar"))
+    return DataLoader(ds, batch_size=batch_size, shuffle=False, collate_fn=collate, num_workers=0)
+
+
+def _optimal_losses(run_dir, data, model, checkpoint, indices, progress) -> dict[int, dict[str, float]]:
+    gd = GateData(run_dir, data, model, checkpoint)
+    gd.ensure(indices, progress=progress)
+    return dict(zip((int(i) for i in indices), gd.branch_losses(indices)))
+
+
+def evaluate_gate(run_dir, data, gate: str, k=None, fusion: str = "soft-nms", split: str = "auto", weights=None,
+                  checkpoint: str = "latest", batch_size: int = 4, progress: bool = True) -> dict:
+    """mAP of one gate at one k (None: 3, or every branch when there are fewer) with one fusion
+    method, the gate wired into the network (`model.gate`): per frame only the k branches it
+    selects run, then they are fused."""
+    import torch
+
+    from study.detect import fused, fusion_method, score, to_detections
+
+    method = fusion_method(fusion)
+    model, _cfg, indices, used_split, reader = _setup(run_dir, data, split, weights, checkpoint)
+    k = parse_k(min(3, len(model.branches)) if k is None else k, len(model.branches))
+    g = make_gate(gate, model, run_dir, checkpoint, k)
+    losses = _optimal_losses(run_dir, data, model, checkpoint, indices, progress) if g.reads == "losses" else None
+    calls: dict[str, int] = defaultdict(int)
+
+    def count(module, args, _out):
+        calls[module.name] += int(args[0][0].shape[0])
+
+    hooks = [b.register_forward_hook(count) for b in model.branches.values()]
+    model.gate = g
+    per_frame = []
+    try:
+        with torch.no_grad():
+            bar = _bar(len(indices), f"evaluate {gate} k={k}", progress)
+            for inputs, _targets, metas in _loader(model, data, indices, batch_size):
+                if losses is not None:
+                    metas = [dict(m, branch_losses=losses[int(m["dataset_index"])]) for m in metas]
+                dets = model(inputs, meta=metas)
+                for meta, per in zip(metas, dets):
+                    per_frame.append((meta, {n: to_detections(d) for n, d in per.items()}))
+                bar.update(len(metas))
+            bar.close()
+    finally:
+        model.gate = None
+        for h in hooks:
+            h.remove()
+    branches = list(model.branches)
+    result = score(fused(per_frame, branches, model.branch_frames, method, weights), reader, "camera_right")
+    selections = [tuple(per) for _, per in per_frame]
+    kk = str(k)
+    result.update({
+        "gate": gate, "k": k, "fusion": method, "split": used_split, "run": str(run_dir), "data": str(data),
+        "map_table": {gate: {FUSION_LABEL[method]: {kk: result["map"]}}},
+        "selection_rate": {gate: {kk: selection_rates(selections, branches)}},
+        "selection_rate_per_context": {gate: {kk: _rates_per_context(selections, [m["context"] for m, _ in per_frame],
+                                                                      branches)}},
+        "branch_runs_per_frame": round(sum(calls.values()) / max(len(per_frame), 1), 4),
+        "branch_runs": dict(calls),
+        "metric": "VOC all-point AP at IoU 0.5, right camera, difficult ground truth ignored",
+    })
+    return result
+
+
+def evaluate_all_gates(run_dir, data, gates=None, fusions=TABLE_FUSIONS, ks=None, split: str = "auto", weights=None,
+                       checkpoint: str = "latest", batch_size: int = 4, progress: bool = True) -> dict:
+    """HydraFusion Tables 6 and 7 on this benchmark: mAP per gate x fusion x k, and how often each
+    gate selects each branch per k. Every branch runs once per frame; each gate's top-k subsets are
+    fused afterwards (equal to running only the selected branches: see the module docstring)."""
+    import torch
+
+    from fusion.late import fuse
+    from fusion.nets.gates import GATES, rank_branches
+    from sensors.rig import Calibration
+    from study.detect import score, to_detections
+
+    model, _cfg, indices, used_split, reader = _setup(run_dir, data, split, weights, checkpoint)
+    names = list(gates or GATES.names())
+    gate_objs = {g: make_gate(g, model, run_dir, checkpoint) for g in names}
+    branches = list(model.branches)
+    ks = list(ks or table_ks(len(branches)))
+    ks = [parse_k(k, len(branches), "k") for k in ks]
+    need_losses = any(g.reads == "losses" for g in gate_objs.values())
+    losses = _optimal_losses(run_dir, data, model, checkpoint, indices, progress) if need_losses else None
+    rankings: dict[str, list[list[int]]] = {g: [] for g in names}
+    predicted: dict[str, list] = {g: [] for g in names}
+    per_frame = []
+    with torch.no_grad():
+        bar = _bar(len(indices), "evaluate all gates", progress)
+        for inputs, _targets, metas in _loader(model, data, indices, batch_size):
+            if losses is not None:
+                metas = [dict(m, branch_losses=losses[int(m["dataset_index"])]) for m in metas]
+            feats = model.extract_features(inputs)
+            for g, gate in gate_objs.items():
+                pred = gate.predict(feats, metas)
+                rankings[g].extend(rank_branches(pred).tolist())
+                predicted[g].extend(pred.tolist())
+            dets = model(inputs, selection=branches)
+            for meta, per in zip(metas, dets):
+                per_frame.append((meta, {n: to_detections(d) for n, d in per.items()}))
+            bar.update(len(metas))
+        bar.close()
+
+    frames = model.branch_frames
+    calibs = [Calibration.from_dict(m["calibration"]) for m, _ in per_frame]
+    contexts = [m["context"] for m, _ in per_frame]
+    memo: dict[tuple, Any] = {}
+
+    def fused_frame(i: int, chosen: tuple[str, ...], method: str):
+        key = (i, chosen, method)
+        if key not in memo:
+            per = per_frame[i][1]
+            memo[key] = fuse({n: per[n] for n in chosen}, frames, calibs[i], method=method, weights=weights)
+        return memo[key]
+
+    map_table: dict = {}
+    ctx_table: dict = {}
+    rates: dict = {}
+    rates_ctx: dict = {}
+    bar = _bar(len(names) * len(ks) * len(fusions), "fuse and score", progress)
+    for g in names:
+        map_table[g], ctx_table[g], rates[g], rates_ctx[g] = {}, {}, {}, {}
+        for k in ks:
+            n_keep = len(branches) if k == "all" else k
+            sel = [tuple(branches[j] for j in sorted(r[:n_keep])) for r in rankings[g]]
+            rates[g][str(k)] = selection_rates(sel, branches)
+            rates_ctx[g][str(k)] = _rates_per_context(sel, contexts, branches)
+            for method in fusions:
+                label = FUSION_LABEL[method]
+                out = [(per_frame[i][0], fused_frame(i, s, method)) for i, s in enumerate(sel)]
+                sc = score(out, reader, "camera_right")
+                map_table[g].setdefault(label, {})[str(k)] = sc["map"]
+                ctx_table[g].setdefault(label, {})[str(k)] = sc["map_per_context"]
+                bar.update(1)
+    bar.close()
+    best = {}
+    for g in names:
+        label, row = max(map_table[g].items(), key=lambda kv: max((v for v in kv[1].values() if v is not None),
+                                                                  default=-1.0))
+        best[g] = {"fusion": label, "map": row}
+    result = {
+        "map_table": map_table,
+        "selection_rate": rates,
+        "table3": best,
+        "map_per_context_table": ctx_table,
+        "selection_rate_per_context": rates_ctx,
+        "gates": names, "fusions": [FUSION_LABEL[m] for m in fusions], "ks": [str(k) for k in ks],
+        "branches": branches, "frames": len(per_frame), "split": used_split, "run": str(run_dir), "data": str(data),
+        "metric": "VOC all-point AP at IoU 0.5, right camera, difficult ground truth ignored",
+        "method": "every branch ran once per frame; each gate's top-k subset was fused afterwards (equal to running "
+                  "only the selected branches: a branch depends only on its sensors' stem features)",
+    }
+    if losses is not None:
+        actual = np.array([[losses[int(m["dataset_index"])][b] for b in branches] for m, _ in per_frame])
+        result["loss_mae"] = {g: round(mae(np.array(predicted[g]), actual), 6)
+                              for g, gate in gate_objs.items() if gate.trainable}
+    return result
+
+
+# ----- command line ---------------------------------------------------------------------------
+
+TRAIN_EPILOG = """\
+examples:
+  hydrabench train-gate runs/all data/train1600 --gate deep
+  hydrabench train-gate runs/all data/train1600 --gate attention --epochs 200 --json
+  hydrabench evaluate runs/all data/train1600 --all-gates --json          (Tables 6 and 7)
+DATA must be the run's training dataset: the gate trains on the run's train split (minus a
+validation share of its sequences, which picks the epoch) and is tested on its test split.
+"""
+
+
+def _grid_arg(text: str) -> tuple[int, int]:
+    import argparse
+
+    try:
+        rows, cols = (int(t) for t in text.lower().split("x"))
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected ROWSxCOLS such as 8x16, got {text!r}") from None
+    if rows < 4 or cols < 4:
+        raise argparse.ArgumentTypeError(f"grid must be at least 4x4, got {text!r}")
+    return rows, cols
+
+
+def _fraction(text: str) -> float:
+    import argparse
+
+    try:
+        v = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a number, got {text!r}") from None
+    if not 0.0 <= v < 1.0:
+        raise argparse.ArgumentTypeError(f"must be in [0, 1), got {v}")
+    return v
+
+
+def add_train_gate(sub, name, help_text):
+    doc = __doc__.split("**train-gate**", 1)[1].split("**Tables.**", 1)[0]
+    p = sub.add_parser(name, help=help_text, description="hydrabench train-gate" + doc.rstrip(), epilog=TRAIN_EPILOG,
+                       formatter_class=Formatter)
+    p.add_argument("run_dir", metavar="RUN", help="training run directory (hydrabench train --out)")
+    p.add_argument("data", help="the run's training dataset")
+    p.add_argument("--gate", required=True, help="deep | attention (the gates that learn)")
+    p.add_argument("--epochs", type=pos_int, default=100, help="passes over the training frames (more: continues)")
+    p.add_argument("--batch-size", type=pos_int, default=32, help="frames per Adam step")
+    p.add_argument("--lr", type=pos_float, default=5e-5, help="Adam learning rate (HydraFusion 5.3)")
+    p.add_argument("--val-fraction", type=_fraction, default=0.15,
+                   help="share of the train split's sequences held out to pick the epoch")
+    p.add_argument("--grid", type=_grid_arg, default="8x16", help="ROWSxCOLS the stem features are pooled to")
+    p.add_argument("--seed", type=nonneg_int, default=0, help="initialisation, data order, validation split")
+    p.add_argument("--checkpoint", default="latest", help="latest, or epoch-NNN")
+    p.add_argument("--fresh", action="store_true", help="discard a previous training of this gate")
+    p.add_argument("--threads", type=pos_int, default=2, help="torch CPU threads")
+    p.add_argument("--json", action="store_true", help="print one JSON object on stdout")
+    p.set_defaults(run=run_train_gate)
+
+
+def run_train_gate(args) -> int:
+    cfg = GateTrainConfig(gate=args.gate, epochs=args.epochs, batch_size=args.batch_size, lr=args.lr,
+                          val_fraction=args.val_fraction, seed=args.seed, grid=tuple(args.grid),
+                          checkpoint=args.checkpoint, threads=args.threads)
+    result = train_gate(Path(args.run_dir), Path(args.data), cfg, fresh=args.fresh)
+
+    def text(r):
+        lines = [f"{r['gate']} gate: held-out MAE {r['test_mae']} vs constant predictor {r['constant_mean_mae']} "
+                 f"(per-branch training mean; median {r['constant_median_mae']}) on {r['test_frames']} test frames",
+                 f"  trained on {r['train_frames']} frames with {r['optimizer']} lr {r['lr']}, best epoch "
+                 f"{r['best_epoch']} of {r['epochs']} by validation MAE {r['val_mae']} ({r['val_frames']} frames)",
+                 f"  top-1 agreement with optimal {r['top1_agreement_with_optimal']}, top-3 overlap "
+                 f"{r['top3_overlap_with_optimal']}",
+                 "  per branch (gate / constant): " + ", ".join(
+                     f"{b} {v}/{r['constant_mean_mae_per_branch'][b]}" for b, v in r["test_mae_per_branch"].items()),
+                 f"  saved {r['gate_path']}"]
+        return "\n".join(lines)
+
+    emit(result, args.json, text)
+    return 0
+
+
+def format_tables(r: dict) -> str:
+    """Tables 6 and 7 as text."""
+    ks = r["ks"]
+    lines = [f"Table 6: mAP@0.5 per gate, fusion and k ({r['frames']} {r['split']} frames, right camera)",
+             f"{'gate':10s} {'fusion':9s} " + " ".join(f"{'k=' + k:>7s}" for k in ks)]
+    for g, per in r["map_table"].items():
+        for f, row in per.items():
+            lines.append(f"{g:10s} {f:9s} " + " ".join(
+                f"{row[k]:7.4f}" if row.get(k) is not None else f"{'-':>7s}" for k in ks))
+    lines.append("")
+    lines.append("Table 7: branch selection rate [% of frames]")
+    branches = r["branches"] if "branches" in r else list(next(iter(next(iter(r["selection_rate"].values())).values())))
+    lines.append(f"{'k':>4s} {'gate':10s} " + " ".join(f"{b[:12]:>12s}" for b in branches))
+    for k in ks:
+        if k == "all":
+            continue
+        for g, per in r["selection_rate"].items():
+            lines.append(f"{k:>4s} {g:10s} " + " ".join(f"{per[k][b]:12.2f}" for b in branches))
+    if r.get("loss_mae"):
+        lines.append("")
+        lines.append("predicted-loss MAE on these frames: " + ", ".join(f"{g} {v}" for g, v in r["loss_mae"].items()))
+    return "\n".join(lines)
