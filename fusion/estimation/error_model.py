@@ -12,8 +12,11 @@ Z^4). The true error model of a sensor under a condition is the mean m and covar
 many objects: its true covariance for an object is R_true = Q' L C L' Q and its bias Q' L m. C and
 m scale the nominal model; they do not replace its dependence on range.
 
-`evaluate_strategies` then fuses the sensors of every object that all three sensors measured
-(HydraFusion Eq. 5 via `wls`) in the ways the theory compares:
+`evaluate_strategies` then fuses, for every object the active sensors (lidar and radar) both
+measured, the sensors that measured it (HydraFusion Eq. 5 via `wls`; the camera joins when its
+stereo match passed) in the ways the theory compares. The active sensors are the ones that report in
+every condition: the camera's availability falls to a few percent in dense fog or heavy rain, so
+requiring it would leave nothing to compare exactly where the theory matters. The strategies:
 - each sensor alone;
 - full fusion with the nominal R;
 - full fusion with the true R: each sensor weighted by its measured error second moment
@@ -41,7 +44,8 @@ from fusion.estimation.wls import wls
 
 CHI2_95_DOF2 = float(stats.chi2.ppf(0.95, 2))  # 5.99: the 95 % ellipse of a 2-D Gaussian
 MIN_CALIBRATION = 3  # objects a sensor needs in a training fold to estimate its error model
-MIN_PER_FOLD = 3  # objects seen by every sensor needed in each fold to compare the strategies
+MIN_PER_FOLD = 3  # objects seen by every required sensor needed in each fold to compare the strategies
+REQUIRED = ("lidar", "radar")  # sensors every compared object was measured by (the active sensors)
 STRATEGIES = ("full_nominal", "full_true", "selective", "gated")
 H2 = np.eye(2)  # every sensor measures the reference point itself: z_i = I x + v_i
 
@@ -185,26 +189,31 @@ def subsets(n_sensors: int = len(SENSORS)) -> list[tuple[int, ...]]:
 def fuse(ms: MeasurementSet, subset: tuple[int, ...], R: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
     """HydraFusion Eq. 5 for every row: fused estimates (N, 2) and covariances (N, 2, 2).
 
-    subset: sensor indices to fuse (each row must have measurements from all of them).
+    subset: sensor indices to fuse; a row fuses those of them that measured it (NaN if none did).
     R: (N, 3, 2, 2) covariances to weight by; default the nominal ms.R.
     """
     R = ms.R if R is None else R
     N = len(ms)
-    x = np.empty((N, 2))
-    P = np.empty((N, 2, 2))
+    avail = ms.available
+    x = np.full((N, 2), np.nan)
+    P = np.full((N, 2, 2), np.nan)
     for i in range(N):
-        x[i], P[i] = wls([H2] * len(subset), [R[i, k] for k in subset], [ms.z[i, k] for k in subset])
+        ks = [k for k in subset if avail[i, k]]
+        if ks:
+            x[i], P[i] = wls([H2] * len(ks), [R[i, k] for k in ks], [ms.z[i, k] for k in ks])
     return x, P
 
 
 @dataclass(frozen=True)
 class StrategyErrors:
-    """Errors of every single sensor and fusion strategy on the objects all sensors measured.
+    """Errors of every single sensor and fusion strategy on the objects the REQUIRED sensors measured.
 
     Fields:
         n: objects compared. folds: cross-fitting folds used (2).
-        errors: {name: (n, 2) error [m]} for each sensor name and each of STRATEGIES.
-        mse: {name: mean squared error [m^2]}; mse_se: its standard error (std of |e|^2 / sqrt(n)).
+        errors: {name: (n, 2) error [m]} for each sensor name (NaN rows: that sensor gave nothing)
+            and each of STRATEGIES (each fuses the sensors of its set that measured the object).
+        mse: {name: mean squared error [m^2]} (a sensor's over the objects it measured);
+            mse_se: its standard error (std of |e|^2 / sqrt(n)); measured: {sensor: objects}.
         nees: (n,) NEES of full nominal fusion against its own covariance P.
         nees_bounds: two-sided 95 % bounds of the mean of n chi2(2) values.
         subsets: the selected subset (sensor names) of each fold.
@@ -221,6 +230,7 @@ class StrategyErrors:
     nees_bounds: tuple[float, float]
     subsets: tuple
     mse_full_nominal_predicted: float
+    measured: dict
 
     @property
     def nees_mean(self) -> float:
@@ -228,15 +238,19 @@ class StrategyErrors:
 
 
 def evaluate_strategies(ms: MeasurementSet, gate_prob: float = 0.99) -> StrategyErrors | None:
-    """Compare single sensors and the fusion strategies on the objects every sensor measured.
+    """Compare single sensors and the fusion strategies on the objects the REQUIRED sensors measured.
 
-    Folds are the parity of the sequence index; each fold is scored with error models and the
-    selected subset fitted on the other fold (error models from every object a sensor measured
-    there, the subset from the other fold's objects seen by all sensors). Returns None when a fold
-    has fewer than MIN_PER_FOLD such objects.
+    Every strategy fuses, per object, the sensors of its set that measured it: "full" is every
+    sensor that reported, as a running fusion system would have it. Folds are the parity of the
+    sequence index; each fold is scored with error models and the selected subset fitted on the other
+    fold (error models from every object a sensor measured there, the subset from the other fold's
+    compared objects, among the subsets that hold a required sensor so that they always give an
+    estimate). Returns None when a fold has fewer than MIN_PER_FOLD compared objects.
     """
     fold_of = ms.sequence % 2
-    common = ms.available.all(axis=1)
+    required = [SENSORS.index(s) for s in REQUIRED]
+    common = ms.available[:, required].all(axis=1)
+    candidates = [sub for sub in subsets() if set(sub) & set(required)]
     for f in (0, 1):
         if np.sum(common & (fold_of == f)) < MIN_PER_FOLD:
             return None
@@ -249,7 +263,8 @@ def evaluate_strategies(ms: MeasurementSet, gate_prob: float = 0.99) -> Strategy
         bias = np.stack([models[s].apply(test, s)[0] for s in SENSORS], axis=1)  # (n, 3, 2)
         cov = np.stack([models[s].apply(test, s)[1] for s in SENSORS], axis=1)  # (n, 3, 2, 2)
         second = cov + np.einsum("nki,nkj->nkij", bias, bias)  # E[e e'] = C + b b'
-        best = _best_subset(train[train.available.all(axis=1)])
+        train_common = train.available[:, required].all(axis=1)
+        best = _best_subset(train[train_common], candidates)
         chosen.append(tuple(SENSORS[k] for k in best))
         truth = test.truth
         for k, s in enumerate(SENSORS):
@@ -261,12 +276,14 @@ def evaluate_strategies(ms: MeasurementSet, gate_prob: float = 0.99) -> Strategy
         errors["selective"].append(fuse(test, best)[0] - truth)
         gated = np.empty((len(test), 2))
         for i in range(len(test)):
-            g = gated_wls([H2] * 3, list(test.R[i]), list(test.z[i]), prob=gate_prob)
+            ks = np.flatnonzero(test.available[i])
+            g = gated_wls([H2] * len(ks), list(test.R[i, ks]), list(test.z[i, ks]), prob=gate_prob)
             gated[i] = g.x - truth[i]
-            predicted.append(fused_error([H2] * 3, list(test.R[i]), list(cov[i]), list(bias[i])).mse)
+            predicted.append(fused_error([H2] * len(ks), list(test.R[i, ks]), list(cov[i, ks]), list(bias[i, ks])).mse)
         errors["gated"].append(gated)
     err = {name: np.concatenate(v) for name, v in errors.items()}
     sq = {name: np.sum(e**2, axis=1) for name, e in err.items()}
+    sq = {name: s[np.isfinite(s)] for name, s in sq.items()}  # a sensor's: the objects it measured
     n = len(err["full_nominal"])
     v = np.concatenate(nees_all)
     return StrategyErrors(
@@ -274,18 +291,22 @@ def evaluate_strategies(ms: MeasurementSet, gate_prob: float = 0.99) -> Strategy
         folds=2,
         errors=err,
         mse={name: float(s.mean()) for name, s in sq.items()},
-        mse_se={name: float(s.std(ddof=1) / np.sqrt(n)) for name, s in sq.items()},
+        mse_se={name: float(s.std(ddof=1) / np.sqrt(len(s))) if len(s) > 1 else float("nan")
+                for name, s in sq.items()},
         nees=v,
         nees_bounds=mean_chi2_interval(2, n),
         subsets=tuple(chosen),
         mse_full_nominal_predicted=float(np.mean(predicted)),
+        measured={s: int(len(sq[s])) for s in SENSORS},
     )
 
 
-def _best_subset(ms: MeasurementSet) -> tuple[int, ...]:
-    """The subset whose nominal fusion has the smallest MSE on `ms` (ties: fewer sensors first)."""
+def _best_subset(ms: MeasurementSet, candidates: list[tuple[int, ...]] | None = None) -> tuple[int, ...]:
+    """The candidate subset whose nominal fusion has the smallest MSE on `ms` (ties: fewer sensors
+    first); each row fuses the subset's sensors that measured it, so every candidate must give an
+    estimate on every row."""
     best, best_mse = None, np.inf
-    for subset in subsets():
+    for subset in candidates or subsets():
         x, _ = fuse(ms, subset)
         mse = float(np.mean(np.sum((x - ms.truth) ** 2, axis=1)))
         if mse < best_mse:

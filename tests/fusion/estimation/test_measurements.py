@@ -190,6 +190,17 @@ def test_lidar_measures_the_facing_surface_and_ignores_a_minority_of_fog_returns
     assert np.linalg.norm(z_fog - CALIB.ego_from_lidar[:2, 3]) == pytest.approx(4.0, abs=0.1)
 
 
+def test_lidar_survives_an_object_split_in_two_by_an_occluder():
+    # returns in two clusters (a pole in front of the car hides columns 16-24): the mean azimuth
+    # falls in the gap, where no column returned; the nearest columns still give the range
+    az = np.r_[np.arange(10, 16), np.arange(25, 31)]
+    obs = wall_observation(25.0, range(12, 20), az)
+    z, R, n = M.lidar_measurement(obs.instance, obs, CALIB, 7, CAR, beam_directions(CALIB))
+    assert n == 8 * 12
+    assert np.linalg.norm(z - CALIB.ego_from_lidar[:2, 3]) == pytest.approx(25.0, abs=0.05)
+    assert np.all(np.isfinite(R))
+
+
 def test_lidar_needs_three_returns():
     obs = wall_observation(25.0, [15], np.array([10, 11]))
     z, R, n = M.lidar_measurement(obs.instance, obs, CALIB, 7, CAR, beam_directions(CALIB))
@@ -220,6 +231,25 @@ def test_radar_peak_becomes_range_and_bearing(cls):
     np.testing.assert_allclose(z, CALIB.ego_from_radar[:2, 3] + r * np.array([np.cos(b), np.sin(b)]), atol=1e-9)
     assert snr == pytest.approx(10 * np.log10(1001.0 - 1.0))
     assert np.all(np.linalg.eigvalsh(R) > 0)
+
+
+def test_radar_bearing_stays_in_the_window_when_a_stronger_neighbour_lies_just_outside():
+    # power rising steadily in azimuth towards a strong target beyond the window: the window's
+    # maximum sits on its edge, and a parabola through nearly collinear log powers has its vertex
+    # tens of cells away; the sub-cell offset is clipped to half a cell
+    A, B = CALIB.radar_azimuths, CALIB.radar_range_bins
+    row, col, w = 20, 80, M.RADAR_WINDOW_AZ
+    rows = np.arange(A)
+    logp = np.where(np.abs(rows - row) <= w + 4, 0.5 * (rows - row) - 1e-3 * (rows - row) ** 2, -30.0)
+    power = np.zeros((A, B), np.float32)
+    power[:, col] = np.exp(logp + 10.0)
+    inst = np.zeros((A, B), np.int64)
+    inst[row - 1:row + 2, col - 2:col + 3] = 9
+    obs = RadarObservation(power, np.ones((A, B), np.float32), inst, np.zeros((A, B), np.float32))
+    z, _, _ = M.radar_measurement(obs.instance, obs, CALIB, 9, CAR, noise_floor=1.0)
+    bearing = np.degrees(np.arctan2(*(z - CALIB.ego_from_radar[:2, 3])[::-1]))
+    edge = (row + 1 + w) * 360 / A
+    assert edge - 180 / A <= bearing <= edge + 180 / A
 
 
 def test_radar_rejects_a_peak_below_the_snr_threshold():

@@ -11,6 +11,7 @@ import pytest
 from fusion.estimation import error_model as E
 from fusion.estimation.consistency import mean_chi2_interval
 from fusion.estimation.measurements import SENSORS, MeasurementSet, polar_covariance
+from fusion.estimation.wls import wls
 
 NOMINAL_SIGMA = {"camera": (3.0, 0.1), "lidar": (0.1, 0.15), "radar": (0.5, 0.6)}  # (radial, lateral) [m]
 
@@ -101,12 +102,25 @@ def test_an_overconfident_lidar_makes_full_fusion_lose_to_selective_fusion():
     assert st.mse_full_nominal_predicted == pytest.approx(st.mse["full_nominal"], rel=0.2)
 
 
-def test_strategies_need_objects_seen_by_all_sensors_in_both_folds():
+def test_strategies_compare_the_objects_the_active_sensors_saw_and_fuse_what_reported():
     ms = synthetic(40, seed=6)
     assert E.evaluate_strategies(ms[ms.sequence % 2 == 0]) is None  # one fold only
     holey = synthetic(120, seed=7, missing=0.3)
     st = E.evaluate_strategies(holey)
-    assert st is not None and st.n == int(holey.available.all(axis=1).sum()) < 120
+    active = holey.available[:, [1, 2]].all(axis=1)
+    assert st is not None and st.n == int(active.sum()) < 120
+    assert 0 < st.measured["camera"] < st.n == st.measured["lidar"] == st.measured["radar"]
+    # every strategy gives an estimate for every compared object; a missing camera is left out
+    for name in E.STRATEGIES:
+        assert np.isfinite(st.errors[name]).all(), name
+    assert np.isnan(st.errors["camera"]).any(axis=1).sum() == st.n - st.measured["camera"]
+    # "full" on an object without a camera is exactly Eq. 5 over lidar and radar
+    folds = holey.sequence % 2
+    rows = np.flatnonzero(active & ~holey.available[:, 0] & (folds == 0))
+    i = rows[0]
+    x, _ = wls([np.eye(2)] * 2, [holey.R[i, 1], holey.R[i, 2]], [holey.z[i, 1], holey.z[i, 2]])
+    k = int(np.sum(active & (folds == 0) & (np.arange(len(holey)) < i)))  # fold 0 is scored first
+    np.testing.assert_allclose(st.errors["full_nominal"][k], x - holey.truth[i])
 
 
 def test_nees_bounds_are_the_chi2_mean_interval():
