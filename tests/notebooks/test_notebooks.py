@@ -30,5 +30,5 @@ def test_fusion_theory_notebook_runs_and_draws_its_figures(monkeypatch, tmp_path
     figures = [o for o in outputs if "image/png" in o.get("data", {})]
     assert len(figures) >= 5
     text = "".join(o.get("text", "") for o in outputs if o.get("output_type") == "stream")
-    assert "fog (layout motorway)" in text and "city+night (layout city)" in text
+    assert "fog (layout motorway)" in text and "night (layout motorway)" in text
     assert not [o for o in outputs if o.get("output_type") == "error"]
