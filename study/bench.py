@@ -58,7 +58,8 @@ def add_parser(sub, name, help_text):
                         formatter_class=Formatter)
     n.add_argument("--profile", default="cpu", help="model profile")
     n.add_argument("--repeats", type=pos_int, default=5, help="timed forwards per configuration")
-    n.add_argument("--run", default=None, help="load these trained weights (default: random initialisation)")
+    n.add_argument("--run", dest="weights", default=None, metavar="RUN",
+                   help="load this trained run's weights (default: random initialisation)")
     n.add_argument("--threads", type=pos_int, default=2)
     n.add_argument("--json", action="store_true", help="print one JSON object on stdout")
     n.set_defaults(run=run_inference)
@@ -168,7 +169,7 @@ def run_inference(args) -> int:
     from study.bench_boxes import bench_box_fusion
     from study.bench_nets import bench_inference
 
-    r = bench_inference(args.profile, args.repeats, args.threads, args.run)
+    r = bench_inference(args.profile, args.repeats, args.threads, args.weights)
     boxes = bench_box_fusion(repeats=10)
     r["fusion_block_vs_ensemble_boxes"] = {m: {"ours_ms": v["ours_ms"], "ensemble_boxes_ms": v["ensemble_boxes_ms"],
                                                "speedup": v["speedup"], "equal_output": v["equal_output"]}

@@ -43,12 +43,15 @@ def test_bench_inference_prints_and_emits_the_gate_figures(monkeypatch, capsys):
     fake = {"latency_ms": {"all_branches": 10.0}, "latency_ms_per_frame_batch_8": {"all_branches": 5.0},
             "peak_rss_mb": {"all_branches": 100.0}, "ratio_top3_to_all": 0.5, "ratio_top3_worst_to_all": 0.6,
             "training_images_per_second": {"radar": 1.0}, **gates}
-    monkeypatch.setattr(study.bench_nets, "bench_inference", lambda *a, **k: dict(fake))
+    calls = []
+    monkeypatch.setattr(study.bench_nets, "bench_inference", lambda *a, **k: calls.append(a) or dict(fake))
     monkeypatch.setattr(study.bench_boxes, "bench_box_fusion", lambda **k: {"methods": {}})
     assert main(["bench", "inference"]) == 0
     out = capsys.readouterr().out
+    assert calls[-1][3] is None  # no --run: random weights (the option must not collide with the handler)
     assert "gate overhead [ms]: knowledge" in out and "optimal - (needs ground truth)" in out
     assert "top-k with the attention gate [ms]: k=1" in out and "% of top-3" in out
-    assert main(["bench", "inference", "--json"]) == 0
+    assert main(["bench", "inference", "--json", "--run", "runs/x"]) == 0
+    assert calls[-1][3] == "runs/x"
     r = json.loads(capsys.readouterr().out)
     assert r["gate_overhead_ms"] == gates["gate_overhead_ms"] and set(r["topk_latency_ms"]["deep"]) == {"1", "3", "5"}
