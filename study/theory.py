@@ -318,9 +318,9 @@ def cell_report(ms, gate_prob: float) -> tuple[dict, dict]:
     }
     st = evaluate_strategies(ms, gate_prob=gate_prob)
     if st is None:
-        from fusion.estimation.error_model import REQUIRED
+        from fusion.estimation.error_model import REQUIRED, compared
 
-        details["compared"] = int(ms.available[:, [SENSORS.index(s) for s in REQUIRED]].all(axis=1).sum())
+        details["compared"] = int(compared(ms).sum())
         details["note"] = f"too few objects measured by {' and '.join(REQUIRED)} in one of the two folds: no comparison"
         result = {"mse_single": {s: None for s in SENSORS}, "mse_full_nominal": None, "mse_full_true": None,
                   "mse_selective": None, "mse_gated": None, "nees_mean": None, "nees_bounds": None}

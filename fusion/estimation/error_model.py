@@ -237,6 +237,11 @@ class StrategyErrors:
         return float(np.mean(self.nees))
 
 
+def compared(ms: MeasurementSet) -> np.ndarray:
+    """(N,) bool: the rows every REQUIRED sensor measured (the objects the strategies are compared on)."""
+    return ms.available[:, [SENSORS.index(s) for s in REQUIRED]].all(axis=1)
+
+
 def evaluate_strategies(ms: MeasurementSet, gate_prob: float = 0.99) -> StrategyErrors | None:
     """Compare single sensors and the fusion strategies on the objects the REQUIRED sensors measured.
 
@@ -248,9 +253,9 @@ def evaluate_strategies(ms: MeasurementSet, gate_prob: float = 0.99) -> Strategy
     estimate). Returns None when a fold has fewer than MIN_PER_FOLD compared objects.
     """
     fold_of = ms.sequence % 2
-    required = [SENSORS.index(s) for s in REQUIRED]
-    common = ms.available[:, required].all(axis=1)
-    candidates = [sub for sub in subsets() if set(sub) & set(required)]
+    common = compared(ms)
+    required = {SENSORS.index(s) for s in REQUIRED}
+    candidates = [sub for sub in subsets() if set(sub) & required]
     for f in (0, 1):
         if np.sum(common & (fold_of == f)) < MIN_PER_FOLD:
             return None
@@ -260,11 +265,11 @@ def evaluate_strategies(ms: MeasurementSet, gate_prob: float = 0.99) -> Strategy
     for f in (0, 1):
         train, test = ms[fold_of != f], ms[(fold_of == f) & common]
         models = {s: fit_error_model(train, s) for s in SENSORS}
-        bias = np.stack([models[s].apply(test, s)[0] for s in SENSORS], axis=1)  # (n, 3, 2)
-        cov = np.stack([models[s].apply(test, s)[1] for s in SENSORS], axis=1)  # (n, 3, 2, 2)
+        applied = [models[s].apply(test, s) for s in SENSORS]
+        bias = np.stack([a[0] for a in applied], axis=1)  # (n, 3, 2)
+        cov = np.stack([a[1] for a in applied], axis=1)  # (n, 3, 2, 2)
         second = cov + np.einsum("nki,nkj->nkij", bias, bias)  # E[e e'] = C + b b'
-        train_common = train.available[:, required].all(axis=1)
-        best = _best_subset(train[train_common], candidates)
+        best = _best_subset(train[compared(train)], candidates)
         chosen.append(tuple(SENSORS[k] for k in best))
         truth = test.truth
         for k, s in enumerate(SENSORS):
