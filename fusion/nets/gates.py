@@ -141,7 +141,8 @@ class Gate(nn.Module):
         self.k = check_k(k, len(self.branches)) if k is not None else None
 
     def predict(self, features: Mapping[str, Tensor] | None, meta: Sequence[Any] | None) -> Tensor:
-        raise NotImplementedError
+        """(B, n_branches) predicted loss per branch (lower ranks first): what each gate defines."""
+        raise NotImplementedError(f"{type(self).__name__}: a gate subclass defines predict()")
 
     def forward(self, features: Mapping[str, Tensor] | None, meta: Sequence[Any] | None = None):
         return top_k(self.predict(features, meta), self.branches, self.k)
