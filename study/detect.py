@@ -33,6 +33,7 @@ def load_run(run: str | Path, which: str = "latest"):
     """(model in eval mode, run config dict) from a training run directory."""
     from fusion.nets import build_hydrafusion
     from fusion.nets.profile import BranchSpec
+    from study.train import run_profile
 
     run = Path(run)
     cfg_path = run / "config.json"
@@ -42,7 +43,7 @@ def load_run(run: str | Path, which: str = "latest"):
     cfg = json.loads(cfg_path.read_text())
     branches = [BranchSpec(b["name"], tuple(b["sensors"]), b["frame"], b.get("fusion", "features"))
                 for b in cfg["branch_specs"]]
-    model = build_hydrafusion(profile=cfg["model_profile"], branches=branches)
+    model = build_hydrafusion(profile=run_profile(cfg, run), branches=branches)
     state = torch.load(ckpt, map_location="cpu", weights_only=False)
     model.load_state_dict(state["model"])
     model.eval()
@@ -98,8 +99,13 @@ def ground_truth(labels: dict, frame: str, bev_crop: tuple | None = None) -> dic
             "difficult": np.array(lab["difficult"], bool)}
 
 
+# The learning check's vehicle classes (HydraFusion's car, van, truck, bus).
+VEHICLES = ("car", "van", "truck", "bus")
+
+
 def score(per_frame: list, reader: DatasetReader, frame: str = "camera_right", bev_crop: tuple | None = None) -> dict:
-    """VOC mAP@0.5 of detections already in `frame`: overall, per class, per context."""
+    """VOC mAP@0.5 of detections already in `frame`: overall, per class, per context; and the mean
+    over the vehicle classes (VEHICLES) overall and per context ("map_vehicles*")."""
     dets, gts, contexts = [], [], []
     for meta, d in per_frame:
         i = meta["dataset_index"]
@@ -107,20 +113,30 @@ def score(per_frame: list, reader: DatasetReader, frame: str = "camera_right", b
         dets.append({"boxes": d.boxes, "scores": d.scores, "labels": d.labels})
         contexts.append(meta["context"])
     res = evaluate_detections(dets, gts, classes=range(1, len(CLASSES) + 1))
-    per_ctx = {}
+    vehicles = [CLASSES.index(c) + 1 for c in VEHICLES]
+    per_ctx, veh_ctx = {}, {}
     by_ctx = defaultdict(list)
     for k, c in enumerate(contexts):
         by_ctx[c].append(k)
     for c, ks in sorted(by_ctx.items()):
         r = evaluate_detections([dets[k] for k in ks], [gts[k] for k in ks], classes=range(1, len(CLASSES) + 1))
         per_ctx[c] = _round(r.mean_ap)
+        veh_ctx[c] = _mean_of(r, vehicles)
     return {
         "map": _round(res.mean_ap),
+        "map_vehicles": _mean_of(res, vehicles),
+        "map_vehicles_per_context": veh_ctx,
         "ap_per_class": {CLASSES[c - 1]: _round(v) for c, v in res.ap.items()},
         "map_per_context": per_ctx,
         "positives_per_class": {CLASSES[c - 1]: int(n) for c, n in res.n_positives.items()},
         "frames": len(per_frame),
     }
+
+
+def _mean_of(res, classes) -> float | None:
+    """Mean AP over those of `classes` that have ground truth (None when none has)."""
+    aps = [res.ap[c] for c in classes if res.ap.get(c) is not None and not np.isnan(res.ap[c])]
+    return _round(float(np.mean(aps))) if aps else None
 
 
 def _round(v):

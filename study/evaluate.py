@@ -154,6 +154,8 @@ def run(args) -> int:
                  "right camera, difficult boxes ignored)"]
         lines.append("  per class: " + ", ".join(f"{k} {v}" for k, v in r["ap_per_class"].items() if v is not None))
         lines.append("  per context: " + ", ".join(f"{k} {v}" for k, v in r["map_per_context"].items()))
+        lines.append(f"  vehicles (car, van, truck, bus): {r['map_vehicles']}; per context: "
+                     + ", ".join(f"{k} {v}" for k, v in r["map_vehicles_per_context"].items()))
         lines.append("  each branch alone (own frame / right camera): " + ", ".join(
             f"{b} {r['map_per_branch_native'][b]}/{r['map_per_branch_reference'][b]}" for b in r["branches"]))
         return "\n".join(lines)

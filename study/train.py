@@ -30,7 +30,9 @@ import numpy as np
 import torch
 
 from fusion.data import FrameDataset, collate, split_by_sequence
+from fusion.nets.profile import ModelProfile, load_profile
 from sensors.dataset import DatasetReader
+from sim.config import from_dict, to_dict
 from sim.errors import UserError
 from study.cli import Formatter, emit, pos_float, pos_int
 
@@ -203,6 +205,14 @@ def evaluate_epoch(model, cfg: TrainConfig, reader, test_idx, branches) -> dict:
     return out
 
 
+def run_profile(run_cfg: dict, where) -> ModelProfile:
+    """The model profile a run was trained with: its recorded fields, or (runs from before they were
+    recorded) the named profile as it is now."""
+    if "profile_fields" in run_cfg:
+        return from_dict(ModelProfile, run_cfg["profile_fields"], where=f"{where}/config.json profile_fields")
+    return load_profile(run_cfg["model_profile"])
+
+
 def train(cfg: TrainConfig, out: Path, progress: bool = True) -> dict:
     from tqdm import tqdm
 
@@ -219,8 +229,10 @@ def train(cfg: TrainConfig, out: Path, progress: bool = True) -> dict:
     specs = [s for s in specs if s.name in chosen]
     if reader.manifest["profile"] != cfg.model_profile:
         raise UserError(f"dataset profile {reader.manifest['profile']!r} does not match model profile {cfg.model_profile!r}")
+    # The resolved model profile is part of the run: a later edit of configs/model/<profile>.yaml
+    # (strides, anchors, head sizes) must not change what `load_run` builds for these weights.
     run_cfg = {**dataclasses.asdict(cfg), "branches": chosen, "branch_specs": [dataclasses.asdict(s) for s in specs],
-               "data_config": reader.manifest["config"]}
+               "data_config": reader.manifest["config"], "profile_fields": to_dict(load_profile(cfg.model_profile))}
     run_cfg = json.loads(json.dumps(run_cfg))  # the form it has on disk (tuples become lists)
     out.mkdir(parents=True, exist_ok=True)
     cfg_path = out / "config.json"
@@ -238,7 +250,7 @@ def train(cfg: TrainConfig, out: Path, progress: bool = True) -> dict:
 
     train_idx, test_idx = split_by_sequence(reader, cfg.train_fraction, cfg.split_seed)
     torch.manual_seed(cfg.seed)
-    model = build_hydrafusion(profile=cfg.model_profile, branches=specs)
+    model = build_hydrafusion(profile=run_profile(run_cfg, out), branches=specs)
     if cfg.init_from and not (out / "checkpoint.pt").exists():
         src = Path(cfg.init_from) / "checkpoint.pt"
         if not src.exists():

@@ -8,6 +8,7 @@ import subprocess
 import sys
 import time
 
+import numpy as np
 import pytest
 import torch
 
@@ -50,6 +51,28 @@ def test_a_run_writes_config_checkpoints_and_metrics(reference_run):
     assert (out / "epoch-001.pt").exists() and (out / "epoch-002.pt").exists()
     cfg = json.loads((out / "config.json").read_text())
     assert cfg["branches"] == list(BRANCHES) and cfg["data_config"]["seed"] == 9
+
+
+def test_a_run_records_its_model_profile_and_is_loaded_with_it(reference_run, tmp_path):
+    """Editing configs/model/cpu.yaml later (strides, anchors) must not change what a run's weights
+    are loaded into: the resolved profile is in config.json and load_run builds from it."""
+    import shutil
+
+    from fusion.nets.profile import load_profile
+    from sim.config import to_dict
+    from study.detect import load_run
+
+    ref, _ = reference_run
+    cfg = json.loads((ref / "config.json").read_text())
+    assert cfg["profile_fields"] == json.loads(json.dumps(to_dict(load_profile("cpu"))))
+    copy = tmp_path / "other_profile"
+    shutil.copytree(ref, copy)
+    now = load_profile("cpu").camera.output_stride
+    other = 8 if now != 8 else 16
+    cfg["profile_fields"]["camera"]["output_stride"] = other
+    (copy / "config.json").write_text(json.dumps(cfg))
+    assert load_run(ref)[0].branches["camera_right"].output_stride == now
+    assert load_run(copy)[0].branches["camera_right"].output_stride == other
 
 
 def test_kill_9_mid_training_then_rerun_gives_the_same_weights(data, reference_run, tmp_path):
@@ -98,6 +121,10 @@ def test_evaluate_reports_map_per_class_and_context(data, reference_run, capsys)
         assert key in r, key
     assert r["split"] == "test" and r["frames"] == 4 and set(r["map_per_context"]) <= {"junction", "fog"}
     assert r["fusion"] == "wbf"
+    vehicle_aps = [r["ap_per_class"][c] for c in ("car", "van", "truck", "bus") if r["ap_per_class"][c] is not None]
+    assert vehicle_aps, "the fixture has vehicles"
+    assert r["map_vehicles"] == pytest.approx(np.mean(vehicle_aps), abs=1e-4)
+    assert set(r["map_vehicles_per_context"]) == set(r["map_per_context"])
     for bad, needle in ((["--branches", "sonar"], "unknown branch 'sonar'"), (["--fusion", "max"], "unknown fusion"),
                         (["--weights", "radar=x"], "not name=number")):
         assert main(["evaluate", str(ref), str(data), *bad]) == 2

@@ -249,12 +249,12 @@ def test_output_stride_is_real_at_profile_sizes():
         assert feats["radar"].shape == (1, 64, 32, 64)
         cam = cpu.branches["cam"].features([feats["camera_right"]])
         bev = cpu.branches["bev"].features([feats["radar"]])
-    assert cam.shape == (1, 128, 24, 42)  # 192 / 8, 336 / 8 (camera output stride 8 in the cpu profile)
+    assert cam.shape == (1, 128, 12, 21)  # 192 / 16, 336 / 16 (camera output stride 16 in the cpu profile)
     assert bev.shape == (1, 128, 16, 32)  # BEV at output stride 8 (configs/model/cpu.yaml)
     images = cpu.branches["cam"]._images(1, cam)
     anchors = cpu.branches["cam"].rpn.anchor_generator(images, [cam])[0]
     centres = ((anchors[:, 0] + anchors[:, 2]) / 2).unique()
-    assert torch.allclose(centres.diff(), torch.tensor(8.0)) and len(centres) == 42
+    assert torch.allclose(centres.diff(), torch.tensor(16.0)) and len(centres) == 21
 
     paper = build_hydrafusion(
         profile="paper",

@@ -53,7 +53,7 @@ def test_cpu_profile_shrinks_what_dominates_cpu_time():
     cpu, paper = load_profile("cpu"), load_profile("paper")
     assert cpu.camera.size == (188, 336) and cpu.bev.size == (128, 256)  # the forward half of the 256 x 256 BEV
     assert paper.camera.size == (376, 672) and paper.bev.size == (1152, 1152)
-    assert cpu.camera.output_stride == 8 and paper.camera.output_stride == 32
+    assert cpu.camera.output_stride == 16 and paper.camera.output_stride == 32
     assert cpu.roi_channels == 128 and cpu.box_head_width == 256
     assert cpu.box_batch_size_per_image < paper.box_batch_size_per_image
     assert cpu.rpn_post_nms_top_n_test < paper.rpn_post_nms_top_n_test
