@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import matplotlib
 
 matplotlib.use("Agg")
@@ -251,4 +253,36 @@ def plot_gallery(panels: list, path: str, title: str = "") -> None:
         fig.suptitle(title, fontsize=11)
     fig.tight_layout(rect=(0.04, 0, 1, 0.995 if not title else 1 - 0.6 / (1.95 * n)))
     savefig_atomic(fig, path)
+    plt.close(fig)
+
+
+def plot_training_curves(metrics_csv: str | Path, path: str | Path) -> None:
+    """A training run's metrics.csv as two panels against the epoch: mean training loss per branch,
+    and test mAP@0.5 per branch (in its own frame) and of their late fusion."""
+    import csv
+
+    with open(metrics_csv) as fh:
+        rows = list(csv.DictReader(fh))
+    if not rows:
+        raise ValueError(f"{metrics_csv} has no epochs")
+    epochs = [int(r["epoch"]) for r in rows]
+
+    def series(key):
+        return [float(r[key]) if r.get(key) not in (None, "") else np.nan for r in rows]
+
+    fig, (ax_l, ax_m) = plt.subplots(1, 2, figsize=(10, 3.6))
+    for key in rows[-1]:
+        if key.startswith("loss_") and key != "loss_total":
+            ax_l.plot(epochs, series(key), marker="o", ms=3, label=key[5:])
+        if key.startswith("map_"):
+            name = key[4:]
+            ax_m.plot(epochs, series(key), marker="o", ms=3, label=name,
+                      **({"color": "k", "ls": "--"} if name == "fused" else {}))
+    ax_l.set(xlabel="epoch", ylabel="mean training loss", title="training loss per branch")
+    ax_m.set(xlabel="epoch", ylabel="test mAP@0.5 (VOC)", title="test mAP per branch", ylim=(0, None))
+    for ax in (ax_l, ax_m):
+        ax.grid(alpha=0.3)
+        ax.legend(fontsize=7)
+    fig.tight_layout()
+    savefig_atomic(fig, path, dpi=110)
     plt.close(fig)

@@ -10,6 +10,7 @@ is in the run directory:
     RUN/epoch-XXX.pt       the model at the end of each epoch
     RUN/metrics.csv        one row per epoch: mean losses per branch, lr, test mAP@0.5 per branch
                            (in its own frame) and of their late fusion (right camera), seconds
+    RUN/curves.png         metrics.csv plotted: losses and test mAP per branch against the epoch
 
 Interrupted (even kill -9) and run again with the same arguments, training continues from the last
 checkpoint; a larger --epochs extends a finished run.
@@ -217,6 +218,7 @@ def train(cfg: TrainConfig, out: Path, progress: bool = True) -> dict:
     from tqdm import tqdm
 
     from fusion.nets import build_hydrafusion
+    from study.plots import plot_training_curves
 
     torch.set_num_threads(cfg.threads)
     reader = DatasetReader(cfg.data)
@@ -320,6 +322,7 @@ def train(cfg: TrainConfig, out: Path, progress: bool = True) -> dict:
                **{f"loss_{b}": round(v / max(counts, 1), 4) for b, v in sums.items()}, **evals,
                "seconds": round(time.perf_counter() - t0, 1)}
         _append_row(metrics_path, row)
+        plot_training_curves(metrics_path, out / "curves.png")
         _atomic_save({"model": model.state_dict(), "optimizer": opt.state_dict(), "epoch": epoch, "step_in_epoch": 0,
                       "global_step": global_step, "torch_rng": torch.get_rng_state()}, ckpt_path)
         if progress:

@@ -49,6 +49,10 @@ def test_a_run_writes_config_checkpoints_and_metrics(reference_run):
     for key in ("loss_camera_right", "loss_radar", "loss_total", "map_camera_right", "map_radar", "map_fused", "lr"):
         assert key in rows[0], key
     assert (out / "epoch-001.pt").exists() and (out / "epoch-002.pt").exists()
+    import matplotlib.image
+
+    curves = matplotlib.image.imread(out / "curves.png")  # the learning curves, drawn each epoch
+    assert curves.shape[1] > curves.shape[0] > 200 and curves[..., :3].std() > 0.05
     cfg = json.loads((out / "config.json").read_text())
     assert cfg["branches"] == list(BRANCHES) and cfg["data_config"]["seed"] == 9
 
