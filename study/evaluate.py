@@ -42,6 +42,8 @@ def add_parser(sub, name, help_text):
     p.add_argument("--split", default="auto", choices=["auto", "test", "train", "all"],
                    help="auto: the run's test split on its own dataset, every frame on another")
     p.add_argument("--weights", default="", help="per-branch fusion weights, e.g. radar=2,camera_right=1")
+    p.add_argument("--contexts", default="", help="comma-separated contexts to score (e.g. city,junction,motorway,"
+                   "rural for clear weather); default: every frame of the split")
     p.add_argument("--checkpoint", default="latest", help="latest, or epoch-NNN")
     p.add_argument("--batch-size", type=pos_int, default=4)
     p.add_argument("--gate", default=None, help="knowledge | deep | attention | optimal: the gate selects the branches")
@@ -65,7 +67,7 @@ def parse_weights(text: str) -> dict[str, float]:
 
 
 def evaluate(run_dir, data, branches="all", fusion="soft-nms", split="auto", weights=None, checkpoint="latest",
-             batch_size: int = 4) -> dict:
+             batch_size: int = 4, contexts=()) -> dict:
     import torch
 
     from study.detect import (
@@ -94,11 +96,17 @@ def evaluate(run_dir, data, branches="all", fusion="soft-nms", split="auto", wei
     if not indices:
         raise UserError(f"no frames to evaluate in the {used_split!r} split of {data}")
     reader = DatasetReader(data)
+    if contexts:
+        present = sorted({reader.meta(i)["context"] for i in indices})
+        bad = [c for c in contexts if c not in present]
+        if bad:
+            raise UserError(f"--contexts: {bad[0]!r} is not in the {used_split} split (it has: {', '.join(present)})")
+        indices = [i for i in indices if reader.meta(i)["context"] in contexts]
     per_frame = run_branches(model, data, indices, names, batch_size=batch_size)
     frames = model.branch_frames
     result = score(fused(per_frame, names, frames, method, weights), reader, "camera_right")
     result.update({
-        "branches": names, "fusion": method, "split": used_split, "run": str(run_dir), "data": str(data),
+        "branches": names, "fusion": method, "split": used_split, "contexts": sorted(set(contexts)) or "all", "run": str(run_dir), "data": str(data),
         "map_per_branch_native": {b: score(native(per_frame, b), reader, frames[b], bev_crop_of(model, reader))["map"]
                                   for b in names},
         "map_per_branch_reference": {b: score(fused(per_frame, [b], frames, method), reader, "camera_right")["map"]
@@ -113,6 +121,8 @@ def run_gates(args) -> int:
 
     if args.gate and args.all_gates:
         raise UserError("--gate and --all-gates exclude each other (--all-gates evaluates every gate)")
+    if args.contexts:
+        raise UserError("--contexts is for evaluating branches; gated results report map_per_context")
     if args.branches not in ("all", ""):
         raise UserError("--branches cannot be combined with a gate: the gate chooses among all of the run's branches")
     weights = parse_weights(args.weights)
@@ -146,12 +156,14 @@ def run(args) -> int:
         return run_gates(args)
     if args.k is not None:
         raise UserError("--k needs --gate (the number of branches a gate keeps)")
+    contexts = tuple(c.strip() for c in args.contexts.split(",") if c.strip())
     result = evaluate(Path(args.run_dir), Path(args.data), args.branches, args.fusion, args.split,
-                      parse_weights(args.weights), args.checkpoint, args.batch_size)
+                      parse_weights(args.weights), args.checkpoint, args.batch_size, contexts)
 
     def text(r):
-        lines = [f"mAP@0.5 {r['map']} ({r['fusion']} of {', '.join(r['branches'])}; {r['frames']} {r['split']} frames, "
-                 "right camera, difficult boxes ignored)"]
+        where = "" if r["contexts"] == "all" else f" of {', '.join(r['contexts'])}"
+        lines = [f"mAP@0.5 {r['map']} ({r['fusion']} of {', '.join(r['branches'])}; {r['frames']} {r['split']} frames"
+                 f"{where}, right camera, difficult boxes ignored)"]
         lines.append("  per class: " + ", ".join(f"{k} {v}" for k, v in r["ap_per_class"].items() if v is not None))
         lines.append("  per context: " + ", ".join(f"{k} {v}" for k, v in r["map_per_context"].items()))
         lines.append(f"  vehicles (car, van, truck, bus): {r['map_vehicles']}; per context: "

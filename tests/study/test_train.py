@@ -129,7 +129,11 @@ def test_evaluate_reports_map_per_class_and_context(data, reference_run, capsys)
     assert vehicle_aps, "the fixture has vehicles"
     assert r["map_vehicles"] == pytest.approx(np.mean(vehicle_aps), abs=1e-4)
     assert set(r["map_vehicles_per_context"]) == set(r["map_per_context"])
+    assert main(["evaluate", str(ref), str(data), "--branches", "camera_right", "--contexts", "fog", "--json"]) == 0
+    fog = json.loads(capsys.readouterr().out)
+    assert fog["contexts"] == ["fog"] and set(fog["map_per_context"]) == {"fog"} and 0 < fog["frames"] < r["frames"]
     for bad, needle in ((["--branches", "sonar"], "unknown branch 'sonar'"), (["--fusion", "max"], "unknown fusion"),
+                        (["--contexts", "moon"], "'moon' is not in the test split"),
                         (["--weights", "radar=x"], "not name=number")):
         assert main(["evaluate", str(ref), str(data), *bad]) == 2
         assert needle in capsys.readouterr().err
