@@ -72,10 +72,11 @@ def to_detections(d: dict) -> Detections:
 
 
 def run_branches(model, data, indices, branches, batch_size: int = 4, progress: str = "detect",
-                 sensors=None):
-    """Per-frame detections of each branch in its own frame: list of (meta, labels, {branch: Detections})."""
+                 sensors=None, clear: bool = False):
+    """Per-frame detections of each branch in its own frame: list of (meta, {branch: Detections});
+    `clear` runs on the clear-weather twins of the frames (datasets generated with --twins)."""
     need = sensors or model.sensors_for(list(branches))
-    ds = FrameDataset(data, indices, sensors=need, bev_size=model.transform.image_size("radar"))
+    ds = FrameDataset(data, indices, sensors=need, clear=clear, bev_size=model.transform.image_size("radar"))
     loader = DataLoader(ds, batch_size=batch_size, shuffle=False, collate_fn=collate, num_workers=0)
     from tqdm import tqdm
 
@@ -105,27 +106,33 @@ VEHICLES = ("car", "van", "truck", "bus")
 
 def score(per_frame: list, reader: DatasetReader, frame: str = "camera_right", bev_crop: tuple | None = None) -> dict:
     """VOC mAP@0.5 of detections already in `frame`: overall, per class, per context; and the mean
-    over the vehicle classes (VEHICLES) overall and per context ("map_vehicles*")."""
-    dets, gts, contexts = [], [], []
+    over the vehicle classes (VEHICLES) overall, per context and per weather severity ("map_vehicles*";
+    severity 0 is clear weather)."""
+    dets, gts, contexts, severities = [], [], [], []
     for meta, d in per_frame:
         i = meta["dataset_index"]
         gts.append(ground_truth(reader.labels(i), frame, bev_crop))
         dets.append({"boxes": d.boxes, "scores": d.scores, "labels": d.labels})
         contexts.append(meta["context"])
+        severities.append(str(meta.get("severity", 0)))
     res = evaluate_detections(dets, gts, classes=range(1, len(CLASSES) + 1))
     vehicles = [CLASSES.index(c) + 1 for c in VEHICLES]
-    per_ctx, veh_ctx = {}, {}
-    by_ctx = defaultdict(list)
-    for k, c in enumerate(contexts):
-        by_ctx[c].append(k)
-    for c, ks in sorted(by_ctx.items()):
-        r = evaluate_detections([dets[k] for k in ks], [gts[k] for k in ks], classes=range(1, len(CLASSES) + 1))
-        per_ctx[c] = _round(r.mean_ap)
-        veh_ctx[c] = _mean_of(r, vehicles)
+    per_ctx, veh_ctx, veh_sev = {}, {}, {}
+    for groups, fill in ((contexts, "context"), (severities, "severity")):
+        by = defaultdict(list)
+        for k, c in enumerate(groups):
+            by[c].append(k)
+        for c, ks in sorted(by.items()):
+            r = evaluate_detections([dets[k] for k in ks], [gts[k] for k in ks], classes=range(1, len(CLASSES) + 1))
+            if fill == "context":
+                per_ctx[c], veh_ctx[c] = _round(r.mean_ap), _mean_of(r, vehicles)
+            else:
+                veh_sev[c] = _mean_of(r, vehicles)
     return {
         "map": _round(res.mean_ap),
         "map_vehicles": _mean_of(res, vehicles),
         "map_vehicles_per_context": veh_ctx,
+        "map_vehicles_per_severity": veh_sev,
         "ap_per_class": {CLASSES[c - 1]: _round(v) for c, v in res.ap.items()},
         "map_per_context": per_ctx,
         "positives_per_class": {CLASSES[c - 1]: int(n) for c, n in res.n_positives.items()},

@@ -44,6 +44,8 @@ def add_parser(sub, name, help_text):
     p.add_argument("--weights", default="", help="per-branch fusion weights, e.g. radar=2,camera_right=1")
     p.add_argument("--contexts", default="", help="comma-separated contexts to score (e.g. city,junction,motorway,"
                    "rural for clear weather); default: every frame of the split")
+    p.add_argument("--twins", action="store_true", help="also run on the clear-weather twins of the same frames "
+                   "(a dataset generated with --twins) and report the vehicle mAP each branch keeps, per severity")
     p.add_argument("--checkpoint", default="latest", help="latest, or epoch-NNN")
     p.add_argument("--batch-size", type=pos_int, default=4)
     p.add_argument("--gate", default=None, help="knowledge | deep | attention | optimal: the gate selects the branches")
@@ -67,7 +69,9 @@ def parse_weights(text: str) -> dict[str, float]:
 
 
 def evaluate(run_dir, data, branches="all", fusion="soft-nms", split="auto", weights=None, checkpoint="latest",
-             batch_size: int = 4, contexts=()) -> dict:
+             batch_size: int = 4, contexts=(), twins: bool = False) -> dict:
+    """mAP of `branches` of a run fused with `fusion` (see the module doc). `twins`: also run them on
+    the clear-weather twins of the same frames and report what each branch keeps ("twins")."""
     import torch
 
     from study.detect import (
@@ -102,9 +106,13 @@ def evaluate(run_dir, data, branches="all", fusion="soft-nms", split="auto", wei
         if bad:
             raise UserError(f"--contexts: {bad[0]!r} is not in the {used_split} split (it has: {', '.join(present)})")
         indices = [i for i in indices if reader.meta(i)["context"] in contexts]
+    if twins and not reader.manifest["config"].get("twins"):
+        raise UserError(f"--twins: {data} has no clear-weather twins (generate it with --twins)")
     per_frame = run_branches(model, data, indices, names, batch_size=batch_size)
     frames = model.branch_frames
     result = score(fused(per_frame, names, frames, method, weights), reader, "camera_right")
+    if twins:
+        result["twins"] = _twins(model, data, indices, names, frames, method, weights, batch_size, per_frame, reader)
     result.update({
         "branches": names, "fusion": method, "split": used_split, "contexts": sorted(set(contexts)) or "all", "run": str(run_dir), "data": str(data),
         "map_per_branch_native": {b: score(native(per_frame, b), reader, frames[b], bev_crop_of(model, reader))["map"]
@@ -116,6 +124,40 @@ def evaluate(run_dir, data, branches="all", fusion="soft-nms", split="auto", wei
     return result
 
 
+def _twins(model, data, indices, names, frames, method, weights, batch_size, per_frame, reader) -> dict:
+    """The same frames in clear weather: per branch (in its own frame, vehicle classes) the mAP on
+    the degraded frames, on their clear twins, and their ratio, overall and per severity; and the same
+    for the fused result. The frames and labels are identical; only the weather differs."""
+    from sensors.dataset import DatasetReader
+    from study.detect import bev_crop_of, fused, native, run_branches, score
+
+    clear_reader = DatasetReader(data, clear=True)
+    clear_frames = run_branches(model, data, indices, names, batch_size=batch_size, progress="clear twins",
+                                clear=True)
+    crop = bev_crop_of(model, reader)
+
+    def pair(deg: dict, clr: dict) -> dict:
+        sev = sorted(set(deg["map_vehicles_per_severity"]) | set(clr["map_vehicles_per_severity"]), key=int)
+        return {"degraded": deg["map_vehicles"], "clear": clr["map_vehicles"], "retained": _ratio(deg["map_vehicles"], clr["map_vehicles"]),
+                "per_severity": {s: {"degraded": deg["map_vehicles_per_severity"].get(s),
+                                     "clear": clr["map_vehicles_per_severity"].get(s),
+                                     "retained": _ratio(deg["map_vehicles_per_severity"].get(s),
+                                                        clr["map_vehicles_per_severity"].get(s))} for s in sev}}
+
+    out = {"metric": "vehicle-class mAP@0.5 (car, van, truck, bus), each branch in its own frame; retained = "
+                     "degraded / clear", "branches": {}}
+    for b in names:
+        out["branches"][b] = pair(score(native(per_frame, b), reader, frames[b], crop),
+                                  score(native(clear_frames, b), clear_reader, frames[b], crop))
+    out["fused"] = pair(score(fused(per_frame, names, frames, method, weights), reader, "camera_right"),
+                        score(fused(clear_frames, names, frames, method, weights), clear_reader, "camera_right"))
+    return out
+
+
+def _ratio(a, b):
+    return None if a is None or not b else round(a / b, 3)
+
+
 def run_gates(args) -> int:
     from study import gates
 
@@ -123,6 +165,8 @@ def run_gates(args) -> int:
         raise UserError("--gate and --all-gates exclude each other (--all-gates evaluates every gate)")
     if args.contexts:
         raise UserError("--contexts is for evaluating branches; gated results report map_per_context")
+    if args.twins:
+        raise UserError("--twins is for evaluating branches, not gates")
     if args.branches not in ("all", ""):
         raise UserError("--branches cannot be combined with a gate: the gate chooses among all of the run's branches")
     weights = parse_weights(args.weights)
@@ -158,7 +202,7 @@ def run(args) -> int:
         raise UserError("--k needs --gate (the number of branches a gate keeps)")
     contexts = tuple(c.strip() for c in args.contexts.split(",") if c.strip())
     result = evaluate(Path(args.run_dir), Path(args.data), args.branches, args.fusion, args.split,
-                      parse_weights(args.weights), args.checkpoint, args.batch_size, contexts)
+                      parse_weights(args.weights), args.checkpoint, args.batch_size, contexts, args.twins)
 
     def text(r):
         where = "" if r["contexts"] == "all" else f" of {', '.join(r['contexts'])}"
@@ -170,6 +214,11 @@ def run(args) -> int:
                      + ", ".join(f"{k} {v}" for k, v in r["map_vehicles_per_context"].items()))
         lines.append("  each branch alone (own frame / right camera): " + ", ".join(
             f"{b} {r['map_per_branch_native'][b]}/{r['map_per_branch_reference'][b]}" for b in r["branches"]))
+        if "twins" in r:
+            lines.append("  same frames in clear weather (vehicles, own frame: degraded / clear = retained):")
+            for b, t in [*r["twins"]["branches"].items(), ("fused", r["twins"]["fused"])]:
+                lines.append(f"    {b}: {t['degraded']} / {t['clear']} = {t['retained']}; per severity: " + ", ".join(
+                    f"{s} {v['retained']}" for s, v in t["per_severity"].items()))
         return "\n".join(lines)
 
     emit(result, args.json, text)

@@ -68,7 +68,8 @@ class TrainConfig:
         checkpoint_steps: also checkpoint every this many steps within an epoch.
         eval_frames: evaluate on at most this many test frames per epoch (0 = all).
         threads: torch CPU threads.
-        init_from: a trained run whose weights initialise this one (see `warm_start`); "" = scratch.
+        init_from: trained runs (comma-separated, priority order) whose weights initialise this one
+            (see `warm_start`); "" = scratch.
     """
 
     data: str
@@ -101,35 +102,62 @@ WARM_START_BRANCH = {
 WARM_START_STEM = {"fwd_lidar": "camera", "lidar": "radar"}
 
 
-def warm_start(model, source_state: dict) -> dict:
-    """Copy matching parameters from a trained model's state dict into `model`.
+def warm_start(model, source_states) -> dict:
+    """Copy matching parameters from trained models' state dicts into `model`.
 
-    Same-named modules are copied as they are; a branch missing in the source is initialised from
-    WARM_START_BRANCH[name], a stem from WARM_START_STEM[name]. Tensors whose shapes differ (the
-    first conv of a stem with other input channels, early-fusion merge convs, input stems) keep
-    their fresh initialisation. Returns {"copied": n, "from": {target prefix: source prefix}, "kept": [...]}.
+    `source_states`: one state dict, or several in priority order. Each module of `model` (a branch
+    or a stem) comes from the first source that has it, either under its own name or under its
+    warm-start origin (WARM_START_BRANCH / WARM_START_STEM); so with sources (a camera-only run, a
+    seven-branch run) the camera-view branches start from the first run's trained camera branch and
+    the radar / lidar ones from the second. Tensors whose shapes differ (the first conv of a stem
+    with other input channels) keep their fresh initialisation; the merge conv of a fused branch
+    started from a single-sensor branch passes that sensor's features through. Returns {"copied": n,
+    "from": {target prefix: source prefix}, "source": {target prefix: index of the source},
+    "merge_pass_through": {branch: sensor}, "kept": [...]}.
     """
+    sources = [source_states] if isinstance(source_states, dict) else list(source_states)
     own = model.state_dict()
-    src_branches = {k.split(".")[1] for k in source_state if k.startswith("branches.")}
-    src_stems = {k.split(".")[1] for k in source_state if k.startswith("stems.")}
-    mapping = {}
-    for name in model.branches:
-        origin = name if name in src_branches else WARM_START_BRANCH.get(name)
-        if origin in src_branches:
-            mapping[f"branches.{name}."] = f"branches.{origin}."
-    for name in model.stems:
-        origin = name if name in src_stems else WARM_START_STEM.get(name)
-        if origin in src_stems:
-            mapping[f"stems.{name}."] = f"stems.{origin}."
+    mapping, origin_of = {}, {}
+
+    def modules(state, kind):
+        return {k.split(".")[1] for k in state if k.startswith(kind + ".")}
+
+    for kind, names, table in (("branches", model.branches, WARM_START_BRANCH), ("stems", model.stems, WARM_START_STEM)):
+        for name in names:
+            for s, state in enumerate(sources):
+                present = modules(state, kind)
+                origin = name if name in present else table.get(name)
+                if origin in present:
+                    mapping[f"{kind}.{name}."] = f"{kind}.{origin}."
+                    origin_of[f"{kind}.{name}."] = s
+                    break
     new, kept = {}, []
     for key, value in own.items():
-        src_key = next((src + key[len(dst):] for dst, src in mapping.items() if key.startswith(dst)), key)
-        if src_key in source_state and source_state[src_key].shape == value.shape:
-            new[key] = source_state[src_key]
+        dst = next((d for d in mapping if key.startswith(d)), None)
+        state = sources[origin_of[dst]] if dst is not None else sources[0]
+        src_key = mapping[dst] + key[len(dst):] if dst is not None else key
+        if src_key in state and state[src_key].shape == value.shape:
+            new[key] = state[src_key]
         else:
             kept.append(key)
+    # A fused branch started from a single-sensor one: its fresh merge conv would scramble the
+    # features the copied layer2.. expect, so it starts as a pass-through of that sensor's stem
+    # channels (the other sensors' weights at zero; they still get gradients and learn).
+    passed = {}
+    for name, branch in model.branches.items():
+        dst = f"branches.{name}."
+        key = dst + "merge.weight"
+        origin = mapping.get(dst, "")[len("branches."):-1]
+        if key in kept and origin in branch.sensors and branch.merge is not None:
+            w = torch.zeros_like(own[key])
+            c = w.shape[0]
+            at = branch.sensors.index(origin) * c
+            w[torch.arange(c), at + torch.arange(c), w.shape[2] // 2, w.shape[3] // 2] = 1.0
+            new[key], new[dst + "merge.bias"] = w, torch.zeros_like(own[dst + "merge.bias"])
+            kept = [k for k in kept if k not in (key, dst + "merge.bias")]
+            passed[name] = origin
     model.load_state_dict({**own, **new})
-    return {"copied": len(new), "from": mapping, "kept": kept}
+    return {"copied": len(new), "from": mapping, "source": origin_of, "merge_pass_through": passed, "kept": kept}
 
 
 def branch_set(name: str, profile: str):
@@ -169,8 +197,9 @@ def add_parser(sub, name, help_text):
     p.add_argument("--seed", type=int, default=0, help="initialisation and data order")
     p.add_argument("--eval-frames", type=int, default=0, help="test frames evaluated per epoch (0 = all)")
     p.add_argument("--checkpoint-steps", type=pos_int, default=100, help="also checkpoint every N steps within an epoch")
-    p.add_argument("--init-from", default="", help="initialise from a trained run (same-named modules; other "
-                   "camera-view branches from camera_right, BEV ones from radar)")
+    p.add_argument("--init-from", default="", help="initialise from trained runs, comma-separated in priority "
+                   "order: each branch / stem from the first run that has it or its origin (other camera-view "
+                   "branches from camera_right, BEV ones from radar)")
     p.add_argument("--threads", type=pos_int, default=2, help="torch CPU threads")
     p.add_argument("--json", action="store_true", help="print one JSON object (final metrics) on stdout")
     p.set_defaults(run=run)
@@ -254,13 +283,15 @@ def train(cfg: TrainConfig, out: Path, progress: bool = True) -> dict:
     torch.manual_seed(cfg.seed)
     model = build_hydrafusion(profile=run_profile(run_cfg, out), branches=specs)
     if cfg.init_from and not (out / "checkpoint.pt").exists():
-        src = Path(cfg.init_from) / "checkpoint.pt"
-        if not src.exists():
-            raise UserError(f"--init-from {cfg.init_from}: no checkpoint.pt there")
-        report = warm_start(model, torch.load(src, map_location="cpu", weights_only=False)["model"])
-        (out / "warm_start.json").write_text(json.dumps({"source": str(src), **report}, indent=1))
+        srcs = [Path(r) / "checkpoint.pt" for r in cfg.init_from.split(",")]
+        missing = [str(s.parent) for s in srcs if not s.exists()]
+        if missing:
+            raise UserError(f"--init-from {missing[0]}: no checkpoint.pt there")
+        report = warm_start(model, [torch.load(s, map_location="cpu", weights_only=False)["model"] for s in srcs])
+        (out / "warm_start.json").write_text(json.dumps({"sources": [str(s) for s in srcs], **report}, indent=1))
         if progress:
-            sys.stderr.write(f"warm start from {src}: {report['copied']} tensors copied, {len(report['kept'])} fresh\n")
+            sys.stderr.write(f"warm start from {', '.join(map(str, srcs))}: {report['copied']} tensors copied, "
+                             f"{len(report['kept'])} fresh\n")
     model.train()
     params = [p for p in model.parameters() if p.requires_grad]
     opt = torch.optim.SGD(params, lr=cfg.lr, momentum=0.9, weight_decay=1e-4)
@@ -359,7 +390,7 @@ def run(args) -> int:
         branches=tuple(b.strip() for b in args.branches.split(",") if b.strip()), epochs=args.epochs,
         batch_size=args.batch_size, lr=args.lr, warmup_steps=args.warmup_steps, lr_drop_epoch=args.lr_drop_epoch,
         clip_grad=args.clip_grad, seed=args.seed, eval_frames=args.eval_frames, threads=args.threads,
-        checkpoint_steps=args.checkpoint_steps, init_from=str(Path(args.init_from).resolve()) if args.init_from else "",
+        checkpoint_steps=args.checkpoint_steps, init_from=",".join(str(Path(r.strip()).resolve()) for r in args.init_from.split(",") if r.strip()),
     )
     out = check_writable_dir(args.out)
     result = train(cfg, out)

@@ -157,3 +157,71 @@ def test_warm_start_copies_matching_modules_and_maps_branches(reference_run):
     # tensors of other shapes stay fresh: the lidar stem's 3-channel conv1 (radar's has 1 channel)
     assert "stems.lidar.conv1.weight" in report["kept"] and "branches.camera_both.merge.weight" in report["kept"]
     assert report["copied"] > 100
+
+
+def test_warm_start_from_several_runs_takes_each_module_from_the_first_that_has_it():
+    """--init-from CAMERA_RUN,ALL_RUN: camera-view branches from the camera run's camera_right
+    (even though the second run has same-named ones), radar and lidar ones from the second run;
+    the merge conv of a fused camera branch then passes the right camera's features through."""
+    from fusion.nets import build_hydrafusion
+    from study.train import branch_set, warm_start
+
+    paper = branch_set("paper", "cpu")
+    torch.manual_seed(1)
+    cam = build_hydrafusion(profile="cpu", branches=[b for b in paper if b.name == "camera_right"]).state_dict()
+    torch.manual_seed(2)
+    full = build_hydrafusion(profile="cpu", branches=paper).state_dict()
+    torch.manual_seed(3)
+    model = build_hydrafusion(profile="cpu", branches=paper)
+    report = warm_start(model, [cam, full])
+    state = model.state_dict()
+    leaf = "layer4.0.conv1.weight"
+    for dst, src, which in (("camera_left", "camera_right", cam), ("camera_both", "camera_right", cam),
+                            ("radar", "radar", full), ("lidar", "lidar", full), ("radar_lidar", "radar_lidar", full)):
+        torch.testing.assert_close(state[f"branches.{dst}.{leaf}"], which[f"branches.{src}.{leaf}"])
+    assert report["source"]["branches.camera_left."] == 0 and report["source"]["branches.lidar."] == 1
+    torch.testing.assert_close(state["stems.camera.conv1.weight"], cam["stems.camera.conv1.weight"])
+    torch.testing.assert_close(state["stems.radar.conv1.weight"], full["stems.radar.conv1.weight"])
+    assert report["merge_pass_through"] == {"camera_both": "camera_right", "camera_lidar": "camera_right"}
+    assert report["kept"] == []
+    model.eval()
+    right, other = torch.randn(1, 64, 12, 20), torch.randn(1, 64, 12, 20)
+    with torch.no_grad():
+        alone = model.branches["camera_right"].features([right])
+        both = model.branches["camera_both"].features([other, right])
+        with_lidar = model.branches["camera_lidar"].features([other, right, other])
+    torch.testing.assert_close(both, alone)
+    torch.testing.assert_close(with_lidar, alone)
+    # the BEV fused branch came from a same-named module with a merge: no pass-through, copied as is
+    torch.testing.assert_close(state["branches.radar_lidar.merge.weight"], full["branches.radar_lidar.merge.weight"])
+
+
+def test_evaluate_twins_scores_the_same_frames_in_clear_weather(reference_run, data, tmp_path, capsys):
+    """--twins: each branch on the degraded frames and on their clear twins, and the ratio."""
+    from sensors.dataset import DatasetReader
+    from study.detect import bev_crop_of, load_run, native, run_branches, score
+    from study.evaluate import evaluate
+
+    ref, _ = reference_run
+    twins = tmp_path / "twins"
+    generate(GenerateConfig(contexts=("fog",), frames_per_context=4, sequence_length=2, seed=5, twins=True),
+             twins, workers=1, progress=False)
+    r = evaluate(ref, twins, twins=True)
+    t = r["twins"]
+    assert set(t["branches"]) == set(BRANCHES) and r["frames"] == 4
+    reader = DatasetReader(twins)
+    sev = sorted({str(reader.meta(i)["severity"]) for i in range(4)}, key=int)
+    model, _ = load_run(ref)
+    clear = run_branches(model, twins, range(4), ["radar"], clear=True)
+    expected = score(native(clear, "radar"), DatasetReader(twins, clear=True), "bev", bev_crop_of(model, reader))
+    for v in t["branches"].values():
+        assert list(v["per_severity"]) == sev
+        if v["clear"]:
+            assert v["retained"] == round(v["degraded"] / v["clear"], 3)
+    assert t["branches"]["radar"]["clear"] == expected["map_vehicles"]
+    assert r["map_vehicles_per_severity"].keys() == set(sev)
+    assert main(["evaluate", str(ref), str(twins), "--twins"]) == 0
+    assert "same frames in clear weather" in capsys.readouterr().out
+    # a dataset without twins is refused with a clear message
+    assert main(["evaluate", str(ref), str(data), "--twins"]) == 2
+    assert "has no clear-weather twins" in capsys.readouterr().err
