@@ -140,6 +140,33 @@ def score(per_frame: list, reader: DatasetReader, frame: str = "camera_right", b
     }
 
 
+def operating_point(per_frame: list, reader: DatasetReader, frame: str = "camera_right",
+                    bev_crop: tuple | None = None, threshold: float = 0.5) -> dict:
+    """Recall and precision of the vehicle classes (VEHICLES) at one score threshold, overall and
+    per weather severity: what a user of the detector would see, where mAP averages over all
+    thresholds. VOC matching (same class, IoU >= 0.5, one detection per box, difficult boxes
+    ignored). {"threshold", "recall", "precision", "per_severity": {severity: {recall, precision}}}."""
+    vehicles = [CLASSES.index(c) + 1 for c in VEHICLES]
+    groups = defaultdict(list)
+    for meta, d in per_frame:
+        keep = d.scores >= threshold
+        det = {"boxes": d.boxes[keep], "scores": d.scores[keep], "labels": d.labels[keep]}
+        gt = ground_truth(reader.labels(meta["dataset_index"]), frame, bev_crop)
+        groups[str(meta.get("severity", 0))].append((det, gt))
+
+    def point(pairs) -> dict:
+        r = evaluate_detections([a for a, _ in pairs], [b for _, b in pairs], classes=vehicles)
+        tp = sum(r.n_true_positives.values())
+        judged = sum(len(r.precision[c]) for c in vehicles)  # detections not matched to a difficult box
+        pos = sum(r.n_positives.values())
+        return {"recall": _round(tp / pos) if pos else None, "precision": _round(tp / judged) if judged else None,
+                "positives": int(pos), "detections": int(judged)}
+
+    everything = [x for v in groups.values() for x in v]
+    return {"threshold": threshold, **point(everything),
+            "per_severity": {k: point(groups[k]) for k in sorted(groups, key=int)}}
+
+
 def _mean_of(res, classes) -> float | None:
     """Mean AP over those of `classes` that have ground truth (None when none has)."""
     aps = [res.ap[c] for c in classes if res.ap.get(c) is not None and not np.isnan(res.ap[c])]

@@ -129,28 +129,35 @@ def _twins(model, data, indices, names, frames, method, weights, batch_size, per
     the degraded frames, on their clear twins, and their ratio, overall and per severity; and the same
     for the fused result. The frames and labels are identical; only the weather differs."""
     from sensors.dataset import DatasetReader
-    from study.detect import bev_crop_of, fused, native, run_branches, score
+    from study.detect import bev_crop_of, fused, native, operating_point, run_branches, score
 
     clear_reader = DatasetReader(data, clear=True)
     clear_frames = run_branches(model, data, indices, names, batch_size=batch_size, progress="clear twins",
                                 clear=True)
     crop = bev_crop_of(model, reader)
 
-    def pair(deg: dict, clr: dict) -> dict:
+    def pair(deg_frames, clr_frames, frame, bev) -> dict:
+        deg, clr = score(deg_frames, reader, frame, bev), score(clr_frames, clear_reader, frame, bev)
+        op_d = operating_point(deg_frames, reader, frame, bev)
+        op_c = operating_point(clr_frames, clear_reader, frame, bev)
         sev = sorted(set(deg["map_vehicles_per_severity"]) | set(clr["map_vehicles_per_severity"]), key=int)
         return {"degraded": deg["map_vehicles"], "clear": clr["map_vehicles"], "retained": _ratio(deg["map_vehicles"], clr["map_vehicles"]),
+                "at_score_0.5": {"degraded": {k: op_d[k] for k in ("recall", "precision")},
+                                 "clear": {k: op_c[k] for k in ("recall", "precision")}},
                 "per_severity": {s: {"degraded": deg["map_vehicles_per_severity"].get(s),
                                      "clear": clr["map_vehicles_per_severity"].get(s),
                                      "retained": _ratio(deg["map_vehicles_per_severity"].get(s),
-                                                        clr["map_vehicles_per_severity"].get(s))} for s in sev}}
+                                                        clr["map_vehicles_per_severity"].get(s)),
+                                     "at_score_0.5": {"degraded": op_d["per_severity"].get(s),
+                                                      "clear": op_c["per_severity"].get(s)}} for s in sev}}
 
     out = {"metric": "vehicle-class mAP@0.5 (car, van, truck, bus), each branch in its own frame; retained = "
-                     "degraded / clear", "branches": {}}
+                     "degraded / clear; at_score_0.5: recall and precision of the detections scoring >= 0.5",
+           "branches": {}}
     for b in names:
-        out["branches"][b] = pair(score(native(per_frame, b), reader, frames[b], crop),
-                                  score(native(clear_frames, b), clear_reader, frames[b], crop))
-    out["fused"] = pair(score(fused(per_frame, names, frames, method, weights), reader, "camera_right"),
-                        score(fused(clear_frames, names, frames, method, weights), clear_reader, "camera_right"))
+        out["branches"][b] = pair(native(per_frame, b), native(clear_frames, b), frames[b], crop)
+    out["fused"] = pair(fused(per_frame, names, frames, method, weights),
+                        fused(clear_frames, names, frames, method, weights), "camera_right", None)
     return out
 
 
@@ -217,8 +224,10 @@ def run(args) -> int:
         if "twins" in r:
             lines.append("  same frames in clear weather (vehicles, own frame: degraded / clear = retained):")
             for b, t in [*r["twins"]["branches"].items(), ("fused", r["twins"]["fused"])]:
+                op = t["at_score_0.5"]
                 lines.append(f"    {b}: {t['degraded']} / {t['clear']} = {t['retained']}; per severity: " + ", ".join(
-                    f"{s} {v['retained']}" for s, v in t["per_severity"].items()))
+                    f"{s} {v['retained']}" for s, v in t["per_severity"].items())
+                    + f"; recall at score 0.5: {op['degraded']['recall']} / {op['clear']['recall']}")
         return "\n".join(lines)
 
     emit(result, args.json, text)

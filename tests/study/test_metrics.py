@@ -246,3 +246,34 @@ def test_map_agrees_with_torchmetrics():
         default = detection.MeanAveragePrecision(iou_thresholds=[0.5])
         default.update(*metric_inputs(torch, dets, gts))
         assert abs(voc.mean_ap - float(default.compute()["map"])) <= 0.02
+
+
+def test_operating_point_counts_vehicle_hits_at_one_threshold_per_severity():
+    """Recall / precision at score >= 0.5 over car, van, truck, bus, by hand: frame 0 (severity 3)
+    has a car found at 0.9, a van missed (its detection scores 0.4), and a false car at 0.7; frame 1
+    (severity 5) has a truck found twice (the duplicate is a false positive), a difficult bus whose
+    detection is ignored, and a pedestrian (not a vehicle) that plays no part."""
+    from fusion.late import Detections
+    from sim.actors import CLASSES
+    from study.detect import operating_point
+
+    car, van, truck, bus, ped = (CLASSES.index(c) + 1 for c in ("car", "van", "truck", "bus", "pedestrian"))
+    labels = {0: {"camera_right": {"boxes": [A, B], "labels": [car, van], "difficult": [False, False]}},
+              1: {"camera_right": {"boxes": [A, B, C], "labels": [truck, bus, ped], "difficult": [False, True, False]}}}
+
+    class Reader:
+        def labels(self, i):
+            return labels[i]
+
+    def d(boxes, scores, cls):
+        return Detections(np.array(boxes, float).reshape(-1, 4), np.array(scores, float), np.array(cls, np.int64))
+
+    frames = [({"dataset_index": 0, "severity": 3}, d([A, B, C], [0.9, 0.4, 0.7], [car, van, car])),
+              ({"dataset_index": 1, "severity": 5}, d([A, A, B, C], [0.8, 0.6, 0.9, 0.95], [truck, truck, bus, ped]))]
+    op = operating_point(frames, Reader())
+    assert op["positives"] == 3 and op["recall"] == round(2 / 3, 4)
+    assert op["detections"] == 4 and op["precision"] == 0.5  # car hit, false car, truck hit, duplicate
+    assert op["per_severity"]["3"] == {"recall": 0.5, "precision": 0.5, "positives": 2, "detections": 2}
+    assert op["per_severity"]["5"] == {"recall": 1.0, "precision": 0.5, "positives": 1, "detections": 2}
+    low = operating_point(frames, Reader(), threshold=0.3)  # the van's detection now counts
+    assert low["per_severity"]["3"]["recall"] == 1.0

@@ -154,8 +154,11 @@ def test_warm_start_copies_matching_modules_and_maps_branches(reference_run):
         k = f"branches.{dst}.layer4.0.conv1.weight"
         torch.testing.assert_close(state[k], source[f"branches.{src}.layer4.0.conv1.weight"])
     assert report["from"]["branches.camera_lidar."] == "branches.camera_right."
-    # tensors of other shapes stay fresh: the lidar stem's 3-channel conv1 (radar's has 1 channel)
-    assert "stems.lidar.conv1.weight" in report["kept"] and "branches.camera_both.merge.weight" in report["kept"]
+    # tensors of other shapes stay fresh: the lidar stem's 3-channel conv1 (radar's has 1 channel);
+    # the fused branches' merge convs pass their origin's sensor through instead
+    assert report["kept"] == ["stems.lidar.conv1.weight"]
+    assert report["merge_pass_through"] == {"camera_both": "camera_right", "camera_lidar": "camera_right",
+                                            "radar_lidar": "radar"}
     assert report["copied"] > 100
 
 
@@ -219,6 +222,8 @@ def test_evaluate_twins_scores_the_same_frames_in_clear_weather(reference_run, d
         if v["clear"]:
             assert v["retained"] == round(v["degraded"] / v["clear"], 3)
     assert t["branches"]["radar"]["clear"] == expected["map_vehicles"]
+    op = t["fused"]["at_score_0.5"]
+    assert set(op) == {"degraded", "clear"} and set(op["clear"]) == {"recall", "precision"}
     assert r["map_vehicles_per_severity"].keys() == set(sev)
     assert main(["evaluate", str(ref), str(twins), "--twins"]) == 0
     assert "same frames in clear weather" in capsys.readouterr().out
