@@ -117,17 +117,18 @@ def score(per_frame: list, reader: DatasetReader, frame: str = "camera_right", b
         severities.append(str(meta.get("severity", 0)))
     res = evaluate_detections(dets, gts, classes=range(1, len(CLASSES) + 1))
     vehicles = [CLASSES.index(c) + 1 for c in VEHICLES]
-    per_ctx, veh_ctx, veh_sev = {}, {}, {}
-    for groups, fill in ((contexts, "context"), (severities, "severity")):
+
+    def per_group(groups) -> dict:
         by = defaultdict(list)
         for k, c in enumerate(groups):
             by[c].append(k)
-        for c, ks in sorted(by.items()):
-            r = evaluate_detections([dets[k] for k in ks], [gts[k] for k in ks], classes=range(1, len(CLASSES) + 1))
-            if fill == "context":
-                per_ctx[c], veh_ctx[c] = _round(r.mean_ap), _mean_of(r, vehicles)
-            else:
-                veh_sev[c] = _mean_of(r, vehicles)
+        return {c: evaluate_detections([dets[k] for k in ks], [gts[k] for k in ks], classes=range(1, len(CLASSES) + 1))
+                for c, ks in sorted(by.items())}
+
+    by_ctx, by_sev = per_group(contexts), per_group(severities)
+    per_ctx = {c: _round(r.mean_ap) for c, r in by_ctx.items()}
+    veh_ctx = {c: _mean_of(r, vehicles) for c, r in by_ctx.items()}
+    veh_sev = {c: _mean_of(r, vehicles) for c, r in by_sev.items()}
     return {
         "map": _round(res.mean_ap),
         "map_vehicles": _mean_of(res, vehicles),

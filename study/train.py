@@ -118,14 +118,10 @@ def warm_start(model, source_states) -> dict:
     sources = [source_states] if isinstance(source_states, dict) else list(source_states)
     own = model.state_dict()
     mapping, origin_of = {}, {}
-
-    def modules(state, kind):
-        return {k.split(".")[1] for k in state if k.startswith(kind + ".")}
-
     for kind, names, table in (("branches", model.branches, WARM_START_BRANCH), ("stems", model.stems, WARM_START_STEM)):
+        present_in = [{k.split(".")[1] for k in state if k.startswith(kind + ".")} for state in sources]
         for name in names:
-            for s, state in enumerate(sources):
-                present = modules(state, kind)
+            for s, present in enumerate(present_in):
                 origin = name if name in present else table.get(name)
                 if origin in present:
                     mapping[f"{kind}.{name}."] = f"{kind}.{origin}."
