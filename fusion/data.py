@@ -90,6 +90,29 @@ def frame_targets(labels: dict, keep_difficult: bool = False, bev_size: tuple[in
     return out
 
 
+def hflip_sample(inputs: dict, targets: dict, widths: dict) -> tuple[dict, dict]:
+    """Mirror one frame about the vehicle's vertical longitudinal plane: world and rig together.
+
+    Every input is flipped left-right (camera images and the forward lidar, which lives in the
+    right camera's image plane, along their columns; the radar / lidar BEV, whose columns are the
+    lateral axis with the radar at the centre, likewise), and every box with it (x -> width - x).
+    The result is an exact observation of the mirrored scene by the mirrored rig. In that rig the
+    two cameras have changed sides, so a branch that fuses the stereo pair would see its geometry
+    reversed: training refuses the flip for such branches (`study.train`).
+
+    `widths`: {target frame: image width [px]} for "camera_left", "camera_right", "bev".
+    Returns new dicts; the arguments are not modified.
+    """
+    flipped_inputs = {s: torch.flip(x, dims=(-1,)) for s, x in inputs.items()}
+    flipped_targets = {}
+    for frame, t in targets.items():
+        b = t["boxes"]
+        w = float(widths[frame])
+        boxes = torch.stack([w - b[:, 2], b[:, 1], w - b[:, 0], b[:, 3]], dim=1) if len(b) else b.clone()
+        flipped_targets[frame] = {**t, "boxes": boxes}
+    return flipped_inputs, flipped_targets
+
+
 def frame_inputs(frame: dict, sensors=SENSORS, bev_size: tuple[int, int] | None = None) -> dict:
     out = {}
     for s in sensors:
@@ -128,12 +151,23 @@ class FrameDataset(Dataset):
         return len(self.indices)
 
     def __getitem__(self, k: int):
+        return self.item(k)
+
+    def item(self, k: int, flip: bool = False):
+        """Frame k as (inputs, targets, meta); `flip`: mirrored left-right (`hflip_sample`)."""
         i = self.indices[k]
         frame = self.reader[i]
         meta = dict(frame["meta"])
         meta["dataset_index"] = i
-        return (frame_inputs(frame, self.sensors, self.bev_size),
-                frame_targets(frame["labels"], self.keep_difficult, self.bev_size, self.bev_full), meta)
+        inputs = frame_inputs(frame, self.sensors, self.bev_size)
+        targets = frame_targets(frame["labels"], self.keep_difficult, self.bev_size, self.bev_full)
+        if flip:
+            cal = meta["calibration"]
+            widths = {"camera_left": cal["camera_left"]["width"], "camera_right": cal["camera_right"]["width"],
+                      "bev": self.bev_size[1] if self.bev_size is not None else self.bev_full}
+            inputs, targets = hflip_sample(inputs, targets, widths)
+        meta["flipped"] = bool(flip)
+        return inputs, targets, meta
 
 
 def collate(batch):

@@ -70,6 +70,9 @@ class TrainConfig:
         threads: torch CPU threads.
         init_from: trained runs (comma-separated, priority order) whose weights initialise this one
             (see `warm_start`); "" = scratch.
+        hflip: probability that a training frame is mirrored left-right, world and rig together
+            (`fusion.data.hflip_sample`; decided per frame and epoch from `seed`, so a resumed run
+            sees the same frames). Refused for branches that fuse both cameras.
     """
 
     data: str
@@ -89,6 +92,7 @@ class TrainConfig:
     eval_frames: int = 0
     threads: int = 2
     init_from: str = ""
+    hflip: float = 0.0
 
 
 # Which trained module initialises which new one when warm-starting (`--init-from`): the paper's
@@ -196,6 +200,8 @@ def add_parser(sub, name, help_text):
     p.add_argument("--init-from", default="", help="initialise from trained runs, comma-separated in priority "
                    "order: each branch / stem from the first run that has it or its origin (other camera-view "
                    "branches from camera_right, BEV ones from radar)")
+    p.add_argument("--hflip", type=float, default=0.0, help="probability of mirroring a training frame left-right "
+                   "(all sensors and labels together; not with branches that fuse both cameras)")
     p.add_argument("--threads", type=pos_int, default=2, help="torch CPU threads")
     p.add_argument("--json", action="store_true", help="print one JSON object (final metrics) on stdout")
     p.set_defaults(run=run)
@@ -254,6 +260,12 @@ def train(cfg: TrainConfig, out: Path, progress: bool = True) -> dict:
     if bad:
         raise UserError(f"unknown branch {bad[0]!r} in set {cfg.branch_set!r} (choose from: {', '.join(names)})")
     specs = [s for s in specs if s.name in chosen]
+    if not 0.0 <= cfg.hflip <= 1.0:
+        raise UserError(f"--hflip is a probability in [0, 1], got {cfg.hflip}")
+    stereo = [s.name for s in specs if {"camera_left", "camera_right"} <= set(s.sensors)]
+    if cfg.hflip > 0 and stereo:
+        raise UserError(f"--hflip mirrors the rig, which swaps the stereo cameras' sides: branch {stereo[0]!r} "
+                        "fuses both cameras and would see its geometry reversed; leave it out or use --hflip 0")
     if reader.manifest["profile"] != cfg.model_profile:
         raise UserError(f"dataset profile {reader.manifest['profile']!r} does not match model profile {cfg.model_profile!r}")
     # The resolved model profile is part of the run: a later edit of configs/model/<profile>.yaml
@@ -265,6 +277,9 @@ def train(cfg: TrainConfig, out: Path, progress: bool = True) -> dict:
     cfg_path = out / "config.json"
     if cfg_path.exists():
         old = json.loads(cfg_path.read_text())
+        # fields added after a run was made hold their default in it
+        old = {**{f.name: f.default for f in dataclasses.fields(TrainConfig) if f.name not in old}, **old}
+        old = json.loads(json.dumps(old))
         free = ("epochs", "lr_drop_epoch", "eval_frames", "threads", "checkpoint_steps")  # may change on resume
         comparable = {k: v for k, v in old.items() if k not in free}
         now = {k: v for k, v in run_cfg.items() if k not in free}
@@ -308,6 +323,7 @@ def train(cfg: TrainConfig, out: Path, progress: bool = True) -> dict:
     result = {}
     while epoch < cfg.epochs:
         order = np.random.default_rng([cfg.seed, epoch]).permutation(len(dataset))
+        flips = np.random.default_rng([cfg.seed, epoch, 1]).random(len(dataset)) < cfg.hflip
         batches = [order[k:k + cfg.batch_size] for k in range(0, len(order), cfg.batch_size)]
         sums: dict[str, float] = {}
         counts = 0
@@ -317,7 +333,7 @@ def train(cfg: TrainConfig, out: Path, progress: bool = True) -> dict:
         bar = tqdm(total=steps_per_epoch, initial=step_in_epoch, desc=f"epoch {epoch + 1}/{cfg.epochs}",
                    file=sys.stderr, disable=not progress, dynamic_ncols=tty, mininterval=0.1 if tty else 60.0)
         for k in range(step_in_epoch, len(batches)):
-            inputs, targets, _ = collate([dataset[int(i)] for i in batches[k]])
+            inputs, targets, _ = collate([dataset.item(int(i), flip=bool(flips[i])) for i in batches[k]])
             for g in opt.param_groups:
                 g["lr"] = _lr_at(cfg, epoch, global_step)
             losses = model(inputs, targets)
@@ -387,6 +403,7 @@ def run(args) -> int:
         batch_size=args.batch_size, lr=args.lr, warmup_steps=args.warmup_steps, lr_drop_epoch=args.lr_drop_epoch,
         clip_grad=args.clip_grad, seed=args.seed, eval_frames=args.eval_frames, threads=args.threads,
         checkpoint_steps=args.checkpoint_steps, init_from=",".join(str(Path(r.strip()).resolve()) for r in args.init_from.split(",") if r.strip()),
+        hflip=args.hflip,
     )
     out = check_writable_dir(args.out)
     result = train(cfg, out)

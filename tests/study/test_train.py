@@ -230,3 +230,49 @@ def test_evaluate_twins_scores_the_same_frames_in_clear_weather(reference_run, d
     # a dataset without twins is refused with a clear message
     assert main(["evaluate", str(ref), str(data), "--twins"]) == 2
     assert "has no clear-weather twins" in capsys.readouterr().err
+
+
+def test_hflip_mirrors_inputs_and_boxes_together(data):
+    """A mirrored frame is the frame seen in a mirror: every input flipped left-right and each box
+    covering exactly the mirrored pixels (an off-by-one in x -> W - x would show here)."""
+    from fusion.data import FrameDataset
+
+    ds = FrameDataset(data, bev_size=(128, 192))
+    checked = 0
+    for k in range(len(ds)):
+        x, t, meta = ds.item(k)
+        xf, tf, mf = ds.item(k, flip=True)
+        assert not meta["flipped"] and mf["flipped"]
+        for s in x:
+            torch.testing.assert_close(xf[s], torch.flip(x[s], dims=(-1,)), rtol=0, atol=0)
+        for frame, sensor in (("camera_right", "camera_right"), ("camera_left", "camera_left"), ("bev", "lidar")):
+            assert torch.equal(t[frame]["labels"], tf[frame]["labels"])
+            W = x[sensor].shape[-1]
+            for b, bf in zip(t[frame]["boxes"].round().int().tolist(), tf[frame]["boxes"].round().int().tolist()):
+                assert bf[1] == b[1] and bf[3] == b[3] and 0 <= bf[0] < bf[2] <= W
+                crop = x[sensor][:, b[1]:b[3], b[0]:b[2]]
+                crop_f = xf[sensor][:, bf[1]:bf[3], bf[0]:bf[2]]
+                torch.testing.assert_close(crop_f, torch.flip(crop, dims=(-1,)), rtol=0, atol=0)
+                checked += 1
+    assert checked > 10
+
+
+def test_training_with_hflip_records_it_resumes_old_runs_and_refuses_stereo_branches(data, reference_run, tmp_path,
+                                                                                    capsys):
+    import shutil
+
+    run = tmp_path / "flip"
+    result = train(_cfg(data, epochs=1, hflip=0.5), run, progress=False)
+    assert result["last"]["epoch"] == 1 and json.loads((run / "config.json").read_text())["hflip"] == 0.5
+    # a run made before --hflip existed has no such key: it resumes as hflip 0
+    ref, _ = reference_run
+    old = tmp_path / "old"
+    shutil.copytree(ref, old)
+    cfg = json.loads((old / "config.json").read_text())
+    del cfg["hflip"]
+    (old / "config.json").write_text(json.dumps(cfg))
+    assert train(_cfg(data, epochs=3), old, progress=False)["last"]["epoch"] == 3
+    code = main(["train", str(data), "--out", str(tmp_path / "stereo"), "--branches", "camera_both", "--hflip", "0.5"])
+    assert code == 2 and "camera_both" in capsys.readouterr().err
+    code = main(["train", str(data), "--out", str(tmp_path / "p"), "--branches", "radar", "--hflip", "1.5"])
+    assert code == 2 and "probability" in capsys.readouterr().err
