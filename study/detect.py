@@ -168,6 +168,78 @@ def operating_point(per_frame: list, reader: DatasetReader, frame: str = "camera
             "per_severity": {k: point(groups[k]) for k in sorted(groups, key=int)}}
 
 
+# Bins of an object's distance over the frame's visibility (MOR): Koschmieder's law leaves an object
+# exp(-ln(20) d / MOR) of its contrast, i.e. 100-47 %, 47-22 %, 22-5 % and under 5 % in these bins.
+VISIBILITY_BINS = (0.0, 0.25, 0.5, 1.0, float("inf"))
+
+
+def bev_distances(lab: dict, calibration: dict) -> np.ndarray:
+    """(N,) range [m] of each BEV label box's centre from the radar (Appendix A grid; the camera
+    labels carry their own `distance_m`, from the camera)."""
+    centres = np.array(lab["boxes"], float).reshape(-1, 4) @ np.array([[.5, 0], [0, .5], [.5, 0], [0, .5]])
+    xy = Calibration.from_dict(calibration).bev_to_radar(centres)
+    return np.hypot(xy[:, 0], xy[:, 1])
+
+
+def recall_by_visibility(per_frame: list, reader: DatasetReader, frame: str = "camera_right",
+                         bev_crop: tuple | None = None, threshold: float = 0.5, visibility: dict | None = None,
+                         edges=VISIBILITY_BINS) -> dict:
+    """Recall of the vehicle classes at one score threshold, binned by each object's distance over
+    the frame's visibility d / MOR: where the camera's physics says an object fades (Koschmieder
+    contrast exp(-ln(20) d / MOR)), does the detector lose it? Matching as VOC (same class, each
+    detection to its best-IoU box, IoU >= 0.5, one detection per box, difficult boxes ignored), so
+    the bins add up to `operating_point`'s recall.
+
+    `visibility`: {dataset_index: MOR [m]} to bin by (for clear-weather twins: the degraded frame's
+    MOR); default: each frame's own `meta["weather"]["visibility_m"]`.
+    Returns {"<lo>-<hi>": {"objects", "found", "recall", "contrast": [at lo, at hi]}} in bin order.
+    """
+    from fusion.data import crop_bev_labels
+    from sim.weather import LN20
+    from study.metrics import box_iou
+
+    vehicles = {CLASSES.index(c) + 1 for c in VEHICLES}
+    edges = np.asarray(edges, float)
+    objects = np.zeros(len(edges) - 1, int)
+    found = np.zeros(len(edges) - 1, int)
+    for meta, d in per_frame:
+        i = meta["dataset_index"]
+        mor = float(visibility[i] if visibility is not None else meta["weather"]["visibility_m"])
+        lab = reader.labels(i)[frame]
+        if "distance_m" not in lab:
+            lab = {**lab, "distance_m": bev_distances(lab, meta["calibration"]).tolist()}
+        if frame == "bev" and bev_crop is not None:
+            lab = crop_bev_labels(lab, bev_crop[0], bev_crop[1])
+        gt_boxes = np.array(lab["boxes"], float).reshape(-1, 4)
+        gt_labels = np.array(lab["labels"], np.int64)
+        difficult = np.array(lab["difficult"], bool)
+        ratio = np.array(lab["distance_m"], float) / mor
+        hit = np.zeros(len(gt_boxes), bool)
+        keep = d.scores >= threshold
+        boxes, scores, labels = d.boxes[keep], d.scores[keep], d.labels[keep]
+        for c in vehicles:
+            g = np.flatnonzero(gt_labels == c)
+            k = np.flatnonzero(labels == c)
+            if not len(g) or not len(k):
+                continue
+            iou = box_iou(boxes[k], gt_boxes[g])
+            for r in np.argsort(-scores[k], kind="stable"):
+                j = int(np.argmax(iou[r]))
+                if iou[r, j] >= 0.5 and not difficult[g[j]] and not hit[g[j]]:
+                    hit[g[j]] = True
+        counted = np.isin(gt_labels, list(vehicles)) & ~difficult
+        b = np.clip(np.searchsorted(edges, ratio, side="right") - 1, 0, len(edges) - 2)
+        np.add.at(objects, b[counted], 1)
+        np.add.at(found, b[counted & hit], 1)
+
+    def name(lo, hi):
+        return f"{lo:g}-{hi:g}" if np.isfinite(hi) else f">={lo:g}"
+
+    return {name(lo, hi): {"objects": int(n), "found": int(f), "recall": _round(f / n) if n else None,
+                           "contrast": [_round(np.exp(-LN20 * lo)), _round(np.exp(-LN20 * hi))]}
+            for lo, hi, n, f in zip(edges[:-1], edges[1:], objects, found)}
+
+
 def _mean_of(res, classes) -> float | None:
     """Mean AP over those of `classes` that have ground truth (None when none has)."""
     aps = [res.ap[c] for c in classes if res.ap.get(c) is not None and not np.isnan(res.ap[c])]

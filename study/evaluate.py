@@ -129,12 +129,27 @@ def _twins(model, data, indices, names, frames, method, weights, batch_size, per
     the degraded frames, on their clear twins, and their ratio, overall and per severity; and the same
     for the fused result. The frames and labels are identical; only the weather differs."""
     from sensors.dataset import DatasetReader
-    from study.detect import bev_crop_of, fused, native, operating_point, run_branches, score
+    from study.detect import (
+        bev_crop_of,
+        fused,
+        native,
+        operating_point,
+        recall_by_visibility,
+        run_branches,
+        score,
+    )
 
     clear_reader = DatasetReader(data, clear=True)
     clear_frames = run_branches(model, data, indices, names, batch_size=batch_size, progress="clear twins",
                                 clear=True)
     crop = bev_crop_of(model, reader)
+    mor = {meta["dataset_index"]: meta["weather"]["visibility_m"] for meta, _ in per_frame}
+
+    def by_visibility(deg_frames, clr_frames, frame, bev) -> dict:
+        deg = recall_by_visibility(deg_frames, reader, frame, bev, visibility=mor)
+        clr = recall_by_visibility(clr_frames, clear_reader, frame, bev, visibility=mor)
+        return {k: {"objects": v["objects"], "degraded": v["recall"], "clear": clr[k]["recall"],
+                    "contrast": v["contrast"]} for k, v in deg.items()}
 
     def pair(deg_frames, clr_frames, frame, bev) -> dict:
         deg, clr = score(deg_frames, reader, frame, bev), score(clr_frames, clear_reader, frame, bev)
@@ -143,7 +158,8 @@ def _twins(model, data, indices, names, frames, method, weights, batch_size, per
         sev = sorted(set(deg["map_vehicles_per_severity"]) | set(clr["map_vehicles_per_severity"]), key=int)
         return {"degraded": deg["map_vehicles"], "clear": clr["map_vehicles"], "retained": _ratio(deg["map_vehicles"], clr["map_vehicles"]),
                 "at_score_0.5": {"degraded": {k: op_d[k] for k in ("recall", "precision")},
-                                 "clear": {k: op_c[k] for k in ("recall", "precision")}},
+                                 "clear": {k: op_c[k] for k in ("recall", "precision")},
+                                 "by_distance_over_visibility": by_visibility(deg_frames, clr_frames, frame, bev)},
                 "per_severity": {s: {"degraded": deg["map_vehicles_per_severity"].get(s),
                                      "clear": clr["map_vehicles_per_severity"].get(s),
                                      "retained": _ratio(deg["map_vehicles_per_severity"].get(s),
@@ -152,7 +168,9 @@ def _twins(model, data, indices, names, frames, method, weights, batch_size, per
                                                       "clear": op_c["per_severity"].get(s)}} for s in sev}}
 
     out = {"metric": "vehicle-class mAP@0.5 (car, van, truck, bus), each branch in its own frame; retained = "
-                     "degraded / clear; at_score_0.5: recall and precision of the detections scoring >= 0.5",
+                     "degraded / clear; at_score_0.5: recall and precision of the detections scoring >= 0.5, and the "
+                     "recall binned by object distance / the degraded frame's visibility (MOR), with the "
+                     "Koschmieder contrast exp(-ln(20) d / MOR) left at the bin edges",
            "branches": {}}
     for b in names:
         out["branches"][b] = pair(native(per_frame, b), native(clear_frames, b), frames[b], crop)
@@ -228,6 +246,9 @@ def run(args) -> int:
                 lines.append(f"    {b}: {t['degraded']} / {t['clear']} = {t['retained']}; per severity: " + ", ".join(
                     f"{s} {v['retained']}" for s, v in t["per_severity"].items())
                     + f"; recall at score 0.5: {op['degraded']['recall']} / {op['clear']['recall']}")
+                lines.append("      recall at 0.5 by distance / visibility (degraded / clear, objects): " + ", ".join(
+                    f"{k} {v['degraded']} / {v['clear']} ({v['objects']})"
+                    for k, v in op["by_distance_over_visibility"].items()))
         return "\n".join(lines)
 
     emit(result, args.json, text)

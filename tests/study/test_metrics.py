@@ -277,3 +277,40 @@ def test_operating_point_counts_vehicle_hits_at_one_threshold_per_severity():
     assert op["per_severity"]["5"] == {"recall": 1.0, "precision": 0.5, "positives": 1, "detections": 2}
     low = operating_point(frames, Reader(), threshold=0.3)  # the van's detection now counts
     assert low["per_severity"]["3"]["recall"] == 1.0
+
+
+def test_recall_by_visibility_bins_objects_by_distance_over_mor_and_adds_up_to_the_operating_point():
+    """By hand: frame 0 (MOR 100 m) has a car at 10 m found, a van at 40 m missed and a truck at
+    80 m found; frame 1 (MOR 40 m) a car at 30 m found twice (one hit), a bus at 50 m that is
+    difficult (not counted) and a car at 60 m missed. d / MOR: 0.1, 0.4, 0.8 | 0.75, 1.25, 1.5."""
+    from fusion.late import Detections
+    from sim.actors import CLASSES
+    from study.detect import operating_point, recall_by_visibility
+
+    car, van, truck, bus = (CLASSES.index(c) + 1 for c in ("car", "van", "truck", "bus"))
+    D = [0.5, 0.1, 0.7, 0.3]  # overlaps no other box
+    labels = {0: {"camera_right": {"boxes": [A, B, C], "labels": [car, van, truck], "difficult": [False] * 3,
+                                   "distance_m": [10.0, 40.0, 80.0]}},
+              1: {"camera_right": {"boxes": [A, B, D], "labels": [car, bus, car], "difficult": [False, True, False],
+                                   "distance_m": [30.0, 50.0, 60.0]}}}
+
+    class Reader:
+        def labels(self, i):
+            return labels[i]
+
+    def d(boxes, scores, cls):
+        return Detections(np.array(boxes, float).reshape(-1, 4), np.array(scores, float), np.array(cls, np.int64))
+
+    frames = [({"dataset_index": 0, "weather": {"visibility_m": 100.0}}, d([A, B, C], [0.9, 0.3, 0.6], [car, van, truck])),
+              ({"dataset_index": 1, "weather": {"visibility_m": 40.0}}, d([A, A, B], [0.9, 0.8, 0.7], [car, car, bus]))]
+    r = recall_by_visibility(frames, Reader())
+    assert list(r) == ["0-0.25", "0.25-0.5", "0.5-1", ">=1"]
+    assert [(v["objects"], v["found"]) for v in r.values()] == [(1, 1), (1, 0), (2, 2), (1, 0)]
+    assert r["0.5-1"]["recall"] == 1.0 and r[">=1"]["recall"] == 0.0
+    assert r["0.25-0.5"]["contrast"] == [round(np.exp(-np.log(20) * 0.25), 4), round(np.exp(-np.log(20) * 0.5), 4)]
+    assert r[">=1"]["contrast"] == [0.05, 0.0]
+    op = operating_point([({**m, "severity": 1}, x) for m, x in frames], Reader())
+    assert op["recall"] == round(sum(v["found"] for v in r.values()) / sum(v["objects"] for v in r.values()), 4)
+    # binned by another visibility (a clear twin binned by its degraded frame's MOR)
+    r2 = recall_by_visibility(frames, Reader(), visibility={0: 1000.0, 1: 1000.0})
+    assert [v["objects"] for v in r2.values()] == [5, 0, 0, 0]

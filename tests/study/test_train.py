@@ -223,7 +223,18 @@ def test_evaluate_twins_scores_the_same_frames_in_clear_weather(reference_run, d
             assert v["retained"] == round(v["degraded"] / v["clear"], 3)
     assert t["branches"]["radar"]["clear"] == expected["map_vehicles"]
     op = t["fused"]["at_score_0.5"]
-    assert set(op) == {"degraded", "clear"} and set(op["clear"]) == {"recall", "precision"}
+    assert set(op) == {"degraded", "clear", "by_distance_over_visibility"} and set(op["clear"]) == {"recall", "precision"}
+    # the twin is binned by its fog frame's visibility, so both sides count the same objects
+    from study.detect import operating_point, recall_by_visibility
+
+    bins = t["branches"]["radar"]["at_score_0.5"]["by_distance_over_visibility"]
+    deg = run_branches(model, twins, range(4), ["radar"])
+    pos = operating_point(native(deg, "radar"), reader, "bev", bev_crop_of(model, reader))["positives"]
+    assert sum(v["objects"] for v in bins.values()) == pos
+    mine = recall_by_visibility(native(clear, "radar"), DatasetReader(twins, clear=True), "bev",
+                                bev_crop_of(model, reader), visibility={i: reader.meta(i)["weather"]["visibility_m"]
+                                                                        for i in range(4)})
+    assert [v["clear"] for v in bins.values()] == [v["recall"] for v in mine.values()]
     assert r["map_vehicles_per_severity"].keys() == set(sev)
     assert main(["evaluate", str(ref), str(twins), "--twins"]) == 0
     assert "same frames in clear weather" in capsys.readouterr().out
@@ -276,3 +287,18 @@ def test_training_with_hflip_records_it_resumes_old_runs_and_refuses_stereo_bran
     assert code == 2 and "camera_both" in capsys.readouterr().err
     code = main(["train", str(data), "--out", str(tmp_path / "p"), "--branches", "radar", "--hflip", "1.5"])
     assert code == 2 and "probability" in capsys.readouterr().err
+
+
+def test_bev_label_ranges_match_the_camera_labels_distances(data):
+    """The BEV boxes' ranges (used to bin recall by distance / visibility) agree with the camera
+    labels' distances of the same objects to within the radar-camera offset."""
+    from sensors.dataset import DatasetReader
+    from study.detect import bev_distances
+
+    reader = DatasetReader(data)
+    diffs = []
+    for i in range(len(reader)):
+        lab, meta = reader.labels(i), reader.meta(i)
+        rng = dict(zip(lab["bev"]["ids"], bev_distances(lab["bev"], meta["calibration"])))
+        diffs += [rng[j] - d for j, d in zip(lab["camera_right"]["ids"], lab["camera_right"]["distance_m"]) if j in rng]
+    assert len(diffs) > 10 and np.max(np.abs(diffs)) < 1.5
