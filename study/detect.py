@@ -52,8 +52,14 @@ def load_run(run: str | Path, which: str = "latest"):
 
 def frames_for(run_cfg: dict, data: str | Path, split: str = "auto") -> tuple[list[int], str]:
     """Which frames of `data` to evaluate: the run's test split when `data` is its training dataset
-    (same generation config), every frame otherwise; `split` = "test" | "train" | "all" forces it."""
+    (same generation config), every frame otherwise; `split` = "test" | "train" | "all" forces it.
+    "data-test": `data`'s own by-sequence test split with the run's split settings, on any dataset
+    (the frames a run trained on `data` is tested on: two runs compared on the same frames)."""
+    if split not in ("auto", "test", "train", "all", "data-test"):
+        raise UserError(f"unknown split {split!r} (choose from: auto, test, train, all, data-test)")
     reader = DatasetReader(data)
+    if split == "data-test":
+        return split_by_sequence(reader, run_cfg["train_fraction"], run_cfg["split_seed"])[1], split
     same = reader.manifest["config"] == run_cfg.get("data_config")
     if split == "auto":
         split = "test" if same else "all"

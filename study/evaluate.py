@@ -39,8 +39,10 @@ def add_parser(sub, name, help_text):
     p.add_argument("data", help="dataset directory")
     p.add_argument("--branches", default="all", help="comma-separated branch names, or 'all'")
     p.add_argument("--fusion", default="soft-nms", help="nms | soft-nms | wbf")
-    p.add_argument("--split", default="auto", choices=["auto", "test", "train", "all"],
-                   help="auto: the run's test split on its own dataset, every frame on another")
+    p.add_argument("--split", default="auto", choices=["auto", "test", "train", "all", "data-test"],
+                   help="auto: the run's test split on its own dataset, every frame on another; data-test: "
+                   "DATA's own by-sequence test split (the run's split settings), i.e. the frames a run trained "
+                   "on DATA is tested on, to compare two runs on the same frames")
     p.add_argument("--weights", default="", help="per-branch fusion weights, e.g. radar=2,camera_right=1")
     p.add_argument("--contexts", default="", help="comma-separated contexts to score (e.g. city,junction,motorway,"
                    "rural for clear weather); default: every frame of the split")

@@ -302,3 +302,19 @@ def test_bev_label_ranges_match_the_camera_labels_distances(data):
         rng = dict(zip(lab["bev"]["ids"], bev_distances(lab["bev"], meta["calibration"])))
         diffs += [rng[j] - d for j, d in zip(lab["camera_right"]["ids"], lab["camera_right"]["distance_m"]) if j in rng]
     assert len(diffs) > 10 and np.max(np.abs(diffs)) < 1.5
+
+
+def test_split_data_test_is_the_datasets_own_test_split(reference_run, data):
+    """--split data-test: on the run's own dataset the same frames and mAP as its test split; it
+    also works on another dataset, where --split test is refused."""
+    from study.detect import frames_for
+    from study.evaluate import evaluate
+
+    ref, _ = reference_run
+    a, b = evaluate(ref, data, split="test"), evaluate(ref, data, split="data-test")
+    assert b["split"] == "data-test" and (a["frames"], a["map"]) == (b["frames"], b["map"])
+    cfg = json.loads((ref / "config.json").read_text())
+    other = {**cfg, "data_config": {**cfg["data_config"], "seed": -1}}  # as if trained on another dataset
+    assert frames_for(other, data, "data-test")[0] == frames_for(cfg, data, "test")[0]
+    with pytest.raises(Exception, match="needs the run's training dataset"):
+        frames_for(other, data, "test")
