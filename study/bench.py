@@ -183,6 +183,10 @@ def run_inference(args) -> int:
                          f"{r['peak_rss_mb'][name]:13.0f}")
         lines.append(f"ratio_top3_to_all {r['ratio_top3_to_all']} (worst case, three early-fusion branches: "
                      f"{r['ratio_top3_worst_to_all']})")
+        for name, gains in r.get("batch8_gain_per_op_kind", {}).items():
+            share = r["op_share_batch_1"][name]
+            lines.append(f"  {name}: batch-8 gain per operator kind (share of batch-1 time): " + ", ".join(
+                f"{k} {g}x ({100 * share[k]:.0f} %)" for k, g in gains.items()))
         lines.append("training images/s per branch: " + ", ".join(f"{k} {v:.2f}" for k, v in r["training_images_per_second"].items()))
         lines.append("gate overhead [ms]: " + ", ".join(
             f"{g} {v}" if v is not None else f"{g} - (needs ground truth)" for g, v in r["gate_overhead_ms"].items())

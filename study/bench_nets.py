@@ -12,6 +12,7 @@ gate wired in (stems -> gate -> k branches -> fusion block).
 from __future__ import annotations
 
 import multiprocessing as mp
+import os
 import resource
 import statistics
 import time
@@ -29,6 +30,26 @@ CONFIGURATIONS = {
     "hydra_top3_worst": ("paper", ["camera_both", "camera_lidar", "radar_lidar"], "stems + three early-fusion branches + fusion"),
     "all_branches": ("paper", None, "stems + all seven branches + fusion"),
 }
+
+
+OP_KINDS = ("conv", "norm", "roi_align", "nms", "linear", "other")
+
+
+def op_kind(name: str) -> str:
+    """The kind of a torch operator, for the time breakdown (convolutions, normalisation, RoIAlign,
+    NMS, fully connected layers, everything else)."""
+    n = name.lower()
+    if "conv" in n:
+        return "conv"
+    if "norm" in n:
+        return "norm"
+    if "roi_align" in n:
+        return "roi_align"
+    if "nms" in n:
+        return "nms"
+    if n.split("::")[-1] in ("addmm", "linear", "mm", "matmul"):
+        return "linear"
+    return "other"
 
 
 def _inputs(model, batch: int, seed: int = 0):
@@ -93,8 +114,19 @@ def _worker(args) -> dict:
         times.append(time.perf_counter() - t)
     peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
     params = sum(p.numel() for p in model.parameters())
+    # where the time goes: self CPU time per operator kind of one more forward (profiled, so each
+    # operator carries the profiler's overhead too: compare kinds and batch sizes, not to latency_ms)
+    from torch.profiler import ProfilerActivity, profile
+
+    os.environ.setdefault("KINETO_LOG_LEVEL", "6")  # the profiler library's start/stop chatter on stderr
+    with profile(activities=[ProfilerActivity.CPU]) as prof:
+        once()
+    ops = dict.fromkeys(OP_KINDS, 0.0)
+    for e in prof.key_averages():
+        ops[op_kind(e.key)] += e.self_cpu_time_total / 1000.0
     return {"latency_ms": 1000 * statistics.median(times), "latency_ms_min": 1000 * min(times),
-            "peak_rss_mb": peak / 1024, "forward_rss_mb": (peak - base_rss) / 1024, "params_m": params / 1e6}
+            "peak_rss_mb": peak / 1024, "forward_rss_mb": (peak - base_rss) / 1024, "params_m": params / 1e6,
+            **{f"ops_ms_per_frame/{k}": v / batch for k, v in ops.items()}}
 
 
 def _train_worker(args) -> dict:
@@ -260,6 +292,15 @@ def bench_inference(profile: str = "cpu", repeats: int = 5, threads: int = 2, ru
         "batch8_throughput_gain": {n: round(r["batch_1"]["latency_ms"] / (r["batch_8"]["latency_ms"] / 8), 2)
                                    for n, r in results.items()} if 8 in batches else {},
         "training_images_per_second": {n: v["images_per_second"] for n, v in training.items()},
+        # per operator kind, batch 8 against batch 1 (profiled self CPU time per frame): which parts
+        # batching speeds up and which it cannot
+        "batch8_gain_per_op_kind": {n: {k: round(r["batch_1"][f"ops_ms_per_frame/{k}"]
+                                                 / r["batch_8"][f"ops_ms_per_frame/{k}"], 2)
+                                        for k in OP_KINDS if r["batch_8"][f"ops_ms_per_frame/{k}"] > 0}
+                                    for n, r in results.items()} if 8 in batches and 1 in batches else {},
+        "op_share_batch_1": {n: {k: round(r["batch_1"][f"ops_ms_per_frame/{k}"]
+                                          / max(sum(r["batch_1"][f"ops_ms_per_frame/{j}"] for j in OP_KINDS), 1e-9), 3)
+                                 for k in OP_KINDS} for n, r in results.items()} if 1 in batches else {},
         "configurations": {n: d for n, (_, _, d) in CONFIGURATIONS.items()},
         "details": results,
         "profile": profile,

@@ -42,7 +42,9 @@ def test_bench_inference_prints_and_emits_the_gate_figures(monkeypatch, capsys):
     gates = bench_gates("cpu", repeats=1, threads=1, overrides=TINY, ks=(1, 3, 5))
     fake = {"latency_ms": {"all_branches": 10.0}, "latency_ms_per_frame_batch_8": {"all_branches": 5.0},
             "peak_rss_mb": {"all_branches": 100.0}, "ratio_top3_to_all": 0.5, "ratio_top3_worst_to_all": 0.6,
-            "training_images_per_second": {"radar": 1.0}, **gates}
+            "training_images_per_second": {"radar": 1.0},
+            "batch8_gain_per_op_kind": {"all_branches": {"conv": 1.04, "roi_align": 0.82}},
+            "op_share_batch_1": {"all_branches": {"conv": 0.625, "roi_align": 0.164}}, **gates}
     calls = []
     monkeypatch.setattr(study.bench_nets, "bench_inference", lambda *a, **k: calls.append(a) or dict(fake))
     monkeypatch.setattr(study.bench_boxes, "bench_box_fusion", lambda **k: {"methods": {}})
@@ -51,6 +53,7 @@ def test_bench_inference_prints_and_emits_the_gate_figures(monkeypatch, capsys):
     assert calls[-1][3] is None  # no --run: random weights (the option must not collide with the handler)
     assert "gate overhead [ms]: knowledge" in out and "optimal - (needs ground truth)" in out
     assert "top-k with the attention gate [ms]: k=1" in out and "% of top-3" in out
+    assert "all_branches: batch-8 gain per operator kind (share of batch-1 time): conv 1.04x (62 %)" in out
     assert main(["bench", "inference", "--json", "--run", "runs/x"]) == 0
     assert calls[-1][3] == "runs/x"
     r = json.loads(capsys.readouterr().out)
