@@ -202,9 +202,9 @@ def recall_by_visibility(per_frame: list, reader: DatasetReader, frame: str = "c
     """
     from fusion.data import crop_bev_labels
     from sim.weather import LN20
-    from study.metrics import box_iou
+    from study.metrics import matched_ground_truth
 
-    vehicles = {CLASSES.index(c) + 1 for c in VEHICLES}
+    vehicles = [CLASSES.index(c) + 1 for c in VEHICLES]
     edges = np.asarray(edges, float)
     objects = np.zeros(len(edges) - 1, int)
     found = np.zeros(len(edges) - 1, int)
@@ -216,24 +216,13 @@ def recall_by_visibility(per_frame: list, reader: DatasetReader, frame: str = "c
             lab = {**lab, "distance_m": bev_distances(lab, meta["calibration"]).tolist()}
         if frame == "bev" and bev_crop is not None:
             lab = crop_bev_labels(lab, bev_crop[0], bev_crop[1])
-        gt_boxes = np.array(lab["boxes"], float).reshape(-1, 4)
-        gt_labels = np.array(lab["labels"], np.int64)
-        difficult = np.array(lab["difficult"], bool)
-        ratio = np.array(lab["distance_m"], float) / mor
-        hit = np.zeros(len(gt_boxes), bool)
+        gt = {"boxes": np.array(lab["boxes"], float).reshape(-1, 4), "labels": np.array(lab["labels"], np.int64),
+              "difficult": np.array(lab["difficult"], bool)}
         keep = d.scores >= threshold
-        boxes, scores, labels = d.boxes[keep], d.scores[keep], d.labels[keep]
-        for c in vehicles:
-            g = np.flatnonzero(gt_labels == c)
-            k = np.flatnonzero(labels == c)
-            if not len(g) or not len(k):
-                continue
-            iou = box_iou(boxes[k], gt_boxes[g])
-            for r in np.argsort(-scores[k], kind="stable"):
-                j = int(np.argmax(iou[r]))
-                if iou[r, j] >= 0.5 and not difficult[g[j]] and not hit[g[j]]:
-                    hit[g[j]] = True
-        counted = np.isin(gt_labels, list(vehicles)) & ~difficult
+        det = {"boxes": d.boxes[keep], "scores": d.scores[keep], "labels": d.labels[keep]}
+        hit = matched_ground_truth([det], [gt], classes=vehicles)[0]
+        ratio = np.array(lab["distance_m"], float) / mor
+        counted = np.isin(gt["labels"], vehicles) & ~gt["difficult"]
         b = np.clip(np.searchsorted(edges, ratio, side="right") - 1, 0, len(edges) - 2)
         np.add.at(objects, b[counted], 1)
         np.add.at(found, b[counted & hit], 1)

@@ -188,14 +188,17 @@ def _images(detections, ground_truths) -> list[_Image]:
     return images
 
 
-def _evaluate_class(images: list[_Image], cls: int, iou_thr: float):
-    """(tp, fp, scores) flags of the class's ranked non-ignored detections, n_pos, n_det."""
+def _evaluate_class(images: list[_Image], cls: int, iou_thr: float, hits: list[np.ndarray] | None = None):
+    """(tp, fp, scores) flags of the class's ranked non-ignored detections, n_pos, n_det.
+    `hits`: per image, a boolean array over its ground truth, set where a true positive matched."""
     image_idx, det_scores, best_gt, best_iou = [], [], [], []
     difficult_of, offset = [], 0  # ground truth of the class, numbered across images
+    owner = []  # (image, box) of each of those
     n_pos = 0
     for i, im in enumerate(images):
         d = im.det_labels == cls
         g = im.gt_labels == cls
+        owner.extend((i, int(b)) for b in np.flatnonzero(g))
         gt_boxes, gt_difficult = im.gt_boxes[g], im.gt_difficult[g]
         n_pos += int((~gt_difficult).sum())
         n_d = int(d.sum())
@@ -226,8 +229,32 @@ def _evaluate_class(images: list[_Image], cls: int, iou_thr: float):
         # the first (best-ranked) claim on a box is the true positive, later ones are duplicates
         _, first = np.unique(gt[claims], return_index=True)
         tp[np.flatnonzero(claims)[first]] = True
+    if hits is not None:
+        for t in gt[tp]:
+            i, b = owner[t]
+            hits[i][b] = True
     keep = ~ignored
     return tp[keep], ~tp[keep], n_pos, len(scores)
+
+
+def _classes_of(images: list[_Image], classes) -> np.ndarray:
+    if classes is None:
+        seen = [im.det_labels for im in images] + [im.gt_labels for im in images]
+        return np.unique(np.concatenate(seen)) if seen else np.zeros(0, np.int64)
+    return np.unique(_class_ids(list(classes), "classes"))
+
+
+def matched_ground_truth(detections: Sequence, ground_truths: Sequence, *, iou_thr: float = 0.5,
+                         classes: Sequence[int] | None = None) -> list[np.ndarray]:
+    """Per image, a boolean array over its ground-truth boxes: True where a detection matched the
+    box as a true positive under exactly `evaluate_detections`' protocol (same arguments), so the
+    count of True over non-difficult boxes of `classes` is its `n_true_positives`. For recall by an
+    attribute of the boxes (distance, size, occlusion)."""
+    images = _images(detections, ground_truths)
+    hits = [np.zeros(len(im.gt_boxes), bool) for im in images]
+    for cls in (int(c) for c in _classes_of(images, classes)):
+        _evaluate_class(images, cls, float(iou_thr), hits)
+    return hits
 
 
 def evaluate_detections(detections: Sequence, ground_truths: Sequence, *, iou_thr: float = 0.5,
@@ -260,11 +287,7 @@ def evaluate_detections(detections: Sequence, ground_truths: Sequence, *, iou_th
     if interpolation not in INTERPOLATIONS:
         raise ValueError(f"interpolation must be one of {INTERPOLATIONS}, got {interpolation!r}")
     images = _images(detections, ground_truths)
-    if classes is None:
-        seen = [im.det_labels for im in images] + [im.gt_labels for im in images]
-        class_ids = np.unique(np.concatenate(seen)) if seen else np.zeros(0, np.int64)
-    else:
-        class_ids = np.unique(_class_ids(list(classes), "classes"))
+    class_ids = _classes_of(images, classes)
 
     ap, n_positives, n_detections, n_tp, precision, recall = {}, {}, {}, {}, {}, {}
     for cls in (int(c) for c in class_ids):

@@ -314,3 +314,25 @@ def test_recall_by_visibility_bins_objects_by_distance_over_mor_and_adds_up_to_t
     # binned by another visibility (a clear twin binned by its degraded frame's MOR)
     r2 = recall_by_visibility(frames, Reader(), visibility={0: 1000.0, 1: 1000.0})
     assert [v["objects"] for v in r2.values()] == [5, 0, 0, 0]
+
+
+def test_matched_ground_truth_marks_exactly_the_true_positives_of_evaluate_detections():
+    from study.metrics import evaluate_detections, matched_ground_truth
+
+    rng = np.random.default_rng(3)
+    for _ in range(30):
+        dets, gts = [], []
+        for _ in range(int(rng.integers(1, 5))):
+            g = int(rng.integers(0, 6))
+            xy = rng.uniform(0, 80, (g, 2))
+            gb = np.c_[xy, xy + rng.uniform(5, 30, (g, 2))]
+            gts.append({"boxes": gb, "labels": rng.integers(1, 4, g), "difficult": rng.random(g) < 0.2})
+            n = int(rng.integers(0, 8))
+            src = gb[rng.integers(0, g, n)] if g else rng.uniform(0, 80, (n, 4))
+            db = src + rng.normal(0, 3, (n, 4)) if g else np.c_[src[:, :2], src[:, :2] + 10]
+            dets.append({"boxes": db, "scores": rng.random(n), "labels": rng.integers(1, 4, n)})
+        r = evaluate_detections(dets, gts)
+        hits = matched_ground_truth(dets, gts)
+        for c, tp in r.n_true_positives.items():
+            assert tp == sum(int((h & (g["labels"] == c) & ~g["difficult"]).sum()) for h, g in zip(hits, gts))
+        assert not any((h & g["difficult"]).any() for h, g in zip(hits, gts))
