@@ -102,8 +102,17 @@ def ground_truth(labels: dict, frame: str, bev_crop: tuple | None = None) -> dic
         from fusion.data import crop_bev_labels
 
         lab = crop_bev_labels(lab, bev_crop[0], bev_crop[1])
-    return {"boxes": np.array(lab["boxes"], float).reshape(-1, 4), "labels": np.array(lab["labels"], np.int64),
-            "difficult": np.array(lab["difficult"], bool)}
+    gt = {"boxes": np.array(lab["boxes"], float).reshape(-1, 4), "labels": np.array(lab["labels"], np.int64),
+          "difficult": np.array(lab["difficult"], bool)}
+    if "distance_m" in lab:
+        gt["distance_m"] = np.array(lab["distance_m"], float)
+    return gt
+
+
+def _above(d: Detections, threshold: float) -> dict:
+    """The detections scoring >= threshold, as evaluate_detections takes them."""
+    keep = d.scores >= threshold
+    return {"boxes": d.boxes[keep], "scores": d.scores[keep], "labels": d.labels[keep]}
 
 
 # The learning check's vehicle classes (HydraFusion's car, van, truck, bus).
@@ -156,10 +165,8 @@ def operating_point(per_frame: list, reader: DatasetReader, frame: str = "camera
     vehicles = [CLASSES.index(c) + 1 for c in VEHICLES]
     groups = defaultdict(list)
     for meta, d in per_frame:
-        keep = d.scores >= threshold
-        det = {"boxes": d.boxes[keep], "scores": d.scores[keep], "labels": d.labels[keep]}
         gt = ground_truth(reader.labels(meta["dataset_index"]), frame, bev_crop)
-        groups[str(meta.get("severity", 0))].append((det, gt))
+        groups[str(meta.get("severity", 0))].append((_above(d, threshold), gt))
 
     def point(pairs) -> dict:
         r = evaluate_detections([a for a, _ in pairs], [b for _, b in pairs], classes=vehicles)
@@ -200,7 +207,6 @@ def recall_by_visibility(per_frame: list, reader: DatasetReader, frame: str = "c
     MOR); default: each frame's own `meta["weather"]["visibility_m"]`.
     Returns {"<lo>-<hi>": {"objects", "found", "recall", "contrast": [at lo, at hi]}} in bin order.
     """
-    from fusion.data import crop_bev_labels
     from sim.weather import LN20
     from study.metrics import matched_ground_truth
 
@@ -211,17 +217,13 @@ def recall_by_visibility(per_frame: list, reader: DatasetReader, frame: str = "c
     for meta, d in per_frame:
         i = meta["dataset_index"]
         mor = float(visibility[i] if visibility is not None else meta["weather"]["visibility_m"])
-        lab = reader.labels(i)[frame]
-        if "distance_m" not in lab:
-            lab = {**lab, "distance_m": bev_distances(lab, meta["calibration"]).tolist()}
-        if frame == "bev" and bev_crop is not None:
-            lab = crop_bev_labels(lab, bev_crop[0], bev_crop[1])
-        gt = {"boxes": np.array(lab["boxes"], float).reshape(-1, 4), "labels": np.array(lab["labels"], np.int64),
-              "difficult": np.array(lab["difficult"], bool)}
-        keep = d.scores >= threshold
-        det = {"boxes": d.boxes[keep], "scores": d.scores[keep], "labels": d.labels[keep]}
-        hit = matched_ground_truth([det], [gt], classes=vehicles)[0]
-        ratio = np.array(lab["distance_m"], float) / mor
+        labels = reader.labels(i)
+        if "distance_m" not in labels[frame]:
+            lab = labels[frame]
+            labels = {**labels, frame: {**lab, "distance_m": bev_distances(lab, meta["calibration"]).tolist()}}
+        gt = ground_truth(labels, frame, bev_crop)
+        hit = matched_ground_truth([_above(d, threshold)], [gt], classes=vehicles)[0]
+        ratio = gt["distance_m"] / mor
         counted = np.isin(gt["labels"], vehicles) & ~gt["difficult"]
         b = np.clip(np.searchsorted(edges, ratio, side="right") - 1, 0, len(edges) - 2)
         np.add.at(objects, b[counted], 1)
