@@ -77,7 +77,13 @@ def crop_bev_labels(lab: dict, size: tuple[int, int], full: int) -> dict:
 
 
 def frame_targets(labels: dict, keep_difficult: bool = False, bev_size: tuple[int, int] | None = None,
-                  bev_full: int | None = None) -> dict:
+                  bev_full: int | None = None, meta: dict | None = None, protocol=None) -> dict:
+    """Training targets of one frame under the evaluation `protocol` (fusion.protocol; None = the
+    stored labels as they are, i.e. `visible`; other protocols need the frame's `meta`)."""
+    if protocol is not None:
+        from fusion.protocol import frame_labels
+
+        labels = frame_labels(labels, meta, protocol)
     out = {}
     for frame in FRAMES:
         lab = labels[frame]
@@ -133,8 +139,11 @@ class FrameDataset(Dataset):
     """Frames `indices` of a dataset directory as (inputs, targets, meta)."""
 
     def __init__(self, root, indices=None, sensors=SENSORS, clear: bool = False, keep_difficult: bool = False,
-                 bev_size: tuple[int, int] | None = None):
-        """`bev_size` (H, W): the BEV crop the model reads (forward rows, centred columns); None = all."""
+                 bev_size: tuple[int, int] | None = None, protocol=None):
+        """`bev_size` (H, W): the BEV crop the model reads (forward rows, centred columns); None = all.
+        `protocol`: the evaluation protocol whose ground truth the targets are (fusion.protocol;
+        None = the stored labels, `visible`)."""
+        self.protocol = protocol
         self.reader = DatasetReader(root, clear=clear)
         self.bev_full = int(self.reader.manifest.get("bev_size_px") or self.reader.meta(0)["calibration"]["bev_size_px"])
         self.bev_size = None if bev_size is None else (int(bev_size[0]), int(bev_size[1]))
@@ -160,7 +169,8 @@ class FrameDataset(Dataset):
         meta = dict(frame["meta"])
         meta["dataset_index"] = i
         inputs = frame_inputs(frame, self.sensors, self.bev_size)
-        targets = frame_targets(frame["labels"], self.keep_difficult, self.bev_size, self.bev_full)
+        targets = frame_targets(frame["labels"], self.keep_difficult, self.bev_size, self.bev_full,
+                                frame["meta"], self.protocol)
         if flip:
             cal = meta["calibration"]
             widths = {"camera_left": cal["camera_left"]["width"], "camera_right": cal["camera_right"]["width"],

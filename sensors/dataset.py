@@ -7,7 +7,8 @@ Layout of a dataset directory DIR:
     DIR/shard-00000/             one sequence = one shard (a unit of work: a pure function of
                                  (config, seed, shard index))
         frames.json              per frame: meta (context, weather, degradation params,
-                                 calibration, ego pose, ...) and labels (FWD per camera, BEV)
+                                 calibration, ego pose, ...) and labels (FWD per camera, BEV,
+                                 3D objects with their clean observability)
         camera_left.npy          (L, H, W, 3) uint8        camera_right.npy  (L, H, W, 3) uint8
         fwd_lidar.npy            (L, H, W, 3) uint8        lidar_bev.npy     (L, S, S, 3) uint8
         radar_polar.npy          (L, A, B) uint8 (0.5 dB/count)   radar_bev.npy (L, S, S) uint8
@@ -33,7 +34,10 @@ import numpy as np
 
 from sim.errors import UserError
 
-FORMAT_VERSION = 1
+# 2: labels["objects"] (3D boxes with their clean observability) and twins that differ only by the
+#    condition (same clear-air visibility and light); 1: visible-pixel and BEV boxes only.
+FORMAT_VERSION = 2
+FORMAT_HISTORY = {1: "visible-pixel and BEV boxes only, no 3D ground truth", 2: "3D ground truth per frame"}
 ARRAYS = ("camera_left", "camera_right", "fwd_lidar", "lidar_bev", "radar_polar", "radar_bev")
 POINT_ARRAYS = ("lidar_points", "lidar_instance", "lidar_offsets")
 SHARD_FMT = "shard-{:05d}"
@@ -116,7 +120,11 @@ def read_manifest(root: str | Path) -> dict:
     except json.JSONDecodeError as exc:
         raise UserError(f"{path} is not valid JSON ({exc.msg})") from None
     if m.get("format_version") != FORMAT_VERSION:
-        raise UserError(f"{path}: format version {m.get('format_version')} is not supported (expected {FORMAT_VERSION})")
+        v = m.get("format_version")
+        what = f" ({FORMAT_HISTORY[v]})" if v in FORMAT_HISTORY else ""
+        raise UserError(f"{path}: dataset format version {v}{what} is not supported by this hydrabench, which "
+                        f"reads format {FORMAT_VERSION} ({FORMAT_HISTORY[FORMAT_VERSION]}); regenerate it with "
+                        f"`hydrabench generate`")
     return m
 
 

@@ -19,7 +19,7 @@ import shapely
 from sensors import camera as cam_mod
 from sensors import lidar as lidar_mod
 from sensors import radar as radar_mod
-from sensors.labels import bev_labels, fwd_labels
+from sensors.labels import bev_labels, fwd_labels, object_labels
 from sensors.raycast import WorldCaster
 from sensors.rig import Calibration, SensorProfile, make_calibration
 from sensors.world_mesh import MeshSoup, actors_mesh, lamp_heads, static_mesh
@@ -27,7 +27,6 @@ from sim.scenario import Scene, stream
 from sim.weather import WeatherState, light_for
 
 SENSOR_RANGE_M = 110.0
-FORMAT_VERSION = 1
 
 
 @dataclass
@@ -53,7 +52,8 @@ class Frame:
     fwd_lidar: (H, W, 3) uint8 lidar projected into the right camera: closeness, intensity, height.
     radar_polar: (A, B) uint8, 0.5 dB per count (azimuth rows, range columns).
     radar_bev: (S, S) uint8 cartesian radar image, same scale.
-    labels: {"camera_left": ..., "camera_right": ..., "bev": ...} (sensors.labels).
+    labels: {"camera_left": ..., "camera_right": ..., "bev": ..., "objects": ...} (sensors.labels:
+        visible-pixel boxes per camera, BEV boxes, 3D boxes with their clean observability).
     meta: context, severity, timestamps, weather, light, degradation params, calibration.
     """
 
@@ -153,8 +153,11 @@ class SequenceRenderer:
         return Observations(cams["camera_left"], cams["camera_right"], lid, rad, weather, ids)
 
     def finalize(self, scene: Scene, obs: Observations, degradation: dict | None = None,
-                 keep_observations: bool = False) -> Frame:
-        """Camera model, lidar images, radar images, labels and metadata -> Frame."""
+                 keep_observations: bool = False, clean: Observations | None = None) -> Frame:
+        """Camera model, lidar images, radar images, labels and metadata -> Frame.
+
+        `clean`: the raw observations of the moment before degradation (default: `obs`); the 3D
+        ground truth's observability (labels["objects"]) is measured on it."""
         t = time.perf_counter()
         images = {}
         for name in ("camera_left", "camera_right"):
@@ -177,6 +180,7 @@ class SequenceRenderer:
             for name in ("camera_left", "camera_right")
         }
         labels["bev"] = bev_labels(scene.actors, self.calib, scene.ego.pose, obs.lidar, obs.radar)
+        labels["objects"] = object_labels(scene.actors, self.calib, scene.ego.pose, clean if clean is not None else obs)
         t = self._tick("labels", t)
         self.frames_done += 1
         meta = {

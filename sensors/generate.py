@@ -22,7 +22,7 @@ from sensors import SENSOR_MODEL_VERSION
 from sim.config import from_dict
 from sim.errors import UserError
 from sim.scenario import CONTEXT_NAMES, Context, ScenarioSpec, Simulator, stream
-from sim.weather import TRANSITIONS, WeatherState
+from sim.weather import TRANSITIONS
 
 
 @dataclass(frozen=True)
@@ -140,21 +140,24 @@ def render_sequence(spec: ShardSpec, config: GenerateConfig, on_frame: Callable[
 
         degrader = Degrader(renderer.calib, spec.context, spec.seed)
     frames, twins = [], [] if config.twins else None
-    clear = WeatherState(illuminance_lux=30_000.0)
+    # The twin holds everything but the condition's own quantities: the sequence's drawn clear-air
+    # visibility and (for fog, rain, snow) its light; persistent faults and random streams stay.
+    clear = sim.twin_weather
     scene = first
     while True:
-        obs = renderer.observe(scene)
-        params = {}
+        raw = renderer.observe(scene)
+        obs, params = raw, {}
         if degrader is not None:
             t = time.perf_counter()
-            obs, params = degrader.apply(scene, obs, scene.frame_index)
+            obs, params = degrader.apply(scene, raw, scene.frame_index)
             renderer.timings["degradation"] += time.perf_counter() - t
-        frames.append(renderer.finalize(scene, obs, params))
+        frames.append(renderer.finalize(scene, obs, params, clean=raw))
         if twins is not None:  # the same moment in clear weather (persistent faults stay)
-            twin_obs, twin_params = renderer.observe(scene, clear), {}
+            twin_raw = renderer.observe(scene, clear)
+            twin_obs, twin_params = twin_raw, {}
             if degrader is not None:
-                twin_obs, twin_params = degrader.apply(scene, twin_obs, scene.frame_index)
-            twins.append(renderer.finalize(scene, twin_obs, twin_params))
+                twin_obs, twin_params = degrader.apply(scene, twin_raw, scene.frame_index)
+            twins.append(renderer.finalize(scene, twin_obs, twin_params, clean=twin_raw))
         if on_frame:
             on_frame()
         scene = next(scenes, None)

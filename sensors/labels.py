@@ -163,4 +163,141 @@ def bev_labels(actors, calib: Calibration, world_from_ego: np.ndarray, lidar_obs
     return out
 
 
-__all__ = ["fwd_labels", "bev_labels", "CLASSES"]
+
+
+
+# --- 3D ground truth (world truth, nuScenes / KITTI style) ---------------------------------------
+# Stored per frame under labels["objects"] (dataset format 2). Observability comes from the *clean*
+# render (before weather and faults), like nuScenes' num_lidar_pts / num_radar_pts: what a sensor
+# could see of the object, not what the weather left of it, so the ground truth of a frame does not
+# change with the condition being studied.
+OBJECT_FIELDS = ("ids", "labels", "center", "size", "yaw", "velocity", "range_m", "camera_left_px",
+                 "camera_right_px", "lidar_points", "radar_cells", "observed")
+MIN_LIDAR_POINTS = 1  # nuScenes keeps boxes with >= 1 lidar or radar point
+MIN_RADAR_CELLS = 1
+RADAR_CELL_SNR = 3.0  # a radar cell "sees" an object when its power exceeds 3x the mean noise
+
+
+def object_labels(actors, calib: Calibration, world_from_ego: np.ndarray, clean) -> dict:
+    """Every actor within the active sensors' range (the radar's range bins x resolution, 100 m for
+    RADIATE's rig) as a 3D box in the ego frame, with its observability in the clean render.
+
+    `clean`: the raw Observations of the moment (sensors.frame.Observations, before degradation).
+    Columnar, JSON-ready (OBJECT_FIELDS):
+        ids (N,) actor ids; labels (N,) class ids 1..8;
+        center (N, 3) box centre, ego frame (x forward, y left, z up) [m];
+        size (N, 3) length, width, height [m]; yaw (N,) heading in the ego frame, counter-clockwise
+        from +x [rad]; velocity (N, 3) velocity over ground in ego-frame axes [m/s];
+        range_m (N,) horizontal distance of the centre from the radar / lidar mast [m];
+        camera_left_px, camera_right_px (N,) visible pixels in each camera's clean render;
+        lidar_points (N,) clean lidar returns on the object; radar_cells (N,) clean polar radar
+        cells it dominates at >= RADAR_CELL_SNR x the noise;
+        observed (N,) bool: some sensor sees it (>= MIN_VISIBLE_PX pixels in a camera, >=
+        MIN_LIDAR_POINTS returns or >= MIN_RADAR_CELLS cells).
+    """
+    out = {k: [] for k in OBJECT_FIELDS}
+    if len(actors) == 0:
+        return out
+    max_range = calib.radar_range_bins * calib.radar_range_resolution_m
+    ego_from_world = invert(world_from_ego)
+    centers = transform_points(ego_from_world, actors.centers)
+    radar_xy = transform_points(invert(calib.ego_from_radar), centers)[:, :2]
+    ranges = np.hypot(radar_xy[:, 0], radar_xy[:, 1])
+    ego_yaw = np.arctan2(world_from_ego[1, 0], world_from_ego[0, 0])
+    R = world_from_ego[:3, :3]
+    velocities = actors.velocities @ R  # R^T v: world velocity in ego axes
+
+    def counts(instance: np.ndarray) -> dict[int, int]:
+        ids, cnt = np.unique(instance[instance > 0], return_counts=True)
+        return dict(zip(ids.tolist(), cnt.tolist()))
+
+    px = {name: counts(getattr(clean, name).instance) for name in ("camera_left", "camera_right")}
+    lid = clean.lidar
+    lidar_pts = counts(np.where(lid.returned, lid.instance, 0))
+    rad = clean.radar
+    radar_cells = counts(np.where(rad.signal > RADAR_CELL_SNR * rad.noise.mean(), rad.instance, 0))
+    for i in np.flatnonzero(ranges <= max_range):
+        aid = int(actors.ids[i])
+        n_left, n_right = px["camera_left"].get(aid, 0), px["camera_right"].get(aid, 0)
+        n_lidar, n_radar = lidar_pts.get(aid, 0), radar_cells.get(aid, 0)
+        yaw = float(actors.yaws[i] - ego_yaw)
+        out["ids"].append(aid)
+        out["labels"].append(int(actors.classes[i]))
+        out["center"].append([round(float(v), 4) for v in centers[i]])
+        out["size"].append([round(float(v), 4) for v in actors.sizes[i]])
+        out["yaw"].append(round(float(np.arctan2(np.sin(yaw), np.cos(yaw))), 5))
+        out["velocity"].append([round(float(v), 4) for v in velocities[i]])
+        out["range_m"].append(round(float(ranges[i]), 3))
+        out["camera_left_px"].append(int(n_left))
+        out["camera_right_px"].append(int(n_right))
+        out["lidar_points"].append(int(n_lidar))
+        out["radar_cells"].append(int(n_radar))
+        out["observed"].append(bool(max(n_left, n_right) >= MIN_VISIBLE_PX or n_lidar >= MIN_LIDAR_POINTS
+                                    or n_radar >= MIN_RADAR_CELLS))
+    return out
+
+
+# A reference box is difficult when more than this share of its projected 3D box is outside the image.
+REFERENCE_MAX_OUTSIDE = 0.5
+
+
+def reference_labels(objects: dict, calib: Calibration, camera: str, r_max: float) -> dict:
+    """World-truth boxes in one camera (the `reference` evaluation protocol, fusion.protocol): the
+    bounding rectangle of each object's projected 3D box (8 corners, near-plane clipped), clipped
+    to the image, for every object whose centre is in front of the camera and within `r_max` [m] of
+    the radar (horizontal range); RADIATE's radar annotations projected into the camera (HydraFusion
+    5.2.3, Appendix A), with the true height and position instead of class averages.
+
+    difficult: no sensor observes the object in the clean render, or more than
+    REFERENCE_MAX_OUTSIDE of its projected box lies outside the image. Columnar: ids, labels, boxes
+    [x1, y1, x2, y2] px, truncation, distance_m (= range_m), observed, difficult.
+    """
+    from sensors.rig import project_box3d
+
+    cam = calib.camera(camera)
+    out = {k: [] for k in ("ids", "labels", "boxes", "truncation", "distance_m", "observed", "difficult")}
+    for k, aid in enumerate(objects["ids"]):
+        rng = float(objects["range_m"][k])
+        if rng > r_max:
+            continue
+        center = np.asarray(objects["center"][k], float)
+        size = np.asarray(objects["size"][k], float)
+        _, depth = cam.project(center[None])
+        if not depth[0] > 0:
+            continue
+        corners = _corners3d(center, size, float(objects["yaw"][k]))
+        box = project_box3d(corners, cam)
+        if box is None:
+            continue
+        full = project_box3d(corners, cam, clip=False)
+        full_area = (full[2] - full[0]) * (full[3] - full[1])
+        area = (box[2] - box[0]) * (box[3] - box[1])
+        truncation = 1.0 - area / full_area if full_area > 0 else 1.0
+        observed = bool(objects["observed"][k])
+        out["ids"].append(int(aid))
+        out["labels"].append(int(objects["labels"][k]))
+        out["boxes"].append([float(b) for b in box])
+        out["truncation"].append(float(max(0.0, truncation)))
+        out["distance_m"].append(rng)
+        out["observed"].append(observed)
+        out["difficult"].append(bool(not observed or truncation > REFERENCE_MAX_OUTSIDE))
+    return out
+
+
+def reference_bev_labels(bev: dict, objects: dict, r_max: float) -> dict:
+    """The stored BEV boxes with the `reference` protocol's difficulty: an object is to be found
+    when some sensor observes it in the clean render and it is within `r_max` of the radar (the
+    stored flag uses the degraded observations, which would excuse what the weather hid), and its
+    box is at least BEV_MIN_SIZE_PX. Adds distance_m (the object's range)."""
+    row = {int(a): k for k, a in enumerate(objects["ids"])}
+    out = {k: list(v) for k, v in bev.items()}
+    out["difficult"], out["distance_m"] = [], []
+    for aid, (x1, y1, x2, y2) in zip(bev["ids"], bev["boxes"]):
+        k = row.get(int(aid))
+        rng = float(objects["range_m"][k]) if k is not None else float("inf")
+        seen = k is not None and bool(objects["observed"][k])
+        small = max(x2 - x1, y2 - y1) < BEV_MIN_SIZE_PX
+        out["difficult"].append(bool(not seen or rng > r_max or small))
+        out["distance_m"].append(rng)
+    return out
+__all__ = ["fwd_labels", "bev_labels", "object_labels", "reference_labels", "reference_bev_labels", "CLASSES"]

@@ -276,11 +276,13 @@ _BOX_EDGES = np.array(
 )
 
 
-def project_box3d(corners_ego: np.ndarray, cam: CameraCalibration, near: float = 0.1) -> np.ndarray | None:
+def project_box3d(corners_ego: np.ndarray, cam: CameraCalibration, near: float = 0.1,
+                  clip: bool = True) -> np.ndarray | None:
     """Tight image box [x1, y1, x2, y2] of a 3D box's 8 corners (ego frame), clipped to the image.
 
     Edges crossing the camera's near plane are clipped there, so boxes partly behind the camera are
     handled exactly. Returns None when nothing of the box is in front of the camera or in the image.
+    `clip=False`: the box on the unbounded image plane (for the share of it outside the image).
     """
     p = transform_points(invert(cam.ego_from_camera), corners_ego)
     pts = [p[i] for i in range(8) if p[i, 2] > near]
@@ -294,6 +296,8 @@ def project_box3d(corners_ego: np.ndarray, cam: CameraCalibration, near: float =
     q = np.array(pts)
     u = q[:, 0] / q[:, 2] * cam.K[0, 0] + cam.K[0, 2]
     v = q[:, 1] / q[:, 2] * cam.K[1, 1] + cam.K[1, 2]
+    if not clip:
+        return np.array([u.min(), v.min(), u.max(), v.max()])
     x1, x2 = np.clip([u.min(), u.max()], 0, cam.width)
     y1, y2 = np.clip([v.min(), v.max()], 0, cam.height)
     if x2 - x1 <= 0 or y2 - y1 <= 0:

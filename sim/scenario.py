@@ -29,7 +29,7 @@ from sim.weather import (
     WeatherTrack,
     clear_like,
     light_for,
-    sample_weather,
+    sample_weather_and_twin,
 )
 from sim.world import RoadGeometry, Structures, extract_road, hw_to_world
 
@@ -241,7 +241,9 @@ class Simulator:
         self.rng_people = stream(seed, "pedestrians")
         rng_weather = stream(seed, "weather")
 
-        target = sample_weather(rng_weather, self.context.conditions, spec.severity)
+        target, twin = sample_weather_and_twin(rng_weather, self.context.conditions, spec.severity)
+        # the clear-weather twin of every frame (generate --twins): only the condition differs
+        self.twin_weather: WeatherState = twin
         self.sun_azimuth_deg = float(rng_weather.uniform(0, 360))
         kind = spec.transition
         duration = spec.duration_s

@@ -244,6 +244,19 @@ def sample_weather(
     The draw order is fixed (clear baseline first, then each condition in `CONDITIONS` order) so a
     seed gives the same state whatever order the conditions are written in.
     """
+    return sample_weather_and_twin(rng, conditions, severity)[0]
+
+
+def sample_weather_and_twin(
+    rng: np.random.Generator, conditions: tuple[str, ...], severity: int
+) -> tuple[WeatherState, WeatherState]:
+    """`sample_weather`'s state and its counterfactual clear twin, from the same draws.
+
+    The twin holds everything but the conditions' own quantities (DESIGN.md, "counterfactual
+    twins"): the drawn clear-air visibility, and for fog, rain and snow the drawn light (overcast
+    in both: the light is not what is studied); no fog, rain, snow, water film or lens cover. For
+    night the light *is* the condition, so the twin gets the drawn daylight illuminance instead.
+    """
     if not 0 <= severity <= 5:
         raise UserError(f"severity must be 0..5, got {severity}")
     for c in conditions:
@@ -267,7 +280,8 @@ def sample_weather(
         state[spec["quantity"]] = value
         if c in LENS_COVERAGE_MAX_PCT:
             lens = np.maximum(lens, lens_u * LENS_COVERAGE_MAX_PCT[c][severity - 1])
-    return _state(state, (float(lens[0]), float(lens[1])))
+    twin = WeatherState(fog_visibility_m=vis, illuminance_lux=lux)
+    return _state(state, (float(lens[0]), float(lens[1]))), twin
 
 
 def road_film(rain_mm_h: float, snow_mm_h: float) -> float:

@@ -95,8 +95,15 @@ def run_branches(model, data, indices, branches, batch_size: int = 4, progress: 
     return out
 
 
-def ground_truth(labels: dict, frame: str, bev_crop: tuple | None = None) -> dict:
-    """Ground truth of one frame; `bev_crop` = ((H, W), full size) of the BEV crop a model sees."""
+def ground_truth(labels: dict, frame: str, bev_crop: tuple | None = None, meta: dict | None = None,
+                 protocol=None) -> dict:
+    """Ground truth of one frame in `frame` under the evaluation `protocol` (fusion.protocol; None =
+    the stored labels, i.e. `visible`; the others need the frame's `meta`); `bev_crop` = ((H, W),
+    full size) of the BEV crop a model sees."""
+    if protocol is not None:
+        from fusion.protocol import frame_labels
+
+        labels = frame_labels(labels, meta, protocol)
     lab = labels[frame]
     if frame == "bev" and bev_crop is not None:
         from fusion.data import crop_bev_labels
@@ -119,19 +126,51 @@ def _above(d: Detections, threshold: float) -> dict:
 VEHICLES = ("car", "van", "truck", "bus")
 
 
-def score(per_frame: list, reader: DatasetReader, frame: str = "camera_right", bev_crop: tuple | None = None) -> dict:
-    """VOC mAP@0.5 of detections already in `frame`: overall, per class, per context; and the mean
-    over the vehicle classes (VEHICLES) overall, per context and per weather severity ("map_vehicles*";
-    severity 0 is clear weather)."""
-    dets, gts, contexts, severities = [], [], [], []
+def in_range_bin(dets: list, gts: list, metas: list, frame: str, lo: float, hi: float) -> tuple[list, list]:
+    """Detections and ground truth of one range bin [lo, hi) m: ground truth outside the bin becomes
+    difficult (ignored: a detection matching it is neither true nor false), detections whose own
+    estimated range (fusion.protocol.detection_ranges) is outside the bin are dropped."""
+    from fusion.protocol import detection_ranges
+
+    out_d, out_g = [], []
+    for d, g, meta in zip(dets, gts, metas):
+        r = detection_ranges(d["boxes"], frame, meta["calibration"])
+        keep = (r >= lo) & (r < hi)
+        out_d.append({k: np.asarray(v)[keep] for k, v in d.items()})
+        dist = g["distance_m"]
+        out_g.append({**g, "difficult": g["difficult"] | ~((dist >= lo) & (dist < hi))})
+    return out_d, out_g
+
+
+def score(per_frame: list, reader: DatasetReader, frame: str = "camera_right", bev_crop: tuple | None = None,
+          protocol=None) -> dict:
+    """VOC mAP@0.5 of detections already in `frame` under the evaluation `protocol`: overall, per
+    class, per context; and the mean over the vehicle classes (VEHICLES) overall, per context, per
+    weather severity ("map_vehicles*"; severity 0 is clear weather), per range bin of the objects'
+    range from the radar (fusion.protocol.RANGE_BINS; `in_range_bin`) and per context and range bin."""
+    from fusion.protocol import RANGE_BINS, as_protocol, range_bin_names
+
+    dets, gts, contexts, severities, metas = [], [], [], [], []
     for meta, d in per_frame:
         i = meta["dataset_index"]
-        gts.append(ground_truth(reader.labels(i), frame, bev_crop))
+        gts.append(ground_truth(reader.labels(i), frame, bev_crop, meta, protocol))
         dets.append({"boxes": d.boxes, "scores": d.scores, "labels": d.labels})
         contexts.append(meta["context"])
         severities.append(str(meta.get("severity", 0)))
+        metas.append(meta)
     res = evaluate_detections(dets, gts, classes=range(1, len(CLASSES) + 1))
     vehicles = [CLASSES.index(c) + 1 for c in VEHICLES]
+    bins = list(zip(range_bin_names(), RANGE_BINS[:-1], RANGE_BINS[1:]))
+    has_range = all("distance_m" in g for g in gts)
+
+    def per_range(ks) -> dict:
+        if not has_range:
+            return {}
+        out = {}
+        for name, lo, hi in bins:
+            d_b, g_b = in_range_bin([dets[k] for k in ks], [gts[k] for k in ks], [metas[k] for k in ks], frame, lo, hi)
+            out[name] = _mean_of(evaluate_detections(d_b, g_b, classes=vehicles), vehicles)
+        return out
 
     def per_group(groups) -> dict:
         by = defaultdict(list)
@@ -144,11 +183,17 @@ def score(per_frame: list, reader: DatasetReader, frame: str = "camera_right", b
     per_ctx = {c: _round(r.mean_ap) for c, r in by_ctx.items()}
     veh_ctx = {c: _mean_of(r, vehicles) for c, r in by_ctx.items()}
     veh_sev = {c: _mean_of(r, vehicles) for c, r in by_sev.items()}
+    ctx_frames = defaultdict(list)
+    for k, c in enumerate(contexts):
+        ctx_frames[c].append(k)
     return {
+        "protocol": as_protocol(protocol).describe(),
         "map": _round(res.mean_ap),
         "map_vehicles": _mean_of(res, vehicles),
         "map_vehicles_per_context": veh_ctx,
         "map_vehicles_per_severity": veh_sev,
+        "map_vehicles_per_range": per_range(range(len(dets))),
+        "map_vehicles_per_context_range": {c: per_range(ks) for c, ks in sorted(ctx_frames.items())},
         "ap_per_class": {CLASSES[c - 1]: _round(v) for c, v in res.ap.items()},
         "map_per_context": per_ctx,
         "positives_per_class": {CLASSES[c - 1]: int(n) for c, n in res.n_positives.items()},
@@ -157,7 +202,7 @@ def score(per_frame: list, reader: DatasetReader, frame: str = "camera_right", b
 
 
 def operating_point(per_frame: list, reader: DatasetReader, frame: str = "camera_right",
-                    bev_crop: tuple | None = None, threshold: float = 0.5) -> dict:
+                    bev_crop: tuple | None = None, threshold: float = 0.5, protocol=None) -> dict:
     """Recall and precision of the vehicle classes (VEHICLES) at one score threshold, overall and
     per weather severity: what a user of the detector would see, where mAP averages over all
     thresholds. VOC matching (same class, IoU >= 0.5, one detection per box, difficult boxes
@@ -165,7 +210,7 @@ def operating_point(per_frame: list, reader: DatasetReader, frame: str = "camera
     vehicles = [CLASSES.index(c) + 1 for c in VEHICLES]
     groups = defaultdict(list)
     for meta, d in per_frame:
-        gt = ground_truth(reader.labels(meta["dataset_index"]), frame, bev_crop)
+        gt = ground_truth(reader.labels(meta["dataset_index"]), frame, bev_crop, meta, protocol)
         groups[str(meta.get("severity", 0))].append((_above(d, threshold), gt))
 
     def point(pairs) -> dict:
@@ -196,7 +241,7 @@ def bev_distances(lab: dict, calibration: dict) -> np.ndarray:
 
 def recall_by_visibility(per_frame: list, reader: DatasetReader, frame: str = "camera_right",
                          bev_crop: tuple | None = None, threshold: float = 0.5, visibility: dict | None = None,
-                         edges=VISIBILITY_BINS) -> dict:
+                         edges=VISIBILITY_BINS, protocol=None) -> dict:
     """Recall of the vehicle classes at one score threshold, binned by each object's distance over
     the frame's visibility d / MOR: where the camera's physics says an object fades (Koschmieder
     contrast exp(-ln(20) d / MOR)), does the detector lose it? Matching as VOC (same class, each
@@ -218,10 +263,10 @@ def recall_by_visibility(per_frame: list, reader: DatasetReader, frame: str = "c
         i = meta["dataset_index"]
         mor = float(visibility[i] if visibility is not None else meta["weather"]["visibility_m"])
         labels = reader.labels(i)
-        if "distance_m" not in labels[frame]:
+        if protocol is None and "distance_m" not in labels[frame]:
             lab = labels[frame]
             labels = {**labels, frame: {**lab, "distance_m": bev_distances(lab, meta["calibration"]).tolist()}}
-        gt = ground_truth(labels, frame, bev_crop)
+        gt = ground_truth(labels, frame, bev_crop, meta, protocol)
         hit = matched_ground_truth([_above(d, threshold)], [gt], classes=vehicles)[0]
         ratio = gt["distance_m"] / mor
         counted = np.isin(gt["labels"], vehicles) & ~gt["difficult"]

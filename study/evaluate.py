@@ -3,9 +3,13 @@
 Each selected branch runs on the frames; its detections are mapped to the right camera with the
 frame's calibration (BEV branches through HydraFusion's Appendix A, left-camera branches through
 the stereo disparity) and fused with NMS, Soft-NMS or WBF (HydraFusion 4.4 / 5.2.1 thresholds:
-IoU 0.4, skip 0.01, sigma 0.5). Ground truth is the right camera's boxes; boxes marked difficult
-(under 8 px tall at 188 rows, > 80 % occluded or > 60 % truncated) are ignored, as VOC does.
-mAP is the mean of all-point interpolated AP over the classes that have ground truth.
+IoU 0.4, skip 0.01, sigma 0.5). Ground truth follows the evaluation protocol (--protocol, default:
+the one the run trained on): `reference` = the projected 3D box of every actor within range that
+some sensor observes in the clean render (world truth), `visible` = the right camera's visible-pixel
+boxes (under 8 px tall at 188 rows, > 80 % occluded or > 60 % truncated: difficult), `bev` = the BEV
+branches on their own grid only. Difficult boxes are ignored, as VOC does. mAP is the mean of
+all-point interpolated AP over the classes that have ground truth; the vehicle mAP is also given per
+range bin (0-15, 15-30, 30-50, 50-100 m from the radar).
 
 Gates (HydraFusion 4.2, Tables 6 and 7): --gate NAME --k K wires that gate into the network, so
 per frame only the K branches it selects run, and fuses them; --all-gates reports mAP for every
@@ -49,7 +53,9 @@ def add_parser(sub, name, help_text):
     p.add_argument("--twins", action="store_true", help="also run on the clear-weather twins of the same frames "
                    "(a dataset generated with --twins) and report the vehicle mAP each branch keeps, per severity")
     p.add_argument("--checkpoint", default="latest", help="latest, or epoch-NNN")
-    p.add_argument("--batch-size", type=pos_int, default=4)
+    p.add_argument("--protocol", default=None, choices=("reference", "visible", "bev"),
+                   help="ground truth (README, 'Evaluation protocols'); default: the protocol the run trained on")
+    p.add_argument("--batch-size", type=pos_int, default=4, help="frames per forward pass")
     p.add_argument("--gate", default=None, help="knowledge | deep | attention | optimal: the gate selects the branches")
     p.add_argument("--k", default=None, help="branches the gate keeps per frame: 1..number of branches, or all "
                    "(default 3, or all when the run has fewer)")
@@ -71,11 +77,13 @@ def parse_weights(text: str) -> dict[str, float]:
 
 
 def evaluate(run_dir, data, branches="all", fusion="soft-nms", split="auto", weights=None, checkpoint="latest",
-             batch_size: int = 4, contexts=(), twins: bool = False) -> dict:
+             batch_size: int = 4, contexts=(), twins: bool = False, protocol: str | None = None) -> dict:
     """mAP of `branches` of a run fused with `fusion` (see the module doc). `twins`: also run them on
-    the clear-weather twins of the same frames and report what each branch keeps ("twins")."""
+    the clear-weather twins of the same frames and report what each branch keeps ("twins").
+    `protocol`: reference | visible | bev (None: the run's own)."""
     import torch
 
+    from fusion.protocol import PROTOCOLS, Protocol
     from study.detect import (
         bev_crop_of,
         frames_for,
@@ -86,14 +94,26 @@ def evaluate(run_dir, data, branches="all", fusion="soft-nms", split="auto", wei
         run_branches,
         score,
     )
+    from study.train import run_protocol
 
     torch.set_num_threads(2)
     method = fusion_method(fusion)
+    if protocol is not None and protocol not in PROTOCOLS:
+        raise UserError(f"--protocol: unknown protocol {protocol!r} (choose from: {', '.join(PROTOCOLS)})")
     model, cfg = load_run(run_dir, checkpoint)
+    proto = Protocol(protocol or run_protocol(cfg))
     names = list(model.branches) if branches in ("all", None, "") else [b.strip() for b in branches.split(",") if b.strip()]
     bad = [b for b in names if b not in model.branches]
     if bad:
         raise UserError(f"unknown branch {bad[0]!r} (this run has: {', '.join(model.branches)})")
+    if proto.name == "bev":
+        if branches in ("all", None, ""):
+            names = [b for b in names if model.branch_frames[b] == "bev"]
+        cam = [b for b in names if model.branch_frames[b] != "bev"]
+        if cam or not names:
+            raise UserError(f"--protocol bev scores BEV branches on their own grid; {cam[0] if cam else 'this run'!r} "
+                            "has none" if not cam else f"--protocol bev scores BEV branches on their own grid; "
+                            f"{cam[0]!r} is a camera-view branch (use --protocol reference)")
     weights = weights or {}
     bad = [b for b in weights if b not in names]
     if bad:
@@ -112,21 +132,32 @@ def evaluate(run_dir, data, branches="all", fusion="soft-nms", split="auto", wei
         raise UserError(f"--twins: {data} has no clear-weather twins (generate it with --twins)")
     per_frame = run_branches(model, data, indices, names, batch_size=batch_size)
     frames = model.branch_frames
-    result = score(fused(per_frame, names, frames, method, weights), reader, "camera_right")
+    crop = bev_crop_of(model, reader)
+    native_scores = {b: score(native(per_frame, b), reader, frames[b], crop, proto) for b in names}
+    if proto.name == "bev":
+        # RADIATE's native radar metric: each BEV branch on its own grid; no camera-frame fusion
+        result = {"protocol": proto.describe(), "per_branch": native_scores}
+    else:
+        result = score(fused(per_frame, names, frames, method, weights), reader, "camera_right", protocol=proto)
+        result["map_per_branch_reference"] = {
+            b: score(fused(per_frame, [b], frames, method), reader, "camera_right", protocol=proto)["map"] for b in names}
+        result["map_vehicles_per_branch_reference"] = {
+            b: score(fused(per_frame, [b], frames, method), reader, "camera_right", protocol=proto)["map_vehicles"]
+            for b in names}
     if twins:
-        result["twins"] = _twins(model, data, indices, names, frames, method, weights, batch_size, per_frame, reader)
+        result["twins"] = _twins(model, data, indices, names, frames, method, weights, batch_size, per_frame, reader,
+                                 proto)
     result.update({
-        "branches": names, "fusion": method, "split": used_split, "contexts": sorted(set(contexts)) or "all", "run": str(run_dir), "data": str(data),
-        "map_per_branch_native": {b: score(native(per_frame, b), reader, frames[b], bev_crop_of(model, reader))["map"]
-                                  for b in names},
-        "map_per_branch_reference": {b: score(fused(per_frame, [b], frames, method), reader, "camera_right")["map"]
-                                     for b in names},
+        "branches": names, "fusion": method, "split": used_split, "contexts": sorted(set(contexts)) or "all",
+        "run": str(run_dir), "data": str(data), "frames": len(per_frame),
+        "map_per_branch_native": {b: native_scores[b]["map"] for b in names},
+        "map_vehicles_per_branch_native": {b: native_scores[b]["map_vehicles"] for b in names},
         "metric": "VOC all-point AP at IoU 0.5, difficult ground truth ignored, mean over classes with ground truth",
     })
     return result
 
 
-def _twins(model, data, indices, names, frames, method, weights, batch_size, per_frame, reader) -> dict:
+def _twins(model, data, indices, names, frames, method, weights, batch_size, per_frame, reader, protocol=None) -> dict:
     """The same frames in clear weather: per branch (in its own frame, vehicle classes) the mAP on
     the degraded frames, on their clear twins, and their ratio, overall and per severity; and the same
     for the fused result. The frames and labels are identical; only the weather differs."""
@@ -148,17 +179,22 @@ def _twins(model, data, indices, names, frames, method, weights, batch_size, per
     mor = {meta["dataset_index"]: meta["weather"]["visibility_m"] for meta, _ in per_frame}
 
     def by_visibility(deg_frames, clr_frames, frame, bev) -> dict:
-        deg = recall_by_visibility(deg_frames, reader, frame, bev, visibility=mor)
-        clr = recall_by_visibility(clr_frames, clear_reader, frame, bev, visibility=mor)
+        deg = recall_by_visibility(deg_frames, reader, frame, bev, visibility=mor, protocol=protocol)
+        clr = recall_by_visibility(clr_frames, clear_reader, frame, bev, visibility=mor, protocol=protocol)
         return {k: {"objects": v["objects"], "degraded": v["recall"], "clear": clr[k]["recall"],
                     "contrast": v["contrast"]} for k, v in deg.items()}
 
     def pair(deg_frames, clr_frames, frame, bev) -> dict:
-        deg, clr = score(deg_frames, reader, frame, bev), score(clr_frames, clear_reader, frame, bev)
-        op_d = operating_point(deg_frames, reader, frame, bev)
-        op_c = operating_point(clr_frames, clear_reader, frame, bev)
+        deg = score(deg_frames, reader, frame, bev, protocol)
+        clr = score(clr_frames, clear_reader, frame, bev, protocol)
+        op_d = operating_point(deg_frames, reader, frame, bev, protocol=protocol)
+        op_c = operating_point(clr_frames, clear_reader, frame, bev, protocol=protocol)
         sev = sorted(set(deg["map_vehicles_per_severity"]) | set(clr["map_vehicles_per_severity"]), key=int)
+        rng = {k: {"degraded": v, "clear": clr["map_vehicles_per_range"].get(k),
+                   "retained": _ratio(v, clr["map_vehicles_per_range"].get(k))}
+               for k, v in deg["map_vehicles_per_range"].items()}
         return {"degraded": deg["map_vehicles"], "clear": clr["map_vehicles"], "retained": _ratio(deg["map_vehicles"], clr["map_vehicles"]),
+                "per_range": rng,
                 "at_score_0.5": {"degraded": {k: op_d[k] for k in ("recall", "precision")},
                                  "clear": {k: op_c[k] for k in ("recall", "precision")},
                                  "by_distance_over_visibility": by_visibility(deg_frames, clr_frames, frame, bev)},
@@ -176,8 +212,9 @@ def _twins(model, data, indices, names, frames, method, weights, batch_size, per
            "branches": {}}
     for b in names:
         out["branches"][b] = pair(native(per_frame, b), native(clear_frames, b), frames[b], crop)
-    out["fused"] = pair(fused(per_frame, names, frames, method, weights),
-                        fused(clear_frames, names, frames, method, weights), "camera_right", None)
+    if protocol is None or protocol.name != "bev":
+        out["fused"] = pair(fused(per_frame, names, frames, method, weights),
+                            fused(clear_frames, names, frames, method, weights), "camera_right", None)
     return out
 
 
@@ -229,12 +266,21 @@ def run(args) -> int:
         raise UserError("--k needs --gate (the number of branches a gate keeps)")
     contexts = tuple(c.strip() for c in args.contexts.split(",") if c.strip())
     result = evaluate(Path(args.run_dir), Path(args.data), args.branches, args.fusion, args.split,
-                      parse_weights(args.weights), args.checkpoint, args.batch_size, contexts, args.twins)
+                      parse_weights(args.weights), args.checkpoint, args.batch_size, contexts, args.twins,
+                      args.protocol)
 
     def text(r):
         where = "" if r["contexts"] == "all" else f" of {', '.join(r['contexts'])}"
+        proto = r["protocol"]["name"]
+        if proto == "bev":
+            lines = [f"protocol bev: each BEV branch on its own grid ({r['frames']} {r['split']} frames{where})"]
+            for b, sc in r["per_branch"].items():
+                lines.append(f"  {b}: mAP {sc['map']}, vehicles {sc['map_vehicles']}; per range: "
+                             + ", ".join(f"{k} {v}" for k, v in sc["map_vehicles_per_range"].items()))
+            return "\n".join(lines)
         lines = [f"mAP@0.5 {r['map']} ({r['fusion']} of {', '.join(r['branches'])}; {r['frames']} {r['split']} frames"
-                 f"{where}, right camera, difficult boxes ignored)"]
+                 f"{where}, right camera, protocol {proto}, difficult boxes ignored)"]
+        lines.append("  vehicles per range [m]: " + ", ".join(f"{k} {v}" for k, v in r["map_vehicles_per_range"].items()))
         lines.append("  per class: " + ", ".join(f"{k} {v}" for k, v in r["ap_per_class"].items() if v is not None))
         lines.append("  per context: " + ", ".join(f"{k} {v}" for k, v in r["map_per_context"].items()))
         lines.append(f"  vehicles (car, van, truck, bus): {r['map_vehicles']}; per context: "

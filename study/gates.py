@@ -160,7 +160,12 @@ class GateData:
         manifest = self.data / "manifest.json"
         if not manifest.exists():
             raise UserError(f"{self.data} has no manifest.json (not a dataset)")
+        from study.train import run_protocol
+
+        # the per-branch losses are measured against the ground truth of the run's protocol
+        self.protocol = run_protocol(json.loads((self.run_dir / "config.json").read_text()))
         self.identity = {
+            "protocol": self.protocol,
             "version": GATE_DATA_VERSION, "checkpoint": checkpoint, "checkpoint_sha256": cached_sha256(ckpt),
             "dataset_manifest_sha256": cached_sha256(manifest), "grid": list(self.grid), "sensors": list(self.sensors),
             "branches": list(self.branches), "loss_seed": self.seed,
@@ -206,7 +211,8 @@ class GateData:
             _atomic_text(info, json.dumps({**self.identity, "key": self.key, "run": str(self.run_dir),
                                            "data": str(self.data)}, indent=1))
         model = self.model.eval()
-        ds = FrameDataset(self.data, todo, sensors=model.sensors, bev_size=model.transform.image_size("radar"))
+        ds = FrameDataset(self.data, todo, sensors=model.sensors, bev_size=model.transform.image_size("radar"),
+                          protocol=self.protocol)
         n_chunk = len(self._chunks())
         bar = _bar(len(todo), "gate dataset", progress)
         pending: dict[str, list] = {"indices": [], "features": [], "losses": []}
@@ -612,6 +618,7 @@ def evaluate_gate(run_dir, data, gate: str, k=None, fusion: str = "soft-nms", sp
     import torch
 
     from study.detect import fused, fusion_method, score, to_detections
+    from study.train import run_protocol
 
     method = fusion_method(fusion)
     model, _cfg, indices, used_split, reader = _setup(run_dir, data, split, weights, checkpoint)
@@ -642,7 +649,8 @@ def evaluate_gate(run_dir, data, gate: str, k=None, fusion: str = "soft-nms", sp
         for h in hooks:
             h.remove()
     branches = list(model.branches)
-    result = score(fused(per_frame, branches, model.branch_frames, method, weights), reader, "camera_right")
+    result = score(fused(per_frame, branches, model.branch_frames, method, weights), reader, "camera_right",
+                   protocol=run_protocol(_cfg))
     selections = [tuple(per) for _, per in per_frame]
     kk = str(k)
     result.update({
@@ -669,8 +677,10 @@ def evaluate_all_gates(run_dir, data, gates=None, fusions=TABLE_FUSIONS, ks=None
     from fusion.nets.gates import GATES, rank_branches
     from sensors.rig import Calibration
     from study.detect import score, to_detections
+    from study.train import run_protocol
 
     model, _cfg, indices, used_split, reader = _setup(run_dir, data, split, weights, checkpoint)
+    protocol = run_protocol(_cfg)
     names = list(gates or GATES.names())
     gate_objs = {g: make_gate(g, model, run_dir, checkpoint) for g in names}
     branches = list(model.branches)
@@ -724,7 +734,7 @@ def evaluate_all_gates(run_dir, data, gates=None, fusions=TABLE_FUSIONS, ks=None
             for method in fusions:
                 label = FUSION_LABEL[method]
                 out = [(per_frame[i][0], fused_frame(i, s, method)) for i, s in enumerate(sel)]
-                sc = score(out, reader, "camera_right")
+                sc = score(out, reader, "camera_right", protocol=protocol)
                 map_table[g].setdefault(label, {})[str(k)] = sc["map"]
                 ctx_table[g].setdefault(label, {})[str(k)] = sc["map_per_context"]
                 bar.update(1)

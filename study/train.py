@@ -73,6 +73,9 @@ class TrainConfig:
         hflip: probability that a training frame is mirrored left-right, world and rig together
             (`fusion.data.hflip_sample`; decided per frame and epoch from `seed`, so a resumed run
             sees the same frames). Refused for branches that fuse both cameras.
+        protocol: the evaluation protocol whose ground truth the branches train on and are tested
+            against (fusion.protocol: reference | visible | bev); runs made before it existed
+            trained on `visible`.
     """
 
     data: str
@@ -93,6 +96,16 @@ class TrainConfig:
     threads: int = 2
     init_from: str = ""
     hflip: float = 0.0
+    protocol: str = "reference"
+
+
+# What a field added later means for a run made before it existed (config.json without the field).
+LEGACY_DEFAULTS = {"protocol": "visible"}
+
+
+def run_protocol(run_cfg: dict) -> str:
+    """The evaluation protocol a run trained on (recorded in RUN/config.json)."""
+    return run_cfg.get("protocol", LEGACY_DEFAULTS["protocol"])
 
 
 # Which trained module initialises which new one when warm-starting (`--init-from`): the paper's
@@ -203,6 +216,11 @@ def add_parser(sub, name, help_text):
     p.add_argument("--hflip", type=float, default=0.0, help="probability of mirroring a training frame left-right "
                    "(all sensors and labels together; not with branches that fuse both cameras)")
     p.add_argument("--threads", type=pos_int, default=2, help="torch CPU threads")
+    p.add_argument("--protocol", default="reference", choices=("reference", "visible", "bev"),
+                   help="ground truth to train on and test against (README, 'Evaluation protocols'): reference = "
+                   "the projected 3D box of every actor within range that some sensor observes (world truth); "
+                   "visible = the camera's visible-pixel boxes, small ones ignored; bev = as reference, BEV "
+                   "branches scored on their own grid")
     p.add_argument("--json", action="store_true", help="print one JSON object (final metrics) on stdout")
     p.set_defaults(run=run)
 
@@ -231,8 +249,9 @@ def evaluate_epoch(model, cfg: TrainConfig, reader, test_idx, branches) -> dict:
     frames = model.branch_frames
     crop = bev_crop_of(model, reader)
     for b in branches:
-        out[f"map_{b}"] = score(native(per_frame, b), reader, frames[b], crop)["map"]
-    out["map_fused"] = score(fused(per_frame, branches, frames, "soft_nms"), reader, "camera_right")["map"]
+        out[f"map_{b}"] = score(native(per_frame, b), reader, frames[b], crop, cfg.protocol)["map"]
+    out["map_fused"] = score(fused(per_frame, branches, frames, "soft_nms"), reader, "camera_right",
+                             protocol=cfg.protocol)["map"]
     model.train()
     return out
 
@@ -266,6 +285,10 @@ def train(cfg: TrainConfig, out: Path, progress: bool = True) -> dict:
     if cfg.hflip > 0 and stereo:
         raise UserError(f"--hflip mirrors the rig, which swaps the stereo cameras' sides: branch {stereo[0]!r} "
                         "fuses both cameras and would see its geometry reversed; leave it out or use --hflip 0")
+    from fusion.protocol import PROTOCOLS
+
+    if cfg.protocol not in PROTOCOLS:
+        raise UserError(f"--protocol: unknown protocol {cfg.protocol!r} (choose from: {', '.join(PROTOCOLS)})")
     if reader.manifest["profile"] != cfg.model_profile:
         raise UserError(f"dataset profile {reader.manifest['profile']!r} does not match model profile {cfg.model_profile!r}")
     # The resolved model profile is part of the run: a later edit of configs/model/<profile>.yaml
@@ -278,7 +301,8 @@ def train(cfg: TrainConfig, out: Path, progress: bool = True) -> dict:
     if cfg_path.exists():
         old = json.loads(cfg_path.read_text())
         # fields added after a run was made hold their default in it
-        old = {**{f.name: f.default for f in dataclasses.fields(TrainConfig) if f.name not in old}, **old}
+        old = {**{f.name: LEGACY_DEFAULTS.get(f.name, f.default) for f in dataclasses.fields(TrainConfig)
+                  if f.name not in old}, **old}
         old = json.loads(json.dumps(old))
         free = ("epochs", "lr_drop_epoch", "eval_frames", "threads", "checkpoint_steps")  # may change on resume
         comparable = {k: v for k, v in old.items() if k not in free}
@@ -317,7 +341,8 @@ def train(cfg: TrainConfig, out: Path, progress: bool = True) -> dict:
         if progress:
             sys.stderr.write(f"resuming {out} at epoch {epoch + 1}, step {step_in_epoch}\n")
     sensors = model.sensors_for(None)
-    dataset = FrameDataset(cfg.data, train_idx, sensors=sensors, bev_size=model.transform.image_size("radar"))
+    dataset = FrameDataset(cfg.data, train_idx, sensors=sensors, bev_size=model.transform.image_size("radar"),
+                           protocol=cfg.protocol)
     steps_per_epoch = (len(dataset) + cfg.batch_size - 1) // cfg.batch_size
     metrics_path = out / "metrics.csv"
     result = {}
@@ -403,7 +428,7 @@ def run(args) -> int:
         batch_size=args.batch_size, lr=args.lr, warmup_steps=args.warmup_steps, lr_drop_epoch=args.lr_drop_epoch,
         clip_grad=args.clip_grad, seed=args.seed, eval_frames=args.eval_frames, threads=args.threads,
         checkpoint_steps=args.checkpoint_steps, init_from=",".join(str(Path(r.strip()).resolve()) for r in args.init_from.split(",") if r.strip()),
-        hflip=args.hflip,
+        hflip=args.hflip, protocol=args.protocol,
     )
     out = check_writable_dir(args.out)
     result = train(cfg, out)
