@@ -128,13 +128,23 @@ VEHICLES = ("car", "van", "truck", "bus")
 
 def in_range_bin(dets: list, gts: list, metas: list, frame: str, lo: float, hi: float) -> tuple[list, list]:
     """Detections and ground truth of one range bin [lo, hi) m: ground truth outside the bin becomes
-    difficult (ignored: a detection matching it is neither true nor false), detections whose own
-    estimated range (fusion.protocol.detection_ranges) is outside the bin are dropped."""
+    difficult (ignored: a detection matching it is neither true nor false). A detection that
+    overlaps a ground-truth box of its class at IoU >= 0.5 takes that object's range (its best
+    match); any other detection, a false positive, is placed by its own estimated range
+    (fusion.protocol.detection_ranges). Detections placed outside the bin are dropped."""
     from fusion.protocol import detection_ranges
+    from study.metrics import box_iou
 
     out_d, out_g = [], []
     for d, g, meta in zip(dets, gts, metas):
-        r = detection_ranges(d["boxes"], frame, meta["calibration"])
+        boxes = np.asarray(d["boxes"], float).reshape(-1, 4)
+        r = detection_ranges(boxes, frame, meta["calibration"])
+        if len(boxes) and len(g["boxes"]):
+            iou = box_iou(boxes, g["boxes"])
+            iou[np.asarray(d["labels"])[:, None] != g["labels"][None, :]] = 0.0
+            best = iou.argmax(axis=1)
+            hit = iou[np.arange(len(boxes)), best] >= 0.5
+            r = np.where(hit, g["distance_m"][best], r)
         keep = (r >= lo) & (r < hi)
         out_d.append({k: np.asarray(v)[keep] for k, v in d.items()})
         dist = g["distance_m"]
