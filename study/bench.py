@@ -73,7 +73,8 @@ def add_parser(sub, name, help_text):
                         "per frame. Differences over 0.1 in bins holding objects are listed.",
                         formatter_class=Formatter)
     f.add_argument("--visibilities", default="30,50,75,150,300,600", help="comma-separated fog MOR values [m]")
-    f.add_argument("--frames-per-layout", type=pos_int, default=2, help="clear frames per layout (city, motorway, rural, junction)")
+    f.add_argument("--layouts", default="city,motorway,rural,junction", help="comma-separated road layouts to render")
+    f.add_argument("--frames-per-layout", type=pos_int, default=2, help="clear frames per layout (a 1 Hz sequence)")
     f.add_argument("--seed", type=int, default=0)
     f.add_argument("--plot", default=None, metavar="PNG", help="also draw the table into this PNG file")
     f.add_argument("--json", action="store_true", help="print one JSON object on stdout")
@@ -219,7 +220,7 @@ def run_inference(args) -> int:
 
 def run_lidar_fog(args) -> int:
     from sim.errors import UserError
-    from study.bench_lidar_fog import lidar_fog_comparison, plot_lidar_fog
+    from study.bench_lidar_fog import LAYOUTS, lidar_fog_comparison, plot_lidar_fog
     from study.outputs import check_writable_file
 
     try:
@@ -228,8 +229,12 @@ def run_lidar_fog(args) -> int:
         raise UserError(f"--visibilities must be numbers [m] separated by commas, got {args.visibilities!r}") from None
     if not vis or min(vis) <= 0:
         raise UserError(f"--visibilities must list positive visibilities [m], got {args.visibilities!r}")
+    layouts = [t.strip() for t in args.layouts.split(",") if t.strip()]
+    bad = [t for t in layouts if t not in LAYOUTS]
+    if bad or not layouts:
+        raise UserError(f"unknown layout {bad[0] if bad else ''!r} in --layouts (choose from: {', '.join(LAYOUTS)})")
     plot = check_writable_file(args.plot) if args.plot else None
-    r = lidar_fog_comparison(vis, frames_per_layout=args.frames_per_layout, seed=args.seed)
+    r = lidar_fog_comparison(vis, layouts, frames_per_layout=args.frames_per_layout, seed=args.seed)
     if plot is not None:
         plot_lidar_fog(r, plot)
     r["plot"] = str(plot) if plot is not None else None

@@ -202,31 +202,36 @@ def plot_lidar_fog(result: dict, path) -> None:
     vis = result["visibilities_m"]
     bins = result["range_bins_m"]
     colours = {"kept": "tab:green", "fog": "tab:orange", "lost": "tab:red"}
-    styles = {"ours": "-", "hahner": "--", "hahner_as_written": ":"}
-    fig, axes = plt.subplots(2, len(bins), figsize=(4 * len(bins), 7), sharex=True, sharey=True)
+    styles = {"ours": "-", "hahner": "--", "hahner_as_written": ":", "hahner_unrounded": "-."}
+    shown = {"ours": ("kept", "fog", "lost"), "hahner": ("kept", "fog", "lost"), "hahner_as_written": ("fog",),
+             "hahner_unrounded": ("kept",)}
+    fig, axes = plt.subplots(2, len(bins), figsize=(4 * len(bins), 7.6), sharex=True, sharey=True)
     for s, subset in enumerate(("all", "objects")):
         for b, rb in enumerate(bins):
             ax = axes[s, b]
             rows = [r for r in result["table"] if r["subset"] == subset and r["range_bin_m"] == rb]
             for model, ls in styles.items():
-                for nm, col in colours.items():
-                    if model == "hahner_as_written" and nm == "lost":
-                        continue
+                for nm in shown[model]:
+                    col = colours[nm]
                     y = [r[model][nm] if r[model][nm] is not None else np.nan for r in rows]
                     ax.plot(vis, y, ls, color=col, marker="o" if model == "ours" else None, ms=3,
                             label=f"{model} {nm}")
             n = rows[0]["returns"] if rows else 0
             ax.set_title(f"{subset}, {rb[0]:.0f}-{rb[1]:.0f} m (n={n})", fontsize=9)
             ax.set_xscale("log")
+            ax.set_xticks(vis, [f"{v:g}" for v in vis])
+            ax.minorticks_off()
             ax.set_ylim(-0.02, 1.02)
             ax.grid(alpha=0.3)
             if s == 1:
                 ax.set_xlabel("fog visibility (MOR) [m]")
             if b == 0:
                 ax.set_ylabel("fraction of clean returns")
-    axes[0, 0].legend(fontsize=7, ncol=1, loc="center right")
-    fig.suptitle("Lidar fog on the same clean clouds: ours (solid) vs Hahner et al. 2021 "
-                 "(dashed: this sensor's detection; dotted: as written, no point removed)", fontsize=10)
-    fig.tight_layout()
+    handles, labels = axes[0, 0].get_legend_handles_labels()
+    fig.legend(handles, labels, loc="lower center", ncol=5, fontsize=8)
+    fig.suptitle("Lidar fog on the same clean clouds: ours (solid) vs Hahner et al. ICCV 2021 (dashed: with this "
+                 "sensor's detection; dotted: as written, no point removed; dash-dot: hard intensity not rounded)",
+                 fontsize=10)
+    fig.tight_layout(rect=(0, 0.07, 1, 1))
     savefig_atomic(fig, path, dpi=100)
     plt.close(fig)
