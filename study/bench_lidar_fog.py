@@ -14,7 +14,7 @@ per range bin of the clean return, over all returns and over returns from actors
 or range, so lost = 0 by construction. Two ablations of `hahner` (this sensor's detection) locate
 the differences: `hahner_unrounded` compares the fog response with the hard intensity before its
 rounding to 8-bit counts; `hahner_consistent_beta0` replaces their beta_0 = 1e-6 / pi (the same for
-every point) by the value their Eq. 1 implies for the actual target, (2 / c) rho cos(theta) / pi
+every point) by the value their lidar equation implies for the actual target, (2 / c) rho cos / pi
 (the delta of a hard target in range contributes 2 / c when integrated over time), which makes the
 fog return pi beta (c / 2) i_tmp in this sensor's units, whatever the target. Rays without a clean
 return ("sky") report the fraction that gains a detected fog point. `plot_lidar_fog` draws the
@@ -178,7 +178,7 @@ def lidar_fog_comparison(visibilities=VISIBILITIES_M, layouts=LAYOUTS, frames_pe
             "hahner": "Hahner et al. ICCV 2021 (HahnerFog), this sensor's detection (P >= P_MIN, 0.05-100 m)",
             "hahner_as_written": "Hahner's decision alone, as in their clouds: no point removed (lost = 0)",
             "hahner_unrounded": "hahner, hard intensity not rounded to 8-bit counts before the comparison",
-            "hahner_consistent_beta0": "hahner with beta_0 = (2/c) rho cos / pi of each target (Eq. 1 consistent)",
+            "hahner_consistent_beta0": "hahner with beta_0 = (2/c) rho cos / pi of each target (lidar equation consistent)",
         },
         "table": table,
         "sky_rays": {"rays": sky_total, "fog_fraction": {

@@ -158,7 +158,8 @@ def replace_by_fog(obs, fog, fog_range, fog_power, hard_power):
 
 # --- Hahner et al. ICCV 2021, as published -----------------------------------------------------
 # "Fog Simulation on Real LiDAR Point Clouds for 3D Object Detection in Adverse Weather" (paper
-# Sec. 3-4, Eqs. 1-13 and Algorithm 1) and its code, github.com/MartinHahner/LiDAR_fog_sim
+# Sec. 3: the lidar equation P_R(R) = C_A int P_T(t) H(R - c t / 2) dt with hard- and soft-target
+# responses, and its Algorithm 1) and its code, github.com/MartinHahner/LiDAR_fog_sim
 # (fog_simulation.py: ParameterSet, P_R_fog_hard, P_R_fog_soft, simulate_fog(..., noise=10);
 # generate_integral_lookup_table.py; theory.py). Re-implemented here, vectorised; their constants.
 SPEED_OF_LIGHT_M_S = 299_792_458.0
@@ -177,13 +178,13 @@ def hahner_soft_table(alpha_per_m: float, tau_h_s: float = HAHNER_TAU_H_S, r1_m:
     """Hahner's integral lookup table for one alpha: (fog_distance [m], i_tmp [s/m^2]), each
     (2001,), indexed by the hard target range R0 on a 0.1 m grid over 0..200 m.
 
-    The soft (fog) return of a target at R0 seen at range R (paper Eq. 10-11, theory.P_R_fog_soft)
+    The soft (fog) return of a target at R0 seen at range R (paper Sec. 3, theory.P_R_fog_soft)
     is P_soft(R) = C_A P_0 beta * I(R), with
 
         I(R) = int_0^{2 tau_H} sin^2(pi t / (2 tau_H)) exp(-2 alpha (R - c t / 2)) xi(R - c t / 2)
                / (R - c t / 2)^2 * U(R0 - R + c t / 2) dt
 
-    (pulse P_T(t) = P_0 sin^2(pi t / (2 tau_H)) on [0, 2 tau_H], Eq. 2; xi linear from R1 to R2;
+    (pulse P_T(t) = P_0 sin^2(pi t / (2 tau_H)) on [0, 2 tau_H]; xi linear from R1 to R2;
     1/r^2 taken as 0 where r <= R1). Their table stores, per R0, i_tmp = max_R I(R) over the
     receiver-range grid R in linspace(0, 200, 2000) restricted to R <= R0, and fog_distance = that
     argmax R (the 'original', unshifted tables that fog_simulation.py loads). For R <= R0 every
@@ -220,8 +221,8 @@ def hahner_decision(r0, i_clean, alpha_per_m, beta_per_m_sr, noise_u, beta0_per_
     Args: r0 hard target range [m]; i_clean clear-weather intensity [counts, 0..255]; noise_u
     uniform(0, 1) draws of the same shape (the fog points' range noise).
     Returns (fog, i_hard, i_soft, fog_range): fog bool (the point becomes a fog point),
-    i_hard = round(i exp(-2 alpha R0)) (P_R_fog_hard, Eq. 9), i_soft = min(255, i_tmp(R0) i R0^2
-    beta / beta_0) (C_A P_0 = i R0^2 / beta_0 from the clear peak i = C_A P_0 beta_0 / R0^2, Eq. 8),
+    i_hard = round(i exp(-2 alpha R0)) (P_R_fog_hard), i_soft = min(255, i_tmp(R0) i R0^2 beta /
+    beta_0) (C_A P_0 = i R0^2 / beta_0 from the clear-weather peak i = C_A P_0 beta_0 / R0^2),
     fog = i_soft > i_hard, fog_range = fog_distance(R0) * R0 / d with d ~ U(R0 - 10, R0 + 10) m
     (noise variant 'v1'); it can be negative or beyond the sensor's range for R0 < 10 m, as theirs.
     beta0_per_sr may be an array (one per point); round_hard=False skips the rounding to counts

@@ -49,7 +49,7 @@ def test_soft_table_reproduces_the_published_lookup_tables(alpha):
 
 
 def test_soft_table_is_the_maximum_of_the_pulse_integral_over_the_fog_in_front():
-    """i_tmp(R0) = max over R <= R0 of the integral of paper Eq. 10-11, here by adaptive quadrature
+    """i_tmp(R0) = max over R <= R0 of the soft-target integral (paper Sec. 3), here by adaptive quadrature
     (independent of the table's Simpson rule); the peak stays put once the target is past it."""
     alpha, c, tau = 0.03, SPEED_OF_LIGHT_M_S, HAHNER_TAU_H_S
 
@@ -83,7 +83,7 @@ def test_decision_follows_hahner_algorithm_on_constructed_points():
     fog, i_hard, i_soft, fog_range = hahner_decision(r0, i, alpha, beta, u)
     fd, it = hahner_soft_table(alpha)
     k = np.rint(r0 * 10).astype(int)
-    np.testing.assert_array_equal(i_hard, np.round(i * np.exp(-2 * alpha * r0)))  # Eq. 9, 8-bit counts
+    np.testing.assert_array_equal(i_hard, np.round(i * np.exp(-2 * alpha * r0)))  # P_R_fog_hard, 8-bit counts
     np.testing.assert_allclose(i_soft, np.minimum(it[k] * i * r0**2 * beta / HAHNER_BETA0_PER_SR, 255))
     np.testing.assert_array_equal(fog, i_soft > i_hard)
     # no fog inside the receiver's blind zone (xi = 0 up to R1); the bright near target survives
