@@ -75,7 +75,7 @@ def add_parser(sub, name, help_text):
     f.add_argument("--visibilities", default="30,50,75,150,300,600", help="comma-separated fog MOR values [m]")
     f.add_argument("--layouts", default="city,motorway,rural,junction", help="comma-separated road layouts to render")
     f.add_argument("--frames-per-layout", type=pos_int, default=2, help="clear frames per layout (a 1 Hz sequence)")
-    f.add_argument("--seed", type=int, default=0)
+    f.add_argument("--seed", type=int, default=0, help="seed of the scenes and of the fog models' random draws")
     f.add_argument("--plot", default=None, metavar="PNG", help="also draw the table into this PNG file")
     f.add_argument("--json", action="store_true", help="print one JSON object on stdout")
     f.set_defaults(run=run_lidar_fog)

@@ -97,8 +97,9 @@ def lidar_fog_comparison(visibilities=VISIBILITIES_M, layouts=LAYOUTS, frames_pe
 
     from sensors.degrade.lidar import SPEED_OF_LIGHT_M_S, HahnerFog, replace_by_fog
 
+    tty = sys.stderr.isatty()  # a line every few seconds also when stderr is a file or pipe
     bar = tqdm(total=len(layouts) * frames_per_layout * (1 + len(visibilities)), desc="bench lidar-fog",
-               file=sys.stderr, disable=not progress or None, mininterval=2.0)
+               file=sys.stderr, disable=not progress, dynamic_ncols=tty, mininterval=0.5 if tty else 5.0)
     frames = clean_lidar_frames(layouts, frames_per_layout, seed, progress=lambda: bar.update(1))
     n_bins = len(RANGE_BINS_M)
     keys = (*MODELS, "hahner_as_written", "hahner_unrounded", "hahner_consistent_beta0")
