@@ -41,6 +41,8 @@ class GenerateConfig:
         transitions: weather transitions drawn uniformly per sequence ("none" = constant weather).
         twins: also render every frame in clear weather (counterfactual pairs, `clear/`).
         degrade: apply the weather/obstruction degradation models (sensors.degrade).
+        lidar_fog: lidar fog model, "ours" or "hahner" (Hahner et al. ICCV 2021 as published;
+            sensors.degrade.lidar.LIDAR_FOG_MODELS); each fog frame records it in its params.
     """
 
     contexts: tuple[str, ...] = CONTEXT_NAMES
@@ -53,6 +55,7 @@ class GenerateConfig:
     transitions: tuple[str, ...] = ("none",)
     twins: bool = False
     degrade: bool = True
+    lidar_fog: str = "ours"
 
     def __post_init__(self) -> None:
         if not self.contexts:
@@ -72,10 +75,13 @@ class GenerateConfig:
         bad = [t for t in self.transitions if t not in TRANSITIONS]
         if bad or not self.transitions:
             raise UserError(f"unknown weather transition {bad[0] if bad else ''!r} (choose from: {', '.join(TRANSITIONS)})")
+        from sensors.degrade.lidar import LIDAR_FOG_MODELS
         from sensors.rig import profile_names
 
         if self.profile not in profile_names():
             raise UserError(f"unknown profile {self.profile!r} (choose from: {', '.join(profile_names())})")
+        if self.lidar_fog not in LIDAR_FOG_MODELS:
+            raise UserError(f"unknown lidar_fog {self.lidar_fog!r} (choose from: {', '.join(LIDAR_FOG_MODELS.names())})")
 
     def to_dict(self) -> dict:
         d = asdict(self)
@@ -138,7 +144,7 @@ def render_sequence(spec: ShardSpec, config: GenerateConfig, on_frame: Callable[
     if config.degrade:
         from sensors.degrade import Degrader
 
-        degrader = Degrader(renderer.calib, spec.context, spec.seed)
+        degrader = Degrader(renderer.calib, spec.context, spec.seed, lidar_fog=config.lidar_fog)
     frames, twins = [], [] if config.twins else None
     # The twin holds everything but the condition's own quantities: the sequence's drawn clear-air
     # visibility and (for fog, rain, snow) its light; persistent faults and random streams stay.

@@ -48,6 +48,8 @@ def add_generate(sub, name, help_text):
     p.add_argument("--twins", action="store_true", default=None, help="also write clear-weather twins of every frame")
     p.add_argument("--no-degrade", dest="degrade", action="store_false", default=None,
                    help="skip the weather degradation models (clean sensors, weather only lights the scene)")
+    p.add_argument("--lidar-fog", default=None, choices=["ours", "hahner"],
+                   help="lidar fog model: ours, or hahner (Hahner et al. ICCV 2021 as published) [ours]")
     p.add_argument("--config", default=None, help="YAML file with GenerateConfig fields (flags override it)")
     p.add_argument("--json", action="store_true", help="print one JSON object on stdout")
     p.set_defaults(run=run_generate)
@@ -63,7 +65,7 @@ def build_config(args):
         base["contexts"] = list(CONTEXT_NAMES) if args.contexts == "all" else _csv(args.contexts)
     for flag, key in (("frames_per_context", "frames_per_context"), ("seed", "seed"), ("profile", "profile"),
                       ("sequence_length", "sequence_length"), ("frame_rate", "frame_rate_hz"),
-                      ("twins", "twins"), ("degrade", "degrade")):
+                      ("twins", "twins"), ("degrade", "degrade"), ("lidar_fog", "lidar_fog")):
         value = getattr(args, flag)
         if value is not None:
             base[key] = value

@@ -14,6 +14,7 @@ from sensors.degrade import camera as _camera  # noqa: F401  (registers)
 from sensors.degrade import lidar as _lidar  # noqa: F401
 from sensors.degrade import radar as _radar  # noqa: F401
 from sensors.degrade.base import DEGRADATIONS, OBSTRUCTION_PROBABILITY, Degradation, DegradeContext
+from sensors.degrade.lidar import LIDAR_FOG_MODELS
 from sim.scenario import Context, stream
 
 CAMERAS = ("camera_left", "camera_right")
@@ -29,11 +30,14 @@ class Degrader:
     Args:
         calib: the sequence's Calibration. context: context name. seed: the sequence seed.
         obstructions: include the obstruction/failure models (False: weather only).
+        lidar_fog: lidar fog model, a name in LIDAR_FOG_MODELS ("ours" or "hahner").
     """
 
-    def __init__(self, calib, context: str, seed: int, obstructions: bool = True) -> None:
+    def __init__(self, calib, context: str, seed: int, obstructions: bool = True, lidar_fog: str = "ours") -> None:
         self.seed = int(seed)
         self.obstructions = obstructions
+        LIDAR_FOG_MODELS.get(lidar_fog)  # UserError naming the choices
+        self.lidar_fog = lidar_fog
         self.sequence: dict = {"_rng": stream(self.seed, "degrade-sequence")}
         self.calib = calib
         self.context = Context.parse(context)
@@ -51,7 +55,8 @@ class Degrader:
             targets = CAMERAS if model.sensor == "camera" else (model.sensor,)
             for target in targets:
                 ctx = DegradeContext(self.calib, self.context, self.sequence,
-                                     camera=target if model.sensor == "camera" else "", frame_index=frame_index)
+                                     camera=target if model.sensor == "camera" else "", frame_index=frame_index,
+                                     lidar_fog=self.lidar_fog)
                 rng = stream(self.seed, "degrade", frame_index, name, target)
                 p = model.sample_params(rng, weather, ctx)
                 if p is None:
@@ -66,4 +71,4 @@ class Degrader:
         return out, params
 
 
-__all__ = ["DEGRADATIONS", "OBSTRUCTION_PROBABILITY", "Degrader", "DegradeContext", "Degradation"]
+__all__ = ["DEGRADATIONS", "LIDAR_FOG_MODELS", "OBSTRUCTION_PROBABILITY", "Degrader", "DegradeContext", "Degradation"]

@@ -7,7 +7,8 @@ Each entry of `DEGRADATIONS` is a `Degradation` subclass instance with
 Params are JSON-ready (numbers, short lists) and stored with the frame, so any frame can be
 replayed and explained. Camera models are sampled per camera (ctx.camera names it).
 
-`DegradeContext` carries the calibration, the camera name, the frame's Context and a
+`DegradeContext` carries the calibration, the camera name, the frame's Context, the selected lidar
+fog model and a
 sequence-level generator for faults that persist over a sequence (soiling, beam loss, blocked
 radar sector): those are drawn once per sequence so they stay put from frame to frame.
 """
@@ -35,6 +36,7 @@ class DegradeContext:
     sequence: dict = field(default_factory=dict)  # persistent per-sequence draws, by model name
     camera: str = ""
     frame_index: int = 0
+    lidar_fog: str = "ours"  # lidar fog model (sensors.degrade.lidar.LIDAR_FOG_MODELS)
 
 
 class Degradation(ABC):
