@@ -83,7 +83,8 @@ def run(args) -> int:
     for cond, sev in tqdm(rows, desc="gallery", file=sys.stderr, disable=None):
         weather = representative_weather(cond if cond != "clear" else "fog", sev)
         context = layout if cond == "clear" else f"{layout}+{cond}"
-        degrader = Degrader(renderer.calib, context, shard["seed"], obstructions=False)
+        degrader = Degrader(renderer.calib, context, shard["seed"], obstructions=False,
+                            lidar_fog=manifest["config"].get("lidar_fog", "ours"))
         obs, params = degrader.apply(scene, renderer.observe(scene, weather), scene.frame_index)
         frame = renderer.finalize(scene, obs, params)
         panels.append({"condition": cond, "severity": sev, "weather": weather, "frame": frame})
