@@ -98,6 +98,7 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "generate": ("study.cmd_dataset:add_generate", "generate a sharded sensor dataset (cameras, lidar, radar, labels)"),
     "verify": ("study.cmd_dataset:add_verify", "check a dataset's shards against its manifest checksums"),
     "export-coco": ("study.cmd_dataset:add_export", "write a dataset's FWD labels as COCO JSON"),
+    "labels": ("study.label_stats:add_parser", "what each evaluation protocol asks a detector to find (counts per range bin)"),
     "show": ("study.cmd_dataset:add_show", "draw one frame of a dataset with every sensor and its labels"),
     "gallery": ("study.cmd_gallery:add_parser", "one scene under every condition and severity, all sensors side by side"),
     "theory": ("study.theory:add_parser", "HydraFusion Sec. 1.1 measured: single sensors vs full, selective and gated fusion per weather"),

@@ -217,3 +217,18 @@ def test_score_per_range_bin_counts_each_bin_alone(data):
     part = score(cut, reader, "camera_right", protocol="reference")["map_vehicles_per_range"]
     assert part[name] == 0.0
     assert all(part[k] == 1.0 for k in filled if k != name)
+
+
+def test_labels_command_counts_what_each_protocol_asks_for(data, capsys):
+    from study.cli import main
+
+    root, reader, _ = data
+    assert main(["labels", str(root), "--json"]) == 0
+    out = json.loads(capsys.readouterr().out)
+    for protocol in ("visible", "reference"):
+        to_find = sum(c["to_find"] for c in out["protocols"][protocol]["camera_right"]["vehicles"].values())
+        expect = sum(sum(1 for cls, d in zip(lab["labels"], lab["difficult"]) if cls <= 4 and not d)
+                     for lab in (frame_labels(reader.labels(i), reader.meta(i), protocol)["camera_right"]
+                                 for i in range(len(reader))))
+        assert to_find == expect
+    assert main(["labels", str(root), "--protocols", "reference,bogus"]) == 2
