@@ -94,7 +94,7 @@ def test_reader_is_numpy_and_json_only(reference):
     meta = frame["meta"]
     assert meta["context"] == "junction" and "calibration" in meta and "degradation" in meta
     labels = frame["labels"]
-    assert set(labels) == {"camera_left", "camera_right", "bev"}
+    assert set(labels) == {"camera_left", "camera_right", "bev", "objects"}
     for name in ("camera_left", "camera_right"):
         boxes = np.array(labels[name]["boxes"]).reshape(-1, 4)
         assert np.all(boxes[:, 2] > boxes[:, 0]) and np.all(boxes[:, 3] > boxes[:, 1])
