@@ -101,7 +101,8 @@ def test_gate_dataset_is_cached_keyed_and_resumable(run, data, trained, tmp_path
     # losses are the sum of per_sample_losses' four terms
     from fusion.data import FrameDataset, collate
 
-    inputs, targets, _ = collate([FrameDataset(data, [5], sensors=model.sensors,
+    assert gd.protocol == "reference"  # the run's protocol (TrainConfig's default)
+    inputs, targets, _ = collate([FrameDataset(data, [5], sensors=model.sensors, protocol=gd.protocol,
                                                bev_size=model.transform.image_size("radar"))[0]])
     per = model.per_sample_losses(inputs, targets, seed=0)[0]
     assert np.allclose(losses[5], [float(sum(per[b].values())) for b in BRANCHES], rtol=1e-4)
