@@ -163,3 +163,14 @@ def test_the_seeded_env_equals_gym_make_then_reset():
             theirs.reset(seed=11)
         assert state(ours) == state(theirs.unwrapped) and len(state(ours)) > 3
         assert ours.vehicle.position.tolist() == theirs.unwrapped.vehicle.position.tolist()
+
+
+def test_pyplot_is_imported_on_first_use_only():
+    import subprocess
+    import sys
+
+    code = ("import sys, sim.scenario; assert 'matplotlib.font_manager' not in sys.modules; "
+            "import matplotlib; matplotlib.use('Agg'); import matplotlib.pyplot as plt; "
+            "fig, ax = plt.subplots(); ax.plot([0, 1]); assert 'matplotlib.font_manager' in sys.modules; print('ok')")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
+    assert out.returncode == 0 and out.stdout.strip() == "ok", out.stderr[-2000:]
