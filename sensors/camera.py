@@ -177,12 +177,9 @@ class StereoRenderer:
         nodes = [n for n in (self.static_node, self.dynamic_node) if n is not None]
         with _no_multisample(), _draw_order(r, nodes):
             colour, depth = r.render(self.scene, flags=pyrender.RenderFlags.FLAT | pyrender.RenderFlags.RGBA)
-        valid = colour[..., 3] == 255
-        index = colour[..., 0].astype(np.int64) | (colour[..., 1].astype(np.int64) << 8)
-        index[~valid] = 0
-        material = np.where(valid, colour[..., 2], 0).astype(np.uint8)
-        depth = np.where(valid & (depth > 0), depth, np.inf).astype(np.float32)
-        return index, material, depth
+        from sensors.kernels import decode_codes
+
+        return decode_codes(np.ascontiguousarray(colour), np.ascontiguousarray(depth, np.float32))
 
 
 # ---------------------------------------------------------------------------------------------
@@ -414,6 +411,10 @@ _SRGB_LUT = srgb_encode(np.linspace(0.0, 1.0, 65536)).astype(np.float32)
 
 def srgb_encode_fast(x: np.ndarray) -> np.ndarray:
     """srgb_encode through a 65,536-entry table (error < 0.2 / 255 everywhere)."""
+    if x.dtype == np.float32:
+        from sensors.kernels import srgb_lookup
+
+        return srgb_lookup(np.ascontiguousarray(x), _SRGB_LUT)
     idx = (np.clip(x, 0.0, 1.0) * 65535.0 + 0.5).astype(np.int32)
     return _SRGB_LUT[idx]
 
@@ -421,26 +422,36 @@ def srgb_encode_fast(x: np.ndarray) -> np.ndarray:
 def shot_and_read_noise(rng: np.random.Generator, electrons: np.ndarray, read_noise_e: float) -> np.ndarray:
     """Poisson photon noise plus Gaussian read noise [e-]. Counts of 30 e- and more use the normal
     approximation N(lambda, sqrt(lambda)) of the Poisson law (exact Poisson below)."""
-    out = np.empty(electrons.shape, np.float32)
-    low = electrons < 30.0
-    out[low] = rng.poisson(electrons[low])
-    hi = ~low
-    lam = electrons[hi].astype(np.float32)
-    out[hi] = lam + np.sqrt(lam) * rng.standard_normal(lam.shape, dtype=np.float32)
-    out += read_noise_e * rng.standard_normal(out.shape, dtype=np.float32)
-    return out
+    from sensors.kernels import shot_and_read_noise_apply
+
+    e = np.ascontiguousarray(electrons, np.float32).reshape(-1)
+    low = e < 30.0
+    n_low = int(np.count_nonzero(low))
+    # the draws in the order they always had: Poisson (low counts), normal (high), read noise
+    poisson = rng.poisson(e[low]) if n_low else np.zeros(0, np.int64)
+    normal_hi = rng.standard_normal(len(e) - n_low, dtype=np.float32)
+    normal_read = rng.standard_normal(len(e), dtype=np.float32)
+    out = shot_and_read_noise_apply(e, low, poisson.astype(np.int64, copy=False), normal_hi, normal_read,
+                                    float(read_noise_e))
+    return out.reshape(electrons.shape)
 
 
 def expose(obs: CameraObservation, exposure: float | None = None) -> np.ndarray:
     """Camera model: lens blur, exposure, (low light: gain and Poisson-Gaussian noise), clipping,
     sRGB -> (H, W, 3) float in 0..1."""
-    k = auto_exposure(obs.radiance) if exposure is None else exposure
+    wanted = None
+    if exposure is None:
+        wanted = wanted_exposure(obs.radiance)
+        k = float(np.clip(wanted, MIN_EXPOSURE, MAX_EXPOSURE))  # auto_exposure
+    else:
+        k = exposure
     obs.exposure = k
     blurred = gaussian_filter(obs.radiance, sigma=(PSF_SIGMA_PX, PSF_SIGMA_PX, 0))
     signal = blurred * k  # fraction of the full well
     p = obs.sensor_noise
     if p:
-        gain = float(np.clip(wanted_exposure(obs.radiance) / k, 1.0, p["max_gain"]))
+        wanted = wanted_exposure(obs.radiance) if wanted is None else wanted
+        gain = float(np.clip(wanted / k, 1.0, p["max_gain"]))
         obs.gain = gain
         rng = np.random.default_rng(p["seed"])
         electrons = np.clip(signal, 0, 1) * p["full_well_e"]
@@ -449,6 +460,10 @@ def expose(obs: CameraObservation, exposure: float | None = None) -> np.ndarray:
 
 
 def to_uint8(img01: np.ndarray) -> np.ndarray:
+    if img01.dtype == np.float32:
+        from sensors.kernels import to_uint8 as kernel
+
+        return kernel(np.ascontiguousarray(img01))
     return np.round(np.clip(img01, 0, 1) * 255).astype(np.uint8)
 
 

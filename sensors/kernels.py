@@ -205,3 +205,94 @@ def cell_max(cells, values, n):
             best[c] = v
             state[c] = 1
     return best.astype(np.float32)
+
+
+# --- camera model ------------------------------------------------------------------------------
+
+
+@njit(cache=True, error_model="numpy")
+def shot_and_read_noise_apply(electrons, low, poisson_draws, normal_hi, normal_read, read_noise_e):
+    """Combine the draws of `sensors.camera.shot_and_read_noise` (float32 arithmetic as numpy's):
+    out = Poisson draw where electrons < 30, lam + sqrt(lam) z otherwise, then + read_noise_e z'.
+
+    Args:
+        electrons: (N,) float32; low: (N,) bool; poisson_draws: (low.sum(),) int64 in the order of
+        the low pixels; normal_hi: (N - low.sum(),) float32; normal_read: (N,) float32.
+    """
+    n = electrons.shape[0]
+    out = np.empty(n, np.float32)
+    r = _F32(read_noise_e)
+    i_low = 0
+    i_hi = 0
+    for i in range(n):
+        if low[i]:
+            v = np.float32(poisson_draws[i_low])
+            i_low += 1
+        else:
+            lam = electrons[i]
+            v = lam + np.sqrt(lam) * normal_hi[i_hi]
+            i_hi += 1
+        out[i] = v + r * normal_read[i]
+    return out
+
+
+@njit(cache=True, error_model="numpy")
+def srgb_lookup(x, lut):
+    """`sensors.camera.srgb_encode_fast` of float32 `x` (any shape, flattened): lut[int(clip(x) * 65535 + 0.5)]."""
+    flat = x.reshape(-1)
+    out = np.empty(flat.shape[0], np.float32)
+    zero = _F32(0.0)
+    one = _F32(1.0)
+    scale = _F32(65535.0)
+    half = _F32(0.5)
+    for i in range(flat.shape[0]):
+        v = flat[i]
+        v = max(v, zero)
+        v = min(v, one)
+        out[i] = lut[np.int32(v * scale + half)]
+    return out.reshape(x.shape)
+
+
+@njit(cache=True, error_model="numpy")
+def to_uint8(x):
+    """`sensors.camera.to_uint8` of float32 `x`: round-half-even(clip(x, 0, 1) * 255) as uint8."""
+    flat = x.reshape(-1)
+    out = np.empty(flat.shape[0], np.uint8)
+    zero = _F32(0.0)
+    one = _F32(1.0)
+    scale = _F32(255.0)
+    for i in range(flat.shape[0]):
+        v = flat[i]
+        v = max(v, zero)
+        v = min(v, one)
+        out[i] = np.uint8(np.rint(v * scale))
+    return out.reshape(x.shape)
+
+
+# --- visibility pass ---------------------------------------------------------------------------
+
+
+@njit(cache=True)
+def decode_codes(colour, depth):
+    """Decode the flat-colour pass (`sensors.camera.StereoRenderer.codes`): instance index from
+    R + 256 G, material from B, depth [m] (inf where nothing was drawn, alpha != 255, or depth <= 0).
+
+    Args:
+        colour: (H, W, 4) uint8 RGBA; depth: (H, W) float32 linear depth [m] (0 = background).
+    Returns:
+        index (H, W) int64, material (H, W) uint8, depth (H, W) float32.
+    """
+    H, W = depth.shape
+    index = np.zeros((H, W), np.int64)
+    material = np.zeros((H, W), np.uint8)
+    out = np.empty((H, W), np.float32)
+    for h in range(H):
+        for w in range(W):
+            if colour[h, w, 3] == 255:
+                index[h, w] = np.int64(colour[h, w, 0]) | (np.int64(colour[h, w, 1]) << 8)
+                material[h, w] = colour[h, w, 2]
+                d = depth[h, w]
+                out[h, w] = d if d > 0 else np.inf
+            else:
+                out[h, w] = np.inf
+    return index, material, out

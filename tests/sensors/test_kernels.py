@@ -141,6 +141,48 @@ def test_cell_max_equals_the_sort_reference():
     assert _bits_equal(kernels.cell_max(cells, values, 600), by_sorting(cells, values, 600))
 
 
+def test_camera_model_kernels_equal_numpy():
+    rng = np.random.default_rng(5)
+    x = (rng.normal(0.5, 0.6, size=(40, 50, 3))).astype(np.float32)  # beyond 0..1 on both sides
+    x[0, 0, 0], x[0, 0, 1] = 0.0, 1.0
+    idx = (np.clip(x, 0.0, 1.0) * 65535.0 + 0.5).astype(np.int32)
+    assert _bits_equal(kernels.srgb_lookup(x, cam_mod._SRGB_LUT), cam_mod._SRGB_LUT[idx])
+    half_steps = (np.arange(512, dtype=np.float32) + 0.5) / 255  # ties of the rounding, half to even
+    for y in (x, half_steps):
+        assert _bits_equal(kernels.to_uint8(y), np.round(np.clip(y, 0, 1) * 255).astype(np.uint8))
+
+
+@pytest.mark.parametrize("scale", [3.0, 1100.0])  # night (Poisson counts) and day (normal approximation)
+def test_sensor_noise_draws_and_arithmetic_equal_numpy(scale):
+    def reference(rng, electrons, read_noise_e):  # sensors.camera.shot_and_read_noise before the kernel
+        out = np.empty(electrons.shape, np.float32)
+        low = electrons < 30.0
+        out[low] = rng.poisson(electrons[low])
+        hi = ~low
+        lam = electrons[hi].astype(np.float32)
+        out[hi] = lam + np.sqrt(lam) * rng.standard_normal(lam.shape, dtype=np.float32)
+        out += read_noise_e * rng.standard_normal(out.shape, dtype=np.float32)
+        return out
+
+    e = np.random.default_rng(6).gamma(1.0, scale, size=(30, 40, 3)).astype(np.float32)
+    ours = cam_mod.shot_and_read_noise(np.random.default_rng(9), e, 4.0)
+    assert _bits_equal(ours, reference(np.random.default_rng(9), e, 4.0))
+
+
+def test_decode_codes_equals_numpy():
+    rng = np.random.default_rng(7)
+    colour = rng.integers(0, 256, size=(20, 30, 4)).astype(np.uint8)
+    colour[..., 3] = np.where(rng.random((20, 30)) < 0.7, 255, colour[..., 3])
+    depth = rng.normal(20, 15, size=(20, 30)).astype(np.float32)  # some <= 0
+    valid = colour[..., 3] == 255
+    index = colour[..., 0].astype(np.int64) | (colour[..., 1].astype(np.int64) << 8)
+    index[~valid] = 0
+    ours = kernels.decode_codes(colour, depth)
+    assert _bits_equal(ours[0], index)
+    assert _bits_equal(ours[1], np.where(valid, colour[..., 2], 0).astype(np.uint8))
+    assert _bits_equal(ours[2], np.where(valid & (depth > 0), depth, np.inf).astype(np.float32))
+
+
 # --- shading of real frames ---------------------------------------------------------------------
 
 
