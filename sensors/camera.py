@@ -76,6 +76,20 @@ def _no_multisample():
         _pr.glEnable = original
 
 
+@contextlib.contextmanager
+def _draw_order(renderer: pyrender.OffscreenRenderer, nodes: list):
+    """Draw the mesh nodes in this order. pyrender sorts opaque nodes by their distance to the
+    camera and keeps the order of a Python set among equal distances (our static and actor meshes
+    both sit at the origin), so which mesh won an exact depth tie (GL_LESS: the first drawn) changed
+    from process to process with the objects' addresses: the world first, then the actors."""
+    inner = renderer._renderer
+    inner._sorted_mesh_nodes = lambda scene: nodes
+    try:
+        yield
+    finally:
+        del inner._sorted_mesh_nodes
+
+
 def _code_colours(soup: MeshSoup) -> np.ndarray:
     inst = soup.instance.astype(np.int64)
     col = np.empty((len(inst), 4), np.uint8)
@@ -160,14 +174,12 @@ class StereoRenderer:
             self.scene.remove_node(self.cam_node)
         self.cam_node = self.scene.add(camera, pose=pose)
         r = _renderer(cam.width, cam.height)
-        with _no_multisample():
+        nodes = [n for n in (self.static_node, self.dynamic_node) if n is not None]
+        with _no_multisample(), _draw_order(r, nodes):
             colour, depth = r.render(self.scene, flags=pyrender.RenderFlags.FLAT | pyrender.RenderFlags.RGBA)
-        valid = colour[..., 3] == 255
-        index = colour[..., 0].astype(np.int64) | (colour[..., 1].astype(np.int64) << 8)
-        index[~valid] = 0
-        material = np.where(valid, colour[..., 2], 0).astype(np.uint8)
-        depth = np.where(valid & (depth > 0), depth, np.inf).astype(np.float32)
-        return index, material, depth
+        from sensors.kernels import decode_codes
+
+        return decode_codes(np.ascontiguousarray(colour), np.ascontiguousarray(depth, np.float32))
 
 
 # ---------------------------------------------------------------------------------------------
@@ -202,6 +214,10 @@ def _normals_from_points(P: np.ndarray, depth: np.ndarray) -> np.ndarray:
                   a[..., 0] * b[..., 1] - a[..., 1] * b[..., 0]], -1)
     norm = np.sqrt(np.einsum("hwc,hwc->hw", n, n))[..., None]
     return np.divide(n, norm, out=np.zeros_like(n), where=norm > 1e-12)
+
+
+# materials whose normals snap to +z where nearly vertical (flat ground)
+_SNAP_MATERIAL = np.isin(np.arange(len(MATERIALS)), [MATERIAL_ID[m] for m in ("asphalt", "lane_paint", "grass", "sidewalk")])
 
 
 def _beam(direction: np.ndarray, axis: np.ndarray, up: np.ndarray, h_width_deg: float, v_width_deg: float,
@@ -268,7 +284,14 @@ def shade(
     lighting: Lighting,
     caster=None,
 ) -> CameraObservation:
-    """Radiance of every pixel [cd/m^2] from the visibility pass and the frame's lighting."""
+    """Radiance of every pixel [cd/m^2] from the visibility pass and the frame's lighting.
+
+    The per-pixel loops run in `sensors.kernels` (bit-identical to the numpy formulation kept in
+    `_normals_from_points` and tests/sensors/test_kernels.py); BLAS products, Embree shadow rays
+    and the light sources' beam patterns (exp, pow, atan2) stay in numpy.
+    """
+    from sensors import kernels
+
     H, W = depth.shape
     geo = np.isfinite(depth)
     rays = _rays(cam)  # unit, optical frame
@@ -276,14 +299,10 @@ def shade(
     P_cam = rays / rays[..., 2:3] * z
     world_from_cam = (world_from_ego @ cam.ego_from_camera).astype(np.float32)
     P = P_cam @ world_from_cam[:3, :3].T + world_from_cam[:3, 3]
-    n = _normals_from_points(P, np.where(geo, depth, np.float32(1e6)))
     cam_pos = world_from_cam[:3, 3]
-    to_cam = cam_pos - P
-    flip = np.einsum("hwc,hwc->hw", n, to_cam) < 0
-    n = np.where(flip[..., None], -n, n)
-    ground = np.isin(material, [MATERIAL_ID[m] for m in ("asphalt", "lane_paint", "grass", "sidewalk")])
-    snap = ground & (n[..., 2] > 0.95)
-    n[snap] = (0.0, 0.0, 1.0)
+    # normals from the point map, facing the camera, ground snapped flat
+    n = kernels.surface_normals(P, np.where(geo, depth, np.float32(1e6)), np.ascontiguousarray(cam_pos),
+                                _SNAP_MATERIAL, material)
 
     # albedo, with per-actor paint / clothing colours
     albedo = ALBEDO[material].copy()
@@ -292,12 +311,12 @@ def shade(
         table = _colour_table(tuple(int(i) for i in actor_ids))
         albedo[per_inst] = table[index[per_inst], material[per_inst]]
 
-    nz = n[..., 2]
-    # sky hemisphere seen by the surface + light bounced off the ground, both sky-coloured
-    sky_e = lighting.sky_lux * ((1 + nz) / 2 + GROUND_ALBEDO * (1 - nz) / 2)
-    E = sky_e[..., None] * SKY_COLOUR
-    if lighting.sun_normal_lux > 0:
-        cos_s = np.einsum("hwc,c->hw", n, lighting.sun_dir)
+    # sky hemisphere seen by the surface + light bounced off the ground, both sky-coloured; the sun
+    with_sun = lighting.sun_normal_lux > 0
+    lit = geo
+    cos_s = np.zeros((0, 0))
+    if with_sun:
+        cos_s = kernels.sun_cosine(n, np.asarray(lighting.sun_dir, np.float64))
         lit = geo & (cos_s > 0)
         if caster is not None and lit.any():
             # shadow rays towards the sun on a 2x2-subsampled grid, spread to each 2x2 block (the
@@ -310,7 +329,8 @@ def shade(
             shadow_sub[lit[::2, ::2]] = np.isfinite(hits.range)
             shadow = np.repeat(np.repeat(shadow_sub, 2, 0), 2, 1)[:H, :W]
             lit &= ~shadow
-        E += (np.where(lit, cos_s, 0.0) * lighting.sun_normal_lux)[..., None] * SUN_COLOUR
+    E = kernels.sky_and_sun(n[..., 2], lighting.sky_lux, GROUND_ALBEDO, SKY_COLOUR, lit, cos_s,
+                            lighting.sun_normal_lux, SUN_COLOUR, with_sun)
     up = np.array([0.0, 0.0, 1.0])
     artificial = (lighting.lamps_on and len(lighting.lamps)) or lighting.headlights_on
     if artificial:
@@ -341,21 +361,24 @@ def shade(
     if artificial:
         E.reshape(-1, 3)[pix] += Ef
 
-    L = albedo * E / np.pi
     # emissive surfaces that are switched on
+    emissive_on = np.zeros(len(MATERIALS), bool)
     for m in MATERIALS:
         if m.emits_when and ((m.emits_when == "lamps" and lighting.lamps_on) or
                              (m.emits_when == "headlights" and lighting.headlights_on)):
-            sel = material == MATERIAL_ID[m.name]
-            L[sel] += EMISSIVE[MATERIAL_ID[m.name]]
+            emissive_on[MATERIAL_ID[m.name]] = True
 
     # sky: brighter towards the horizon; its horizon value is the airlight used by fog
     sky_h = (lighting.sky_lux + 0.2 * lighting.sun_normal_lux * max(lighting.sun_dir[2], 0)) / np.pi
     sky_h = max(sky_h, 1e-4)
     if not geo.all():
         ray_w = rays[~geo] @ world_from_cam[:3, :3].T
-        elev = np.clip(ray_w[:, 2], 0, 1)
-        L[~geo] = (sky_h * (1.0 - 0.5 * elev))[:, None] * SKY_COLOUR
+        elev = np.ascontiguousarray(np.clip(ray_w[:, 2], 0, 1))
+    else:
+        elev = np.zeros(0, np.float32)
+    # a numpy float64 sky_h keeps the gradient in float64, a Python float does not (NEP 50)
+    L = kernels.radiance(albedo, E, material, emissive_on, EMISSIVE, geo, elev, float(sky_h),
+                         isinstance(sky_h, np.floating), SKY_COLOUR)
     L = L.astype(np.float32, copy=False)
     instance = np.where(index > 0, np.concatenate([[0], actor_ids])[np.clip(index, 0, len(actor_ids))], 0)
     return CameraObservation(L, depth, instance.astype(np.int64), material, (sky_h * SKY_COLOUR).astype(np.float32))
@@ -388,6 +411,10 @@ _SRGB_LUT = srgb_encode(np.linspace(0.0, 1.0, 65536)).astype(np.float32)
 
 def srgb_encode_fast(x: np.ndarray) -> np.ndarray:
     """srgb_encode through a 65,536-entry table (error < 0.2 / 255 everywhere)."""
+    if x.dtype == np.float32:
+        from sensors.kernels import srgb_lookup
+
+        return srgb_lookup(np.ascontiguousarray(x), _SRGB_LUT)
     idx = (np.clip(x, 0.0, 1.0) * 65535.0 + 0.5).astype(np.int32)
     return _SRGB_LUT[idx]
 
@@ -395,26 +422,36 @@ def srgb_encode_fast(x: np.ndarray) -> np.ndarray:
 def shot_and_read_noise(rng: np.random.Generator, electrons: np.ndarray, read_noise_e: float) -> np.ndarray:
     """Poisson photon noise plus Gaussian read noise [e-]. Counts of 30 e- and more use the normal
     approximation N(lambda, sqrt(lambda)) of the Poisson law (exact Poisson below)."""
-    out = np.empty(electrons.shape, np.float32)
-    low = electrons < 30.0
-    out[low] = rng.poisson(electrons[low])
-    hi = ~low
-    lam = electrons[hi].astype(np.float32)
-    out[hi] = lam + np.sqrt(lam) * rng.standard_normal(lam.shape, dtype=np.float32)
-    out += read_noise_e * rng.standard_normal(out.shape, dtype=np.float32)
-    return out
+    from sensors.kernels import shot_and_read_noise_apply
+
+    e = np.ascontiguousarray(electrons, np.float32).reshape(-1)
+    low = e < 30.0
+    n_low = int(np.count_nonzero(low))
+    # the draws in the order they always had: Poisson (low counts), normal (high), read noise
+    poisson = rng.poisson(e[low]) if n_low else np.zeros(0, np.int64)
+    normal_hi = rng.standard_normal(len(e) - n_low, dtype=np.float32)
+    normal_read = rng.standard_normal(len(e), dtype=np.float32)
+    out = shot_and_read_noise_apply(e, low, poisson.astype(np.int64, copy=False), normal_hi, normal_read,
+                                    float(read_noise_e))
+    return out.reshape(electrons.shape)
 
 
 def expose(obs: CameraObservation, exposure: float | None = None) -> np.ndarray:
     """Camera model: lens blur, exposure, (low light: gain and Poisson-Gaussian noise), clipping,
     sRGB -> (H, W, 3) float in 0..1."""
-    k = auto_exposure(obs.radiance) if exposure is None else exposure
+    wanted = None
+    if exposure is None:
+        wanted = wanted_exposure(obs.radiance)
+        k = float(np.clip(wanted, MIN_EXPOSURE, MAX_EXPOSURE))  # auto_exposure
+    else:
+        k = exposure
     obs.exposure = k
     blurred = gaussian_filter(obs.radiance, sigma=(PSF_SIGMA_PX, PSF_SIGMA_PX, 0))
     signal = blurred * k  # fraction of the full well
     p = obs.sensor_noise
     if p:
-        gain = float(np.clip(wanted_exposure(obs.radiance) / k, 1.0, p["max_gain"]))
+        wanted = wanted_exposure(obs.radiance) if wanted is None else wanted
+        gain = float(np.clip(wanted / k, 1.0, p["max_gain"]))
         obs.gain = gain
         rng = np.random.default_rng(p["seed"])
         electrons = np.clip(signal, 0, 1) * p["full_well_e"]
@@ -423,6 +460,10 @@ def expose(obs: CameraObservation, exposure: float | None = None) -> np.ndarray:
 
 
 def to_uint8(img01: np.ndarray) -> np.ndarray:
+    if img01.dtype == np.float32:
+        from sensors.kernels import to_uint8 as kernel
+
+        return kernel(np.ascontiguousarray(img01))
     return np.round(np.clip(img01, 0, 1) * 255).astype(np.uint8)
 
 

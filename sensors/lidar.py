@@ -125,15 +125,10 @@ def bev_image(pts: np.ndarray, calib: Calibration) -> np.ndarray:
 
 
 def _cell_max(cells: np.ndarray, values: np.ndarray, n: int) -> np.ndarray:
-    """Per-cell maximum of values (0 where a cell has none), by sorting instead of ufunc.at."""
-    out = np.zeros(n, np.float32)
-    if len(cells) == 0:
-        return out
-    order = np.lexsort((values, cells))
-    c = cells[order]
-    last = np.r_[c[1:] != c[:-1], True]
-    out[c[last]] = values[order][last]
-    return out
+    """Per-cell maximum of values (0 where a cell has none), in one pass (sensors.kernels)."""
+    from sensors.kernels import cell_max
+
+    return cell_max(np.ascontiguousarray(cells, np.int64), np.ascontiguousarray(values), n)
 
 
 def forward_image(pts: np.ndarray, calib: Calibration, camera: str = "camera_right") -> np.ndarray:

@@ -66,6 +66,23 @@ def _lamp(height: tuple[float, float]):
     return size
 
 
+def _seeded_env(env_id: str, config: dict, seed: int):
+    """highway-env's environment `env_id` (unwrapped), reset once with `seed`.
+
+    `gym.make` would build it through its constructor, which resets it unseeded: a whole scene
+    (intersection-v2's includes 3 s of traffic simulation) drawn from a fresh OS-seeded generator
+    and thrown away by the seeded reset, which rebuilds everything from the seed. That first reset
+    is skipped here; the seeded one is the same call as before, so the roads and vehicles are too.
+    """
+    cls = gym.envs.registration.load_env_creator(gym.spec(env_id).entry_point)
+    env = cls.__new__(cls)
+    env.reset = lambda *args, **kwargs: None  # shadows AbstractEnv.reset during the constructor
+    cls.__init__(env, config=config)
+    del env.reset
+    env.reset(seed=seed)
+    return env
+
+
 class Layout:
     """Base layout. Subclasses set the class attributes and override the hooks they need.
 
@@ -132,10 +149,9 @@ class Layout:
     def make_road(self, rng: np.random.Generator) -> tuple[Road, HydraVehicle]:
         """Build the highway-env road with classified traffic; returns (road, ego)."""
         with preserve_idm_defaults():
-            env = gym.make(self.env_id, config=dict(self.env_config))
-            env.reset(seed=int(rng.integers(2**31 - 1)))
-        road = env.unwrapped.road
-        ego_hw = env.unwrapped.vehicle
+            env = _seeded_env(self.env_id, dict(self.env_config), int(rng.integers(2**31 - 1)))
+        road = env.road
+        ego_hw = env.vehicle
         vehicles = []
         ego = None
         for v in road.vehicles:

@@ -143,3 +143,34 @@ def test_ids_are_stable_and_motion_is_consistent_with_velocity():
 
 def test_classes_cover_radiate():
     assert CLASSES == ("car", "van", "truck", "bus", "motorbike", "bicycle", "pedestrian", "group_of_pedestrians")
+
+
+def test_the_seeded_env_equals_gym_make_then_reset():
+    """sim.layouts builds highway-env's envs without the constructor's unseeded reset: same scene."""
+    import gymnasium as gym
+
+    from sim.layouts import _seeded_env
+    from sim.traffic import preserve_idm_defaults
+
+    def state(env):
+        return [(type(v).__name__, v.lane_index, v.position.tolist(), float(v.heading), float(v.speed))
+                for v in env.road.vehicles]
+
+    for env_id, config in (("intersection-v2", {"initial_vehicle_count": 10}), ("highway-fast-v0", {})):
+        with preserve_idm_defaults():
+            ours = _seeded_env(env_id, dict(config), 11)
+            theirs = gym.make(env_id, config=dict(config))
+            theirs.reset(seed=11)
+        assert state(ours) == state(theirs.unwrapped) and len(state(ours)) > 3
+        assert ours.vehicle.position.tolist() == theirs.unwrapped.vehicle.position.tolist()
+
+
+def test_pyplot_is_imported_on_first_use_only():
+    import subprocess
+    import sys
+
+    code = ("import sys, sim.scenario; assert 'matplotlib.font_manager' not in sys.modules; "
+            "import matplotlib; matplotlib.use('Agg'); import matplotlib.pyplot as plt; "
+            "fig, ax = plt.subplots(); ax.plot([0, 1]); assert 'matplotlib.font_manager' in sys.modules; print('ok')")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
+    assert out.returncode == 0 and out.stdout.strip() == "ok", out.stderr[-2000:]

@@ -1,0 +1,298 @@
+"""Compiled cores of the camera shading and the lidar BEV image (numba, cached on disk).
+
+Every kernel repeats the numpy code it replaces operation by operation, in the same precision and
+the same order, so its output is bit-identical to the numpy reference (tests/sensors/test_kernels.py
+compares them on real frames and random inputs). What that takes:
+
+- float32 stays float32: every constant that numpy applies to a float32 array as a Python scalar
+  (NEP 50 "weak" scalar, cast to float32 first) is written here as an explicit ``np.float32``;
+  numba would otherwise promote the operation to float64 and round differently.
+- sums of three products follow numpy's einsum order: float32 ``((x0 + x1) + x2)``; float64
+  ``((x0 + x2) + x1)`` (numpy's baseline SSE2 loop keeps two lanes: x0 and x2 share one).
+- no fused multiply-add: numba does not contract ``a * b + c`` without fastmath, nor does numpy's
+  elementwise code.
+- no transcendental functions: numpy's SIMD exp / log / pow differ from libm by an ulp on some
+  CPUs, so those stay in numpy (the lamp and headlight beam patterns in `sensors.camera.shade`).
+- matrix products with BLAS (``P_cam @ R.T``) stay in numpy: OpenBLAS's kernels use FMA in a
+  CPU-dependent order.
+
+The speed comes from one pass over the image without the ~20 full-size temporaries of the numpy
+version (rolls, masks, stacked cross products).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from numba import njit
+
+_F32 = np.float32
+
+
+@njit(cache=True, error_model="numpy")
+def surface_normals(P, D, cam_pos, snap_material, material):
+    """Per-pixel unit normals facing the camera (see `sensors.camera._normals_from_points`).
+
+    Args:
+        P: (H, W, 3) float32 world points of the pixels.
+        D: (H, W) float32 depth used to pick the neighbour with the smaller jump (sky = 1e6).
+        cam_pos: (3,) float32 camera centre (world).
+        snap_material: (M,) bool, materials whose near-vertical normals snap to +z (ground).
+        material: (H, W) uint8 material id per pixel.
+    Returns:
+        n: (H, W, 3) float32, flipped towards the camera, snapped to (0, 0, 1) on ground with n_z > 0.95.
+    """
+    H, W = D.shape
+    n = np.empty((H, W, 3), np.float32)
+    zero = _F32(0.0)
+    tiny = _F32(1e-12)
+    snap_z = _F32(0.95)
+    for h in range(H):
+        hp = h + 1 if h + 1 < H else 0  # np.roll wraps around
+        hm = h - 1 if h > 0 else H - 1
+        for w in range(W):
+            wp = w + 1 if w + 1 < W else 0
+            wm = w - 1 if w > 0 else W - 1
+            d = D[h, w]
+            # along W (axis 1): a
+            dzf = abs(D[h, wp] - d)
+            dzb = abs(d - D[h, wm])
+            if dzf <= dzb or not np.isfinite(dzb):
+                a0 = P[h, wp, 0] - P[h, w, 0]
+                a1 = P[h, wp, 1] - P[h, w, 1]
+                a2 = P[h, wp, 2] - P[h, w, 2]
+            else:
+                a0 = P[h, w, 0] - P[h, wm, 0]
+                a1 = P[h, w, 1] - P[h, wm, 1]
+                a2 = P[h, w, 2] - P[h, wm, 2]
+            # along H (axis 0): b
+            dzf = abs(D[hp, w] - d)
+            dzb = abs(d - D[hm, w])
+            if dzf <= dzb or not np.isfinite(dzb):
+                b0 = P[hp, w, 0] - P[h, w, 0]
+                b1 = P[hp, w, 1] - P[h, w, 1]
+                b2 = P[hp, w, 2] - P[h, w, 2]
+            else:
+                b0 = P[h, w, 0] - P[hm, w, 0]
+                b1 = P[h, w, 1] - P[hm, w, 1]
+                b2 = P[h, w, 2] - P[hm, w, 2]
+            c0 = a1 * b2 - a2 * b1
+            c1 = a2 * b0 - a0 * b2
+            c2 = a0 * b1 - a1 * b0
+            norm = np.sqrt((c0 * c0 + c1 * c1) + c2 * c2)
+            if norm > tiny:
+                c0 = c0 / norm
+                c1 = c1 / norm
+                c2 = c2 / norm
+            else:
+                c0 = zero
+                c1 = zero
+                c2 = zero
+            t0 = cam_pos[0] - P[h, w, 0]
+            t1 = cam_pos[1] - P[h, w, 1]
+            t2 = cam_pos[2] - P[h, w, 2]
+            if (c0 * t0 + c1 * t1) + c2 * t2 < zero:
+                c0 = -c0
+                c1 = -c1
+                c2 = -c2
+            if snap_material[material[h, w]] and c2 > snap_z:
+                c0 = zero
+                c1 = zero
+                c2 = _F32(1.0)
+            n[h, w, 0] = c0
+            n[h, w, 1] = c1
+            n[h, w, 2] = c2
+    return n
+
+
+@njit(cache=True, error_model="numpy")
+def sun_cosine(n, sun_dir):
+    """(H, W) float64 cos of the sun's incidence, n . sun_dir (numpy einsum order in float64)."""
+    H, W = n.shape[0], n.shape[1]
+    out = np.empty((H, W), np.float64)
+    s0, s1, s2 = sun_dir[0], sun_dir[1], sun_dir[2]
+    for h in range(H):
+        for w in range(W):
+            out[h, w] = (np.float64(n[h, w, 0]) * s0 + np.float64(n[h, w, 2]) * s2) + np.float64(n[h, w, 1]) * s1
+    return out
+
+
+@njit(cache=True, error_model="numpy")
+def sky_and_sun(nz, sky_lux, ground_albedo, sky_colour, lit, cos_s, sun_lux, sun_colour, with_sun):
+    """(H, W, 3) float32 illuminance from the sky hemisphere, ground bounce and (if `with_sun`)
+    the unshadowed sun: E = E_sky(n_z) * sky_colour + [lit] cos_s * E_sun * sun_colour.
+
+    Scalars `sky_lux` and `ground_albedo` are applied in float32 (as numpy does with Python floats
+    on float32 arrays); the sun term is added in float64 and rounded once (numpy's `E += x` with a
+    float64 x).
+    """
+    H, W = nz.shape
+    E = np.empty((H, W, 3), np.float32)
+    one = _F32(1.0)
+    two = _F32(2.0)
+    lux = _F32(sky_lux)
+    ga = _F32(ground_albedo)
+    for h in range(H):
+        for w in range(W):
+            z = nz[h, w]
+            sky_e = lux * ((one + z) / two + ga * (one - z) / two)
+            if with_sun:
+                s = (cos_s[h, w] if lit[h, w] else 0.0) * sun_lux
+                for c in range(3):
+                    E[h, w, c] = _F32(np.float64(sky_e * sky_colour[c]) + s * np.float64(sun_colour[c]))
+            else:
+                for c in range(3):
+                    E[h, w, c] = sky_e * sky_colour[c]
+    return E
+
+
+@njit(cache=True, error_model="numpy")
+def radiance(albedo, E, material, emissive_on, emissive, geo, sky_elev, sky_h, sky_h_strong, sky_colour):
+    """(H, W, 3) float32 radiance L = albedo * E / pi + emission; sky pixels get the sky gradient.
+
+    Args:
+        albedo, E: (H, W, 3) float32. material: (H, W) uint8. emissive_on: (M,) bool, materials
+        glowing in this frame; emissive: (M, 3) float32. geo: (H, W) bool, pixel sees a surface.
+        sky_elev: (K,) float32 clipped elevation (z of the world ray) of the K sky pixels in
+        row-major order; sky_h: horizon sky radiance [cd/m^2]; sky_colour: (3,) float32.
+        sky_h_strong: sky_h was a numpy float64 scalar, which numpy does not demote to float32
+        (NEP 50), so the sky gradient is computed in float64 and rounded once; a Python float is
+        applied in float32.
+    """
+    H, W = geo.shape
+    L = np.empty((H, W, 3), np.float32)
+    pi = _F32(np.pi)
+    half = _F32(0.5)
+    one = _F32(1.0)
+    skyh32 = _F32(sky_h)
+    k = 0
+    for h in range(H):
+        for w in range(W):
+            if geo[h, w]:
+                m = material[h, w]
+                for c in range(3):
+                    v = albedo[h, w, c] * E[h, w, c] / pi
+                    if emissive_on[m]:
+                        v = v + emissive[m, c]
+                    L[h, w, c] = v
+            else:
+                t = one - half * sky_elev[k]
+                k += 1
+                if sky_h_strong:
+                    g = sky_h * np.float64(t)
+                    for c in range(3):
+                        L[h, w, c] = _F32(g * np.float64(sky_colour[c]))
+                else:
+                    g32 = skyh32 * t
+                    for c in range(3):
+                        L[h, w, c] = g32 * sky_colour[c]
+    return L
+
+
+@njit(cache=True, error_model="numpy")
+def cell_max(cells, values, n):
+    """(n,) float32 per-cell maximum of `values` (0 where a cell has none), as
+    `sensors.lidar._cell_max` (a stable sort by value, last per cell): among equal values the later
+    one wins, NaN is the largest; the maximum is taken in the input precision and rounded once."""
+    best = np.zeros(n, values.dtype)
+    state = np.zeros(n, np.uint8)  # 0 empty, 1 has a value, 2 holds NaN
+    for i in range(cells.shape[0]):
+        c = cells[i]
+        v = values[i]
+        if np.isnan(v):
+            best[c] = v
+            state[c] = 2
+        elif state[c] == 0 or (state[c] == 1 and v >= best[c]):
+            best[c] = v
+            state[c] = 1
+    return best.astype(np.float32)
+
+
+# --- camera model ------------------------------------------------------------------------------
+
+
+@njit(cache=True, error_model="numpy")
+def shot_and_read_noise_apply(electrons, low, poisson_draws, normal_hi, normal_read, read_noise_e):
+    """Combine the draws of `sensors.camera.shot_and_read_noise` (float32 arithmetic as numpy's):
+    out = Poisson draw where electrons < 30, lam + sqrt(lam) z otherwise, then + read_noise_e z'.
+
+    Args:
+        electrons: (N,) float32; low: (N,) bool; poisson_draws: (low.sum(),) int64 in the order of
+        the low pixels; normal_hi: (N - low.sum(),) float32; normal_read: (N,) float32.
+    """
+    n = electrons.shape[0]
+    out = np.empty(n, np.float32)
+    r = _F32(read_noise_e)
+    i_low = 0
+    i_hi = 0
+    for i in range(n):
+        if low[i]:
+            v = np.float32(poisson_draws[i_low])
+            i_low += 1
+        else:
+            lam = electrons[i]
+            v = lam + np.sqrt(lam) * normal_hi[i_hi]
+            i_hi += 1
+        out[i] = v + r * normal_read[i]
+    return out
+
+
+@njit(cache=True, error_model="numpy")
+def srgb_lookup(x, lut):
+    """`sensors.camera.srgb_encode_fast` of float32 `x` (any shape, flattened): lut[int(clip(x) * 65535 + 0.5)]."""
+    flat = x.reshape(-1)
+    out = np.empty(flat.shape[0], np.float32)
+    zero = _F32(0.0)
+    one = _F32(1.0)
+    scale = _F32(65535.0)
+    half = _F32(0.5)
+    for i in range(flat.shape[0]):
+        v = flat[i]
+        v = max(v, zero)
+        v = min(v, one)
+        out[i] = lut[np.int32(v * scale + half)]
+    return out.reshape(x.shape)
+
+
+@njit(cache=True, error_model="numpy")
+def to_uint8(x):
+    """`sensors.camera.to_uint8` of float32 `x`: round-half-even(clip(x, 0, 1) * 255) as uint8."""
+    flat = x.reshape(-1)
+    out = np.empty(flat.shape[0], np.uint8)
+    zero = _F32(0.0)
+    one = _F32(1.0)
+    scale = _F32(255.0)
+    for i in range(flat.shape[0]):
+        v = flat[i]
+        v = max(v, zero)
+        v = min(v, one)
+        out[i] = np.uint8(np.rint(v * scale))
+    return out.reshape(x.shape)
+
+
+# --- visibility pass ---------------------------------------------------------------------------
+
+
+@njit(cache=True)
+def decode_codes(colour, depth):
+    """Decode the flat-colour pass (`sensors.camera.StereoRenderer.codes`): instance index from
+    R + 256 G, material from B, depth [m] (inf where nothing was drawn, alpha != 255, or depth <= 0).
+
+    Args:
+        colour: (H, W, 4) uint8 RGBA; depth: (H, W) float32 linear depth [m] (0 = background).
+    Returns:
+        index (H, W) int64, material (H, W) uint8, depth (H, W) float32.
+    """
+    H, W = depth.shape
+    index = np.zeros((H, W), np.int64)
+    material = np.zeros((H, W), np.uint8)
+    out = np.empty((H, W), np.float32)
+    for h in range(H):
+        for w in range(W):
+            if colour[h, w, 3] == 255:
+                index[h, w] = np.int64(colour[h, w, 0]) | (np.int64(colour[h, w, 1]) << 8)
+                material[h, w] = colour[h, w, 2]
+                d = depth[h, w]
+                out[h, w] = d if d > 0 else np.inf
+            else:
+                out[h, w] = np.inf
+    return index, material, out
