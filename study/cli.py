@@ -162,6 +162,22 @@ def name_list(text: str) -> tuple[str, ...]:
 _typed(name_list, "names")
 
 
+def name_arg(text: str) -> str:
+    """One name (a profile, a condition, a combination such as city+night+rain): not empty, no comma,
+    no dangling '+'. Whether it exists is the command's check."""
+    text = str(text).strip()
+    if not text:
+        raise argparse.ArgumentTypeError("expected a name, got nothing")
+    if "," in text:
+        raise argparse.ArgumentTypeError(f"expected one name, got a list {text!r}")
+    if not all(p.strip() for p in text.split("+")):
+        raise argparse.ArgumentTypeError(f"dangling '+' in {text!r} (combine names as in city+night+rain)")
+    return text
+
+
+_typed(name_arg, "name")
+
+
 def int_list(lo: int, hi: int, name: str) -> Callable[[str], tuple[int, ...]]:
     """A comma-separated list of integers in [lo, hi], none twice."""
     one = int_range(lo, hi, name)

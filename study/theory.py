@@ -35,7 +35,7 @@ import numpy as np
 
 from sensors import SENSOR_MODEL_VERSION
 from sim.errors import UserError
-from study.cli import Formatter, emit, nonneg_int, pos_int, severity_arg, workers_int
+from study.cli import Formatter, emit, name_arg, nonneg_int, pos_int, severity_arg, workers_int
 from study.cli import cache_dir as cache_dir_arg
 
 LAYOUTS = ("city", "junction", "motorway", "rural")
@@ -525,7 +525,7 @@ def fog_bank_tracks(cache_dir: Path | None = None, seed: int = 0, frames: int = 
 def add_parser(sub, name: str, help_text: str) -> None:
     p = sub.add_parser(name, help=help_text, description=help_text + "\n\n" + __doc__.split("\n\n", 1)[1],
                        epilog=EPILOG, formatter_class=Formatter)
-    p.add_argument("--conditions", nargs="+", default=list(TheoryConfig.conditions),
+    p.add_argument("--conditions", nargs="+", type=name_arg, default=list(TheoryConfig.conditions),
                    help="conditions (rain, fog, snow, night), combinations (rain+night), optionally on "
                         "their own layout (city+night)")
     p.add_argument("--severities", nargs="+", type=severity_arg, default=list(TheoryConfig.severities),
