@@ -160,9 +160,11 @@ def run_boxes(args) -> int:
 
 
 def run_inference(args) -> int:
+    from fusion.nets import load_profile
     from study.bench_boxes import bench_box_fusion
     from study.bench_nets import bench_inference
 
+    load_profile(args.profile)  # an unknown profile is refused before any worker process starts
     r = bench_inference(args.profile, args.repeats, args.threads, args.weights)
     boxes = bench_box_fusion(repeats=10)
     r["fusion_block_vs_ensemble_boxes"] = {m: {"ours_ms": v["ours_ms"], "ensemble_boxes_ms": v["ensemble_boxes_ms"],
