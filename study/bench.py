@@ -7,7 +7,17 @@ import os
 import platform
 import time
 
-from study.cli import Formatter, emit, int_list, int_range, name_list, nonneg_int, pos_int, training_run
+from study.cli import (
+    Formatter,
+    emit,
+    int_list,
+    int_range,
+    name_arg,
+    name_list,
+    nonneg_int,
+    pos_int,
+    training_run,
+)
 
 
 def machine() -> dict:
@@ -56,7 +66,7 @@ def add_parser(sub, name, help_text):
                         "late-fusion block against ensemble-boxes, each gate's overhead (gate_overhead_ms) and the "
                         "end-to-end latency of top-k HydraFusion with it, k = 1, 3, 5 (topk_latency_ms).",
                         formatter_class=Formatter)
-    n.add_argument("--profile", default="cpu", help="model profile")
+    n.add_argument("--profile", type=name_arg, default="cpu", help="model profile")
     n.add_argument("--repeats", type=pos_int, default=5, help="timed forwards per configuration")
     n.add_argument("--run", dest="weights", type=training_run, default=None, metavar="RUN",
                    help="load this trained run's weights (default: random initialisation)")

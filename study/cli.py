@@ -367,9 +367,10 @@ def build_parser() -> Parser:
     return parser
 
 
-def main(argv: list[str] | None = None) -> int:
+def main(argv: list[str] | None = None, parser: Parser | None = None) -> int:
+    """Run one command; `parser`: a `build_parser()` to reuse (tests calling main many times)."""
     try:
-        parser = build_parser()
+        parser = parser or build_parser()
         args = parser.parse_args(argv)
         return int(args.run(args) or 0)
     except UserError as exc:

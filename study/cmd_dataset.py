@@ -15,6 +15,7 @@ from study.cli import (
     emit,
     in_file,
     int_list,
+    name_arg,
     name_list,
     nonneg_int,
     out_dir,
@@ -46,7 +47,7 @@ def add_generate(sub, name, help_text):
                    help="frames per context [20]; at most 1000000 frames in a dataset")
     p.add_argument("--seed", type=nonneg_int, default=None, help="root seed [0]")
     p.add_argument("--workers", type=workers_int, default=1, help="parallel worker processes")
-    p.add_argument("--profile", default=None, help="sensor profile: cpu or paper [cpu]")
+    p.add_argument("--profile", type=name_arg, default=None, help="sensor profile: cpu or paper [cpu]")
     p.add_argument("--sequence-length", type=pos_int, default=None,
                    help="frames per sequence/shard, at most 1000 [10]")
     p.add_argument("--frame-rate", type=pos_float, default=None,
@@ -149,7 +150,7 @@ def add_show(sub, name, help_text):
     p.add_argument("dir", type=dataset_dir, help="dataset directory")
     p.add_argument("--index", type=int, default=0,
                    help="frame index (negative counts from the end); with --context, the index among that context's frames")
-    p.add_argument("--context", default=None, help="pick the frame among this context's frames")
+    p.add_argument("--context", type=name_arg, default=None, help="pick the frame among this context's frames")
     p.add_argument("--out", required=True, type=out_file(*IMAGE_SUFFIXES), help="picture to write (.png, .pdf or .svg)")
     p.add_argument("--clear", action="store_true", help="show the clear-weather twin of the frame")
     p.set_defaults(run=run_show)

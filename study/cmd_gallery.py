@@ -7,7 +7,7 @@ from pathlib import Path
 import numpy as np
 
 from sim.errors import UserError
-from study.cli import IMAGE_SUFFIXES, Formatter, dataset_dir, emit, name_list, out_file
+from study.cli import IMAGE_SUFFIXES, Formatter, dataset_dir, emit, name_arg, name_list, out_file
 
 EPILOG = """\
 Takes frame --index of the dataset, rebuilds that exact moment from its shard's seed, and renders it
@@ -24,7 +24,7 @@ def add_parser(sub, name, help_text):
     p.add_argument("dir", type=dataset_dir, help="dataset directory (its manifest gives the scene's seed and profile)")
     p.add_argument("--out", required=True, type=out_file(*IMAGE_SUFFIXES), help="picture to write (.png, .pdf or .svg)")
     p.add_argument("--index", type=int, default=0, help="frame of the dataset to use as the scene")
-    p.add_argument("--context", default=None, help="take the --index-th frame of this context instead")
+    p.add_argument("--context", type=name_arg, default=None, help="take the --index-th frame of this context instead")
     p.add_argument("--conditions", type=name_list, default="rain,fog,snow,night",
                    help="comma-separated conditions (rows), each once")
     p.add_argument("--json", action="store_true", help="print one JSON object (what was rendered) on stdout")

@@ -7,7 +7,17 @@ import time
 from collections import Counter
 from pathlib import Path
 
-from study.cli import IMAGE_SUFFIXES, Formatter, emit, nonneg_int, out_path, pos_float, pos_int, severity_arg
+from study.cli import (
+    IMAGE_SUFFIXES,
+    Formatter,
+    emit,
+    name_arg,
+    nonneg_int,
+    out_path,
+    pos_float,
+    pos_int,
+    severity_arg,
+)
 
 EPILOG = """\
 contexts: city, junction, motorway, rural (road layouts) and rain, fog, snow, night (conditions,
@@ -23,7 +33,7 @@ examples:
 
 def add_parser(sub, name, help_text):
     p = sub.add_parser(name, help=help_text, description=help_text, epilog=EPILOG, formatter_class=Formatter)
-    p.add_argument("--context", default="city", help="context name, combination, or 'all'")
+    p.add_argument("--context", type=name_arg, default="city", help="context name, combination, or 'all'")
     p.add_argument("--severity", type=severity_arg, default=None,
                    help="0-5 for the conditions of the context (default: 3 for conditions, 0 for layouts)")
     p.add_argument("--frames", type=pos_int, default=20,

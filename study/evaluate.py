@@ -21,7 +21,7 @@ from pathlib import Path
 
 from sensors.dataset import DatasetReader
 from sim.errors import UserError
-from study.cli import Formatter, checkpoint_arg, dataset_dir, emit, name_list, pos_int, training_run
+from study.cli import Formatter, checkpoint_arg, dataset_dir, emit, name_arg, name_list, pos_int, training_run
 
 EPILOG = """\
 examples:
@@ -38,7 +38,7 @@ def add_parser(sub, name, help_text):
     p.add_argument("run_dir", metavar="RUN", type=training_run, help="training run directory (hydrabench train --out)")
     p.add_argument("data", type=dataset_dir, help="dataset directory")
     p.add_argument("--branches", type=name_list, default="all", help="comma-separated branch names, each once, or 'all'")
-    p.add_argument("--fusion", default="soft-nms", help="nms | soft-nms | wbf")
+    p.add_argument("--fusion", type=name_arg, default="soft-nms", help="nms | soft-nms | wbf")
     p.add_argument("--split", default="auto", choices=["auto", "test", "train", "all", "data-test"],
                    help="auto: the run's test split on its own dataset, every frame on another; data-test: "
                    "DATA's own by-sequence test split (the run's split settings), i.e. the frames a run trained "
@@ -51,7 +51,7 @@ def add_parser(sub, name, help_text):
                    "(a dataset generated with --twins) and report the vehicle mAP each branch keeps, per severity")
     p.add_argument("--checkpoint", type=checkpoint_arg, default="latest", help="latest, or epoch-NNN")
     p.add_argument("--batch-size", type=pos_int, default=4, help="frames per forward pass")
-    p.add_argument("--gate", default=None, help="knowledge | deep | attention | optimal: the gate selects the branches")
+    p.add_argument("--gate", type=name_arg, default=None, help="knowledge | deep | attention | optimal: the gate selects the branches")
     p.add_argument("--k", default=None, help="branches the gate keeps per frame: 1..number of branches, or all "
                    "(default 3, or all when the run has fewer)")
     p.add_argument("--all-gates", action="store_true",

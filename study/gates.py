@@ -53,6 +53,7 @@ from study.cli import (
     checkpoint_arg,
     dataset_dir,
     emit,
+    name_arg,
     nonneg_int,
     pos_float,
     pos_int,
@@ -804,7 +805,7 @@ def add_train_gate(sub, name, help_text):
                        formatter_class=Formatter)
     p.add_argument("run_dir", metavar="RUN", type=training_run, help="training run directory (hydrabench train --out)")
     p.add_argument("data", type=dataset_dir, help="the run's training dataset")
-    p.add_argument("--gate", required=True, help="deep | attention (the gates that learn)")
+    p.add_argument("--gate", type=name_arg, required=True, help="deep | attention (the gates that learn)")
     p.add_argument("--epochs", type=pos_int, default=100, help="passes over the training frames (more: continues)")
     p.add_argument("--batch-size", type=pos_int, default=32, help="frames per Adam step")
     p.add_argument("--lr", type=pos_float, default=5e-5, help="Adam learning rate (HydraFusion 5.3)")

@@ -536,7 +536,7 @@ def add_parser(sub, name: str, help_text: str) -> None:
     p.add_argument("--sequences", type=pos_int, default=TheoryConfig.sequences,
                    help="sequences the frames of a cell are split into (>= 2)")
     p.add_argument("--seed", type=nonneg_int, default=TheoryConfig.seed, help="root random seed")
-    p.add_argument("--profile", default=TheoryConfig.profile, help="sensor profile (cpu, paper)")
+    p.add_argument("--profile", type=name_arg, default=TheoryConfig.profile, help="sensor profile (cpu, paper)")
     p.add_argument("--cache", type=cache_dir_arg, default=None,
                    help="cache directory for the measurements (default: $HYDRABENCH_CACHE/theory or "
                         "~/.cache/hydrabench/theory)")

@@ -42,6 +42,7 @@ from study.cli import (
     count_int,
     dataset_dir,
     emit,
+    name_arg,
     name_list,
     nonneg_float,
     nonneg_int,
@@ -199,8 +200,8 @@ def add_parser(sub, name, help_text):
                        formatter_class=Formatter)
     p.add_argument("data", type=dataset_dir, help="dataset directory")
     p.add_argument("--out", required=True, type=out_dir, help="run directory (created; an existing run is resumed)")
-    p.add_argument("--profile", default="cpu", help="model profile (configs/model)")
-    p.add_argument("--branch-set", default="paper", help="paper | single | early_fusion | late_fusion")
+    p.add_argument("--profile", type=name_arg, default="cpu", help="model profile (configs/model)")
+    p.add_argument("--branch-set", type=name_arg, default="paper", help="paper | single | early_fusion | late_fusion")
     p.add_argument("--branches", type=name_list, default=None,
                    help="comma-separated branch names from the set, each once (default: the whole set)")
     p.add_argument("--epochs", type=pos_int, default=10, help="passes over the training split (more: extends a run)")
@@ -263,9 +264,8 @@ def run_profile(run_cfg: dict, where) -> ModelProfile:
 
 
 def train(cfg: TrainConfig, out: Path, progress: bool = True) -> dict:
-    from tqdm import tqdm
-
     from fusion.nets import build_hydrafusion
+    from sim.progress import progress as progress_bar
     from study.plots import plot_training_curves
 
     torch.set_num_threads(cfg.threads)
@@ -354,10 +354,9 @@ def train(cfg: TrainConfig, out: Path, progress: bool = True) -> dict:
         counts = resumed.get("steps", 0)
         t0 = time.perf_counter() - resumed.get("seconds", 0.0)
         resumed = {}
-        # on a terminal a live bar; in a log file (nohup, CI) a line every 60 s
-        tty = sys.stderr.isatty()
-        bar = tqdm(total=steps_per_epoch, initial=step_in_epoch, desc=f"epoch {epoch + 1}/{cfg.epochs}",
-                   file=sys.stderr, disable=not progress, dynamic_ncols=tty, mininterval=0.1 if tty else 60.0)
+        # on a terminal a live bar; in a log file (nohup, CI) a line every few seconds (sim.progress)
+        bar = progress_bar(total=steps_per_epoch, initial=step_in_epoch, desc=f"epoch {epoch + 1}/{cfg.epochs}",
+                           unit="step", enabled=progress)
         for k in range(step_in_epoch, len(batches)):
             inputs, targets, _ = collate([dataset.item(int(i), flip=bool(flips[i])) for i in batches[k]])
             for g in opt.param_groups:
