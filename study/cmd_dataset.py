@@ -44,7 +44,7 @@ def add_generate(sub, name, help_text):
     p.add_argument("--contexts", type=name_list, default=None,
                    help="'all' or comma-separated contexts/combinations, each once [all]")
     p.add_argument("--frames-per-context", type=pos_int, default=None,
-                   help="frames per context [20]; at most 1000000 frames in a dataset")
+                   help="frames per context, at most 1000000 in a dataset [20]")
     p.add_argument("--seed", type=nonneg_int, default=None, help="root seed [0]")
     p.add_argument("--workers", type=workers_int, default=1, help="parallel worker processes")
     p.add_argument("--profile", type=name_arg, default=None, help="sensor profile: cpu or paper [cpu]")
