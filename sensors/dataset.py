@@ -219,11 +219,11 @@ def check(root: str | Path) -> dict:
     counts, lidar offsets). Cheap: no pixel is read; the checksums are `verify`'s job.
     Returns the manifest; raises DatasetError naming the first damaged file."""
     reader = DatasetReader(Path(root))
-    twins = bool(reader.manifest["config"].get("twins"))
+    twins = DatasetReader(reader.root, clear=True) if reader.manifest["config"].get("twins") else None
     for s in reader.manifest["shards"]:
         reader.check_shard(s["name"])
-        if twins:
-            DatasetReader(reader.root, clear=True).check_shard(s["name"])
+        if twins is not None:
+            twins.check_shard(s["name"])
     return reader.manifest
 
 
