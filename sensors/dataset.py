@@ -102,45 +102,137 @@ def clean_partial(root: Path) -> int:
     return n
 
 
+def foreign_entries(root: Path) -> list[str]:
+    """Names in `root` that no dataset writer made (an existing dataset, or a partial one, is fine)."""
+    import re
+
+    if not root.is_dir():
+        return []
+    ours = re.compile(r"^(manifest\.json|\.manifest\.json\.tmp-\d+|shard-\d{5}(\.tmp-\d+)?)$")
+    return sorted(p.name for p in root.iterdir() if not ours.match(p.name))
+
+
 def write_manifest(root: Path, manifest: dict) -> None:
     tmp = root / f".manifest.json.tmp-{os.getpid()}"
     tmp.write_text(json.dumps(manifest, indent=1))
     os.replace(tmp, root / "manifest.json")
 
 
+class DatasetError(UserError):
+    """A dataset that cannot be read: names the file and what is wrong with it."""
+
+    def __init__(self, root: Path, path: Path, problem: str, hint: bool = True):
+        self.root, self.path, self.problem = Path(root), Path(path), problem
+        self.short = f"{path}: {problem}"
+        super().__init__(self.short + (f" (run `hydrabench verify {root}`)" if hint else ""))
+
+
+def _expect(ok: bool, root: Path, path: Path, problem: str) -> None:
+    if not ok:
+        raise DatasetError(root, path, problem)
+
+
+def _is_int(v) -> bool:
+    return isinstance(v, int) and not isinstance(v, bool)
+
+
+def _load_json(root: Path, path: Path):
+    if not path.is_file():
+        raise DatasetError(root, path, "is missing")
+    try:
+        return json.loads(path.read_text())
+    except UnicodeDecodeError:
+        raise DatasetError(root, path, "is not text (not valid JSON)") from None
+    except json.JSONDecodeError as exc:
+        raise DatasetError(root, path, f"is not valid JSON ({exc.msg} at line {exc.lineno})") from None
+    except OSError as exc:
+        raise DatasetError(root, path, f"cannot be read ({exc.strerror})") from None
+
+
 def read_manifest(root: str | Path) -> dict:
+    """The manifest of dataset `root`, checked field by field (DatasetError naming what is wrong)."""
     root = Path(root)
     path = root / "manifest.json"
     if not root.is_dir():
-        raise UserError(f"{root} is not a directory")
+        raise UserError(f"{root} is not a directory" if root.exists() else f"{root} does not exist")
     if not path.exists():
         raise UserError(f"{root} has no manifest.json (not a dataset, or its generation did not finish)")
-    try:
-        m = json.loads(path.read_text())
-    except json.JSONDecodeError as exc:
-        raise UserError(f"{path} is not valid JSON ({exc.msg})") from None
+    m = _load_json(root, path)
+    _expect(isinstance(m, dict), root, path, f"is a JSON {type(m).__name__}, expected an object")
     if m.get("format_version") != FORMAT_VERSION:
         v = m.get("format_version")
         what = f" ({FORMAT_HISTORY[v]})" if v in FORMAT_HISTORY else ""
         raise UserError(f"{path}: dataset format version {v}{what} is not supported by this hydrabench, which "
                         f"reads format {FORMAT_VERSION} ({FORMAT_HISTORY[FORMAT_VERSION]}); regenerate it with "
                         f"`hydrabench generate`")
+    _expect(isinstance(m.get("config"), dict), root, path, "'config' must be an object")
+    _expect(isinstance(m.get("profile"), str), root, path, "'profile' must be a string")
+    shards, frames = m.get("shards"), m.get("frames")
+    _expect(isinstance(shards, list) and shards, root, path, "'shards' must be a non-empty list")
+    _expect(isinstance(frames, list), root, path, "'frames' must be a list")
+    sizes = {}
+    for k, s in enumerate(shards):
+        where = f"shards[{k}]"
+        _expect(isinstance(s, dict), root, path, f"{where} must be an object")
+        name = s.get("name")
+        _expect(isinstance(name, str) and name.startswith("shard-") and name[6:].isdigit(), root, path,
+                f"{where}.name must be a shard name like shard-00000, got {name!r}")
+        _expect(name not in sizes, root, path, f"shard {name} is listed twice")
+        _expect(isinstance(s.get("sha256"), str), root, path, f"{where}.sha256 must be a string")
+        for key in ("frames", "severity", "seed"):
+            _expect(_is_int(s.get(key)), root, path, f"{where}.{key} must be an integer, got {s.get(key)!r}")
+        _expect(s["frames"] >= 1, root, path, f"{where}.frames must be >= 1")
+        _expect(isinstance(s.get("context"), str), root, path, f"{where}.context must be a string")
+        sizes[name] = s["frames"]
+    for k, f in enumerate(frames):
+        where = f"frames[{k}]"
+        _expect(isinstance(f, dict), root, path, f"{where} must be an object")
+        _expect(f.get("shard") in sizes, root, path, f"{where}.shard {f.get('shard')!r} is not a listed shard")
+        _expect(_is_int(f.get("index")) and 0 <= f["index"] < sizes[f["shard"]], root, path,
+                f"{where}.index {f.get('index')!r} is not a frame of {f['shard']}")
+        _expect(isinstance(f.get("context"), str) and _is_int(f.get("severity")), root, path,
+                f"{where} needs a context (string) and a severity (integer)")
     return m
 
 
 def verify(root: str | Path) -> list[str]:
-    """Check every shard against the manifest; returns a list of problems (empty when intact)."""
+    """Check every shard against the manifest; returns a list of problems (empty when intact).
+
+    An unreadable manifest is the one problem returned; a shard's problems are one line each."""
+    from sim.progress import progress
+
     root = Path(root)
-    m = read_manifest(root)
+    try:
+        m = read_manifest(root)
+    except DatasetError as exc:
+        return [exc.short]
+    except UserError as exc:
+        return [str(exc)]
     problems = []
+    bar = progress(total=len(m["shards"]), desc="verify", unit="shard")
     for s in m["shards"]:
         d = root / s["name"]
         if not d.is_dir():
             problems.append(f"{s['name']}: missing")
-            continue
-        if shard_digest(d) != s["sha256"]:
+        elif shard_digest(d) != s["sha256"]:
             problems.append(f"{s['name']}: checksum mismatch (corrupted)")
+        bar.update(1)
+    bar.close()
     return problems
+
+
+def check(root: str | Path) -> dict:
+    """Check a dataset's structure whole, before a command starts work: the manifest, and for every
+    shard (and its clear twins) frames.json and each array's header against the manifest (frame
+    counts, lidar offsets). Cheap: no pixel is read; the checksums are `verify`'s job.
+    Returns the manifest; raises DatasetError naming the first damaged file."""
+    reader = DatasetReader(Path(root))
+    twins = DatasetReader(reader.root, clear=True) if reader.manifest["config"].get("twins") else None
+    for s in reader.manifest["shards"]:
+        reader.check_shard(s["name"])
+        if twins is not None:
+            twins.check_shard(s["name"])
+    return reader.manifest
 
 
 @dataclass
@@ -149,6 +241,8 @@ class DatasetReader:
 
     `reader[i]` returns a dict with the frame's arrays (read-only views), "lidar_points",
     "lidar_instance", "labels" and "meta". `clear=True` reads the clear-weather twins.
+    Each shard is checked (`check_shard`) the first time it is used, so a damaged file gives a
+    DatasetError naming it, never a numpy or JSON traceback.
     """
 
     root: Path
@@ -157,6 +251,7 @@ class DatasetReader:
     index: list = field(init=False)
     _arrays: dict = field(default_factory=dict, init=False)
     _json: dict = field(default_factory=dict, init=False)
+    _checked: set = field(default_factory=set, init=False)
 
     def __post_init__(self) -> None:
         self.root = Path(self.root)
@@ -164,6 +259,7 @@ class DatasetReader:
         if self.clear and not self.manifest["config"].get("twins"):
             raise UserError(f"{self.root} has no clear twins (generate with --twins)")
         self.index = [(f["shard"], f["index"]) for f in self.manifest["frames"]]
+        self._frames = {s["name"]: s["frames"] for s in self.manifest["shards"]}
 
     def __len__(self) -> int:
         return len(self.index)
@@ -171,18 +267,66 @@ class DatasetReader:
     def _dir(self, shard: str) -> Path:
         return self.root / shard / "clear" if self.clear else self.root / shard
 
-    def _array(self, shard: str, name: str) -> np.ndarray:
+    def check_shard(self, shard: str) -> None:
+        """Check one shard's frames.json and array headers against the manifest (DatasetError)."""
+        if shard in self._checked:
+            return
+        d = self._dir(shard)
+        if not d.is_dir():
+            raise DatasetError(self.root, d, "is missing")
+        n = self._frames[shard]
+        self._load_records(shard)
+        arrays = {name: self._open(shard, name) for name in ARRAYS + POINT_ARRAYS}
+        for name in ARRAYS:
+            a = arrays[name]
+            _expect(a.ndim >= 3 and a.shape[0] == n and a.dtype == np.uint8, self.root, d / f"{name}.npy",
+                    f"holds {a.dtype} {a.shape}, expected uint8 with {n} frames")
+        pts, inst, off = arrays["lidar_points"], arrays["lidar_instance"], arrays["lidar_offsets"]
+        _expect(pts.ndim == 2 and pts.shape[1] == 5 and pts.dtype == np.float32, self.root, d / "lidar_points.npy",
+                f"holds {pts.dtype} {pts.shape}, expected float32 (N, 5)")
+        _expect(inst.shape == (len(pts),), self.root, d / "lidar_instance.npy",
+                f"holds {inst.shape}, expected ({len(pts)},) like lidar_points")
+        _expect(off.shape == (n + 1,) and off.dtype.kind in "iu", self.root, d / "lidar_offsets.npy",
+                f"holds {off.dtype} {off.shape}, expected integers ({n + 1},)")
+        o = np.asarray(off)
+        _expect(o[0] == 0 and o[-1] == len(pts) and bool(np.all(np.diff(o) >= 0)), self.root,
+                d / "lidar_offsets.npy", f"offsets do not index lidar_points ({len(pts)} points)")
+        self._checked.add(shard)
+
+    def _open(self, shard: str, name: str) -> np.ndarray:
         key = (shard, name)
         if key not in self._arrays:
             path = self._dir(shard) / f"{name}.npy"
-            if not path.exists():
-                raise UserError(f"{path} is missing (run `hydrabench verify {self.root}`)")
-            self._arrays[key] = np.load(path, mmap_mode="r")
+            if not path.is_file():
+                raise DatasetError(self.root, path, "is missing")
+            try:
+                self._arrays[key] = np.load(path, mmap_mode="r", allow_pickle=False)
+            except Exception as exc:  # truncated, bad header, pickled: numpy's reasons vary
+                reason = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
+                raise DatasetError(self.root, path, f"is not a readable .npy array ({reason})") from None
         return self._arrays[key]
 
-    def records(self, shard: str) -> list:
+    def _array(self, shard: str, name: str) -> np.ndarray:
+        self.check_shard(shard)
+        return self._open(shard, name)
+
+    def _load_records(self, shard: str) -> list:
         if shard not in self._json:
-            self._json[shard] = json.loads((self._dir(shard) / "frames.json").read_text())["frames"]
+            path = self._dir(shard) / "frames.json"
+            doc = _load_json(self.root, path)
+            _expect(isinstance(doc, dict) and isinstance(doc.get("frames"), list), self.root, path,
+                    "must be an object with a 'frames' list")
+            recs = doc["frames"]
+            _expect(len(recs) == self._frames[shard], self.root, path,
+                    f"has {len(recs)} frames, the manifest says {self._frames[shard]}")
+            for k, r in enumerate(recs):
+                _expect(isinstance(r, dict) and isinstance(r.get("meta"), dict) and isinstance(r.get("labels"), dict),
+                        self.root, path, f"frames[{k}] must be an object with 'meta' and 'labels' objects")
+            self._json[shard] = recs
+        return self._json[shard]
+
+    def records(self, shard: str) -> list:
+        self.check_shard(shard)
         return self._json[shard]
 
     def meta(self, i: int) -> dict:

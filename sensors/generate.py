@@ -21,8 +21,14 @@ import numpy as np
 from sensors import SENSOR_MODEL_VERSION
 from sim.config import from_dict
 from sim.errors import UserError
-from sim.scenario import CONTEXT_NAMES, Context, ScenarioSpec, Simulator, stream
+from sim.scenario import CONTEXT_NAMES, MAX_DURATION_S, Context, ScenarioSpec, Simulator, stream
 from sim.weather import TRANSITIONS
+
+MAX_DATASET_FRAMES = 1_000_000
+"""Most frames in one dataset (about 3 days of rendering on 2 cores at the cpu profile)."""
+MAX_SEQUENCE_LENGTH = 1000
+"""Most frames per sequence (= per shard): a shard is rendered in memory (~1 MB per cpu frame,
+~10 MB per paper frame)."""
 
 
 @dataclass(frozen=True)
@@ -60,21 +66,34 @@ class GenerateConfig:
     def __post_init__(self) -> None:
         if not self.contexts:
             raise UserError("contexts must name at least one context")
-        for c in self.contexts:
-            Context.parse(c)
+        names = [Context.parse(c).name for c in self.contexts]
+        twice = [c for k, c in enumerate(self.contexts) if names[k] in names[:k]]
+        if twice:  # the same sequences twice: they could land in both a train and a test split
+            raise UserError(f"contexts name {twice[0]!r} twice ({Context.parse(twice[0]).name})")
         if self.frames_per_context < 1:
             raise UserError(f"frames_per_context must be >= 1, got {self.frames_per_context}")
-        if self.sequence_length < 1:
-            raise UserError(f"sequence_length must be >= 1, got {self.sequence_length}")
-        if not self.frame_rate_hz > 0:
+        total = self.frames_per_context * len(self.contexts)
+        if total > MAX_DATASET_FRAMES:
+            raise UserError(f"frames_per_context x contexts = {total} frames; the limit is {MAX_DATASET_FRAMES}")
+        if not 1 <= self.sequence_length <= MAX_SEQUENCE_LENGTH:
+            raise UserError(f"sequence_length must be 1..{MAX_SEQUENCE_LENGTH} (a sequence is rendered in memory), "
+                            f"got {self.sequence_length}")
+        if not (self.frame_rate_hz > 0 and math.isfinite(self.frame_rate_hz)):
             raise UserError(f"frame_rate_hz must be > 0, got {self.frame_rate_hz}")
-        if self.seed < 0:
-            raise UserError(f"seed must be >= 0, got {self.seed}")
+        if self.sequence_length / self.frame_rate_hz > MAX_DURATION_S:
+            raise UserError(f"a sequence of {self.sequence_length} frames at {self.frame_rate_hz:g} Hz lasts "
+                            f"{self.sequence_length / self.frame_rate_hz:g} s; the limit is {MAX_DURATION_S:g} s")
+        if not 0 <= self.seed < 2**63:
+            raise UserError(f"seed must be 0..2**63-1, got {self.seed}")
         if not self.severities or any(not 0 <= s <= 5 for s in self.severities):
             raise UserError(f"severities must be values in 0..5, got {list(self.severities)}")
+        if len(set(self.severities)) != len(self.severities):
+            raise UserError(f"severities name a value twice: {list(self.severities)}")
         bad = [t for t in self.transitions if t not in TRANSITIONS]
         if bad or not self.transitions:
             raise UserError(f"unknown weather transition {bad[0] if bad else ''!r} (choose from: {', '.join(TRANSITIONS)})")
+        if len(set(self.transitions)) != len(self.transitions):
+            raise UserError(f"transitions name a value twice: {list(self.transitions)}")
         from sensors.degrade.lidar import LIDAR_FOG_MODELS
         from sensors.rig import profile_names
 
@@ -205,8 +224,9 @@ def _init_worker(threads: int) -> None:
     os.environ["OPENBLAS_NUM_THREADS"] = str(threads)
 
 
-def existing_record(root: Path, spec: ShardSpec, config: GenerateConfig) -> dict | None:
-    """The record of an already complete shard, if it was made by the same config."""
+def existing_record(root: Path, spec: ShardSpec, config: GenerateConfig, digest: bool = True) -> dict | None:
+    """The record of an already complete shard, if it was made by the same config (UserError if it
+    was made by another); `digest=False` only checks."""
     import json
 
     from sensors.dataset import shard_digest
@@ -217,8 +237,10 @@ def existing_record(root: Path, spec: ShardSpec, config: GenerateConfig) -> dict
         return None
     try:
         head = json.loads(fj.read_text())
-    except json.JSONDecodeError:
-        return None
+    except (json.JSONDecodeError, UnicodeDecodeError):
+        head = None
+    if not isinstance(head, dict) or not isinstance(head.get("frames"), list):
+        raise UserError(f"{fj} is damaged; delete {d} and run again to render that shard anew")
     if head.get("config") != config.to_dict() or head.get("shard") != asdict(spec):
         raise UserError(
             f"{root} holds shard {spec.name} of a different generation config; use an empty --out directory"
@@ -228,6 +250,8 @@ def existing_record(root: Path, spec: ShardSpec, config: GenerateConfig) -> dict
             f"{root} holds shard {spec.name} made by sensor model version {head.get('sensor_model_version')!r} "
             f"(this code: {SENSOR_MODEL_VERSION!r}); use an empty --out directory"
         )
+    if not digest:
+        return None
     return {"name": spec.name, "sha256": shard_digest(d), "frames": len(head["frames"]), **asdict(spec),
             "seconds": 0.0, "timings": {}}
 
@@ -235,16 +259,20 @@ def existing_record(root: Path, spec: ShardSpec, config: GenerateConfig) -> dict
 def generate(config: GenerateConfig, out: str | Path, workers: int = 1, progress: bool = True) -> dict:
     """Generate (or complete) the dataset in `out`. Returns a summary with timings."""
     import multiprocessing as mp
-    import sys
 
-    from tqdm import tqdm
-
-    from sensors.dataset import FORMAT_VERSION, clean_partial, write_manifest
+    from sensors.dataset import FORMAT_VERSION, clean_partial, foreign_entries, write_manifest
+    from sim.progress import progress as progress_bar
 
     root = Path(out)
+    foreign = foreign_entries(root)
+    if foreign:
+        raise UserError(f"{root} is not empty and not a dataset (it holds {foreign[0]!r}); "
+                        "use a new or empty --out directory")
+    shards = plan(config)
+    for s in shards:  # refuse a dataset of another config before touching anything
+        existing_record(root, s, config, digest=False)
     root.mkdir(parents=True, exist_ok=True)
     clean_partial(root)
-    shards = plan(config)
     records: dict[str, dict] = {}
     todo = []
     for s in shards:
@@ -254,8 +282,8 @@ def generate(config: GenerateConfig, out: str | Path, workers: int = 1, progress
         else:
             records[s.name] = rec
     total = sum(s.frames for s in shards)
-    bar = tqdm(total=total, initial=sum(r["frames"] for r in records.values()), unit="frame",
-               desc="generate", file=sys.stderr, disable=not progress or None, dynamic_ncols=True)
+    bar = progress_bar(total=total, initial=sum(r["frames"] for r in records.values()), unit="frame",
+                       desc="generate", enabled=progress)
     t0 = time.perf_counter()
     timings: dict[str, float] = {}
 

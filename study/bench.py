@@ -7,7 +7,17 @@ import os
 import platform
 import time
 
-from study.cli import Formatter, emit, pos_int
+from study.cli import (
+    Formatter,
+    emit,
+    int_list,
+    int_range,
+    name_arg,
+    name_list,
+    nonneg_int,
+    pos_int,
+    training_run,
+)
 
 
 def machine() -> dict:
@@ -23,7 +33,7 @@ def add_parser(sub, name, help_text):
                         "report steady-state scene steps per second (one process, one core).",
                         formatter_class=Formatter)
     s.add_argument("--frames", type=pos_int, default=200, help="recorded frames per context")
-    s.add_argument("--seed", type=int, default=0)
+    s.add_argument("--seed", type=nonneg_int, default=0, help="root random seed")
     s.add_argument("--json", action="store_true", help="print one JSON object on stdout")
     s.set_defaults(run=run_sim)
     g = what.add_parser("generate", help="full frames per second (cameras, lidar, radar, labels, degradation)",
@@ -31,11 +41,11 @@ def add_parser(sub, name, help_text):
                         "worker count, and report frames per second plus milliseconds per pipeline component "
                         "and per degradation model (summed over workers, per rendered frame).",
                         formatter_class=Formatter)
-    g.add_argument("--profiles", default="cpu,paper", help="comma-separated sensor profiles")
-    g.add_argument("--workers", default="1,2", help="comma-separated worker counts")
+    g.add_argument("--profiles", type=name_list, default="cpu,paper", help="comma-separated sensor profiles, each once")
+    g.add_argument("--workers", type=int_list(1, 256, "workers"), default="1,2", help="comma-separated worker counts, each once")
     g.add_argument("--frames-per-context", type=pos_int, default=10, help="frames per context per run")
     g.add_argument("--sequence-length", type=pos_int, default=10, help="frames per sequence (setup is amortised over it)")
-    g.add_argument("--seed", type=int, default=0)
+    g.add_argument("--seed", type=nonneg_int, default=0, help="root random seed")
     g.add_argument("--json", action="store_true", help="print one JSON object on stdout")
     g.set_defaults(run=run_generate)
     b = what.add_parser("boxes", help="our NMS / Soft-NMS / WBF against ensemble-boxes (ms, speed-up, equal output)",
@@ -43,10 +53,10 @@ def add_parser(sub, name, help_text):
                         "(n lists x n boxes, HydraFusion's IoU 0.4 / skip 0.01 / sigma 0.5), check that compat mode "
                         "returns the package's detections, and measure what the package's deviations do to VOC mAP.",
                         formatter_class=Formatter)
-    b.add_argument("--lists", type=pos_int, default=7, help="detection lists (branches)")
-    b.add_argument("--boxes", type=pos_int, default=100, help="boxes per list")
+    b.add_argument("--lists", type=int_range(1, 100, "lists"), default=7, help="detection lists (branches), at most 100")
+    b.add_argument("--boxes", type=int_range(1, 10_000, "boxes"), default=100, help="boxes per list, at most 10000")
     b.add_argument("--repeats", type=pos_int, default=30, help="calls per timing round")
-    b.add_argument("--seed", type=int, default=0)
+    b.add_argument("--seed", type=nonneg_int, default=0, help="random seed of the synthetic boxes")
     b.add_argument("--json", action="store_true", help="print one JSON object on stdout")
     b.set_defaults(run=run_boxes)
     n = what.add_parser("inference", help="latency, peak memory and training speed per model configuration",
@@ -56,11 +66,11 @@ def add_parser(sub, name, help_text):
                         "late-fusion block against ensemble-boxes, each gate's overhead (gate_overhead_ms) and the "
                         "end-to-end latency of top-k HydraFusion with it, k = 1, 3, 5 (topk_latency_ms).",
                         formatter_class=Formatter)
-    n.add_argument("--profile", default="cpu", help="model profile")
+    n.add_argument("--profile", type=name_arg, default="cpu", help="model profile")
     n.add_argument("--repeats", type=pos_int, default=5, help="timed forwards per configuration")
-    n.add_argument("--run", dest="weights", default=None, metavar="RUN",
+    n.add_argument("--run", dest="weights", type=training_run, default=None, metavar="RUN",
                    help="load this trained run's weights (default: random initialisation)")
-    n.add_argument("--threads", type=pos_int, default=2)
+    n.add_argument("--threads", type=pos_int, default=2, help="torch CPU threads")
     n.add_argument("--json", action="store_true", help="print one JSON object on stdout")
     n.set_defaults(run=run_inference)
     f = what.add_parser("lidar-fog", help="lidar fog: our model against Hahner et al. ICCV 2021 on the same clean clouds",
@@ -113,20 +123,14 @@ def run_generate(args) -> int:
     import tempfile
 
     from sensors.generate import GenerateConfig, generate
-    from sim.errors import UserError
 
-    profiles = [p.strip() for p in args.profiles.split(",") if p.strip()]
-    try:
-        workers = [int(w) for w in args.workers.split(",") if w.strip()]
-    except ValueError:
-        raise UserError(f"--workers must be integers separated by commas, got {args.workers!r}") from None
-    if not workers or min(workers) < 1:
-        raise UserError("--workers must list positive integers")
+    profiles, workers = list(args.profiles), list(args.workers)
+    configs = {profile: GenerateConfig(frames_per_context=args.frames_per_context, sequence_length=args.sequence_length,
+                                       seed=args.seed, profile=profile) for profile in profiles}  # all valid first
     runs, components = [], {}
     for profile in profiles:
         for w in workers:
-            config = GenerateConfig(frames_per_context=args.frames_per_context, sequence_length=args.sequence_length,
-                                    seed=args.seed, profile=profile)
+            config = configs[profile]
             with tempfile.TemporaryDirectory(prefix="hydrabench-bench-") as tmp:
                 r = generate(config, tmp, workers=w, progress=True)
             runs.append({"profile": profile, "workers": w, "frames": r["frames"], "seconds": r["seconds"],
@@ -182,9 +186,11 @@ def run_boxes(args) -> int:
 
 
 def run_inference(args) -> int:
+    from fusion.nets import load_profile
     from study.bench_boxes import bench_box_fusion
     from study.bench_nets import bench_inference
 
+    load_profile(args.profile)  # an unknown profile is refused before any worker process starts
     r = bench_inference(args.profile, args.repeats, args.threads, args.weights)
     boxes = bench_box_fusion(repeats=10)
     r["fusion_block_vs_ensemble_boxes"] = {m: {"ours_ms": v["ours_ms"], "ensemble_boxes_ms": v["ensemble_boxes_ms"],

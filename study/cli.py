@@ -9,9 +9,11 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
 import os
 import sys
 from collections.abc import Callable
+from pathlib import Path
 
 from sim.errors import UserError
 
@@ -23,51 +25,288 @@ EXIT_USAGE = 2
 
 
 class Parser(argparse.ArgumentParser):
-    """argparse that reports errors as one line with exit code 2."""
+    """argparse that reports errors as one line with exit code 2.
+
+    It also refuses a value given twice to a list option (nargs '+' / '*'), so every command's
+    space-separated lists behave like the comma lists of `name_list`.
+    """
 
     def error(self, message: str) -> None:  # type: ignore[override]
         raise UserError(f"{self.prog}: {message}")
 
+    def parse_known_args(self, args=None, namespace=None):
+        if args is None:
+            args = sys.argv[1:]
+        args = list(args)
+        if self._subparsers is not None and args:
+            # `hydrabench --bogus`: name the flag, not the missing command
+            lead = next((a for a in args if not a.startswith("-")), None)
+            for a in args[: args.index(lead) if lead is not None else len(args)]:
+                if a not in self._option_string_actions:
+                    self.error(f"unrecognized argument {a!r} (options go after the command: "
+                               f"{self.prog} <command> [options])")
+        ns, extra = super().parse_known_args(args, namespace)
+        for action in self._actions:
+            if action.nargs in ("+", "*") and action.option_strings:
+                values = getattr(ns, action.dest, None)
+                if isinstance(values, list):
+                    seen = set()
+                    for v in values:
+                        if v in seen:
+                            self.error(f"argument {'/'.join(action.option_strings)}: {v!r} is given twice")
+                        seen.add(v)
+        return ns, extra
+
 
 class Formatter(argparse.RawDescriptionHelpFormatter, argparse.ArgumentDefaultsHelpFormatter):
-    pass
+    """Help with each option's default appended once: not when the help already states a default
+    ("[20]", "(default: ...)", "default ..."), and not when the default is None, False or empty."""
+
+    def _get_help_string(self, action):
+        text = action.help or ""
+        default = action.default
+        if (default is argparse.SUPPRESS or default is None or default is False or default in ("", [], ())
+                or "%(default)" in text or "default" in text.lower() or text.rstrip().endswith("]")
+                or not (action.option_strings or action.nargs in (argparse.OPTIONAL, argparse.ZERO_OR_MORE))):
+            return text
+        return text + " (default: %(default)s)"
 
 
-def nonneg_int(text: str) -> int:
+# ----------------------------------------------------------------------------------------------
+# Argument types: one parser per kind of input. Each carries `kind` (and bounds or suffixes) so the
+# fuzz test (tests/study/test_fuzz.py) can read from the parser which bad values to try.
+
+MAX_COUNT = 1_000_000
+"""Largest value any count option accepts (epochs, repeats, frames, ...): beyond it a typo, not a plan.
+Sizes that drive memory or days of work have tighter documented limits in their configs."""
+MAX_SEED = 2**63 - 1
+
+
+def _typed(func, kind: str, **attrs):
+    func.kind = kind
+    for k, v in attrs.items():
+        setattr(func, k, v)
+    return func
+
+
+def int_range(lo: int, hi: int, name: str) -> Callable[[str], int]:
+    """An argparse type: an integer in [lo, hi]."""
+
+    def parse(text: str) -> int:
+        try:
+            v = int(str(text).strip())
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"expected an integer, got {text!r}") from None
+        if v < lo:
+            raise argparse.ArgumentTypeError(f"must be >= {lo}, got {v}")
+        if v > hi:
+            raise argparse.ArgumentTypeError(f"must be <= {hi}, got {v}")
+        return v
+
+    parse.__name__ = name
+    return _typed(parse, "int", lo=lo, hi=hi)
+
+
+pos_int = int_range(1, MAX_COUNT, "pos_int")
+count_int = int_range(0, MAX_COUNT, "count_int")
+nonneg_int = int_range(0, MAX_SEED, "nonneg_int")
+severity_arg = int_range(0, 5, "severity_arg")
+workers_int = int_range(1, 256, "workers_int")
+
+
+def float_range(lo: float, hi: float, name: str, lo_open: bool = False) -> Callable[[str], float]:
+    """An argparse type: a finite number in [lo, hi] ((lo, hi] with lo_open)."""
+
+    def parse(text: str) -> float:
+        try:
+            v = float(str(text).strip())
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"expected a number, got {text!r}") from None
+        if not math.isfinite(v):
+            raise argparse.ArgumentTypeError(f"expected a finite number, got {text!r}")
+        if v < lo or (lo_open and v == lo):
+            raise argparse.ArgumentTypeError(f"must be {'>' if lo_open else '>='} {lo:g}, got {v:g}")
+        if v > hi:
+            raise argparse.ArgumentTypeError(f"must be <= {hi:g}, got {v:g}")
+        return v
+
+    parse.__name__ = name
+    return _typed(parse, "float", lo=lo, hi=hi, lo_open=lo_open)
+
+
+pos_float = float_range(0.0, 1e9, "pos_float", lo_open=True)
+nonneg_float = float_range(0.0, 1e9, "nonneg_float")
+probability = float_range(0.0, 1.0, "probability")
+
+
+def name_list(text: str) -> tuple[str, ...]:
+    """A comma-separated list of names: no empty items, no name twice, no dangling '+' in a combination
+    ("rain+", "+fog", "city++rain"). Whether each name exists is the command's check."""
+    items = [t.strip() for t in str(text).split(",")]
+    if not any(items):
+        raise argparse.ArgumentTypeError("expected one name or more, separated by commas, got nothing")
+    for item in items:
+        if not item:
+            raise argparse.ArgumentTypeError(f"empty item in {text!r} (names are separated by single commas)")
+        parts = item.split("+")
+        if len(parts) > 1 and not all(p.strip() for p in parts):
+            raise argparse.ArgumentTypeError(f"dangling '+' in {item!r} (combine names as in city+night+rain)")
+    seen = set()
+    for item in items:
+        if item in seen:
+            raise argparse.ArgumentTypeError(f"{item!r} is named twice in {text!r}")
+        seen.add(item)
+    return tuple(items)
+
+
+_typed(name_list, "names")
+
+
+def name_arg(text: str) -> str:
+    """One name (a profile, a condition, a combination such as city+night+rain): not empty, no comma,
+    no dangling '+'. Whether it exists is the command's check."""
+    text = str(text).strip()
+    if not text:
+        raise argparse.ArgumentTypeError("expected a name, got nothing")
+    if "," in text:
+        raise argparse.ArgumentTypeError(f"expected one name, got a list {text!r}")
+    if not all(p.strip() for p in text.split("+")):
+        raise argparse.ArgumentTypeError(f"dangling '+' in {text!r} (combine names as in city+night+rain)")
+    return text
+
+
+_typed(name_arg, "name")
+
+
+def int_list(lo: int, hi: int, name: str) -> Callable[[str], tuple[int, ...]]:
+    """A comma-separated list of integers in [lo, hi], none twice."""
+    one = int_range(lo, hi, name)
+
+    def parse(text: str) -> tuple[int, ...]:
+        items = name_list(text)
+        values = tuple(one(t) for t in items)
+        if len(set(values)) != len(values):
+            raise argparse.ArgumentTypeError(f"a value is given twice in {text!r}")
+        return values
+
+    parse.__name__ = name
+    return _typed(parse, "ints", lo=lo, hi=hi)
+
+
+def _path_text(text: str) -> str:
+    if not str(text).strip():
+        raise argparse.ArgumentTypeError("expected a path, got an empty string")
+    if "\x00" in str(text):
+        raise argparse.ArgumentTypeError("a path cannot contain a NUL character")
+    return str(text)
+
+
+def _as_type_error(func, *args):
     try:
-        v = int(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected an integer, got {text!r}") from None
-    if v < 0:
-        raise argparse.ArgumentTypeError(f"must be >= 0, got {v}")
-    return v
+        return func(*args)
+    except UserError as exc:
+        raise argparse.ArgumentTypeError(str(exc)) from None
 
 
-def pos_int(text: str) -> int:
-    v = nonneg_int(text)
-    if v < 1:
-        raise argparse.ArgumentTypeError(f"must be >= 1, got {v}")
-    return v
+IMAGE_SUFFIXES = (".png", ".pdf", ".svg")
 
 
-def severity_arg(text: str) -> int:
-    try:
-        v = int(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"severity must be an integer 0..5, got {text!r}") from None
-    if not 0 <= v <= 5:
-        raise argparse.ArgumentTypeError(f"severity must be 0..5, got {v}")
-    return v
+def out_file(*suffixes: str) -> Callable[[str], str]:
+    """An argparse type: a file to write (extension one of `suffixes` when given), whose directory
+    exists or can be created. Nothing is created here: the command creates it when it writes."""
+
+    def parse(text: str) -> str:
+        from study.outputs import check_writable_file
+
+        return str(_as_type_error(check_writable_file, _path_text(text), suffixes or None))
+
+    parse.__name__ = "out_file"
+    return _typed(parse, "out_file", suffixes=suffixes)
 
 
-def pos_float(text: str) -> float:
-    try:
-        v = float(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected a number, got {text!r}") from None
-    if not v > 0:
-        raise argparse.ArgumentTypeError(f"must be > 0, got {v}")
-    return v
+def out_dir(text: str) -> str:
+    """An argparse type: a directory to write into (existing, or creatable; not created here)."""
+    from study.outputs import check_writable_dir
+
+    return str(_as_type_error(check_writable_dir, _path_text(text)))
+
+
+_typed(out_dir, "out_dir")
+
+
+def out_path(text: str) -> str:
+    """An argparse type: a file or a directory to write, checked by the command (it depends on other options)."""
+    return _path_text(text)
+
+
+_typed(out_path, "out_path")
+
+
+def in_file(text: str) -> str:
+    """An argparse type: an existing readable file."""
+    path = Path(_path_text(text))
+    if not path.is_file():
+        raise argparse.ArgumentTypeError(f"{text} is not a file" if path.exists() else f"{text} does not exist")
+    return str(path)
+
+
+_typed(in_file, "in_file")
+
+
+def cache_dir(text: str) -> str:
+    """An argparse type: a cache directory (existing, or creatable; not created here). Unlike an
+    output directory it may hold other files."""
+    from study.outputs import check_writable_dir
+
+    return str(_as_type_error(check_writable_dir, _path_text(text)))
+
+
+_typed(cache_dir, "cache_dir")
+
+
+def checkpoint_arg(text: str) -> str:
+    """An argparse type: which checkpoint of a run, 'latest' or 'epoch-NNN'."""
+    import re
+
+    if not re.fullmatch(r"latest|epoch-\d{3,}", str(text).strip()):
+        raise argparse.ArgumentTypeError(f"expected 'latest' or 'epoch-NNN' (e.g. epoch-003), got {text!r}")
+    return str(text).strip()
+
+
+_typed(checkpoint_arg, "checkpoint")
+
+
+def dataset_path(text: str) -> str:
+    """An argparse type: a dataset directory that the command itself examines (hydrabench verify)."""
+    return _path_text(text)
+
+
+_typed(dataset_path, "dataset", checked=False)
+
+
+def dataset_dir(text: str) -> str:
+    """An argparse type: a dataset directory, checked whole before any work (`sensors.dataset.check`:
+    manifest, every shard's frames.json and array headers; not the checksums, which is `verify`)."""
+    from sensors.dataset import check
+
+    _as_type_error(check, _path_text(text))
+    return str(text)
+
+
+_typed(dataset_dir, "dataset", checked=True)
+
+
+def training_run(text: str) -> str:
+    """An argparse type: a training run directory (hydrabench train --out)."""
+    path = Path(_path_text(text))
+    if not path.is_dir():
+        raise argparse.ArgumentTypeError(f"{text} is not a directory" if path.exists() else f"{text} does not exist")
+    if not (path / "config.json").is_file():
+        raise argparse.ArgumentTypeError(f"{text} is not a training run (no config.json; see hydrabench train)")
+    return str(path)
+
+
+_typed(training_run, "run")
 
 
 def emit(result: dict, as_json: bool, text: Callable[[dict], str] | None = None) -> None:
@@ -129,9 +368,10 @@ def build_parser() -> Parser:
     return parser
 
 
-def main(argv: list[str] | None = None) -> int:
+def main(argv: list[str] | None = None, parser: Parser | None = None) -> int:
+    """Run one command; `parser`: a `build_parser()` to reuse (tests calling main many times)."""
     try:
-        parser = build_parser()
+        parser = parser or build_parser()
         args = parser.parse_args(argv)
         return int(args.run(args) or 0)
     except UserError as exc:

@@ -7,7 +7,23 @@ import sys
 from pathlib import Path
 
 from sim.errors import UserError
-from study.cli import Formatter, emit, nonneg_int, pos_float, pos_int
+from study.cli import (
+    IMAGE_SUFFIXES,
+    Formatter,
+    dataset_dir,
+    dataset_path,
+    emit,
+    in_file,
+    int_list,
+    name_arg,
+    name_list,
+    nonneg_int,
+    out_dir,
+    out_file,
+    pos_float,
+    pos_int,
+    workers_int,
+)
 
 GEN_EPILOG = """\
 Writes a sharded dataset (one sequence per shard) to --out: manifest.json plus shard directories of
@@ -21,36 +37,31 @@ examples:
 """
 
 
-def _csv(text: str) -> list[str]:
-    return [t.strip() for t in text.split(",") if t.strip()]
-
-
-def _severities(text: str) -> list[int]:
-    try:
-        vals = [int(t) for t in _csv(text)]
-    except ValueError:
-        raise UserError(f"--severities must be integers 0..5 separated by commas, got {text!r}") from None
-    return vals
-
-
 def add_generate(sub, name, help_text):
     p = sub.add_parser(name, help=help_text, description=help_text, epilog=GEN_EPILOG, formatter_class=Formatter)
-    p.add_argument("--out", required=True, help="dataset directory (created; an interrupted one is completed)")
-    p.add_argument("--contexts", default=None, help="'all' or comma-separated contexts/combinations [all]")
-    p.add_argument("--frames-per-context", type=pos_int, default=None, help="frames per context [20]")
+    p.add_argument("--out", required=True, type=out_dir,
+                   help="dataset directory (created; an interrupted one is completed; a folder of other files is refused)")
+    p.add_argument("--contexts", type=name_list, default=None,
+                   help="'all' or comma-separated contexts/combinations, each once [all]")
+    p.add_argument("--frames-per-context", type=pos_int, default=None,
+                   help="frames per context, at most 1000000 in a dataset [20]")
     p.add_argument("--seed", type=nonneg_int, default=None, help="root seed [0]")
-    p.add_argument("--workers", type=pos_int, default=1, help="parallel worker processes")
-    p.add_argument("--profile", default=None, help="sensor profile: cpu (default) or paper")
-    p.add_argument("--sequence-length", type=pos_int, default=None, help="frames per sequence/shard [10]")
-    p.add_argument("--frame-rate", type=pos_float, default=None, help="frames per second within a sequence [2]")
-    p.add_argument("--severities", default=None, help="severity levels drawn per sequence for conditions [1,2,3,4,5]")
-    p.add_argument("--transitions", default=None, help="weather transitions drawn per sequence [none]")
+    p.add_argument("--workers", type=workers_int, default=1, help="parallel worker processes")
+    p.add_argument("--profile", type=name_arg, default=None, help="sensor profile: cpu or paper [cpu]")
+    p.add_argument("--sequence-length", type=pos_int, default=None,
+                   help="frames per sequence/shard, at most 1000 [10]")
+    p.add_argument("--frame-rate", type=pos_float, default=None,
+                   help="frames per second within a sequence; a sequence lasts at most 3600 s [2]")
+    p.add_argument("--severities", type=int_list(0, 5, "severities"), default=None,
+                   help="severity levels drawn per sequence for conditions [1,2,3,4,5]")
+    p.add_argument("--transitions", type=name_list, default=None,
+                   help="weather transitions drawn per sequence: none, onset, clearing, bank [none]")
     p.add_argument("--twins", action="store_true", default=None, help="also write clear-weather twins of every frame")
     p.add_argument("--no-degrade", dest="degrade", action="store_false", default=None,
                    help="skip the weather degradation models (clean sensors, weather only lights the scene)")
     p.add_argument("--lidar-fog", default=None, choices=["ours", "hahner"],
                    help="lidar fog model: ours, or hahner (Hahner et al. ICCV 2021 as published) [ours]")
-    p.add_argument("--config", default=None, help="YAML file with GenerateConfig fields (flags override it)")
+    p.add_argument("--config", type=in_file, default=None, help="YAML file with GenerateConfig fields (flags override it)")
     p.add_argument("--json", action="store_true", help="print one JSON object on stdout")
     p.set_defaults(run=run_generate)
 
@@ -62,7 +73,7 @@ def build_config(args):
 
     base = to_dict(load_yaml(GenerateConfig, args.config)) if args.config else to_dict(GenerateConfig())
     if args.contexts is not None:
-        base["contexts"] = list(CONTEXT_NAMES) if args.contexts == "all" else _csv(args.contexts)
+        base["contexts"] = list(CONTEXT_NAMES) if args.contexts == ("all",) else list(args.contexts)
     for flag, key in (("frames_per_context", "frames_per_context"), ("seed", "seed"), ("profile", "profile"),
                       ("sequence_length", "sequence_length"), ("frame_rate", "frame_rate_hz"),
                       ("twins", "twins"), ("degrade", "degrade"), ("lidar_fog", "lidar_fog")):
@@ -70,19 +81,17 @@ def build_config(args):
         if value is not None:
             base[key] = value
     if args.severities is not None:
-        base["severities"] = _severities(args.severities)
+        base["severities"] = list(args.severities)
     if args.transitions is not None:
-        base["transitions"] = _csv(args.transitions)
+        base["transitions"] = list(args.transitions)
     return GenerateConfig.from_mapping(base)
 
 
 def run_generate(args) -> int:
     from sensors.generate import generate
-    from study.outputs import check_writable_dir
 
     config = build_config(args)
-    out = check_writable_dir(args.out)
-    result = generate(config, out, workers=args.workers, progress=True)
+    result = generate(config, Path(args.out), workers=args.workers, progress=True)
     emit(result, args.json, lambda r: (
         f"{r['frames']} frames in {r['out']} ({r['frames_rendered']} rendered in {r['seconds']} s, "
         f"{r['frames_per_second']} frames/s, profile {r['profile']}, {r['workers']} workers)"))
@@ -95,8 +104,9 @@ def run_generate(args) -> int:
 def add_verify(sub, name, help_text):
     p = sub.add_parser(name, help=help_text, description=help_text + ". Exit code 2 names every missing or "
                        "corrupted shard.", formatter_class=Formatter)
-    p.add_argument("dir", help="dataset directory")
-    p.add_argument("--json", action="store_true", help="print one JSON object on stdout")
+    p.add_argument("dir", type=dataset_path, help="dataset directory")
+    p.add_argument("--json", action="store_true", help="print one JSON object on stdout, also when the dataset "
+                   "is damaged ({\"ok\": false, \"problems\": [...]}, exit code 2)")
     p.set_defaults(run=run_verify)
 
 
@@ -104,18 +114,20 @@ def run_verify(args) -> int:
     from sensors.dataset import read_manifest, verify
 
     problems = verify(args.dir)
-    m = read_manifest(args.dir)
     if problems:
+        if args.json:
+            emit({"ok": False, "dir": str(args.dir), "problems": problems}, True)
         raise UserError(f"{args.dir}: " + "; ".join(problems))
-    emit({"ok": True, "shards": len(m["shards"]), "frames": len(m["frames"])}, args.json,
-         lambda r: f"{args.dir}: {r['shards']} shards, {r['frames']} frames, all checksums match")
+    m = read_manifest(args.dir)
+    emit({"ok": True, "dir": str(args.dir), "shards": len(m["shards"]), "frames": len(m["frames"]), "problems": []},
+         args.json, lambda r: f"{args.dir}: {r['shards']} shards, {r['frames']} frames, all checksums match")
     return 0
 
 
 def add_export(sub, name, help_text):
     p = sub.add_parser(name, help=help_text, description=help_text, formatter_class=Formatter)
-    p.add_argument("dir", help="dataset directory")
-    p.add_argument("--out", required=True, help="COCO JSON file to write")
+    p.add_argument("dir", type=dataset_dir, help="dataset directory")
+    p.add_argument("--out", required=True, type=out_file(".json"), help="COCO JSON file to write")
     p.add_argument("--camera", default="camera_right", choices=["camera_left", "camera_right"],
                    help="which camera's FWD labels")
     p.set_defaults(run=run_export)
@@ -123,9 +135,9 @@ def add_export(sub, name, help_text):
 
 def run_export(args) -> int:
     from sensors.dataset import DatasetReader, to_coco
-    from study.outputs import atomic_path, check_writable_file
+    from study.outputs import atomic_path
 
-    out = check_writable_file(args.out)
+    out = Path(args.out)
     coco = to_coco(DatasetReader(Path(args.dir)), args.camera)
     with atomic_path(out) as tmp:
         tmp.write_text(json.dumps(coco))
@@ -137,21 +149,20 @@ def add_show(sub, name, help_text):
     p = sub.add_parser(name, help=help_text, description=help_text + ": left/right cameras with FWD boxes, "
                        "lidar and radar BEV with BEV boxes, the forward-lidar projection, and a caption with the "
                        "context, weather and degradation parameters.", formatter_class=Formatter)
-    p.add_argument("dir", help="dataset directory")
+    p.add_argument("dir", type=dataset_dir, help="dataset directory")
     p.add_argument("--index", type=int, default=0,
                    help="frame index (negative counts from the end); with --context, the index among that context's frames")
-    p.add_argument("--context", default=None, help="pick the frame among this context's frames")
-    p.add_argument("--out", required=True, help="PNG to write")
+    p.add_argument("--context", type=name_arg, default=None, help="pick the frame among this context's frames")
+    p.add_argument("--out", required=True, type=out_file(*IMAGE_SUFFIXES), help="picture to write (.png, .pdf or .svg)")
     p.add_argument("--clear", action="store_true", help="show the clear-weather twin of the frame")
     p.set_defaults(run=run_show)
 
 
 def run_show(args) -> int:
     from sensors.dataset import DatasetReader
-    from study.outputs import check_writable_file
     from study.plots import plot_frame
 
-    out = check_writable_file(args.out)
+    out = Path(args.out)
     reader = DatasetReader(Path(args.dir), clear=args.clear)
     candidates = list(range(len(reader)))
     if args.context is not None:

@@ -2,13 +2,12 @@
 
 from __future__ import annotations
 
-import sys
 from pathlib import Path
 
 import numpy as np
 
 from sim.errors import UserError
-from study.cli import Formatter, emit
+from study.cli import IMAGE_SUFFIXES, Formatter, dataset_dir, emit, name_arg, name_list, out_file
 
 EPILOG = """\
 Takes frame --index of the dataset, rebuilds that exact moment from its shard's seed, and renders it
@@ -22,11 +21,12 @@ in fog.
 
 def add_parser(sub, name, help_text):
     p = sub.add_parser(name, help=help_text, description=help_text, epilog=EPILOG, formatter_class=Formatter)
-    p.add_argument("dir", help="dataset directory (its manifest gives the scene's seed and profile)")
-    p.add_argument("--out", required=True, help="PNG to write")
+    p.add_argument("dir", type=dataset_dir, help="dataset directory (its manifest gives the scene's seed and profile)")
+    p.add_argument("--out", required=True, type=out_file(*IMAGE_SUFFIXES), help="picture to write (.png, .pdf or .svg)")
     p.add_argument("--index", type=int, default=0, help="frame of the dataset to use as the scene")
-    p.add_argument("--context", default=None, help="take the --index-th frame of this context instead")
-    p.add_argument("--conditions", default="rain,fog,snow,night", help="comma-separated conditions (rows)")
+    p.add_argument("--context", type=name_arg, default=None, help="take the --index-th frame of this context instead")
+    p.add_argument("--conditions", type=name_list, default="rain,fog,snow,night",
+                   help="comma-separated conditions (rows), each once")
     p.add_argument("--json", action="store_true", help="print one JSON object (what was rendered) on stdout")
     p.set_defaults(run=run)
 
@@ -49,22 +49,20 @@ def scene_of(manifest: dict, index: int):
 
 
 def run(args) -> int:
-    from tqdm import tqdm
-
     from sensors.dataset import read_manifest
     from sensors.degrade import Degrader
     from sensors.frame import SequenceRenderer
     from sensors.rig import load_profile
+    from sim.progress import progress
     from sim.scenario import Context
     from sim.weather import CONDITIONS, representative_weather
-    from study.outputs import check_writable_file
     from study.plots import plot_gallery
 
-    out = check_writable_file(args.out)
-    conditions = [c.strip() for c in args.conditions.split(",") if c.strip()]
+    out = Path(args.out)
+    conditions = list(args.conditions)
     bad = [c for c in conditions if c not in CONDITIONS]
-    if bad or not conditions:
-        raise UserError(f"unknown condition {bad[0] if bad else ''!r} (choose from: {', '.join(CONDITIONS)})")
+    if bad:
+        raise UserError(f"unknown condition {bad[0]!r} (choose from: {', '.join(CONDITIONS)})")
     manifest = read_manifest(Path(args.dir))
     index = args.index
     if args.context is not None:
@@ -80,7 +78,7 @@ def run(args) -> int:
     layout = Context.parse(shard["context"]).layout
     rows = [("clear", 0)] + [(c, s) for c in conditions for s in range(1, 6)]
     panels = []
-    for cond, sev in tqdm(rows, desc="gallery", file=sys.stderr, disable=None):
+    for cond, sev in progress(iterable=rows, desc="gallery", unit="row"):
         weather = representative_weather(cond if cond != "clear" else "fog", sev)
         context = layout if cond == "clear" else f"{layout}+{cond}"
         degrader = Degrader(renderer.calib, context, shard["seed"], obstructions=False,

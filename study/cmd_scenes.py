@@ -7,7 +7,17 @@ import time
 from collections import Counter
 from pathlib import Path
 
-from study.cli import Formatter, emit, nonneg_int, pos_float, pos_int, severity_arg
+from study.cli import (
+    IMAGE_SUFFIXES,
+    Formatter,
+    emit,
+    name_arg,
+    nonneg_int,
+    out_path,
+    pos_float,
+    pos_int,
+    severity_arg,
+)
 
 EPILOG = """\
 contexts: city, junction, motorway, rural (road layouts) and rain, fog, snow, night (conditions,
@@ -23,16 +33,17 @@ examples:
 
 def add_parser(sub, name, help_text):
     p = sub.add_parser(name, help=help_text, description=help_text, epilog=EPILOG, formatter_class=Formatter)
-    p.add_argument("--context", default="city", help="context name, combination, or 'all'")
+    p.add_argument("--context", type=name_arg, default="city", help="context name, combination, or 'all'")
     p.add_argument("--severity", type=severity_arg, default=None,
                    help="0-5 for the conditions of the context (default: 3 for conditions, 0 for layouts)")
-    p.add_argument("--frames", type=pos_int, default=20, help="frames per sequence")
+    p.add_argument("--frames", type=pos_int, default=20,
+                   help="frames per sequence (at most 36000, and at most 3600 s of simulated time)")
     p.add_argument("--seed", type=nonneg_int, default=0, help="root random seed")
     p.add_argument("--frame-rate", type=pos_float, default=10.0, help="recording rate [Hz]")
     p.add_argument("--transition", default="none", choices=["none", "onset", "clearing", "bank"],
                    help="weather change along the sequence")
-    p.add_argument("--plot", default=None,
-                   help="write a top-down PNG of the last frame (a directory when --context all)")
+    p.add_argument("--plot", type=out_path, default=None,
+                   help="write a top-down picture (.png, .pdf or .svg) of the last frame (a directory when --context all)")
     p.add_argument("--json", action="store_true", help="print one JSON object on stdout")
     p.set_defaults(run=run)
 
@@ -80,7 +91,8 @@ def _text(result: dict) -> str:
 
 
 def run(args) -> int:
-    from sim.scenario import CONTEXT_NAMES, Context, ScenarioSpec, simulate
+    from sim.progress import progress
+    from sim.scenario import CONTEXT_NAMES, Context, ScenarioSpec, Simulator
     from study.outputs import check_writable_dir, check_writable_file
 
     contexts = list(CONTEXT_NAMES) if args.context == "all" else [args.context]
@@ -98,13 +110,18 @@ def run(args) -> int:
             out = check_writable_dir(args.plot)
             plots = {s.context: out / f"scene_{Context.parse(s.context).name.replace('+', '_')}.png" for s in specs}
         else:
-            plots = {specs[0].context: check_writable_file(args.plot)}
+            plots = {specs[0].context: check_writable_file(args.plot, IMAGE_SUFFIXES)}
     from study.plots import plot_scene
 
     results = {}
     for spec in specs:
         t0 = time.perf_counter()
-        scenes = simulate(spec)
+        bar = progress(total=spec.frames, desc=f"scenes {spec.context}", unit="frame")
+        scenes = []
+        for scene in Simulator(spec).scenes():
+            scenes.append(scene)
+            bar.update(1)
+        bar.close()
         r = summarise(scenes, time.perf_counter() - t0)
         if spec.context in plots:
             plot_scene(scenes[-1], str(plots[spec.context]))

@@ -25,7 +25,7 @@ from pathlib import Path
 
 from sensors.dataset import DatasetReader
 from sim.errors import UserError
-from study.cli import Formatter, emit, pos_int
+from study.cli import Formatter, checkpoint_arg, dataset_dir, emit, name_arg, name_list, pos_int, training_run
 
 EPILOG = """\
 examples:
@@ -39,24 +39,25 @@ examples:
 
 def add_parser(sub, name, help_text):
     p = sub.add_parser(name, help=help_text, description=__doc__, epilog=EPILOG, formatter_class=Formatter)
-    p.add_argument("run_dir", metavar="RUN", help="training run directory (hydrabench train --out)")
-    p.add_argument("data", help="dataset directory")
-    p.add_argument("--branches", default="all", help="comma-separated branch names, or 'all'")
-    p.add_argument("--fusion", default="soft-nms", help="nms | soft-nms | wbf")
+    p.add_argument("run_dir", metavar="RUN", type=training_run, help="training run directory (hydrabench train --out)")
+    p.add_argument("data", type=dataset_dir, help="dataset directory")
+    p.add_argument("--branches", type=name_list, default="all", help="comma-separated branch names, each once, or 'all'")
+    p.add_argument("--fusion", type=name_arg, default="soft-nms", help="nms | soft-nms | wbf")
     p.add_argument("--split", default="auto", choices=["auto", "test", "train", "all", "data-test"],
                    help="auto: the run's test split on its own dataset, every frame on another; data-test: "
                    "DATA's own by-sequence test split (the run's split settings), i.e. the frames a run trained "
                    "on DATA is tested on, to compare two runs on the same frames")
-    p.add_argument("--weights", default="", help="per-branch fusion weights, e.g. radar=2,camera_right=1")
-    p.add_argument("--contexts", default="", help="comma-separated contexts to score (e.g. city,junction,motorway,"
+    p.add_argument("--weights", type=name_list, default=None,
+                   help="per-branch fusion weights (finite, >= 0), e.g. radar=2,camera_right=1")
+    p.add_argument("--contexts", type=name_list, default=None, help="comma-separated contexts to score (e.g. city,junction,motorway,"
                    "rural for clear weather); default: every frame of the split")
     p.add_argument("--twins", action="store_true", help="also run on the clear-weather twins of the same frames "
                    "(a dataset generated with --twins) and report the vehicle mAP each branch keeps, per severity")
-    p.add_argument("--checkpoint", default="latest", help="latest, or epoch-NNN")
+    p.add_argument("--checkpoint", type=checkpoint_arg, default="latest", help="latest, or epoch-NNN")
     p.add_argument("--protocol", default=None, choices=("reference", "visible", "bev"),
                    help="ground truth (README, 'Evaluation protocols'); default: the protocol the run trained on")
     p.add_argument("--batch-size", type=pos_int, default=4, help="frames per forward pass")
-    p.add_argument("--gate", default=None, help="knowledge | deep | attention | optimal: the gate selects the branches")
+    p.add_argument("--gate", type=name_arg, default=None, help="knowledge | deep | attention | optimal: the gate selects the branches")
     p.add_argument("--k", default=None, help="branches the gate keeps per frame: 1..number of branches, or all "
                    "(default 3, or all when the run has fewer)")
     p.add_argument("--all-gates", action="store_true",
@@ -65,14 +66,23 @@ def add_parser(sub, name, help_text):
     p.set_defaults(run=run)
 
 
-def parse_weights(text: str) -> dict[str, float]:
+def parse_weights(text) -> dict[str, float]:
+    """'radar=2,camera_right=1' (or its items) -> {branch: weight}; each branch once, weights finite >= 0."""
+    import math
+
+    parts = text.split(",") if isinstance(text, str) else list(text or ())
     out = {}
-    for part in filter(None, (t.strip() for t in text.split(","))):
+    for part in filter(None, (t.strip() for t in parts)):
         name, _, value = part.partition("=")
         try:
-            out[name.strip()] = float(value)
+            w = float(value)
         except ValueError:
             raise UserError(f"--weights: {part!r} is not name=number") from None
+        if not (math.isfinite(w) and w >= 0):
+            raise UserError(f"--weights: {part!r}: a weight is a finite number >= 0")
+        if name.strip() in out:
+            raise UserError(f"--weights: {name.strip()!r} is given twice")
+        out[name.strip()] = w
     return out
 
 
@@ -232,7 +242,7 @@ def run_gates(args) -> int:
         raise UserError("--contexts is for evaluating branches; gated results report map_per_context")
     if args.twins:
         raise UserError("--twins is for evaluating branches, not gates")
-    if args.branches not in ("all", ""):
+    if args.branches not in ("all", "", ("all",)):
         raise UserError("--branches cannot be combined with a gate: the gate chooses among all of the run's branches")
     weights = parse_weights(args.weights)
     if args.all_gates:
@@ -265,8 +275,9 @@ def run(args) -> int:
         return run_gates(args)
     if args.k is not None:
         raise UserError("--k needs --gate (the number of branches a gate keeps)")
-    contexts = tuple(c.strip() for c in args.contexts.split(",") if c.strip())
-    result = evaluate(Path(args.run_dir), Path(args.data), args.branches, args.fusion, args.split,
+    contexts = tuple(args.contexts or ())
+    branches = args.branches if isinstance(args.branches, str) else ",".join(args.branches)
+    result = evaluate(Path(args.run_dir), Path(args.data), branches, args.fusion, args.split,
                       parse_weights(args.weights), args.checkpoint, args.batch_size, contexts, args.twins,
                       args.protocol)
 

@@ -48,7 +48,17 @@ from typing import Any
 import numpy as np
 
 from sim.errors import UserError
-from study.cli import Formatter, emit, nonneg_int, pos_float, pos_int
+from study.cli import (
+    Formatter,
+    checkpoint_arg,
+    dataset_dir,
+    emit,
+    name_arg,
+    nonneg_int,
+    pos_float,
+    pos_int,
+    training_run,
+)
 
 GATE_DATA_VERSION = 1
 LOSS_SEED = 0
@@ -803,9 +813,9 @@ def add_train_gate(sub, name, help_text):
     doc = __doc__.split("**train-gate**", 1)[1].split("**Tables.**", 1)[0]
     p = sub.add_parser(name, help=help_text, description="hydrabench train-gate" + doc.rstrip(), epilog=TRAIN_EPILOG,
                        formatter_class=Formatter)
-    p.add_argument("run_dir", metavar="RUN", help="training run directory (hydrabench train --out)")
-    p.add_argument("data", help="the run's training dataset")
-    p.add_argument("--gate", required=True, help="deep | attention (the gates that learn)")
+    p.add_argument("run_dir", metavar="RUN", type=training_run, help="training run directory (hydrabench train --out)")
+    p.add_argument("data", type=dataset_dir, help="the run's training dataset")
+    p.add_argument("--gate", type=name_arg, required=True, help="deep | attention (the gates that learn)")
     p.add_argument("--epochs", type=pos_int, default=100, help="passes over the training frames (more: continues)")
     p.add_argument("--batch-size", type=pos_int, default=32, help="frames per Adam step")
     p.add_argument("--lr", type=pos_float, default=5e-5, help="Adam learning rate (HydraFusion 5.3)")
@@ -813,7 +823,7 @@ def add_train_gate(sub, name, help_text):
                    help="share of the train split's sequences held out to pick the epoch")
     p.add_argument("--grid", type=_grid_arg, default="8x16", help="ROWSxCOLS the stem features are pooled to")
     p.add_argument("--seed", type=nonneg_int, default=0, help="initialisation, data order, validation split")
-    p.add_argument("--checkpoint", default="latest", help="latest, or epoch-NNN")
+    p.add_argument("--checkpoint", type=checkpoint_arg, default="latest", help="latest, or epoch-NNN")
     p.add_argument("--fresh", action="store_true", help="discard a previous training of this gate")
     p.add_argument("--threads", type=pos_int, default=2, help="torch CPU threads")
     p.add_argument("--json", action="store_true", help="print one JSON object on stdout")

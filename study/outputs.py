@@ -1,4 +1,9 @@
-"""Output paths: checked before work starts, written atomically (temp name, then rename)."""
+"""Output paths: checked before work starts, written atomically (temp name, then rename).
+
+The checks create nothing: a command refused later (a bad option, a damaged dataset) leaves no
+directory behind. Missing parent directories are created when the file is written. Written files
+get the ordinary permissions (0666 minus the umask, 0644 usually), not the 0600 of a temp file.
+"""
 
 from __future__ import annotations
 
@@ -11,42 +16,81 @@ from pathlib import Path
 from sim.errors import UserError
 
 
-def check_writable_file(path: str | Path) -> Path:
-    """Fail early (UserError) when `path` cannot be written; creates missing parent dirs."""
-    path = Path(path)
-    if path.exists() and path.is_dir():
-        raise UserError(f"output {path} is a directory, expected a file path")
-    parent = path.parent if str(path.parent) else Path(".")
+def _nearest_existing(path: Path) -> Path:
+    """The closest ancestor of `path` (or `path` itself) that exists."""
+    p = path.absolute()
+    while not p.exists() and p != p.parent:
+        p = p.parent
+    return p
+
+
+def _probe(directory: Path, wanted: Path) -> None:
+    """Fail (UserError) unless a directory can be created in `directory`: the only test that also
+    holds for root, for /proc and /sys and for read-only mounts (os.access says yes to all of them)."""
+    if not directory.is_dir():
+        raise UserError(f"cannot write {wanted}: {directory} is not a directory")
     try:
-        parent.mkdir(parents=True, exist_ok=True)
-    except OSError as exc:
-        raise UserError(f"cannot create directory {parent}: {exc.strerror}") from None
-    if not os.access(parent, os.W_OK):
-        raise UserError(f"output directory {parent} is not writable")
+        probe = tempfile.mkdtemp(prefix=".hydrabench-probe-", dir=directory)
+    except OSError:
+        raise UserError(f"cannot write {wanted}: {directory} is not writable") from None
+    os.rmdir(probe)
+
+
+def check_writable_file(path: str | Path, suffixes: tuple[str, ...] | None = None) -> Path:
+    """Fail early (UserError) when `path` cannot be written, or its extension is not one of `suffixes`.
+
+    Creates nothing; `atomic_path` creates the missing parent directories when the file is written."""
+    path = Path(path)
+    if suffixes and path.suffix.lower() not in suffixes:
+        got = f"extension {path.suffix!r}" if path.suffix else "no extension"
+        raise UserError(f"{path}: {got} is not supported (write {', '.join(suffixes)})")
+    if path.is_dir():
+        raise UserError(f"output {path} is a directory, expected a file path")
+    if path.exists() and not path.is_file():
+        raise UserError(f"output {path} exists and is not a regular file")
+    _probe(_nearest_existing(path.parent), path)
     return path
 
 
 def check_writable_dir(path: str | Path) -> Path:
+    """Fail early (UserError) unless `path` is a directory that exists or can be created, and can be
+    written. Creates nothing: the command creates it when it starts writing."""
     path = Path(path)
     if path.exists() and not path.is_dir():
         raise UserError(f"output {path} exists and is not a directory")
+    _probe(_nearest_existing(path), path)
+    return path
+
+
+def make_dir(path: str | Path) -> Path:
+    """Create an output directory checked by `check_writable_dir` (UserError if that now fails)."""
+    path = Path(path)
     try:
         path.mkdir(parents=True, exist_ok=True)
     except OSError as exc:
         raise UserError(f"cannot create directory {path}: {exc.strerror}") from None
-    if not os.access(path, os.W_OK):
-        raise UserError(f"output directory {path} is not writable")
     return path
+
+
+def _umask() -> int:
+    mask = os.umask(0o022)
+    os.umask(mask)
+    return mask
 
 
 @contextlib.contextmanager
 def atomic_path(path: str | Path) -> Iterator[Path]:
     """Yield a temporary path beside `path`; rename it over `path` only if the block succeeds."""
     path = Path(path)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp" + path.suffix, dir=path.parent)
+    make_dir(path.parent if str(path.parent) else Path("."))
+    try:
+        fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp" + path.suffix, dir=path.parent)
+    except OSError as exc:
+        raise UserError(f"cannot write {path}: {exc.strerror}") from None
     os.close(fd)
     try:
         yield Path(tmp)
+        os.chmod(tmp, 0o666 & ~_umask())
         os.replace(tmp, path)
     finally:
         if os.path.exists(tmp):
@@ -55,4 +99,4 @@ def atomic_path(path: str | Path) -> Iterator[Path]:
 
 def savefig_atomic(fig, path: str | Path, **kw) -> None:
     with atomic_path(path) as tmp:
-        fig.savefig(tmp, format=Path(path).suffix.lstrip(".") or "png", **kw)
+        fig.savefig(tmp, format=Path(path).suffix.lstrip(".").lower() or "png", **kw)

@@ -268,7 +268,7 @@ def plot_training_curves(metrics_csv: str | Path, path: str | Path) -> None:
     epochs = [int(r["epoch"]) for r in rows]
 
     def series(key):
-        return [float(r[key]) if r.get(key) not in (None, "") else np.nan for r in rows]
+        return [float(r[key]) if r.get(key) not in (None, "", "None") else np.nan for r in rows]  # no test split: None
 
     fig, (ax_l, ax_m) = plt.subplots(1, 2, figsize=(10, 3.6))
     for key in rows[-1]:

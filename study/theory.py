@@ -35,7 +35,8 @@ import numpy as np
 
 from sensors import SENSOR_MODEL_VERSION
 from sim.errors import UserError
-from study.cli import Formatter, emit, nonneg_int, pos_int, severity_arg
+from study.cli import Formatter, emit, name_arg, nonneg_int, pos_int, severity_arg, workers_int
+from study.cli import cache_dir as cache_dir_arg
 
 LAYOUTS = ("city", "junction", "motorway", "rural")
 SEVERITY_UNITS = {"fog": ("visibility", "m"), "rain": ("rain", "mm/h"), "snow": ("snowfall", "mm/h"),
@@ -129,7 +130,9 @@ def parse_condition(text: str, layout: str) -> tuple[str, tuple[str, ...]]:
     ("city+night"); conditions in canonical order."""
     from sim.weather import CONDITIONS
 
-    parts = [p.strip().lower() for p in str(text).split("+") if p.strip()]
+    parts = [p.strip().lower() for p in str(text).split("+")]
+    if not all(parts):
+        raise UserError(f"condition {text!r} has an empty or dangling '+' (combine names as in rain+night)")
     layouts = [p for p in parts if p in LAYOUTS]
     conds = [p for p in parts if p in CONDITIONS]
     bad = [p for p in parts if p not in LAYOUTS and p not in CONDITIONS]
@@ -522,7 +525,7 @@ def fog_bank_tracks(cache_dir: Path | None = None, seed: int = 0, frames: int = 
 def add_parser(sub, name: str, help_text: str) -> None:
     p = sub.add_parser(name, help=help_text, description=help_text + "\n\n" + __doc__.split("\n\n", 1)[1],
                        epilog=EPILOG, formatter_class=Formatter)
-    p.add_argument("--conditions", nargs="+", default=list(TheoryConfig.conditions),
+    p.add_argument("--conditions", nargs="+", type=name_arg, default=list(TheoryConfig.conditions),
                    help="conditions (rain, fog, snow, night), combinations (rain+night), optionally on "
                         "their own layout (city+night)")
     p.add_argument("--severities", nargs="+", type=severity_arg, default=list(TheoryConfig.severities),
@@ -533,11 +536,11 @@ def add_parser(sub, name: str, help_text: str) -> None:
     p.add_argument("--sequences", type=pos_int, default=TheoryConfig.sequences,
                    help="sequences the frames of a cell are split into (>= 2)")
     p.add_argument("--seed", type=nonneg_int, default=TheoryConfig.seed, help="root random seed")
-    p.add_argument("--profile", default=TheoryConfig.profile, help="sensor profile (cpu, paper)")
-    p.add_argument("--cache", default=None,
+    p.add_argument("--profile", type=name_arg, default=TheoryConfig.profile, help="sensor profile (cpu, paper)")
+    p.add_argument("--cache", type=cache_dir_arg, default=None,
                    help="cache directory for the measurements (default: $HYDRABENCH_CACHE/theory or "
                         "~/.cache/hydrabench/theory)")
-    p.add_argument("--workers", type=pos_int, default=min(2, os.cpu_count() or 1),
+    p.add_argument("--workers", type=workers_int, default=min(2, os.cpu_count() or 1),
                    help="parallel worker processes for uncached sequences")
     p.add_argument("--json", action="store_true", help="print one JSON object on stdout")
     p.set_defaults(run=run)

@@ -5,7 +5,8 @@ sequence is in both), all branches trained together on every sample. Everything 
 is in the run directory:
 
     RUN/config.json        the training config, the branch set, the dataset's generation config
-    RUN/checkpoint.pt      latest state (model, optimiser, epoch, step in epoch, RNG states),
+    RUN/checkpoint.pt      latest state (model, optimiser, epoch, step in epoch, the epoch's running
+                           loss sums (a resumed epoch's row averages all of it), RNG states),
                            written atomically every `checkpoint_steps` steps and at each epoch end
     RUN/epoch-XXX.pt       the model at the end of each epoch
     RUN/metrics.csv        one row per epoch: mean losses per branch, lr, test mAP@0.5 per branch
@@ -33,9 +34,23 @@ import torch
 from fusion.data import FrameDataset, collate, split_by_sequence
 from fusion.nets.profile import ModelProfile, load_profile
 from sensors.dataset import DatasetReader
+from sensors.dataset import check as check_dataset
 from sim.config import from_dict, to_dict
 from sim.errors import UserError
-from study.cli import Formatter, emit, pos_float, pos_int
+from study.cli import (
+    Formatter,
+    count_int,
+    dataset_dir,
+    emit,
+    name_arg,
+    name_list,
+    nonneg_float,
+    nonneg_int,
+    out_dir,
+    pos_float,
+    pos_int,
+    probability,
+)
 
 EPILOG = """\
 examples:
@@ -196,24 +211,25 @@ def branch_set(name: str, profile: str):
 def add_parser(sub, name, help_text):
     p = sub.add_parser(name, help=help_text, description=__doc__.split("\n\n", 1)[1], epilog=EPILOG,
                        formatter_class=Formatter)
-    p.add_argument("data", help="dataset directory")
-    p.add_argument("--out", required=True, help="run directory (created; an existing run is resumed)")
-    p.add_argument("--profile", default="cpu", help="model profile (configs/model)")
-    p.add_argument("--branch-set", default="paper", help="paper | single | early_fusion | late_fusion")
-    p.add_argument("--branches", default="", help="comma-separated branch names from the set (default: all)")
+    p.add_argument("data", type=dataset_dir, help="dataset directory")
+    p.add_argument("--out", required=True, type=out_dir, help="run directory (created; an existing run is resumed)")
+    p.add_argument("--profile", type=name_arg, default="cpu", help="model profile (configs/model)")
+    p.add_argument("--branch-set", type=name_arg, default="paper", help="paper | single | early_fusion | late_fusion")
+    p.add_argument("--branches", type=name_list, default=None,
+                   help="comma-separated branch names from the set, each once (default: the whole set)")
     p.add_argument("--epochs", type=pos_int, default=10, help="passes over the training split (more: extends a run)")
     p.add_argument("--batch-size", type=pos_int, default=4, help="frames per SGD step")
     p.add_argument("--lr", type=pos_float, default=5e-3, help="SGD learning rate (HydraFusion 5.3)")
-    p.add_argument("--warmup-steps", type=int, default=100, help="steps of linear lr warm-up from lr/1000")
-    p.add_argument("--lr-drop-epoch", type=int, default=0, help="lr x 0.1 from this epoch (0: 3/4 of --epochs)")
-    p.add_argument("--clip-grad", type=float, default=10.0, help="max gradient norm (0: no clipping)")
-    p.add_argument("--seed", type=int, default=0, help="initialisation and data order")
-    p.add_argument("--eval-frames", type=int, default=0, help="test frames evaluated per epoch (0 = all)")
+    p.add_argument("--warmup-steps", type=count_int, default=100, help="steps of linear lr warm-up from lr/1000")
+    p.add_argument("--lr-drop-epoch", type=count_int, default=0, help="lr x 0.1 from this epoch (0: 3/4 of --epochs)")
+    p.add_argument("--clip-grad", type=nonneg_float, default=10.0, help="max gradient norm (0: no clipping)")
+    p.add_argument("--seed", type=nonneg_int, default=0, help="initialisation and data order")
+    p.add_argument("--eval-frames", type=count_int, default=0, help="test frames evaluated per epoch (0 = all)")
     p.add_argument("--checkpoint-steps", type=pos_int, default=100, help="also checkpoint every N steps within an epoch")
-    p.add_argument("--init-from", default="", help="initialise from trained runs, comma-separated in priority "
+    p.add_argument("--init-from", type=name_list, default=None, help="initialise from trained runs, comma-separated in priority "
                    "order: each branch / stem from the first run that has it or its origin (other camera-view "
                    "branches from camera_right, BEV ones from radar)")
-    p.add_argument("--hflip", type=float, default=0.0, help="probability of mirroring a training frame left-right "
+    p.add_argument("--hflip", type=probability, default=0.0, help="probability of mirroring a training frame left-right "
                    "(all sensors and labels together; not with branches that fuse both cameras)")
     p.add_argument("--threads", type=pos_int, default=2, help="torch CPU threads")
     p.add_argument("--protocol", default="reference", choices=("reference", "visible", "bev"),
@@ -243,6 +259,8 @@ def evaluate_epoch(model, cfg: TrainConfig, reader, test_idx, branches) -> dict:
     from study.detect import bev_crop_of, fused, native, run_branches, score
 
     idx = test_idx if not cfg.eval_frames else test_idx[: cfg.eval_frames]
+    if not idx:  # e.g. a one-sequence dataset: no test split, nothing to score
+        return {**{f"map_{b}": None for b in branches}, "map_fused": None}
     model.eval()
     per_frame = run_branches(model, cfg.data, idx, branches, batch_size=cfg.batch_size, progress="evaluate")
     out = {}
@@ -265,16 +283,19 @@ def run_profile(run_cfg: dict, where) -> ModelProfile:
 
 
 def train(cfg: TrainConfig, out: Path, progress: bool = True) -> dict:
-    from tqdm import tqdm
-
     from fusion.nets import build_hydrafusion
+    from sim.progress import progress as progress_bar
     from study.plots import plot_training_curves
 
     torch.set_num_threads(cfg.threads)
+    check_dataset(cfg.data)  # every shard readable before RUN/ exists
     reader = DatasetReader(cfg.data)
     specs = branch_set(cfg.branch_set, cfg.model_profile)
     names = [s.name for s in specs]
     chosen = list(cfg.branches) or names
+    twice = [b for k, b in enumerate(chosen) if b in chosen[:k]]
+    if twice:
+        raise UserError(f"branch {twice[0]!r} is named twice")
     bad = [b for b in chosen if b not in names]
     if bad:
         raise UserError(f"unknown branch {bad[0]!r} in set {cfg.branch_set!r} (choose from: {', '.join(names)})")
@@ -296,6 +317,12 @@ def train(cfg: TrainConfig, out: Path, progress: bool = True) -> dict:
     run_cfg = {**dataclasses.asdict(cfg), "branches": chosen, "branch_specs": [dataclasses.asdict(s) for s in specs],
                "data_config": reader.manifest["config"], "profile_fields": to_dict(load_profile(cfg.model_profile))}
     run_cfg = json.loads(json.dumps(run_cfg))  # the form it has on disk (tuples become lists)
+    srcs = [Path(r) / "checkpoint.pt" for r in cfg.init_from.split(",")] if cfg.init_from else []
+    missing = [str(s.parent) for s in srcs if not s.exists()]
+    if missing:
+        raise UserError(f"--init-from {missing[0]}: no checkpoint.pt there")
+    if out.is_dir() and any(out.iterdir()) and not (out / "config.json").exists():
+        raise UserError(f"{out} is not empty and holds no training run (no config.json); use a new or empty --out")
     out.mkdir(parents=True, exist_ok=True)
     cfg_path = out / "config.json"
     if cfg_path.exists():
@@ -318,10 +345,6 @@ def train(cfg: TrainConfig, out: Path, progress: bool = True) -> dict:
     torch.manual_seed(cfg.seed)
     model = build_hydrafusion(profile=run_profile(run_cfg, out), branches=specs)
     if cfg.init_from and not (out / "checkpoint.pt").exists():
-        srcs = [Path(r) / "checkpoint.pt" for r in cfg.init_from.split(",")]
-        missing = [str(s.parent) for s in srcs if not s.exists()]
-        if missing:
-            raise UserError(f"--init-from {missing[0]}: no checkpoint.pt there")
         report = warm_start(model, [torch.load(s, map_location="cpu", weights_only=False)["model"] for s in srcs])
         (out / "warm_start.json").write_text(json.dumps({"sources": [str(s) for s in srcs], **report}, indent=1))
         if progress:
@@ -331,6 +354,7 @@ def train(cfg: TrainConfig, out: Path, progress: bool = True) -> dict:
     params = [p for p in model.parameters() if p.requires_grad]
     opt = torch.optim.SGD(params, lr=cfg.lr, momentum=0.9, weight_decay=1e-4)
     epoch, step_in_epoch, global_step = 0, 0, 0
+    resumed: dict = {}  # the interrupted epoch's running loss sums, so its row averages the whole epoch
     ckpt_path = out / "checkpoint.pt"
     if ckpt_path.exists():
         state = torch.load(ckpt_path, map_location="cpu", weights_only=False)
@@ -338,6 +362,7 @@ def train(cfg: TrainConfig, out: Path, progress: bool = True) -> dict:
         opt.load_state_dict(state["optimizer"])
         epoch, step_in_epoch, global_step = state["epoch"], state["step_in_epoch"], state["global_step"]
         torch.set_rng_state(state["torch_rng"])
+        resumed = state.get("epoch_sums", {}) if step_in_epoch else {}
         if progress:
             sys.stderr.write(f"resuming {out} at epoch {epoch + 1}, step {step_in_epoch}\n")
     sensors = model.sensors_for(None)
@@ -350,13 +375,13 @@ def train(cfg: TrainConfig, out: Path, progress: bool = True) -> dict:
         order = np.random.default_rng([cfg.seed, epoch]).permutation(len(dataset))
         flips = np.random.default_rng([cfg.seed, epoch, 1]).random(len(dataset)) < cfg.hflip
         batches = [order[k:k + cfg.batch_size] for k in range(0, len(order), cfg.batch_size)]
-        sums: dict[str, float] = {}
-        counts = 0
-        t0 = time.perf_counter()
-        # on a terminal a live bar; in a log file (nohup, CI) a line every 60 s
-        tty = sys.stderr.isatty()
-        bar = tqdm(total=steps_per_epoch, initial=step_in_epoch, desc=f"epoch {epoch + 1}/{cfg.epochs}",
-                   file=sys.stderr, disable=not progress, dynamic_ncols=tty, mininterval=0.1 if tty else 60.0)
+        sums: dict[str, float] = dict(resumed.get("sums", {}))
+        counts = resumed.get("steps", 0)
+        t0 = time.perf_counter() - resumed.get("seconds", 0.0)
+        resumed = {}
+        # on a terminal a live bar; in a log file (nohup, CI) a line every few seconds (sim.progress)
+        bar = progress_bar(total=steps_per_epoch, initial=step_in_epoch, desc=f"epoch {epoch + 1}/{cfg.epochs}",
+                           unit="step", enabled=progress)
         for k in range(step_in_epoch, len(batches)):
             inputs, targets, _ = collate([dataset.item(int(i), flip=bool(flips[i])) for i in batches[k]])
             for g in opt.param_groups:
@@ -380,7 +405,9 @@ def train(cfg: TrainConfig, out: Path, progress: bool = True) -> dict:
             if (k + 1) % cfg.checkpoint_steps == 0 and k + 1 < len(batches):
                 _atomic_save({"model": model.state_dict(), "optimizer": opt.state_dict(), "epoch": epoch,
                               "step_in_epoch": k + 1, "global_step": global_step,
-                              "torch_rng": torch.get_rng_state()}, ckpt_path)
+                              "torch_rng": torch.get_rng_state(),
+                              "epoch_sums": {"sums": sums, "steps": counts, "seconds": time.perf_counter() - t0}},
+                             ckpt_path)
         bar.close()
         epoch += 1
         step_in_epoch = 0
@@ -420,17 +447,14 @@ def _append_row(path: Path, row: dict) -> None:
 
 
 def run(args) -> int:
-    from study.outputs import check_writable_dir
-
     cfg = TrainConfig(
         data=str(Path(args.data).resolve()), model_profile=args.profile, branch_set=args.branch_set,
-        branches=tuple(b.strip() for b in args.branches.split(",") if b.strip()), epochs=args.epochs,
+        branches=tuple(args.branches or ()), epochs=args.epochs,
         batch_size=args.batch_size, lr=args.lr, warmup_steps=args.warmup_steps, lr_drop_epoch=args.lr_drop_epoch,
         clip_grad=args.clip_grad, seed=args.seed, eval_frames=args.eval_frames, threads=args.threads,
-        checkpoint_steps=args.checkpoint_steps, init_from=",".join(str(Path(r.strip()).resolve()) for r in args.init_from.split(",") if r.strip()),
+        checkpoint_steps=args.checkpoint_steps, init_from=",".join(str(Path(r).resolve()) for r in args.init_from or ()),
         hflip=args.hflip, protocol=args.protocol,
     )
-    out = check_writable_dir(args.out)
-    result = train(cfg, out)
+    result = train(cfg, Path(args.out))
     emit(result, args.json, lambda r: f"run {r['run']}: {r['epochs']} epochs, last epoch {r['last']}")
     return 0

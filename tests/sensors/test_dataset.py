@@ -140,10 +140,10 @@ def test_show_draws_a_frame(reference, tmp_path):
 @pytest.mark.parametrize("argv, needle", [
     (["generate", "--out", "{tmp}/x", "--contexts", "volcano"], "unknown context"),
     (["generate", "--out", "{tmp}/x", "--severities", "2,9"], "severities"),
-    (["generate", "--out", "/proc/nope/x"], "cannot create directory"),
+    (["generate", "--out", "/proc/nope/x"], "not writable"),
     (["generate", "--out", "{tmp}/x", "--profile", "gpu"], "unknown profile"),
     (["generate", "--out", "{tmp}/x", "--config", "{tmp}/bad.yaml"], "unknown key 'framez'"),
-    (["verify", "{tmp}/nothing"], "is not a directory"),
+    (["verify", "{tmp}/nothing"], "does not exist"),
 ])
 def test_generate_bad_input_is_one_line_exit_2(argv, needle, tmp_path, capsys):
     (tmp_path / "bad.yaml").write_text("framez: 3\n")

@@ -44,13 +44,13 @@ def test_scenes_json_is_one_object_and_plot_is_written(tmp_path, capsys):
     "argv, needle",
     [
         (["scenes", "--context", "volcano"], "unknown context"),
-        (["scenes", "--context", "fog", "--severity", "7"], "severity must be 0..5"),
-        (["scenes", "--frames", "-2"], "must be >= 0"),
+        (["scenes", "--context", "fog", "--severity", "7"], "--severity: must be <= 5"),
+        (["scenes", "--frames", "-2"], "must be >= 1"),
         (["scenes", "--frames", "0"], "must be >= 1"),
         (["scenes", "--context", "city", "--severity", "3"], "no weather condition"),
         (["scenes", "--seed", "abc"], "expected an integer"),
         (["nonsense"], "invalid choice"),
-        (["scenes", "--plot", "/proc/forbidden/x.png"], "cannot create directory"),
+        (["scenes", "--plot", "/proc/forbidden/x.png"], "not writable"),
     ],
 )
 def test_bad_input_exits_2_with_one_line(argv, needle, capsys):

@@ -103,6 +103,37 @@ def test_kill_9_mid_training_then_rerun_gives_the_same_weights(data, reference_r
         torch.testing.assert_close(a[k], b[k], rtol=1e-5, atol=1e-6, msg=k)
     rows = list(csv.DictReader(open(out / "metrics.csv")))
     assert [int(r["epoch"]) for r in rows] == [1, 2]
+    ref_rows = list(csv.DictReader(open(ref / "metrics.csv")))  # losses averaged over whole epochs
+    assert [{k: v for k, v in r.items() if k.startswith("loss_")} for r in rows] == \
+        [{k: v for k, v in r.items() if k.startswith("loss_")} for r in ref_rows]
+
+
+def test_a_resumed_epoch_reports_the_mean_loss_of_the_whole_epoch(data, reference_run, tmp_path, monkeypatch):
+    """Interrupted after the first step of epoch 2 and resumed: metrics.csv holds the same mean losses
+    as the uninterrupted run (the running sums travel in the checkpoint), not the mean of the rest."""
+    import study.train as st
+
+    ref, _ = reference_run
+    out = tmp_path / "run"
+    real = st._atomic_save
+
+    def save_then_stop(obj, path):
+        real(obj, path)
+        if obj.get("epoch") == 1 and obj.get("step_in_epoch") == 1:
+            raise KeyboardInterrupt
+
+    monkeypatch.setattr(st, "_atomic_save", save_then_stop)
+    with pytest.raises(KeyboardInterrupt):
+        train(_cfg(data), out, progress=False)
+    monkeypatch.setattr(st, "_atomic_save", real)
+    assert [int(r["epoch"]) for r in csv.DictReader(open(out / "metrics.csv"))] == [1]
+    train(_cfg(data), out, progress=False)
+    rows = list(csv.DictReader(open(out / "metrics.csv")))
+    ref_rows = list(csv.DictReader(open(ref / "metrics.csv")))
+    losses = [k for k in ref_rows[0] if k.startswith("loss_")]
+    assert len(losses) == 3  # two branches and the total
+    for a, b in zip(ref_rows, rows, strict=True):
+        assert {k: a[k] for k in losses} == {k: b[k] for k in losses}
 
 
 def test_more_epochs_extend_a_finished_run_and_other_configs_are_refused(data, reference_run, tmp_path, capsys):

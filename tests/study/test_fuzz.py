@@ -1,0 +1,585 @@
+"""Every command keeps the CLI contract under bad input and damaged data (DESIGN.md, README "contract").
+
+The commands and their options are read from the parser (`study.cli.build_parser()`), so a command or
+option added later is fuzzed the day it is added. Each option gets the bad values of its kind: the
+argument types of `study.cli` carry a `kind` (count with bounds, finite number, name list, output
+file with its extensions, output or cache directory, dataset, training run, checkpoint), `choices`
+give an unknown choice, untyped options get unknown names. Every dataset-taking command also gets
+damaged copies of a small fixture dataset (wrong JSON types, invalid JSON, truncated and flipped
+arrays, missing files). For every case:
+
+    exit code 2, nothing on stdout, exactly one line on stderr naming what is wrong (the option, its
+    value or the damaged file), no "Traceback", and no file or directory created or changed.
+
+Commands run in-process through `study.cli.main(argv)`; a few run as subprocesses to check the
+installed entry point end to end. The number of cases tried is printed (pytest -s) and asserted.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import shutil
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from study.cli import build_parser, main
+
+# Values for required options that no type describes: a valid example each (the fuzz needs a valid
+# command around the one bad value). A new required option without a kind must be added here.
+EXAMPLES = {"--gate": "deep"}
+BOGUS = "__bogus__"
+TRACKED: list[tuple[str, float]] = []  # (case, seconds) of every case tried, for the count
+
+
+# ---------------------------------------------------------------------------------------------
+# fixtures: one small dataset, one tiny trained run, and the damaged copies
+
+
+@pytest.fixture(scope="module")
+def world(tmp_path_factory):
+    from sensors.generate import GenerateConfig, generate
+    from study.train import TrainConfig, train
+
+    root = tmp_path_factory.mktemp("fuzz")
+    data = root / "data"
+    generate(GenerateConfig(contexts=("junction",), frames_per_context=2, sequence_length=1, seed=3), data,
+             workers=1, progress=False)
+    run = root / "run"
+    train(TrainConfig(data=str(data), branches=("camera_right",), epochs=1, batch_size=1, warmup_steps=1,
+                      threads=2, eval_frames=1), run, progress=False)
+    box = root / "box"  # the working directory of every case
+    box.mkdir()
+    (root / "a_file").write_text("not a directory\n")
+    (root / "empty_dir").mkdir()
+    foreign = root / "foreign"  # a folder of someone else's files
+    foreign.mkdir()
+    (foreign / "notes.txt").write_text("mine\n")
+    (root / "bad.yaml").write_text("frames_per_context: [1,\n")
+    (root / "wrong_types.yaml").write_text("frames_per_context: many\n")
+    (root / "list.yaml").write_text("- 1\n- 2\n")
+    (root / "unknown_key.yaml").write_text("frames_per_contxt: 3\n")
+    damaged = root / "damaged"
+    damaged.mkdir()
+    for name, (_, damage) in DAMAGES.items():
+        copy = damaged / name
+        shutil.copytree(data, copy)
+        damage(copy)
+    return {"root": root, "data": data, "run": run, "box": box, "damaged": damaged}
+
+
+def _write(path: Path, text: str) -> None:
+    path.write_text(text)
+
+
+def _edit_manifest(edit):
+    def damage(d: Path) -> None:
+        m = json.loads((d / "manifest.json").read_text())
+        edit(m)
+        (d / "manifest.json").write_text(json.dumps(m))
+    return damage
+
+
+def _truncate(rel: str, keep: float = 0.5):
+    def damage(d: Path) -> None:
+        p = d / rel
+        b = p.read_bytes()
+        p.write_bytes(b[: int(len(b) * keep)])
+    return damage
+
+
+def _flip(rel: str, at: slice):
+    def damage(d: Path) -> None:
+        p = d / rel
+        b = bytearray(p.read_bytes())
+        b[at] = bytes(255 - x for x in b[at])
+        p.write_bytes(bytes(b))
+    return damage
+
+
+def _remove(rel: str):
+    def damage(d: Path) -> None:
+        p = d / rel
+        shutil.rmtree(p) if p.is_dir() else p.unlink()
+    return damage
+
+
+def _reversed_offsets(d: Path) -> None:
+    p = d / "shard-00000" / "lidar_offsets.npy"
+    np.save(p, np.load(p)[::-1].copy())
+
+
+def _wrong_shape(d: Path) -> None:
+    np.save(d / "shard-00000" / "camera_right.npy", np.zeros((3, 4, 4, 3), np.uint8))
+
+
+def _shard_is_file(d: Path) -> None:
+    shutil.rmtree(d / "shard-00000")
+    (d / "shard-00000").write_text("x")
+
+
+S0 = "shard-00000"
+# damage name -> (what the error line must name, how to damage a copy of the fixture dataset)
+DAMAGES = {
+    "manifest_is_a_list": ("manifest.json", lambda d: _write(d / "manifest.json", "[]")),
+    "manifest_is_a_number": ("manifest.json", lambda d: _write(d / "manifest.json", "3")),
+    "manifest_invalid_json": ("manifest.json", lambda d: _write(d / "manifest.json", "{not json")),
+    "manifest_truncated": ("manifest.json", _truncate("manifest.json")),
+    "manifest_binary": ("manifest.json", lambda d: (d / "manifest.json").write_bytes(bytes(range(256)))),
+    "manifest_missing": ("manifest.json", _remove("manifest.json")),
+    "manifest_frames_not_a_list": ("manifest.json", _edit_manifest(lambda m: m.update(frames="x"))),
+    "manifest_shards_empty": ("manifest.json", _edit_manifest(lambda m: m.update(shards=[]))),
+    "manifest_shard_frames_a_string": ("manifest.json", _edit_manifest(lambda m: m["shards"][0].update(frames="1"))),
+    "manifest_shard_name_escapes": ("manifest.json", _edit_manifest(lambda m: m["shards"][0].update(name="../../etc"))),
+    "manifest_frame_index_out_of_range": ("manifest.json", _edit_manifest(lambda m: m["frames"][0].update(index=7))),
+    "manifest_frame_of_unknown_shard": ("manifest.json", _edit_manifest(lambda m: m["frames"][0].update(shard="shard-09999"))),
+    "manifest_config_a_list": ("manifest.json", _edit_manifest(lambda m: m.update(config=[]))),
+    "frames_json_invalid": ("frames.json", lambda d: _write(d / S0 / "frames.json", '{"frames": [')),
+    "frames_json_a_list": ("frames.json", lambda d: _write(d / S0 / "frames.json", "[]")),
+    "frames_json_frames_a_string": ("frames.json", lambda d: _write(d / S0 / "frames.json", '{"frames": "x"}')),
+    "frames_json_frame_count": ("frames.json", lambda d: _write(d / S0 / "frames.json", '{"frames": []}')),
+    "frames_json_meta_a_number": ("frames.json", lambda d: _write(d / S0 / "frames.json",
+                                                                  '{"frames": [{"meta": 1, "labels": {}}]}')),
+    "frames_json_missing": ("frames.json", _remove(f"{S0}/frames.json")),
+    "npy_truncated": ("camera_right.npy", _truncate(f"{S0}/camera_right.npy")),
+    "npy_header_flipped": ("camera_right.npy", _flip(f"{S0}/camera_right.npy", slice(10, 40))),
+    "npy_magic_flipped": ("camera_right.npy", _flip(f"{S0}/camera_right.npy", slice(0, 6))),
+    "npy_empty": ("camera_right.npy", _truncate(f"{S0}/camera_right.npy", 0.0)),
+    "npy_missing": ("camera_right.npy", _remove(f"{S0}/camera_right.npy")),
+    "npy_wrong_frame_count": ("camera_right.npy", _wrong_shape),
+    "points_truncated": ("lidar_points.npy", _truncate(f"{S0}/lidar_points.npy", 0.9)),
+    "offsets_reversed": ("lidar_offsets.npy", _reversed_offsets),
+    "shard_missing": (S0, _remove(S0)),
+    "shard_is_a_file": (S0, _shard_is_file),
+}
+
+
+# ---------------------------------------------------------------------------------------------
+# the parser, walked
+
+
+def commands(parser: argparse.ArgumentParser, prefix: tuple = ()):
+    """(command words, its parser) for every leaf command, nested ones (bench sim) included."""
+    for action in parser._actions:
+        if isinstance(action, argparse._SubParsersAction):
+            seen = set()
+            for name, sub in action.choices.items():
+                if id(sub) not in seen:  # aliases share a parser
+                    seen.add(id(sub))
+                    yield from commands(sub, prefix + (name,))
+            return
+    yield prefix, parser
+
+
+def value_actions(parser):
+    return [a for a in parser._actions if not isinstance(a, argparse._HelpAction) and a.nargs != 0
+            and not isinstance(a, argparse._SubParsersAction)]
+
+
+def kind(action) -> str | None:
+    return getattr(action.type, "kind", None)
+
+
+def valid_value(action, world) -> str:
+    """A valid value for a required argument, from its kind."""
+    k = kind(action)
+    box = world["box"]
+    if k == "dataset":
+        return str(world["data"])
+    if k == "run":
+        return str(world["run"])
+    if k == "out_file":
+        return str(box / "new" / ("out" + (action.type.suffixes[0] if action.type.suffixes else ".png")))
+    if k in ("out_dir", "cache_dir"):
+        return str(box / "new_dir")
+    if k == "out_path":
+        return str(box / "new" / "out.png")
+    if action.choices:
+        return str(list(action.choices)[0])
+    for opt in action.option_strings:
+        if opt in EXAMPLES:
+            return EXAMPLES[opt]
+    raise AssertionError(f"no valid example for {action.option_strings or action.dest}: give it a typed kind "
+                         "(study.cli) or add it to EXAMPLES in tests/study/test_fuzz.py")
+
+
+def argv_with(words, parser, world, action=None, value=None) -> list[str]:
+    """The command with every required argument valid, and `action` given `value` (None: left out)."""
+    argv, positional = list(words), []
+    for a in value_actions(parser):
+        if a is action:
+            if value is not None and not a.option_strings:
+                positional.append(value)
+            continue
+        if not a.option_strings:
+            positional.append(valid_value(a, world))
+        elif a.required:
+            argv += [a.option_strings[0], valid_value(a, world)]
+    if action is not None and action.option_strings and value is not None:
+        opt = action.option_strings[0]
+        argv += [f"{opt}={value}"] if value.startswith("-") else [opt, value]
+    return argv + positional
+
+
+def base_argv(words, parser, world, skip=None) -> list[str]:
+    return argv_with(words, parser, world, skip, None)
+
+
+def bad_values(action, world) -> list[str]:
+    """The bad values of an argument's kind (each must be refused)."""
+    root, box = world["root"], world["box"]
+    t, k = action.type, kind(action)
+    if action.choices is not None:
+        return [BOGUS, ""]
+    if k == "int":
+        return ["abc", "", "1.5", "0x10", str(t.lo - 1), str(t.hi + 1), str(10**30)]
+    if k == "float":
+        return ["abc", "", "nan", "inf", "-inf", str(t.lo if t.lo_open else t.lo - 1), str(t.hi * 10)]
+    if k == "ints":
+        return ["", ",", f"{t.lo},,{t.lo}", f"{t.lo},{t.lo}", str(t.hi + 1), str(t.lo - 1), "x"]
+    if k == "names":
+        return ["", ",", " , ", "a,,b", "a,", "a,a", "rain+", "+fog", "city++rain", BOGUS]
+    if k == "name":
+        return ["", BOGUS, "a,b", "rain+", "+fog"]
+    if k == "checkpoint":
+        return ["", BOGUS, "epoch-1", "../checkpoint"]
+    if k == "out_file":
+        suffix = t.suffixes[0] if t.suffixes else ".png"
+        values = ["", f"/proc/hydrabench-fuzz/x{suffix}", f"/sys/x{suffix}", str(root / "a_file" / f"x{suffix}"),
+                  str(root / "empty_dir")]
+        return values + ([str(box / "x.txt"), str(box / "x")] if t.suffixes else [])
+    if k == "out_path":
+        return ["", "/proc/hydrabench-fuzz/x.png", str(root / "a_file" / "x.png"), str(box / "x.txt")]
+    if k == "out_dir":
+        return ["", "/proc/hydrabench-fuzz/d", "/sys/d", str(root / "a_file"), str(root / "a_file" / "d"),
+                str(root / "foreign")]
+    if k == "cache_dir":
+        return ["", "/proc/hydrabench-fuzz/d", "/sys/d", str(root / "a_file")]
+    if k == "in_file":
+        return ["", str(box / "missing.yaml"), str(root / "empty_dir")] + [
+            str(root / f) for f in ("bad.yaml", "wrong_types.yaml", "list.yaml", "unknown_key.yaml")]
+    if k == "dataset":
+        return ["", str(box / "missing"), str(root / "a_file"), str(root / "empty_dir"), str(world["run"])]
+    if k == "run":
+        return ["", str(box / "missing"), str(root / "a_file"), str(root / "empty_dir"), str(world["data"])]
+    if t is int:
+        return ["abc", "", "1.5", str(10**30)]
+    if t is float:
+        return ["abc", "", "nan", "inf"]
+    if t is None:
+        return [BOGUS, "", "rain+"]
+    return ["abc", "", "-1", "nan"]  # a command's own type
+
+
+def snapshot(root: Path) -> dict:
+    """What a command could leave behind or change: every path (a file or directory created or
+    removed anywhere), and the size and mtime of every file outside the damaged copies (which are
+    many, and which no command writes to)."""
+    out = {}
+    for dirpath, _, filenames in os.walk(root):
+        out[dirpath] = "dir"  # (its mtime changes when an output check probes it, by design)
+        if "damaged" not in Path(dirpath).relative_to(root).parts:
+            for f in filenames:
+                st = os.stat(os.path.join(dirpath, f))
+                out[os.path.join(dirpath, f)] = (st.st_size, st.st_mtime_ns)
+    return out
+
+
+PARSER = None
+
+
+def cli(argv) -> int:
+    """study.cli.main with one parser for every case (building it costs 10 ms)."""
+    global PARSER
+    PARSER = PARSER or build_parser()
+    return main(argv, PARSER)
+
+
+def names_it(line: str, action, value: str) -> bool:
+    """The error line names the argument (flag, name or metavar) or the bad value."""
+    words = list(action.option_strings) + [action.dest, action.dest.replace("_", "-"), action.dest.replace("_", " ")]
+    if action.metavar:
+        words.append(str(action.metavar))
+    if value.strip(" ,") and len(value.strip()) > 1:
+        words += [value.strip(), Path(value.strip()).name]
+    return any(w and w in line for w in words)
+
+
+def check_refused(argv, capsys, world, needle=None, stdout_json=False, failures=None) -> str:
+    """Run `argv` in-process and check the contract; returns the error line. Each broken rule is
+    appended to `failures` (so one run lists every failing case), or asserted when it is None."""
+    before = snapshot(world["root"])
+    t0 = time.perf_counter()
+    code = cli(argv)
+    TRACKED.append((" ".join(argv), time.perf_counter() - t0))
+    out, err = capsys.readouterr()
+    after = snapshot(world["root"])
+    lines = err.strip("\n").splitlines()
+    what = f"hydrabench {' '.join(repr(a) if not a or ' ' in a else a for a in argv)}"
+    problems = []
+    if code != 2:
+        problems.append(f"exit {code} (expected 2); stderr: {err[-300:]}")
+    if "Traceback" in err:
+        problems.append(f"traceback: {err[-1500:]}")
+    elif len(lines) != 1 or not lines[0].startswith("hydrabench"):
+        problems.append(f"{len(lines)} lines on stderr, expected one: {err[-500:]}")
+    if stdout_json:
+        try:
+            ok = out.count("\n") == 1 and isinstance(json.loads(out), dict)
+        except ValueError:
+            ok = False
+        if not ok:
+            problems.append(f"stdout is not one JSON object: {out[:300]!r}")
+    elif out:
+        problems.append(f"wrote to stdout: {out[:300]!r}")
+    new = sorted(set(after) - set(before))
+    changed = sorted(p for p in before if after.get(p) != before[p])
+    if new or changed:
+        problems.append(f"left behind {new[:5]}, changed or removed {changed[:5]}")
+    if needle is not None and len(lines) == 1 and not (needle(lines[0]) if callable(needle) else needle in lines[0]):
+        problems.append(f"the line does not name what is wrong: {lines[0]}")
+    for p in new[::-1]:  # clean up, so one failure does not cascade into the next cases
+        shutil.rmtree(p, ignore_errors=True) if os.path.isdir(p) else os.unlink(p)
+    if problems:
+        msg = f"{what}: " + "; ".join(problems)
+        if failures is None:
+            raise AssertionError(msg)
+        failures.append(msg)
+    return lines[0] if lines else ""
+
+
+def report(failures: list[str], tried: int) -> None:
+    assert not failures, f"{len(failures)} of {tried} cases broke the contract:\n" + "\n".join(failures[:40])
+
+
+@pytest.fixture()
+def sandbox(world, monkeypatch):
+    monkeypatch.chdir(world["box"])
+    monkeypatch.setenv("HYDRABENCH_CACHE", str(world["root"] / "cache"))  # theory's default cache
+    return world
+
+
+# ---------------------------------------------------------------------------------------------
+# the tests
+
+
+def test_every_option_of_every_command_refuses_its_bad_values(sandbox, capsys):
+    world = sandbox
+    parser = build_parser()
+    tried, failures = 0, []
+    for words, p in commands(parser):
+        for action in value_actions(p):
+            for value in bad_values(action, world):
+                argv = argv_with(words, p, world, action, value)
+                check_refused(argv, capsys, world, needle=lambda line, a=action, v=value: names_it(line, a, v),
+                              failures=failures)
+                tried += 1
+            if action.nargs in ("+", "*") and action.option_strings:  # list options: nothing, or a value twice
+                first = (action.default or ["x"])[0]
+                for values in ([], [str(first), str(first)]):
+                    argv = base_argv(words, p, world) + [action.option_strings[0], *values]
+                    check_refused(argv, capsys, world, needle=lambda line, a=action: names_it(line, a, ""),
+                                  failures=failures)
+                    tried += 1
+    report(failures, tried)
+    assert tried > 300, tried
+
+
+def test_every_dataset_argument_refuses_damaged_datasets_naming_the_file(sandbox, capsys):
+    world = sandbox
+    tried, failures = 0, []
+    for words, p in commands(build_parser()):
+        for action in value_actions(p):
+            if kind(action) != "dataset":
+                continue
+            for name, (culprit, _) in DAMAGES.items():
+                copy = str(world["damaged"] / name)
+                argv = argv_with(words, p, world, action, copy)
+                # verify reports a damaged shard by its name; the readers name the file
+                check_refused(argv, capsys, world, failures=failures,
+                              needle=lambda line, c=culprit: c in line or (S0 in line and c != "manifest.json"))
+                tried += 1
+    report(failures, tried)
+    assert tried >= 6 * len(DAMAGES), tried
+
+
+def test_verify_json_reports_every_damage_on_stdout(sandbox, capsys):
+    world = sandbox
+    for name in [*DAMAGES, "pixel_flipped"]:
+        copy = world["damaged"] / name
+        if name == "pixel_flipped" and not copy.exists():
+            shutil.copytree(world["data"], copy)
+            _flip(f"{S0}/camera_right.npy", slice(-100, -90))(copy)  # only the checksum can tell
+        check_refused(["verify", str(copy), "--json"], capsys, world, stdout_json=True)
+        code = cli(["verify", str(copy), "--json"])
+        out, _ = capsys.readouterr()
+        r = json.loads(out)
+        assert code == 2 and r["ok"] is False and r["problems"], (name, r)
+    assert cli(["verify", str(world["data"]), "--json"]) == 0
+    r = json.loads(capsys.readouterr().out)
+    assert r == {"ok": True, "dir": str(world["data"]), "shards": 2, "frames": 2, "problems": []}
+
+
+def test_unknown_flags_and_missing_arguments_are_named(sandbox, capsys):
+    world = sandbox
+    assert "--bogus" in check_refused(["--bogus"], capsys, world)
+    assert "--bogus" in check_refused(["--bogus", "scenes"], capsys, world)
+    check_refused([], capsys, world, needle="command")
+    check_refused(["nonsense"], capsys, world, needle="nonsense")
+    for words, p in commands(build_parser()):
+        assert "--bogus" in check_refused(base_argv(words, p, world) + ["--bogus"], capsys, world)
+        for a in value_actions(p):
+            if a.required or not a.option_strings:  # leave it out
+                argv = base_argv(words, p, world, skip=a)
+                check_refused(argv, capsys, world, needle=lambda line, a=a: names_it(line, a, ""))
+            elif a.nargs is None:  # the flag without its value
+                check_refused(base_argv(words, p, world) + [a.option_strings[0]], capsys, world,
+                              needle=lambda line, a=a: names_it(line, a, ""))
+
+
+def test_help_explains_every_option_without_noise(capsys):
+    parser = build_parser()
+    for words, p in commands(parser):
+        for a in p._actions:
+            if isinstance(a, argparse._SubParsersAction):
+                continue
+            assert a.help and len(a.help) > 3, f"hydrabench {' '.join(words)} {a.option_strings or a.dest}: no help"
+        with pytest.raises(SystemExit) as exc:
+            cli([*words, "--help"])
+        assert exc.value.code == 0
+        out = capsys.readouterr().out
+        TRACKED.append((" ".join(words) + " --help", 0.0))
+        assert "(default: None)" not in out and "(default: )" not in out, out
+        flat = " ".join(out.split())
+        for chunk in flat.split(" --")[1:]:
+            assert chunk.count("(default:") <= 1 and not ("(default:" in chunk and "]" in chunk.split("(default:")[0][-3:]), \
+                f"hydrabench {' '.join(words)}: doubled default in --{chunk[:120]}"
+
+
+def test_entry_point_end_to_end_in_a_subprocess(world, tmp_path):
+    """The module entry point in a fresh process, not main(): no traceback there either, nothing on stdout."""
+    env = dict(os.environ, HYDRABENCH_CACHE=str(tmp_path / "cache"))
+    cmd = [sys.executable, "-m", "study.cli"]
+    cases = [  # each subprocess imports torch (build_parser imports every command): keep them few
+        (["train", str(world["damaged"] / "npy_truncated"), "--out", str(tmp_path / "run")], "camera_right.npy"),
+    ]
+    for argv, needle in cases:
+        TRACKED.append(("subprocess " + " ".join(argv), 0.0))
+        p = subprocess.run(cmd + argv, capture_output=True, text=True, env=env, cwd=tmp_path, timeout=600)
+        lines = p.stderr.strip().splitlines()
+        assert p.returncode == 2 and "Traceback" not in p.stderr and len(lines) == 1 and needle in lines[0], \
+            (argv, p.returncode, p.stderr[-800:])
+        assert p.stdout == ""
+    assert sorted(os.listdir(tmp_path)) == [], os.listdir(tmp_path)
+
+
+def test_generate_refuses_a_folder_of_other_files_and_duplicates(world, tmp_path, capsys):
+    foreign = tmp_path / "mine"
+    foreign.mkdir()
+    (foreign / "thesis.tex").write_text("x")
+    for argv, needle in ((["--out", str(foreign)], "thesis.tex"),
+                         (["--out", str(tmp_path / "d"), "--contexts", "fog,motorway+fog"], "twice"),
+                         (["--out", str(tmp_path / "d"), "--contexts", "city", "--frames-per-context", "999999",
+                           "--sequence-length", "5"], None),
+                         (["--out", str(tmp_path / "d"), "--contexts", "all", "--frames-per-context", "200000"],
+                          "limit is 1000000"),
+                         (["--out", str(tmp_path / "d"), "--sequence-length", "20", "--frame-rate", "0.001"],
+                          "3600")):
+        if needle is None:
+            continue
+        TRACKED.append(("generate " + " ".join(argv), 0.0))
+        code = cli(["generate", *argv])
+        err = capsys.readouterr().err
+        assert code == 2 and needle in err and len(err.strip().splitlines()) == 1, (argv, err)
+    assert sorted(os.listdir(tmp_path)) == ["mine"] and os.listdir(foreign) == ["thesis.tex"]
+
+
+def test_train_on_a_one_sequence_dataset_writes_its_checkpoint_and_reports_no_map(world, tmp_path, capsys):
+    """A refused train creates nothing, so the corrected command is not refused as 'a different
+    config'. One sequence: no test split, so no mAP (None, not a crash), and the checkpoint and curves
+    are written, readable by others (0644 under umask 022)."""
+    one = tmp_path / "one"
+    shutil.copytree(world["data"], one)
+    m = json.loads((one / "manifest.json").read_text())
+    m["shards"], m["frames"] = m["shards"][:1], [f for f in m["frames"] if f["shard"] == S0]
+    (one / "manifest.json").write_text(json.dumps(m))
+    shutil.rmtree(one / "shard-00001")
+    run = tmp_path / "run"
+    for bad in (["--branches", "camera_right,radar_bogus"], ["--branch-set", BOGUS], ["--profile", "paper"],
+                ["--init-from", str(tmp_path / "nowhere")], ["--hflip", "0.5", "--branches", "camera_both"]):
+        TRACKED.append(("train " + " ".join(bad), 0.0))
+        code = cli(["train", str(one), "--out", str(run), *bad])
+        err = capsys.readouterr().err
+        assert code == 2 and len(err.strip().splitlines()) == 1 and not run.exists(), (bad, err)
+    old = os.umask(0o022)
+    try:
+        code = cli(["train", str(one), "--out", str(run), "--branches", "camera_right", "--epochs", "1",
+                     "--batch-size", "1", "--warmup-steps", "1", "--json"])
+        out, err = capsys.readouterr()
+        assert code == 0, err[-2000:]
+        r = json.loads(out)
+        assert r["train_frames"] == 1 and r["test_frames"] == 0
+        assert r["last"]["map_fused"] is None and r["last"]["map_camera_right"] is None
+        assert r["last"]["loss_camera_right"] > 0
+        assert (run / "checkpoint.pt").exists() and (run / "epoch-001.pt").exists()
+        assert (run / "curves.png").stat().st_mode & 0o777 == 0o644
+        assert cli(["export-coco", str(one), "--out", str(tmp_path / "coco" / "labels.json")]) == 0
+        assert (tmp_path / "coco" / "labels.json").stat().st_mode & 0o777 == 0o644
+    finally:
+        os.umask(old)
+
+
+def test_progress_reaches_a_log_file(world, tmp_path, capsys, monkeypatch):
+    """stderr is not a terminal here (captured): generate and scenes still report progress, as lines."""
+    monkeypatch.setenv("HYDRABENCH_PROGRESS_S", "0")  # a line per update
+    code = cli(["scenes", "--context", "junction", "--frames", "3", "--json"])
+    out, err = capsys.readouterr()
+    assert code == 0 and json.loads(out)["frames"] == 3
+    assert [line.split(",")[0] for line in err.splitlines()] == [
+        "scenes junction: 1/3 frame (33%)", "scenes junction: 2/3 frame (67%)", "scenes junction: 3/3 frame (100%)",
+        "scenes junction: 3/3 frame (100%)"]  # the last line again on close
+    code = cli(["generate", "--out", str(tmp_path / "d"), "--contexts", "junction", "--frames-per-context", "2",
+                 "--sequence-length", "1", "--seed", "3", "--json"])
+    out, err = capsys.readouterr()
+    assert code == 0 and json.loads(out)["frames"] == 2
+    assert "generate: 1/2 frame (50%)" in err and "generate: 2/2 frame (100%)" in err
+    # the same seed and config as the fixture: byte-identical shards
+    for name in ("shard-00000", "shard-00001"):
+        assert (tmp_path / "d" / name / "camera_right.npy").read_bytes() == \
+            (world["data"] / name / "camera_right.npy").read_bytes()
+
+
+def test_line_progress_prints_every_interval_and_at_the_end():
+    import io
+
+    from sim.progress import LineProgress
+
+    buf = io.StringIO()
+    bar = LineProgress(total=4, desc="work", unit="step", interval=3600.0, stream=buf)
+    for _ in range(4):
+        bar.update(1)
+    bar.close()
+    assert buf.getvalue() == ""  # a short job stays quiet
+    bar = LineProgress(total=4, desc="work", unit="step", interval=0.0, stream=buf)
+    bar.update(1)
+    bar.set_postfix(loss="1.5")
+    bar.update(3)
+    bar.close()
+    lines = buf.getvalue().splitlines()
+    assert lines[0].startswith("work: 1/4 step (25%), 0 s elapsed, ~0 s left")
+    assert lines[1].startswith("work: 4/4 step (100%)") and lines[1].endswith("loss=1.5") and len(lines) == 3
+
+
+def test_zz_count_of_cases(capsys):
+    """Runs last in this file: the number of cases the suite tried (see the README)."""
+    with capsys.disabled():
+        print(f"\nfuzz: {len(TRACKED)} cases tried, {sum(t for _, t in TRACKED):.1f} s in-process; slowest:")
+        for case, sec in sorted(TRACKED, key=lambda c: -c[1])[:8]:
+            print(f"  {sec:6.2f} s  {case[:150]}")
+    assert len(TRACKED) > 500
