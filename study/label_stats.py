@@ -11,12 +11,11 @@ from __future__ import annotations
 
 import sys
 from collections import defaultdict
-from pathlib import Path
 
 import numpy as np
 
 from sim.errors import UserError
-from study.cli import Formatter, emit
+from study.cli import Formatter, dataset_dir, emit, name_list
 
 VEHICLE_IDS = (1, 2, 3, 4)  # car, van, truck, bus
 
@@ -80,8 +79,9 @@ def label_statistics(data, protocols=("visible", "reference"), progress: bool = 
 
 def add_parser(sub, name, help_text):
     p = sub.add_parser(name, help=help_text, description=__doc__.split("\n\n", 1)[1], formatter_class=Formatter)
-    p.add_argument("data", help="dataset directory (format 2: with 3D ground truth)")
-    p.add_argument("--protocols", default="visible,reference", help="comma-separated: reference, visible, bev")
+    p.add_argument("data", type=dataset_dir, help="dataset directory (format 2: with 3D ground truth)")
+    p.add_argument("--protocols", type=name_list, default=("visible", "reference"),
+                   help="comma-separated: reference, visible, bev")
     p.add_argument("--json", action="store_true", help="print one JSON object on stdout")
     p.set_defaults(run=run)
 
@@ -89,14 +89,10 @@ def add_parser(sub, name, help_text):
 def run(args) -> int:
     from fusion.protocol import PROTOCOLS
 
-    protocols = [x.strip() for x in args.protocols.split(",") if x.strip()]
+    protocols = list(args.protocols)
     bad = [x for x in protocols if x not in PROTOCOLS]
-    if bad or not protocols:
-        raise UserError(f"--protocols: unknown protocol {bad[0] if bad else ''!r} (choose from: {', '.join(PROTOCOLS)})")
-    if len(set(protocols)) != len(protocols):
-        raise UserError("--protocols: a protocol is named twice")
-    if not Path(args.data).is_dir():
-        raise UserError(f"{args.data} is not a directory")
+    if bad:
+        raise UserError(f"--protocols: unknown protocol {bad[0]!r} (choose from: {', '.join(PROTOCOLS)})")
     result = label_statistics(args.data, tuple(protocols))
 
     def text(r):
