@@ -15,6 +15,7 @@ from study.cli import (
     name_arg,
     name_list,
     nonneg_int,
+    out_file,
     pos_int,
     training_run,
 )
@@ -83,10 +84,13 @@ def add_parser(sub, name, help_text):
                         "per frame. Differences over 0.1 in bins holding objects are listed.",
                         formatter_class=Formatter)
     f.add_argument("--visibilities", default="30,50,75,150,300,600", help="comma-separated fog MOR values [m]")
-    f.add_argument("--layouts", default="city,motorway,rural,junction", help="comma-separated road layouts to render")
-    f.add_argument("--frames-per-layout", type=pos_int, default=2, help="clear frames per layout (a 1 Hz sequence)")
-    f.add_argument("--seed", type=int, default=0, help="seed of the scenes and of the fog models' random draws")
-    f.add_argument("--plot", default=None, metavar="PNG", help="also draw the table into this PNG file")
+    f.add_argument("--layouts", type=name_list, default=("city", "motorway", "rural", "junction"),
+                   help="comma-separated road layouts to render")
+    f.add_argument("--frames-per-layout", type=int_range(1, 1000, "frames-per-layout"), default=2,
+                   help="clear frames per layout (a 1 Hz sequence), at most 1000")
+    f.add_argument("--seed", type=nonneg_int, default=0, help="seed of the scenes and of the fog models' random draws")
+    f.add_argument("--plot", type=out_file(".png"), default=None, metavar="PNG",
+                   help="also draw the table into this PNG file")
     f.add_argument("--json", action="store_true", help="print one JSON object on stdout")
     f.set_defaults(run=run_lidar_fog)
 
@@ -235,7 +239,7 @@ def run_lidar_fog(args) -> int:
         raise UserError(f"--visibilities must be numbers [m] separated by commas, got {args.visibilities!r}") from None
     if not vis or min(vis) <= 0:
         raise UserError(f"--visibilities must list positive visibilities [m], got {args.visibilities!r}")
-    layouts = [t.strip() for t in args.layouts.split(",") if t.strip()]
+    layouts = list(args.layouts)
     bad = [t for t in layouts if t not in LAYOUTS]
     if bad or not layouts:
         raise UserError(f"unknown layout {bad[0] if bad else ''!r} in --layouts (choose from: {', '.join(LAYOUTS)})")
