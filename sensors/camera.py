@@ -424,7 +424,7 @@ def shot_and_read_noise(rng: np.random.Generator, electrons: np.ndarray, read_no
     approximation N(lambda, sqrt(lambda)) of the Poisson law (exact Poisson below)."""
     from sensors.kernels import shot_and_read_noise_apply
 
-    e = np.ascontiguousarray(electrons, np.float32).reshape(-1)
+    e = np.ascontiguousarray(electrons).reshape(-1)
     low = e < 30.0
     n_low = int(np.count_nonzero(low))
     # the draws in the order they always had: Poisson (low counts), normal (high), read noise

@@ -216,7 +216,7 @@ def shot_and_read_noise_apply(electrons, low, poisson_draws, normal_hi, normal_r
     out = Poisson draw where electrons < 30, lam + sqrt(lam) z otherwise, then + read_noise_e z'.
 
     Args:
-        electrons: (N,) float32; low: (N,) bool; poisson_draws: (low.sum(),) int64 in the order of
+        electrons: (N,) float32 or float64 (rounded to float32 where used, as numpy did); low: (N,) bool; poisson_draws: (low.sum(),) int64 in the order of
         the low pixels; normal_hi: (N - low.sum(),) float32; normal_read: (N,) float32.
     """
     n = electrons.shape[0]
@@ -229,7 +229,7 @@ def shot_and_read_noise_apply(electrons, low, poisson_draws, normal_hi, normal_r
             v = np.float32(poisson_draws[i_low])
             i_low += 1
         else:
-            lam = electrons[i]
+            lam = np.float32(electrons[i])
             v = lam + np.sqrt(lam) * normal_hi[i_hi]
             i_hi += 1
         out[i] = v + r * normal_read[i]
