@@ -1,0 +1,157 @@
+"""Devices and data-parallel training.
+
+DDP (torchrun, 2 gloo processes on loopback) trains the same weights as one process with the same
+global batch: each process takes half of every batch, DDP averages the gradients, and per-frame
+seeded anchor / RoI sampling (fusion.nets.sampling) makes each frame's loss terms the same in one
+process or two. A run killed with SIGKILL mid-training and started again finishes with the same
+weights. No process outlives the test.
+"""
+
+import json
+import os
+import signal
+import socket
+import subprocess
+import sys
+import time
+
+import pytest
+import torch
+
+from sensors.generate import GenerateConfig, generate
+from study.cli import main
+from study.train import TrainConfig, train
+
+ARGS = dict(branches=("radar",), epochs=2, batch_size=2, warmup_steps=2, lr=2e-3, eval_frames=1, checkpoint_steps=1)
+
+
+@pytest.fixture(scope="module")
+def data(tmp_path_factory):
+    out = tmp_path_factory.mktemp("ddp_data")
+    generate(GenerateConfig(contexts=("junction", "fog"), frames_per_context=4, sequence_length=2, seed=9),
+             out, workers=1, progress=False)
+    return out
+
+
+@pytest.fixture(scope="module")
+def single(data, tmp_path_factory):
+    """One process, global batch 2, per-frame sampling: the reference."""
+    out = tmp_path_factory.mktemp("single")
+    before = torch.get_num_threads()
+    try:
+        train(TrainConfig(data=str(data), sampling="per-frame", threads=1, device="cpu", **ARGS), out, progress=False)
+    finally:
+        torch.set_num_threads(before)
+    return out
+
+
+def _free_port() -> int:
+    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def _torchrun(data, out, extra=()):
+    cmd = [sys.executable, "-m", "torch.distributed.run", "--nnodes", "1", "--nproc-per-node", "2",
+           "--master-addr", "127.0.0.1", "--master-port", str(_free_port()),
+           "-m", "study.cli", "train", str(data), "--out", str(out), "--branches", "radar", "--epochs", "2",
+           "--batch-size", "2", "--warmup-steps", "2", "--lr", "2e-3", "--eval-frames", "1", "--checkpoint-steps", "1",
+           "--threads", "1", "--device", "cpu", *extra]
+    env = {**os.environ, "GLOO_SOCKET_IFNAME": "lo", "OMP_NUM_THREADS": "1"}
+    return cmd, env
+
+
+def _group_alive(pgid: int) -> list[int]:
+    alive = []
+    for pid in os.listdir("/proc"):
+        if pid.isdigit():
+            try:
+                with open(f"/proc/{pid}/stat") as fh:
+                    fields = fh.read().rsplit(")", 1)[1].split()
+                if int(fields[2]) == pgid and fields[0] != "Z":
+                    alive.append(int(pid))
+            except (OSError, IndexError, ValueError):
+                pass
+    return alive
+
+
+def _weights(run):
+    return torch.load(run / "checkpoint.pt", map_location="cpu", weights_only=False)["model"]
+
+
+def test_two_gloo_processes_train_the_weights_of_one_process_and_resume_after_kill_9(data, single, tmp_path):
+    ref = _weights(single)
+    # uninterrupted: 2 processes x 1 frame = the global batch of 2
+    out = tmp_path / "ddp"
+    cmd, env = _torchrun(data, out, ["--json"])
+    done = subprocess.run(cmd, capture_output=True, text=True, env=env, timeout=300, start_new_session=True)
+    assert done.returncode == 0, done.stderr[-3000:]
+    result = json.loads(done.stdout.strip().splitlines()[-1])  # one JSON object, from rank 0 only
+    assert len(done.stdout.strip().splitlines()) == 1 and result["processes"] == 2
+    cfg = json.loads((out / "config.json").read_text())
+    assert cfg["sampling"] == "per-frame" and cfg["batch_size"] == 2  # auto under torchrun; the global batch
+    ddp = _weights(out)
+    assert ddp.keys() == ref.keys()
+    moved = 0
+    for k in ref:
+        torch.testing.assert_close(ddp[k], ref[k], rtol=1e-4, atol=1e-5, msg=k)
+        moved += int(not torch.equal(ref[k], torch.load(single / "epoch-001.pt", weights_only=False)["model"][k]))
+    assert moved > 10, "training changed the weights between epochs"
+
+    # killed with SIGKILL (torchrun and both workers) after a mid-run checkpoint, then run again
+    again = tmp_path / "ddp_killed"
+    cmd, env = _torchrun(data, again)
+    proc = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, env=env, start_new_session=True)
+    deadline = time.time() + 240
+    while time.time() < deadline and not (again / "checkpoint.pt").exists() and proc.poll() is None:
+        time.sleep(0.05)
+    try:
+        os.killpg(proc.pid, signal.SIGKILL)
+    except ProcessLookupError:
+        pass
+    proc.wait()
+    deadline = time.time() + 20
+    while _group_alive(proc.pid) and time.time() < deadline:
+        time.sleep(0.1)
+    assert not _group_alive(proc.pid), "processes of the killed run are still running"
+    assert (again / "checkpoint.pt").exists()
+    state = torch.load(again / "checkpoint.pt", weights_only=False)
+    assert (state["epoch"], state["step_in_epoch"]) < (2, 0), "the kill came after the run had finished"
+    cmd, env = _torchrun(data, again)
+    done = subprocess.run(cmd, capture_output=True, text=True, env=env, timeout=300, start_new_session=True)
+    assert done.returncode == 0, done.stderr[-3000:]
+    assert "resuming" in done.stderr
+    resumed = _weights(again)
+    for k in ref:
+        torch.testing.assert_close(resumed[k], ddp[k], rtol=1e-5, atol=1e-6, msg=k)
+    assert not _group_alive(proc.pid)
+
+
+def test_per_frame_sampling_changes_nothing_but_the_draws_and_global_stays_the_default(data, single, tmp_path):
+    """A one-process run with the default sampling is the run the code made before devices existed
+    (torchvision's sampler untouched); per-frame sampling is recorded and kept on resume."""
+    from fusion.nets.sampling import FrameSeededSampler
+    from study.detect import load_run
+
+    assert json.loads((single / "config.json").read_text())["sampling"] == "per-frame"
+    assert TrainConfig(data="x").sampling == "global"
+    model, _ = load_run(single)
+    assert not isinstance(model.branches["radar"].rpn.fg_bg_sampler, FrameSeededSampler)  # inference: untouched
+
+
+def test_device_options_refuse_what_this_machine_cannot_do(data, tmp_path, capsys):
+    from study.device import resolve_device
+
+    setup = resolve_device(device="cpu", threads=1, apply=False)
+    assert (setup.device, setup.threads, setup.amp) == ("cpu", 1, False)
+    assert resolve_device(device="auto", apply=False).device == ("cuda:0" if torch.cuda.is_available() else "cpu")
+    if not torch.cuda.is_available():
+        code = main(["train", str(data), "--out", str(tmp_path / "gpu"), "--branches", "radar", "--device", "cuda"])
+        err = capsys.readouterr().err
+        assert code == 2 and "no CUDA GPU" in err and len(err.strip().splitlines()) == 1
+        assert not (tmp_path / "gpu" / "checkpoint.pt").exists()
+    code = main(["train", str(data), "--out", str(tmp_path / "amp"), "--branches", "radar", "--device", "cpu", "--amp"])
+    err = capsys.readouterr().err
+    assert code == 2 and "--amp" in err and len(err.strip().splitlines()) == 1
+    assert main(["train", str(data), "--out", str(tmp_path / "x"), "--device", "tpu"]) == 2
+    assert "choose from auto, cpu, cuda" in capsys.readouterr().err
