@@ -8,7 +8,7 @@ has to exist where the command runs (no shared file system across the cluster), 
 byte-identical to the local pool's.
 
 Without an address a local Ray instance is started for the command (as many CPUs as --workers, no
-dashboard) and shut down at the end. With `address` ("HOST:PORT" of `ray start --head`, or "auto")
+dashboard, every port on 127.0.0.1) and shut down at the end. With `address` ("HOST:PORT" of `ray start --head`, or "auto")
 the command joins that cluster and only disconnects at the end. Every node needs this checkout (or
 hydrabench installed) with its dependencies; on the machine that started the head the driver's
 sys.path is passed on to the workers by Ray itself.
@@ -54,6 +54,10 @@ def run_shards(config_dict: dict, specs: list[dict], root: Path, collect: Callab
                address: str | None = None) -> dict:
     """Render `specs` as Ray tasks and write each shard into `root` as it completes (`collect` gets
     its record). Returns {"address", "cluster_cpus", "started_local"}."""
+    if not address:
+        # A local instance on loopback: this command's alone, not a service on the network. Ray
+        # advertises the node's network address on Linux unless this (read when ray is imported) is 0.
+        os.environ.setdefault("RAY_ENABLE_WINDOWS_OR_OSX_CLUSTER", "0")
     try:
         import ray
     except ImportError:
