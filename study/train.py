@@ -10,6 +10,7 @@ is in the run directory:
     RUN/epoch-XXX.pt       the model at the end of each epoch
     RUN/metrics.csv        one row per epoch: mean losses per branch, lr, test mAP@0.5 per branch
                            (in its own frame) and of their late fusion (right camera), seconds
+                           (train_seconds: the training steps alone)
     RUN/curves.png         metrics.csv plotted: losses and test mAP per branch against the epoch
 
 Interrupted (even kill -9) and run again with the same arguments, training continues from the last
@@ -464,6 +465,7 @@ def train(cfg: TrainConfig, out: Path, progress: bool = True) -> dict:
                               "step_in_epoch": k + 1, "global_step": global_step,
                               "torch_rng": torch.get_rng_state()}, ckpt_path)
         bar.close()
+        train_seconds = time.perf_counter() - t0  # the steps alone, before the epoch's evaluation
         sums = ddp.sum_dict(sums)  # the batch-mean losses of every process added up (one process: as is)
         epoch += 1
         step_in_epoch = 0
@@ -472,7 +474,7 @@ def train(cfg: TrainConfig, out: Path, progress: bool = True) -> dict:
             evals = evaluate_epoch(model, cfg, reader, test_idx, chosen, setup)
             row = {"epoch": epoch, "steps": global_step, "lr": opt.param_groups[0]["lr"],
                    **{f"loss_{b}": round(v / max(counts, 1), 4) for b, v in sums.items()}, **evals,
-                   "seconds": round(time.perf_counter() - t0, 1)}
+                   "seconds": round(time.perf_counter() - t0, 1), "train_seconds": round(train_seconds, 2)}
             _append_row(metrics_path, row)
             plot_training_curves(metrics_path, out / "curves.png")
             _atomic_save({"model": model.state_dict(), "optimizer": opt.state_dict(), "epoch": epoch,
