@@ -112,13 +112,13 @@ def evaluate(run_dir, data, branches="all", fusion="soft-nms", split="auto", wei
         indices = [i for i in indices if reader.meta(i)["context"] in contexts]
     if twins and not reader.manifest["config"].get("twins"):
         raise UserError(f"--twins: {data} has no clear-weather twins (generate it with --twins)")
-    run = {"workers": setup.workers, "amp": setup.amp}
-    per_frame = run_branches(model, data, indices, names, batch_size=batch_size, **run)
+    opts = {"workers": setup.workers, "amp": setup.amp}
+    per_frame = run_branches(model, data, indices, names, batch_size=batch_size, **opts)
     frames = model.branch_frames
     result = score(fused(per_frame, names, frames, method, weights), reader, "camera_right")
     if twins:
         result["twins"] = _twins(model, data, indices, names, frames, method, weights, batch_size, per_frame, reader,
-                                 run)
+                                 opts)
     result.update({
         "branches": names, "fusion": method, "split": used_split, "contexts": sorted(set(contexts)) or "all", "run": str(run_dir), "data": str(data),
         "map_per_branch_native": {b: score(native(per_frame, b), reader, frames[b], bev_crop_of(model, reader))["map"]
