@@ -159,3 +159,17 @@ def test_device_options_refuse_what_this_machine_cannot_do(data, tmp_path, capsy
     assert code == 2 and "--amp" in err and len(err.strip().splitlines()) == 1
     assert main(["train", str(data), "--out", str(tmp_path / "x"), "--device", "tpu"]) == 2
     assert "choose from auto, cpu, cuda" in capsys.readouterr().err
+    if not torch.cuda.is_available():  # every network command shares the same options and refusal
+        for argv in (["evaluate", str(tmp_path), str(data)], ["train-gate", str(tmp_path), str(data), "--gate", "deep"],
+                     ["bench", "inference"]):
+            assert main([*argv, "--device", "cuda:0"]) == 2, argv
+            assert "no CUDA GPU" in capsys.readouterr().err
+
+
+def test_gpu_check_plans_a_smaller_cpu_run_and_says_so():
+    from study.gpu_check import plan
+
+    gpu, cpu = plan(True, None, None), plan(False, None, None)
+    assert gpu["profile"] == "paper" and gpu["contexts"] == "all" and gpu["configurations"] is None
+    assert cpu["profile"] == "cpu" and cpu["steps"] < gpu["steps"] and len(cpu["configurations"]) == 3
+    assert os.access(os.path.join(os.path.dirname(__file__), "..", "..", "scripts", "gpu_check.sh"), os.X_OK)
