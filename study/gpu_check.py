@@ -32,7 +32,7 @@ def plan(gpu: bool, frames_per_context: int | None, steps: int | None) -> dict:
     """What the check runs: full size on a GPU, smaller on the CPU."""
     if gpu:
         return {"profile": "paper", "contexts": "all", "frames_per_context": frames_per_context or 4,
-                "steps": steps or 20, "batch_size": 4, "branch_steps": 5, "repeats": 10, "batches": [1, 8],
+                "steps": steps or 20, "batch_size": 4, "branch_steps": 5, "repeats": 5, "batches": [1, 8],
                 "configurations": None, "train_branches": None}
     return {"profile": "cpu", "contexts": "junction,fog", "frames_per_context": frames_per_context or 4,
             "steps": steps or 2, "batch_size": 2, "branch_steps": 2, "repeats": 2, "batches": [1],
