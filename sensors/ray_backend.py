@@ -75,9 +75,11 @@ def run_shards(config_dict: dict, specs: list[dict], root: Path, collect: Callab
             else:
                 ray.init(address="local", num_cpus=max(1, workers), **common)
                 started = True
-        except (ConnectionError, RuntimeError, ValueError) as exc:
+        except Exception as exc:  # noqa: BLE001 - Ray raises bare Exception when its processes start too slowly
+            ray.shutdown()  # whatever part of a local instance did start
             where = f"the Ray cluster at {address}" if address else "a local Ray instance"
-            raise UserError(f"--backend ray: could not start or join {where}: {str(exc).splitlines()[0]}") from None
+            hint = "" if address else " (on a busy machine start one with `ray start --head` and pass --address)"
+            raise UserError(f"--backend ray: could not start or join {where}: {str(exc).splitlines()[0]}{hint}") from None
     try:
         task = ray.remote(num_cpus=1, max_retries=2)(render_shard_files)
         cfg_ref = ray.put(config_dict)
