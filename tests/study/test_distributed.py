@@ -173,3 +173,26 @@ def test_gpu_check_plans_a_smaller_cpu_run_and_says_so():
     assert gpu["profile"] == "paper" and gpu["contexts"] == "all" and gpu["configurations"] is None
     assert cpu["profile"] == "cpu" and cpu["steps"] < gpu["steps"] and len(cpu["configurations"]) == 3
     assert os.access(os.path.join(os.path.dirname(__file__), "..", "..", "scripts", "gpu_check.sh"), os.X_OK)
+
+
+def test_dataloader_workers_decode_the_same_batches_as_the_main_process(data):
+    import numpy as np
+
+    from fusion.data import FrameDataset
+    from study.train import _batch_stream
+
+    ds = FrameDataset(data, list(range(8)), bev_size=(128, 256))
+    order = np.random.default_rng(0).permutation(8)
+    batches = [order[k:k + 3] for k in range(0, 8, 3)]
+    flips = np.random.default_rng(1).random(8) < 0.5
+    main_process = list(_batch_stream(ds, batches, flips, 1, 0, False))  # from step 1, as a resumed epoch
+    workers = list(_batch_stream(ds, batches, flips, 1, 2, False))
+    assert [k for k, _ in main_process] == [k for k, _ in workers] == [1, 2]
+    for (_, (ia, ta, ma)), (_, (ib, tb, mb)) in zip(main_process, workers):
+        assert [m["dataset_index"] for m in ma] == [m["dataset_index"] for m in mb]
+        assert [m["flipped"] for m in ma] == [m["flipped"] for m in mb]
+        for s in ia:
+            assert torch.equal(ia[s], ib[s])
+        for x, y in zip(ta, tb):
+            for f in x:
+                assert torch.equal(x[f]["boxes"], y[f]["boxes"]) and torch.equal(x[f]["labels"], y[f]["labels"])
