@@ -256,8 +256,17 @@ def existing_record(root: Path, spec: ShardSpec, config: GenerateConfig, digest:
             "seconds": 0.0, "timings": {}}
 
 
-def generate(config: GenerateConfig, out: str | Path, workers: int = 1, progress: bool = True) -> dict:
-    """Generate (or complete) the dataset in `out`. Returns a summary with timings."""
+def generate(config: GenerateConfig, out: str | Path, workers: int = 1, progress: bool = True,
+             backend: str = "local", address: str | None = None) -> dict:
+    """Generate (or complete) the dataset in `out`. Returns a summary with timings.
+
+    `backend`: "local" (this process, or a pool of `workers` processes) or "ray" (one Ray task per
+    shard, `sensors.ray_backend`; `address` joins a running cluster, None starts a local instance
+    with `workers` CPUs). The arrays are the same bytes whichever runs them."""
+    if backend not in ("local", "ray"):
+        raise UserError(f"unknown backend {backend!r} (choose from: local, ray)")
+    if address and backend != "ray":
+        raise UserError("--address is the Ray cluster to join: it needs --backend ray")
     import multiprocessing as mp
 
     from sensors.dataset import FORMAT_VERSION, clean_partial, foreign_entries, write_manifest
@@ -294,7 +303,12 @@ def generate(config: GenerateConfig, out: str | Path, workers: int = 1, progress
         bar.update(rec["frames"])
 
     cfg = config.to_dict()
-    if workers <= 1 or len(todo) <= 1:
+    ray_info = None
+    if backend == "ray":
+        from sensors.ray_backend import run_shards
+
+        ray_info = run_shards(cfg, [asdict(s) for s in todo], root, collect, workers=workers, address=address)
+    elif workers <= 1 or len(todo) <= 1:
         _init_worker(max(1, os.cpu_count() or 1))
         for s in todo:
             collect(generate_shard(cfg, asdict(s), str(root)))
@@ -330,6 +344,8 @@ def generate(config: GenerateConfig, out: str | Path, workers: int = 1, progress
         "frames_per_second": round(rendered / seconds, 3) if seconds > 0 and rendered else None,
         "profile": config.profile,
         "workers": workers,
+        "backend": backend,
+        **({"ray": ray_info} if ray_info else {}),
         "ms_per_frame": {k: round(1000 * v / max(rendered, 1), 2) for k, v in sorted(timings.items())},
         "out": str(root),
     }

@@ -19,6 +19,7 @@ from study.cli import (
     pos_int,
     training_run,
 )
+from study.device import add_device_args
 
 
 def machine() -> dict:
@@ -71,7 +72,7 @@ def add_parser(sub, name, help_text):
     n.add_argument("--repeats", type=pos_int, default=5, help="timed forwards per configuration")
     n.add_argument("--run", dest="weights", type=training_run, default=None, metavar="RUN",
                    help="load this trained run's weights (default: random initialisation)")
-    n.add_argument("--threads", type=pos_int, default=2, help="torch CPU threads")
+    add_device_args(n, workers=False)
     n.add_argument("--json", action="store_true", help="print one JSON object on stdout")
     n.set_defaults(run=run_inference)
     f = what.add_parser("lidar-fog", help="lidar fog: our model against Hahner et al. ICCV 2021 on the same clean clouds",
@@ -193,9 +194,11 @@ def run_inference(args) -> int:
     from fusion.nets import load_profile
     from study.bench_boxes import bench_box_fusion
     from study.bench_nets import bench_inference
+    from study.device import resolve_device
 
     load_profile(args.profile)  # an unknown profile is refused before any worker process starts
-    r = bench_inference(args.profile, args.repeats, args.threads, args.weights)
+    setup = resolve_device(args, apply=False)  # each measurement runs in a fresh process, which applies it
+    r = bench_inference(args.profile, args.repeats, setup.threads, args.weights, device=setup.device, amp=setup.amp)
     boxes = bench_box_fusion(repeats=10)
     r["fusion_block_vs_ensemble_boxes"] = {m: {"ours_ms": v["ours_ms"], "ensemble_boxes_ms": v["ensemble_boxes_ms"],
                                                "speedup": v["speedup"], "equal_output": v["equal_output"]}
@@ -203,10 +206,16 @@ def run_inference(args) -> int:
     r.update(machine())
 
     def text(r):
-        lines = [f"{'configuration':28s} {'batch 1 [ms]':>12s} {'batch 8 [ms/frame]':>18s} {'peak RSS [MB]':>13s}"]
+        lines = [f"device {r['device']} (amp {r['amp']})",
+                 f"{'configuration':28s} {'batch 1 [ms]':>12s} {'batch 8 [ms/frame]':>18s} {'peak RSS [MB]':>13s}"
+                 + (f" {'peak GPU [MB]':>13s} {'energy [J/frame]':>16s}" if "peak_gpu_mb" in r else "")]
         for name, ms in r["latency_ms"].items():
+            gpu = ""
+            if "peak_gpu_mb" in r:
+                e = r["energy_j_per_frame"][name]
+                gpu = f" {r['peak_gpu_mb'][name]:13.0f} {e if e is not None else '-':>16}"
             lines.append(f"{name:28s} {ms:12.1f} {r['latency_ms_per_frame_batch_8'].get(name, float('nan')):18.1f} "
-                         f"{r['peak_rss_mb'][name]:13.0f}")
+                         f"{r['peak_rss_mb'][name]:13.0f}" + gpu)
         lines.append(f"ratio_top3_to_all {r['ratio_top3_to_all']} (worst case, three early-fusion branches: "
                      f"{r['ratio_top3_worst_to_all']})")
         for name, gains in r.get("batch8_gain_per_op_kind", {}).items():

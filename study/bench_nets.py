@@ -3,6 +3,10 @@ model configuration, the analogue of HydraFusion Table 4 on this CPU.
 
 Each configuration is measured in a fresh process (spawned), so its peak resident memory
 (ru_maxrss) belongs to it alone; latency is the median of `repeats` timed forwards after warm-up.
+On a CUDA device (`device`, `study.device`) the forwards run there (bf16 autocast with `amp`), each
+timing waits for the GPU (torch.cuda.synchronize), the peak is the GPU memory torch allocated
+(max_memory_allocated) and the energy is measured with NVML's counter (`fusion.nvml`) over the
+timed forwards: measured, not modelled, and labelled so.
 A configuration is a set of branches run in one forward, plus the late-fusion block when it has
 several branches (HydraFusion's Algorithm 1: stems -> selected branches -> fusion block).
 `bench_gates` adds each gate's overhead and the end-to-end latency of top-k HydraFusion with the
@@ -52,7 +56,7 @@ def op_kind(name: str) -> str:
     return "other"
 
 
-def _inputs(model, batch: int, seed: int = 0):
+def _inputs(model, batch: int, seed: int = 0, device: str = "cpu"):
     import torch
 
     from fusion.nets import SENSORS
@@ -61,8 +65,22 @@ def _inputs(model, batch: int, seed: int = 0):
     out = {}
     for s in model.sensors:
         h, w = model.transform.image_size(s)
-        out[s] = torch.rand(batch, SENSORS[s].channels, h, w, generator=g)
+        out[s] = torch.rand(batch, SENSORS[s].channels, h, w, generator=g).to(device)
     return out
+
+
+def _dets(per: dict):
+    from fusion.late import Detections
+
+    return {n: Detections(d["boxes"].float().cpu().numpy().astype(float), d["scores"].float().cpu().numpy().astype(float),
+                          d["labels"].cpu().numpy()) for n, d in per.items()}
+
+
+def _sync(device: str) -> None:
+    if device.startswith("cuda"):
+        import torch
+
+        torch.cuda.synchronize(device)
 
 
 def _meta(calib_dict, batch):
@@ -71,16 +89,18 @@ def _meta(calib_dict, batch):
 
 def _worker(args) -> dict:
     """Fresh process: build the configuration, time `repeats` forwards at `batch`, report peak RSS."""
-    profile, set_name, names, batch, repeats, threads, run_dir = args
+    profile, set_name, names, batch, repeats, threads, run_dir, device, amp = args
     import torch
 
-    from fusion.late import Detections, fuse
+    from fusion.late import fuse
     from fusion.nets import build_hydrafusion
     from sensors.rig import load_profile as sensor_profile
     from sensors.rig import make_calibration
+    from study.device import resolve_device
     from study.train import branch_set
 
-    torch.set_num_threads(threads)
+    setup = resolve_device(device=device, threads=threads, amp=amp)
+    cuda = setup.is_cuda
     specs = branch_set(set_name, profile)
     if names is not None:
         specs = [s for s in specs if s.name in names]
@@ -92,55 +112,71 @@ def _worker(args) -> dict:
         trained, _ = load_run(run_dir)
         own = model.state_dict()
         model.load_state_dict({k: v for k, v in trained.state_dict().items() if k in own}, strict=False)
+    model.to(device)
     calib = make_calibration(sensor_profile(profile))
-    inputs = _inputs(model, batch)
+    inputs = _inputs(model, batch, device=device)
     frames = model.branch_frames
     selection = [s.name for s in specs]
     base_rss = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
 
     def once():
-        with torch.no_grad():
+        with torch.no_grad(), setup.autocast():
             dets = model(inputs, selection=selection)
         if len(selection) > 1:
             for per in dets:
-                fuse({n: Detections(d["boxes"].numpy().astype(float), d["scores"].numpy().astype(float),
-                                    d["labels"].numpy()) for n, d in per.items()}, frames, calib, "soft_nms")
+                fuse(_dets(per), frames, calib, "soft_nms")
+        _sync(device)
 
     once()  # warm-up (allocator, first-call overheads)
+    meter = None
+    if cuda:
+        from fusion.nvml import GpuEnergyMeter
+
+        torch.cuda.reset_peak_memory_stats(device)
+        meter = GpuEnergyMeter(torch.device(device).index or 0)
+    e0 = meter.energy_mj() if meter else None
     times = []
     for _ in range(repeats):
         t = time.perf_counter()
         once()
         times.append(time.perf_counter() - t)
+    e1 = meter.energy_mj() if meter else None
+    gpu = {}
+    if cuda:
+        gpu["peak_gpu_mb"] = torch.cuda.max_memory_allocated(device) / 2**20
+        if e0 is not None and e1 is not None:
+            gpu["energy_mj_per_frame"] = (e1 - e0) / (repeats * batch)
     peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
     params = sum(p.numel() for p in model.parameters())
     # where the time goes: self CPU time per operator kind of one more forward (profiled, so each
     # operator carries the profiler's overhead too: compare kinds and batch sizes, not to latency_ms)
     from torch.profiler import ProfilerActivity, profile
 
+    # (on a GPU: the device time of each kind's kernels)
     os.environ.setdefault("KINETO_LOG_LEVEL", "6")  # the profiler library's start/stop chatter on stderr
-    with profile(activities=[ProfilerActivity.CPU]) as prof:
+    with profile(activities=[ProfilerActivity.CPU] + ([ProfilerActivity.CUDA] if cuda else [])) as prof:
         once()
     ops = dict.fromkeys(OP_KINDS, 0.0)
     for e in prof.key_averages():
-        ops[op_kind(e.key)] += e.self_cpu_time_total / 1000.0
+        ops[op_kind(e.key)] += (e.self_device_time_total if cuda else e.self_cpu_time_total) / 1000.0
     return {"latency_ms": 1000 * statistics.median(times), "latency_ms_min": 1000 * min(times),
             "peak_rss_mb": peak / 1024, "forward_rss_mb": (peak - base_rss) / 1024, "params_m": params / 1e6,
-            **{f"ops_ms_per_frame/{k}": v / batch for k, v in ops.items()}}
+            **gpu, **{f"ops_ms_per_frame/{k}": v / batch for k, v in ops.items()}}
 
 
 def _train_worker(args) -> dict:
-    profile, name, batch, steps, threads = args
+    profile, name, batch, steps, threads, device, amp = args
     import torch
 
     from fusion.nets import build_hydrafusion
+    from study.device import resolve_device
     from study.train import branch_set
 
-    torch.set_num_threads(threads)
+    setup = resolve_device(device=device, threads=threads, amp=amp)
     spec = [s for s in branch_set("paper", profile) if s.name == name]
     torch.manual_seed(0)
-    model = build_hydrafusion(profile=profile, branches=spec).train()
-    inputs = _inputs(model, batch)
+    model = build_hydrafusion(profile=profile, branches=spec).train().to(device)
+    inputs = _inputs(model, batch, device=device)
     targets = []
     rng = np.random.default_rng(0)
     for _ in range(batch):
@@ -150,17 +186,19 @@ def _train_worker(args) -> dict:
             h, w = size
             xy = rng.uniform(0, [w - 40, h - 30], (4, 2))
             wh = rng.uniform([8, 8], [40, 30], (4, 2))
-            t[frame] = {"boxes": torch.tensor(np.hstack([xy, xy + wh]), dtype=torch.float32),
-                        "labels": torch.tensor(rng.integers(1, 9, 4))}
+            t[frame] = {"boxes": torch.tensor(np.hstack([xy, xy + wh]), dtype=torch.float32, device=device),
+                        "labels": torch.tensor(rng.integers(1, 9, 4), device=device)}
         targets.append(t)
     opt = torch.optim.SGD(model.parameters(), lr=1e-3, momentum=0.9)
     times = []
     for k in range(steps + 1):
         t0 = time.perf_counter()
-        loss = model(inputs, targets)["total"]
+        with setup.autocast():
+            loss = model(inputs, targets)["total"]
         opt.zero_grad()
         loss.backward()
         opt.step()
+        _sync(device)
         if k:
             times.append(time.perf_counter() - t0)
     return {"images_per_second": batch / statistics.median(times), "step_s": statistics.median(times)}
@@ -171,7 +209,7 @@ GATE_CONTEXT = {"layout": "motorway", "conditions": ["fog"], "severity": 4}
 
 
 def bench_gates(profile: str = "cpu", repeats: int = 5, threads: int = 2, run_dir: str | None = None,
-                ks=(1, 3, 5), overrides: dict | None = None) -> dict:
+                ks=(1, 3, 5), overrides: dict | None = None, device: str = "cpu", amp: bool = False) -> dict:
     """Gate overhead and top-k latency on the seven-branch network, batch 1.
 
     `gate_overhead_ms[gate]`: the gate alone, from stem features to its selection (median of
@@ -184,14 +222,15 @@ def bench_gates(profile: str = "cpu", repeats: int = 5, threads: int = 2, run_di
     """
     import torch
 
-    from fusion.late import Detections, fuse
+    from fusion.late import fuse
     from fusion.nets import build_hydrafusion
     from fusion.nets.gates import GATES, build_gate
     from sensors.rig import load_profile as sensor_profile
     from sensors.rig import make_calibration
+    from study.device import resolve_device
     from study.train import branch_set
 
-    torch.set_num_threads(threads)
+    setup = resolve_device(device=device, threads=threads, amp=amp)
     torch.manual_seed(0)
     model = build_hydrafusion(profile=profile, branches=branch_set("paper", profile), **(overrides or {})).eval()
     gates_from = "random initialisation"
@@ -201,21 +240,24 @@ def bench_gates(profile: str = "cpu", repeats: int = 5, threads: int = 2, run_di
         trained, _ = load_run(run_dir)
         own = model.state_dict()
         model.load_state_dict({k: v for k, v in trained.state_dict().items() if k in own}, strict=False)
+    model.to(device)
     calib = make_calibration(sensor_profile(profile))
-    inputs = _inputs(model, 1)
+    inputs = _inputs(model, 1, device=device)
     meta = [dict(GATE_CONTEXT)]
     frames = model.branch_frames
 
     def median_ms(fn):
         fn()  # warm-up
+        _sync(device)
         times = []
         for _ in range(repeats):
             t = time.perf_counter()
             fn()
+            _sync(device)
             times.append(time.perf_counter() - t)
         return round(1000 * statistics.median(times), 3)
 
-    with torch.no_grad():
+    with torch.no_grad(), setup.autocast():
         features = model.extract_features(inputs)
         stems_ms = median_ms(lambda: model.extract_features(inputs))
     overhead, topk, chosen, source = {}, {}, {}, {}
@@ -224,7 +266,7 @@ def bench_gates(profile: str = "cpu", repeats: int = 5, threads: int = 2, run_di
         if cls.reads == "losses":
             overhead[name] = None  # needs ground truth: not a deployable gate
             continue
-        gate = build_gate(name, model)
+        gate = build_gate(name, model).to(device)
         source[name] = "table" if not cls.trainable else gates_from
         if cls.trainable and run_dir:
             from pathlib import Path
@@ -232,9 +274,9 @@ def bench_gates(profile: str = "cpu", repeats: int = 5, threads: int = 2, run_di
             from study.gates import load_trained_gate
 
             if (Path(run_dir) / "gates" / name / "gate.pt").exists():
-                gate = load_trained_gate(run_dir, name, model)
+                gate = load_trained_gate(run_dir, name, model).to(device)
                 source[name] = f"trained ({run_dir}/gates/{name})"
-        with torch.no_grad():
+        with torch.no_grad(), setup.autocast():
             overhead[name] = median_ms(lambda g=gate: g(features, meta))
         model.gate = gate
         topk[name], chosen[name] = {}, {}
@@ -242,14 +284,13 @@ def bench_gates(profile: str = "cpu", repeats: int = 5, threads: int = 2, run_di
             gate.k = k
 
             def once():
-                with torch.no_grad():
+                with torch.no_grad(), setup.autocast():
                     dets = model(inputs, meta=meta)
                 for per in dets:
-                    fuse({n: Detections(d["boxes"].numpy().astype(float), d["scores"].numpy().astype(float),
-                                        d["labels"].numpy()) for n, d in per.items()}, frames, calib, "soft_nms")
+                    fuse(_dets(per), frames, calib, "soft_nms")
 
             topk[name][str(k)] = median_ms(once)
-            with torch.no_grad():
+            with torch.no_grad(), setup.autocast():
                 chosen[name][str(k)] = list(gate(features, meta)[0])
         model.gate = None
     share = {g: round(overhead[g] / topk[g]["3"], 6) for g in topk if "3" in topk[g] and overhead[g] is not None}
@@ -259,36 +300,53 @@ def bench_gates(profile: str = "cpu", repeats: int = 5, threads: int = 2, run_di
 
 def _gate_worker(args) -> dict:
     """Fresh process: `bench_gates`."""
-    profile, repeats, threads, run_dir = args
-    return bench_gates(profile, repeats, threads, run_dir)
+    profile, repeats, threads, run_dir, device, amp = args
+    return bench_gates(profile, repeats, threads, run_dir, device=device, amp=amp)
 
 
 def bench_inference(profile: str = "cpu", repeats: int = 5, threads: int = 2, run_dir: str | None = None,
-                    train_steps: int = 3, batches=(1, 8)) -> dict:
+                    train_steps: int = 3, batches=(1, 8), device: str = "cpu", amp: bool = False,
+                    configurations=None, train_branches=None) -> dict:
+    """HydraFusion Table 4 on this machine (see the module doc). `configurations` / `train_branches`:
+    subsets of CONFIGURATIONS and of the paper branches to measure (default: all)."""
     ctx = mp.get_context("spawn")
     results: dict = {}
     with ctx.Pool(1, maxtasksperchild=1) as pool:
         for name, (set_name, names, _desc) in CONFIGURATIONS.items():
+            if configurations is not None and name not in configurations:
+                continue
             results[name] = {}
             for b in batches:
-                r = pool.apply(_worker, ((profile, set_name, names, b, repeats, threads, run_dir),))
+                r = pool.apply(_worker, ((profile, set_name, names, b, repeats, threads, run_dir, device, amp),))
                 results[name][f"batch_{b}"] = {k: round(v, 2) for k, v in r.items()}
         training = {}
         from study.train import branch_set
 
         for spec in branch_set("paper", profile):
-            r = pool.apply(_train_worker, ((profile, spec.name, 4, train_steps, threads),))
+            if train_branches is not None and spec.name not in train_branches:
+                continue
+            r = pool.apply(_train_worker, ((profile, spec.name, 4, train_steps, threads, device, amp),))
             training[spec.name] = {k: round(v, 3) for k, v in r.items()}
-        gates = pool.apply(_gate_worker, ((profile, repeats, threads, run_dir),))
+        gates = pool.apply(_gate_worker, ((profile, repeats, threads, run_dir, device, amp),))
     lat = {n: r["batch_1"]["latency_ms"] for n, r in results.items()}
+    gpu = {}
+    if device.startswith("cuda"):
+        gpu["peak_gpu_mb"] = {n: r["batch_1"]["peak_gpu_mb"] for n, r in results.items()}
+        measured = {n: r["batch_1"].get("energy_mj_per_frame") for n, r in results.items()}
+        gpu["energy_j_per_frame"] = {n: (None if v is None else round(v / 1000, 4)) for n, v in measured.items()}
+        gpu["energy_source"] = ("measured: NVML board energy counter over the timed batch-1 forwards"
+                                if any(v is not None for v in measured.values()) else "none: NVML counter unavailable")
     out = {
+        **gpu,
         "latency_ms": lat,
         "latency_ms_per_frame_batch_8": {n: round(r["batch_8"]["latency_ms"] / 8, 2) for n, r in results.items()}
         if 8 in batches else {},
         "peak_rss_mb": {n: r["batch_1"]["peak_rss_mb"] for n, r in results.items()},
         "params_m": {n: r["batch_1"]["params_m"] for n, r in results.items()},
-        "ratio_top3_to_all": round(lat["hydra_top3_typical"] / lat["all_branches"], 3),
-        "ratio_top3_worst_to_all": round(lat["hydra_top3_worst"] / lat["all_branches"], 3),
+        "ratio_top3_to_all": round(lat["hydra_top3_typical"] / lat["all_branches"], 3)
+        if {"hydra_top3_typical", "all_branches"} <= set(lat) else None,
+        "ratio_top3_worst_to_all": round(lat["hydra_top3_worst"] / lat["all_branches"], 3)
+        if {"hydra_top3_worst", "all_branches"} <= set(lat) else None,
         "batch8_throughput_gain": {n: round(r["batch_1"]["latency_ms"] / (r["batch_8"]["latency_ms"] / 8), 2)
                                    for n, r in results.items()} if 8 in batches else {},
         "training_images_per_second": {n: v["images_per_second"] for n, v in training.items()},
@@ -301,7 +359,9 @@ def bench_inference(profile: str = "cpu", repeats: int = 5, threads: int = 2, ru
         "op_share_batch_1": {n: {k: round(r["batch_1"][f"ops_ms_per_frame/{k}"]
                                           / max(sum(r["batch_1"][f"ops_ms_per_frame/{j}"] for j in OP_KINDS), 1e-9), 3)
                                  for k in OP_KINDS} for n, r in results.items()} if 1 in batches else {},
-        "configurations": {n: d for n, (_, _, d) in CONFIGURATIONS.items()},
+        "configurations": {n: d for n, (_, _, d) in CONFIGURATIONS.items() if n in results},
+        "device": device,
+        "amp": "bf16" if amp else False,
         "details": results,
         "profile": profile,
         "weights": run_dir or "random initialisation",

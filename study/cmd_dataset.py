@@ -29,11 +29,13 @@ GEN_EPILOG = """\
 Writes a sharded dataset (one sequence per shard) to --out: manifest.json plus shard directories of
 .npy arrays and frames.json (format in the README). Shards are written under a temporary name and
 renamed when complete; if the run is interrupted (even kill -9), run the same command again and it
-completes the dataset, byte-identical to an uninterrupted run, whatever --workers is.
+completes the dataset, byte-identical to an uninterrupted run, whatever --workers or --backend is.
 
 examples:
   hydrabench generate --out data/small --frames-per-context 20 --workers 2
   hydrabench generate --out data/fog --contexts fog,city+night+rain --severities 4,5 --twins
+  hydrabench generate --out data/small --backend ray --workers 2                (a local Ray instance)
+  ray start --head --port 6379 && hydrabench generate --out data/big --backend ray --address 127.0.0.1:6379
 """
 
 
@@ -46,7 +48,12 @@ def add_generate(sub, name, help_text):
     p.add_argument("--frames-per-context", type=pos_int, default=None,
                    help="frames per context, at most 1000000 in a dataset [20]")
     p.add_argument("--seed", type=nonneg_int, default=None, help="root seed [0]")
-    p.add_argument("--workers", type=workers_int, default=1, help="parallel worker processes")
+    p.add_argument("--workers", type=workers_int, default=1, help="parallel worker processes (--backend ray without "
+                   "--address: the CPUs of the local Ray instance)")
+    p.add_argument("--backend", default="local", choices=["local", "ray"],
+                   help="local: this process or a local process pool; ray: one Ray task per shard (same bytes)")
+    p.add_argument("--address", default=None, help="with --backend ray: the cluster to join (HOST:PORT printed by "
+                   "`ray start --head`, or auto); default: start a local Ray instance for this command")
     p.add_argument("--profile", type=name_arg, default=None, help="sensor profile: cpu or paper [cpu]")
     p.add_argument("--sequence-length", type=pos_int, default=None,
                    help="frames per sequence/shard, at most 1000 [10]")
@@ -91,10 +98,13 @@ def run_generate(args) -> int:
     from sensors.generate import generate
 
     config = build_config(args)
-    result = generate(config, Path(args.out), workers=args.workers, progress=True)
+    out = Path(args.out)
+    if args.address and args.backend != "ray":
+        raise UserError("--address is the Ray cluster to join: it needs --backend ray")
+    result = generate(config, out, workers=args.workers, progress=True, backend=args.backend, address=args.address)
     emit(result, args.json, lambda r: (
         f"{r['frames']} frames in {r['out']} ({r['frames_rendered']} rendered in {r['seconds']} s, "
-        f"{r['frames_per_second']} frames/s, profile {r['profile']}, {r['workers']} workers)"))
+        f"{r['frames_per_second']} frames/s, profile {r['profile']}, {r['workers']} workers, {r['backend']} backend)"))
     return 0
 
 

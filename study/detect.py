@@ -29,8 +29,8 @@ def fusion_method(name: str) -> str:
     return FUSION_ALIASES[name]
 
 
-def load_run(run: str | Path, which: str = "latest"):
-    """(model in eval mode, run config dict) from a training run directory."""
+def load_run(run: str | Path, which: str = "latest", device: str = "cpu"):
+    """(model in eval mode on `device`, run config dict) from a training run directory."""
     from fusion.nets import build_hydrafusion
     from fusion.nets.profile import BranchSpec
     from study.train import run_profile
@@ -47,6 +47,8 @@ def load_run(run: str | Path, which: str = "latest"):
     state = torch.load(ckpt, map_location="cpu", weights_only=False)
     model.load_state_dict(state["model"])
     model.eval()
+    if str(device) != "cpu":
+        model.to(device)
     return model, cfg
 
 
@@ -72,24 +74,33 @@ def frames_for(run_cfg: dict, data: str | Path, split: str = "auto") -> tuple[li
 
 
 def to_detections(d: dict) -> Detections:
-    return Detections(d["boxes"].detach().cpu().numpy().astype(np.float64),
-                      d["scores"].detach().cpu().numpy().astype(np.float64),
+    return Detections(d["boxes"].detach().float().cpu().numpy().astype(np.float64),
+                      d["scores"].detach().float().cpu().numpy().astype(np.float64),
                       d["labels"].detach().cpu().numpy().astype(np.int64))
 
 
 def run_branches(model, data, indices, branches, batch_size: int = 4, progress: str = "detect",
-                 sensors=None, clear: bool = False):
+                 sensors=None, clear: bool = False, workers: int = 0, amp: bool = False):
     """Per-frame detections of each branch in its own frame: list of (meta, {branch: Detections});
-    `clear` runs on the clear-weather twins of the frames (datasets generated with --twins)."""
+    `clear` runs on the clear-weather twins of the frames (datasets generated with --twins).
+    The model runs where its parameters are (`study.device`), with bf16 autocast when `amp`;
+    `workers` DataLoader processes decode the frames."""
+    from study.device import DeviceSetup, to_device
+
     need = sensors or model.sensors_for(list(branches))
+    device = next(model.parameters()).device
     ds = FrameDataset(data, indices, sensors=need, clear=clear, bev_size=model.transform.image_size("radar"))
-    loader = DataLoader(ds, batch_size=batch_size, shuffle=False, collate_fn=collate, num_workers=0)
+    loader = DataLoader(ds, batch_size=batch_size, shuffle=False, collate_fn=collate, num_workers=workers,
+                        pin_memory=device.type == "cuda")
+    autocast = DeviceSetup(str(device), 0, amp and device.type == "cuda").autocast
     from tqdm import tqdm
 
     out = []
     with torch.no_grad():
         for inputs, _targets, metas in tqdm(loader, desc=progress, file=sys.stderr, disable=None, leave=False):
-            dets = model(inputs, selection=list(branches))
+            inputs, _ = to_device(inputs, None, device)
+            with autocast():
+                dets = model(inputs, selection=list(branches))
             for meta, per in zip(metas, dets):
                 out.append((meta, {n: to_detections(d) for n, d in per.items()}))
     return out

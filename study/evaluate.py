@@ -26,6 +26,7 @@ from pathlib import Path
 from sensors.dataset import DatasetReader
 from sim.errors import UserError
 from study.cli import Formatter, checkpoint_arg, dataset_dir, emit, name_arg, name_list, pos_int, training_run
+from study.device import add_device_args, resolve_device
 
 EPILOG = """\
 examples:
@@ -62,6 +63,7 @@ def add_parser(sub, name, help_text):
                    "(default 3, or all when the run has fewer)")
     p.add_argument("--all-gates", action="store_true",
                    help="Tables 6 and 7: every gate x nms/soft-nms/wbf x k in 1, 3, 5, all")
+    add_device_args(p)
     p.add_argument("--json", action="store_true", help="print one JSON object on stdout")
     p.set_defaults(run=run)
 
@@ -87,11 +89,12 @@ def parse_weights(text) -> dict[str, float]:
 
 
 def evaluate(run_dir, data, branches="all", fusion="soft-nms", split="auto", weights=None, checkpoint="latest",
-             batch_size: int = 4, contexts=(), twins: bool = False, protocol: str | None = None) -> dict:
+             batch_size: int = 4, contexts=(), twins: bool = False, protocol: str | None = None,
+             setup=None) -> dict:
     """mAP of `branches` of a run fused with `fusion` (see the module doc). `twins`: also run them on
     the clear-weather twins of the same frames and report what each branch keeps ("twins").
-    `protocol`: reference | visible | bev (None: the run's own)."""
-    import torch
+    `protocol`: reference | visible | bev (None: the run's own). `setup`: a `study.device.DeviceSetup`
+    (default: --device auto, threads = the cores available)."""
 
     from fusion.protocol import PROTOCOLS, Protocol
     from study.detect import (
@@ -106,11 +109,11 @@ def evaluate(run_dir, data, branches="all", fusion="soft-nms", split="auto", wei
     )
     from study.train import run_protocol
 
-    torch.set_num_threads(2)
+    setup = setup or resolve_device()
     method = fusion_method(fusion)
     if protocol is not None and protocol not in PROTOCOLS:
         raise UserError(f"--protocol: unknown protocol {protocol!r} (choose from: {', '.join(PROTOCOLS)})")
-    model, cfg = load_run(run_dir, checkpoint)
+    model, cfg = load_run(run_dir, checkpoint, device=setup.device)
     proto = Protocol(protocol or run_protocol(cfg))
     names = list(model.branches) if branches in ("all", None, "") else [b.strip() for b in branches.split(",") if b.strip()]
     bad = [b for b in names if b not in model.branches]
@@ -140,7 +143,8 @@ def evaluate(run_dir, data, branches="all", fusion="soft-nms", split="auto", wei
         indices = [i for i in indices if reader.meta(i)["context"] in contexts]
     if twins and not reader.manifest["config"].get("twins"):
         raise UserError(f"--twins: {data} has no clear-weather twins (generate it with --twins)")
-    per_frame = run_branches(model, data, indices, names, batch_size=batch_size)
+    opts = {"workers": setup.workers, "amp": setup.amp}
+    per_frame = run_branches(model, data, indices, names, batch_size=batch_size, **opts)
     frames = model.branch_frames
     crop = bev_crop_of(model, reader)
     native_scores = {b: score(native(per_frame, b), reader, frames[b], crop, proto) for b in names}
@@ -157,18 +161,20 @@ def evaluate(run_dir, data, branches="all", fusion="soft-nms", split="auto", wei
         result["per_branch_reference"] = {b: {k: alone[b][k] for k in keys} for b in names}
     if twins:
         result["twins"] = _twins(model, data, indices, names, frames, method, weights, batch_size, per_frame, reader,
-                                 proto)
+                                 proto, opts)
     result.update({
         "branches": names, "fusion": method, "split": used_split, "contexts": sorted(set(contexts)) or "all",
         "run": str(run_dir), "data": str(data), "frames": len(per_frame),
         "map_per_branch_native": {b: native_scores[b]["map"] for b in names},
         "map_vehicles_per_branch_native": {b: native_scores[b]["map_vehicles"] for b in names},
         "metric": "VOC all-point AP at IoU 0.5, difficult ground truth ignored, mean over classes with ground truth",
+        "device": setup.describe(),
     })
     return result
 
 
-def _twins(model, data, indices, names, frames, method, weights, batch_size, per_frame, reader, protocol=None) -> dict:
+def _twins(model, data, indices, names, frames, method, weights, batch_size, per_frame, reader, protocol=None,
+           run=None) -> dict:
     """The same frames in clear weather: per branch (in its own frame, vehicle classes) the mAP on
     the degraded frames, on their clear twins, and their ratio, overall and per severity; and the same
     for the fused result. The frames and labels are identical; only the weather differs."""
@@ -185,7 +191,7 @@ def _twins(model, data, indices, names, frames, method, weights, batch_size, per
 
     clear_reader = DatasetReader(data, clear=True)
     clear_frames = run_branches(model, data, indices, names, batch_size=batch_size, progress="clear twins",
-                                clear=True)
+                                clear=True, **(run or {}))
     crop = bev_crop_of(model, reader)
     mor = {meta["dataset_index"]: meta["weather"]["visibility_m"] for meta, _ in per_frame}
 
@@ -249,11 +255,12 @@ def run_gates(args) -> int:
         if args.k is not None:
             raise UserError("--k is for --gate; --all-gates evaluates k = 1, 3, 5 and all")
         result = gates.evaluate_all_gates(Path(args.run_dir), Path(args.data), split=args.split, weights=weights,
-                                          checkpoint=args.checkpoint, batch_size=args.batch_size)
+                                          checkpoint=args.checkpoint, batch_size=args.batch_size,
+                                          setup=resolve_device(args))
         emit(result, args.json, gates.format_tables)
         return 0
     result = gates.evaluate_gate(Path(args.run_dir), Path(args.data), args.gate, args.k, args.fusion, args.split,
-                                 weights, args.checkpoint, args.batch_size)
+                                 weights, args.checkpoint, args.batch_size, setup=resolve_device(args))
 
     def text(r):
         k = str(r["k"])
@@ -279,7 +286,7 @@ def run(args) -> int:
     branches = args.branches if isinstance(args.branches, str) else ",".join(args.branches)
     result = evaluate(Path(args.run_dir), Path(args.data), branches, args.fusion, args.split,
                       parse_weights(args.weights), args.checkpoint, args.batch_size, contexts, args.twins,
-                      args.protocol)
+                      args.protocol, setup=resolve_device(args))
 
     def text(r):
         where = "" if r["contexts"] == "all" else f" of {', '.join(r['contexts'])}"

@@ -59,6 +59,7 @@ from study.cli import (
     pos_int,
     training_run,
 )
+from study.device import add_device_args, resolve_device
 
 GATE_DATA_VERSION = 1
 LOSS_SEED = 0
@@ -220,7 +221,10 @@ class GateData:
         if not info.exists():
             _atomic_text(info, json.dumps({**self.identity, "key": self.key, "run": str(self.run_dir),
                                            "data": str(self.data)}, indent=1))
+        from study.device import to_device
+
         model = self.model.eval()
+        device = next(model.parameters()).device  # the network runs where it is (`study.device`), in float32
         ds = FrameDataset(self.data, todo, sensors=model.sensors, bev_size=model.transform.image_size("radar"),
                           protocol=self.protocol)
         n_chunk = len(self._chunks())
@@ -247,6 +251,7 @@ class GateData:
             for start in range(0, len(todo), batch_size):
                 items = [ds[k] for k in range(start, min(start + batch_size, len(todo)))]
                 inputs, targets, metas = collate(items)
+                inputs, targets = to_device(inputs, targets, device)
                 feats = model.extract_features(inputs, self.sensors)
                 pooled = pool_features(feats, self.sensors, self.grid)
                 per = model.per_sample_losses(inputs, targets, seed=self.seed)
@@ -254,7 +259,7 @@ class GateData:
 
                 losses = np.array([[[float(p[b][n]) for n in LOSS_NAMES] for b in self.branches] for p in per])
                 pending["indices"].extend(int(m["dataset_index"]) for m in metas)
-                pending["features"].append(pooled.half().numpy())
+                pending["features"].append(pooled.half().cpu().numpy())
                 pending["losses"].append(losses)
                 bar.update(len(items))
                 if len(pending["indices"]) >= chunk_frames:
@@ -318,7 +323,7 @@ class GateTrainConfig:
         hidden: MLP hidden width.
         dropout: before the MLP.
         checkpoint: which run checkpoint the gate serves ("latest" or "epoch-NNN").
-        threads: torch CPU threads.
+        threads: torch CPU threads (0: the cores available).
     """
 
     gate: str = "deep"
@@ -333,7 +338,7 @@ class GateTrainConfig:
     hidden: int = 64
     dropout: float = 0.2
     checkpoint: str = "latest"
-    threads: int = 2
+    threads: int = 0
 
     def gate_options(self) -> dict:
         return {"grid": list(self.grid), "channels": list(self.channels), "hidden": self.hidden,
@@ -456,8 +461,12 @@ def _write_csv(path: Path, rows: list[dict]) -> None:
     os.replace(tmp, path)
 
 
-def train_gate(run_dir, data, cfg: GateTrainConfig, progress: bool = True, fresh: bool = False) -> dict:
-    """Build the gate dataset when missing, train the gate, report held-out MAE (see module doc)."""
+def train_gate(run_dir, data, cfg: GateTrainConfig, progress: bool = True, fresh: bool = False, setup=None) -> dict:
+    """Build the gate dataset when missing, train the gate, report held-out MAE (see module doc).
+
+    `setup` (`study.device.DeviceSetup`; default: --device auto with `cfg.threads`): where the run's
+    network computes the gate dataset (stem features and per-sample losses, the expensive part, in
+    float32). The gate itself, a few small convs on pooled features, trains on the CPU."""
     import torch
 
     from fusion.nets.gates import GATES, build_gate
@@ -469,9 +478,9 @@ def train_gate(run_dir, data, cfg: GateTrainConfig, progress: bool = True, fresh
         what = ("ranks by the a-posteriori losses, which need ground truth" if cfg.gate == "optimal"
                 else "ranks from its knowledge table")
         raise UserError(f"--gate {cfg.gate}: nothing to train, the {cfg.gate} gate {what} (train deep or attention)")
-    torch.set_num_threads(cfg.threads)
+    setup = setup or resolve_device(threads=cfg.threads)
     run_dir, data = Path(run_dir), Path(data)
-    model, run_cfg = load_run(run_dir, cfg.checkpoint)
+    model, run_cfg = load_run(run_dir, cfg.checkpoint, device=setup.device)
     reader = DatasetReader(data)
     if reader.manifest["config"] != run_cfg.get("data_config"):
         raise UserError(f"train-gate needs the run's training dataset ({run_cfg.get('data')}), not {data}: the gate "
@@ -506,6 +515,8 @@ def train_gate(run_dir, data, cfg: GateTrainConfig, progress: bool = True, fresh
     x_test, y_test = gd.load(test_idx)
     out.mkdir(parents=True, exist_ok=True)
     torch.manual_seed(cfg.seed)
+    if setup.is_cuda:
+        model.cpu()  # build_gate reads the model's layout; the gate trains on the CPU
     gate = build_gate(cfg.gate, model, sensors=list(gd.sensors), **cfg.gate_options())
     fitted = fit_gate(gate, x_fit, y_fit, x_val, y_val, cfg, out=out, progress=progress, state=state,
                       extra={"data_key": gd.key})
@@ -584,15 +595,14 @@ def _rates_per_context(selections, contexts, branches) -> dict[str, dict[str, fl
     return {c: selection_rates(v, branches) for c, v in sorted(by.items())}
 
 
-def _setup(run_dir, data, split, weights, checkpoint):
-    import torch
-
+def _setup(run_dir, data, split, weights, checkpoint, setup=None):
     from fusion.nets.gates import gate_sensors
     from sensors.dataset import DatasetReader
     from study.detect import frames_for, load_run
 
-    torch.set_num_threads(2)
-    model, cfg = load_run(run_dir, checkpoint)
+    setup = setup or resolve_device()
+    model, cfg = load_run(run_dir, checkpoint, device=setup.device)
+    model.device_setup = setup  # read by _loader, _gate_on_device and the autocast of the gated forwards
     if not gate_sensors(model):
         raise UserError("gates need HydraFusion's shared stems (a gate reads every stem before choosing branches); "
                         f"this run's branches ({', '.join(model.branches)}) fuse their inputs and have none")
@@ -606,12 +616,21 @@ def _setup(run_dir, data, split, weights, checkpoint):
 
 
 def _loader(model, data, indices, batch_size):
+    """Batches (inputs on the model's device, targets, metas), decoded by the setup's workers."""
     from torch.utils.data import DataLoader
 
     from fusion.data import FrameDataset, collate
+    from study.device import to_device
 
+    setup = model.device_setup
     ds = FrameDataset(data, indices, sensors=model.sensors, bev_size=model.transform.image_size("radar"))
-    return DataLoader(ds, batch_size=batch_size, shuffle=False, collate_fn=collate, num_workers=0)
+    for inputs, targets, metas in DataLoader(ds, batch_size=batch_size, shuffle=False, collate_fn=collate,
+                                             num_workers=setup.workers, pin_memory=setup.is_cuda):
+        yield to_device(inputs, None, setup.device)[0], targets, metas
+
+
+def _gate_on_device(gate, model):
+    return gate.to(model.device_setup.device) if model.device_setup.is_cuda else gate
 
 
 def _optimal_losses(run_dir, data, model, checkpoint, indices, progress) -> dict[int, dict[str, float]]:
@@ -621,7 +640,7 @@ def _optimal_losses(run_dir, data, model, checkpoint, indices, progress) -> dict
 
 
 def evaluate_gate(run_dir, data, gate: str, k=None, fusion: str = "soft-nms", split: str = "auto", weights=None,
-                  checkpoint: str = "latest", batch_size: int = 4, progress: bool = True) -> dict:
+                  checkpoint: str = "latest", batch_size: int = 4, progress: bool = True, setup=None) -> dict:
     """mAP of one gate at one k (None: 3, or every branch when there are fewer) with one fusion
     method, the gate wired into the network (`model.gate`): per frame only the k branches it
     selects run, then they are fused."""
@@ -631,9 +650,9 @@ def evaluate_gate(run_dir, data, gate: str, k=None, fusion: str = "soft-nms", sp
     from study.train import run_protocol
 
     method = fusion_method(fusion)
-    model, _cfg, indices, used_split, reader = _setup(run_dir, data, split, weights, checkpoint)
+    model, _cfg, indices, used_split, reader = _setup(run_dir, data, split, weights, checkpoint, setup)
     k = parse_k(min(3, len(model.branches)) if k is None else k, len(model.branches))
-    g = make_gate(gate, model, run_dir, checkpoint, k)
+    g = _gate_on_device(make_gate(gate, model, run_dir, checkpoint, k), model)
     losses = _optimal_losses(run_dir, data, model, checkpoint, indices, progress) if g.reads == "losses" else None
     calls: dict[str, int] = defaultdict(int)
 
@@ -649,7 +668,8 @@ def evaluate_gate(run_dir, data, gate: str, k=None, fusion: str = "soft-nms", sp
             for inputs, _targets, metas in _loader(model, data, indices, batch_size):
                 if losses is not None:
                     metas = [dict(m, branch_losses=losses[int(m["dataset_index"])]) for m in metas]
-                dets = model(inputs, meta=metas)
+                with model.device_setup.autocast():
+                    dets = model(inputs, meta=metas)
                 for meta, per in zip(metas, dets):
                     per_frame.append((meta, {n: to_detections(d) for n, d in per.items()}))
                 bar.update(len(metas))
@@ -677,7 +697,7 @@ def evaluate_gate(run_dir, data, gate: str, k=None, fusion: str = "soft-nms", sp
 
 
 def evaluate_all_gates(run_dir, data, gates=None, fusions=TABLE_FUSIONS, ks=None, split: str = "auto", weights=None,
-                       checkpoint: str = "latest", batch_size: int = 4, progress: bool = True) -> dict:
+                       checkpoint: str = "latest", batch_size: int = 4, progress: bool = True, setup=None) -> dict:
     """HydraFusion Tables 6 and 7 on this benchmark: mAP per gate x fusion x k, and how often each
     gate selects each branch per k. Every branch runs once per frame; each gate's top-k subsets are
     fused afterwards (equal to running only the selected branches: see the module docstring)."""
@@ -689,10 +709,10 @@ def evaluate_all_gates(run_dir, data, gates=None, fusions=TABLE_FUSIONS, ks=None
     from study.detect import score, to_detections
     from study.train import run_protocol
 
-    model, _cfg, indices, used_split, reader = _setup(run_dir, data, split, weights, checkpoint)
+    model, _cfg, indices, used_split, reader = _setup(run_dir, data, split, weights, checkpoint, setup)
     protocol = run_protocol(_cfg)
     names = list(gates or GATES.names())
-    gate_objs = {g: make_gate(g, model, run_dir, checkpoint) for g in names}
+    gate_objs = {g: _gate_on_device(make_gate(g, model, run_dir, checkpoint), model) for g in names}
     branches = list(model.branches)
     ks = list(ks or table_ks(len(branches)))
     ks = [parse_k(k, len(branches), "k") for k in ks]
@@ -706,12 +726,13 @@ def evaluate_all_gates(run_dir, data, gates=None, fusions=TABLE_FUSIONS, ks=None
         for inputs, _targets, metas in _loader(model, data, indices, batch_size):
             if losses is not None:
                 metas = [dict(m, branch_losses=losses[int(m["dataset_index"])]) for m in metas]
-            feats = model.extract_features(inputs)
-            for g, gate in gate_objs.items():
-                pred = gate.predict(feats, metas)
+            with model.device_setup.autocast():
+                feats = model.extract_features(inputs)
+                preds = {g: gate.predict(feats, metas).float().cpu() for g, gate in gate_objs.items()}
+                dets = model(inputs, selection=branches)
+            for g, pred in preds.items():
                 rankings[g].extend(rank_branches(pred).tolist())
                 predicted[g].extend(pred.tolist())
-            dets = model(inputs, selection=branches)
             for meta, per in zip(metas, dets):
                 per_frame.append((meta, {n: to_detections(d) for n, d in per.items()}))
             bar.update(len(metas))
@@ -825,16 +846,17 @@ def add_train_gate(sub, name, help_text):
     p.add_argument("--seed", type=nonneg_int, default=0, help="initialisation, data order, validation split")
     p.add_argument("--checkpoint", type=checkpoint_arg, default="latest", help="latest, or epoch-NNN")
     p.add_argument("--fresh", action="store_true", help="discard a previous training of this gate")
-    p.add_argument("--threads", type=pos_int, default=2, help="torch CPU threads")
+    add_device_args(p)
     p.add_argument("--json", action="store_true", help="print one JSON object on stdout")
     p.set_defaults(run=run_train_gate)
 
 
 def run_train_gate(args) -> int:
+    setup = resolve_device(args)
     cfg = GateTrainConfig(gate=args.gate, epochs=args.epochs, batch_size=args.batch_size, lr=args.lr,
                           val_fraction=args.val_fraction, seed=args.seed, grid=tuple(args.grid),
-                          checkpoint=args.checkpoint, threads=args.threads)
-    result = train_gate(Path(args.run_dir), Path(args.data), cfg, fresh=args.fresh)
+                          checkpoint=args.checkpoint, threads=setup.threads)
+    result = train_gate(Path(args.run_dir), Path(args.data), cfg, fresh=args.fresh, setup=setup)
 
     def text(r):
         lines = [f"{r['gate']} gate: held-out MAE {r['test_mae']} vs constant predictor {r['constant_mean_mae']} "

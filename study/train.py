@@ -11,6 +11,7 @@ is in the run directory:
     RUN/epoch-XXX.pt       the model at the end of each epoch
     RUN/metrics.csv        one row per epoch: mean losses per branch, lr, test mAP@0.5 per branch
                            (in its own frame) and of their late fusion (right camera), seconds
+                           (train_seconds: the training steps alone)
     RUN/curves.png         metrics.csv plotted: losses and test mAP per branch against the epoch
 
 Interrupted (even kill -9) and run again with the same arguments, training continues from the last
@@ -51,6 +52,7 @@ from study.cli import (
     pos_int,
     probability,
 )
+from study.device import add_device_args, resolve_device, to_device
 
 EPILOG = """\
 examples:
@@ -82,7 +84,15 @@ class TrainConfig:
         seed: model initialisation and data order.
         checkpoint_steps: also checkpoint every this many steps within an epoch.
         eval_frames: evaluate on at most this many test frames per epoch (0 = all).
-        threads: torch CPU threads.
+        threads: torch CPU threads (0: the cores available).
+        device: auto | cpu | cuda | cuda:N (`study.device`); under torchrun each process takes the
+            GPU of its LOCAL_RANK.
+        amp: bf16 autocast of the forward passes (None: on for CUDA, off on the CPU).
+        workers: DataLoader processes decoding frames (0: in the main process).
+        sampling: how the RPN and RoI heads draw the anchors and RoIs of their losses: "global"
+            (torch's global generator, one image after the other, as torchvision does) or
+            "per-frame" (`fusion.nets.sampling`: each frame's draw seeded by (seed, step, frame),
+            so it does not depend on how a batch is split over processes; what torchrun runs use).
         init_from: trained runs (comma-separated, priority order) whose weights initialise this one
             (see `warm_start`); "" = scratch.
         hflip: probability that a training frame is mirrored left-right, world and rig together
@@ -108,10 +118,14 @@ class TrainConfig:
     seed: int = 0
     checkpoint_steps: int = 100
     eval_frames: int = 0
-    threads: int = 2
+    threads: int = 0
     init_from: str = ""
     hflip: float = 0.0
     protocol: str = "reference"
+    device: str = "auto"
+    amp: bool | None = None
+    workers: int = 0
+    sampling: str = "global"
 
 
 # What a field added later means for a run made before it existed (config.json without the field).
@@ -237,6 +251,11 @@ def add_parser(sub, name, help_text):
                    "the projected 3D box of every actor within range that some sensor observes (world truth); "
                    "visible = the camera's visible-pixel boxes, small ones ignored; bev = as reference, BEV "
                    "branches scored on their own grid")
+    p.add_argument("--sampling", default="auto", choices=["auto", "global", "per-frame"],
+                   help="anchor / RoI sampling of the detection losses: global (torch's generator, one image after "
+                   "the other), per-frame (seeded per frame and step: the same whatever the number of processes); "
+                   "auto: the run's own, else per-frame under torchrun and global in one process")
+    add_device_args(p)
     p.add_argument("--json", action="store_true", help="print one JSON object (final metrics) on stdout")
     p.set_defaults(run=run)
 
@@ -255,14 +274,15 @@ def _lr_at(cfg: TrainConfig, epoch: int, step: int) -> float:
     return lr
 
 
-def evaluate_epoch(model, cfg: TrainConfig, reader, test_idx, branches) -> dict:
+def evaluate_epoch(model, cfg: TrainConfig, reader, test_idx, branches, setup=None) -> dict:
     from study.detect import bev_crop_of, fused, native, run_branches, score
 
     idx = test_idx if not cfg.eval_frames else test_idx[: cfg.eval_frames]
     if not idx:  # e.g. a one-sequence dataset: no test split, nothing to score
         return {**{f"map_{b}": None for b in branches}, "map_fused": None}
     model.eval()
-    per_frame = run_branches(model, cfg.data, idx, branches, batch_size=cfg.batch_size, progress="evaluate")
+    per_frame = run_branches(model, cfg.data, idx, branches, batch_size=cfg.batch_size, progress="evaluate",
+                             workers=setup.workers if setup else 0, amp=bool(setup and setup.amp))
     out = {}
     frames = model.branch_frames
     crop = bev_crop_of(model, reader)
@@ -274,6 +294,10 @@ def evaluate_epoch(model, cfg: TrainConfig, reader, test_idx, branches) -> dict:
     return out
 
 
+# settings a resumed run may change: they decide how long and where it runs, not what it learns
+FREE_ON_RESUME = ("epochs", "lr_drop_epoch", "eval_frames", "threads", "checkpoint_steps", "device", "amp", "workers")
+
+
 def run_profile(run_cfg: dict, where) -> ModelProfile:
     """The model profile a run was trained with: its recorded fields, or (runs from before they were
     recorded) the named profile as it is now."""
@@ -282,12 +306,68 @@ def run_profile(run_cfg: dict, where) -> ModelProfile:
     return load_profile(run_cfg["model_profile"])
 
 
+class _Batches(torch.utils.data.Dataset):
+    """Batch k of an epoch as collate() gives it, so DataLoader workers can decode frames ahead."""
+
+    def __init__(self, dataset, batches, flips):
+        self.dataset, self.batches, self.flips = dataset, batches, flips
+
+    def __len__(self) -> int:
+        return len(self.batches)
+
+    def __getitem__(self, k: int):
+        return collate([self.dataset.item(int(i), flip=bool(self.flips[i])) for i in self.batches[k]])
+
+
+def _as_is(x):
+    return x
+
+
+def _batch_stream(dataset, batches, flips, start: int, workers: int, pin: bool):
+    """(step, batch) for steps start.. of an epoch; decoded in `workers` processes when > 0."""
+    items = _Batches(dataset, batches, flips)
+    if workers <= 0:
+        for k in range(start, len(batches)):
+            yield k, items[k]
+        return
+    from torch.utils.data import DataLoader
+
+    loader = DataLoader(items, batch_size=None, sampler=range(start, len(batches)), num_workers=workers,
+                        collate_fn=_as_is, pin_memory=pin, persistent_workers=False)
+    yield from zip(range(start, len(batches)), loader)
+
+
+def _rank_share(batch, rank: int, world: int):
+    """This process's frames of a global batch (np.array_split: sizes differ by at most one)."""
+    return np.array_split(np.asarray(batch), world)[rank]
+
+
 def train(cfg: TrainConfig, out: Path, progress: bool = True) -> dict:
+    """Train (or resume) the run in `out`. Launched by torchrun (WORLD_SIZE > 1), each process
+    trains on its share of every batch (`DistributedDataParallel`, gloo on the CPU, NCCL on GPUs)
+    and rank 0 alone writes the run directory; `batch_size` stays the global batch."""
+
     from fusion.nets import build_hydrafusion
     from sim.progress import progress as progress_bar
+    from study import distributed as dist
     from study.plots import plot_training_curves
 
-    torch.set_num_threads(cfg.threads)
+    ddp = dist.from_env()
+    device = cfg.device
+    if ddp.world > 1 and device in ("auto", "cuda"):
+        device = f"cuda:{ddp.local_rank}" if torch.cuda.is_available() else ("cpu" if device == "auto" else device)
+    setup = resolve_device(device=device, threads=cfg.threads, amp=cfg.amp, workers=cfg.workers)
+    ddp.init(setup.device)
+    if cfg.sampling not in ("global", "per-frame"):
+        raise UserError(f"--sampling {cfg.sampling!r}: choose from global, per-frame")
+    if ddp.world > 1 and cfg.sampling != "per-frame":
+        raise UserError(f"{out}: sampling {cfg.sampling!r} draws each process's anchors from its own global generator; "
+                        "data-parallel training needs per-frame sampling (a run started with --sampling per-frame)")
+    if ddp.world > 1 and cfg.batch_size < ddp.world:
+        raise UserError(f"--batch-size {cfg.batch_size} is the global batch: it needs at least one frame per process "
+                        f"({ddp.world} processes)")
+    main_rank = ddp.rank == 0
+    progress = progress and main_rank
     check_dataset(cfg.data)  # every shard readable before RUN/ exists
     reader = DatasetReader(cfg.data)
     specs = branch_set(cfg.branch_set, cfg.model_profile)
@@ -323,40 +403,49 @@ def train(cfg: TrainConfig, out: Path, progress: bool = True) -> dict:
         raise UserError(f"--init-from {missing[0]}: no checkpoint.pt there")
     if out.is_dir() and any(out.iterdir()) and not (out / "config.json").exists():
         raise UserError(f"{out} is not empty and holds no training run (no config.json); use a new or empty --out")
-    out.mkdir(parents=True, exist_ok=True)
     cfg_path = out / "config.json"
-    if cfg_path.exists():
-        old = json.loads(cfg_path.read_text())
-        # fields added after a run was made hold their default in it
-        old = {**{f.name: LEGACY_DEFAULTS.get(f.name, f.default) for f in dataclasses.fields(TrainConfig)
-                  if f.name not in old}, **old}
-        old = json.loads(json.dumps(old))
-        free = ("epochs", "lr_drop_epoch", "eval_frames", "threads", "checkpoint_steps")  # may change on resume
-        comparable = {k: v for k, v in old.items() if k not in free}
-        now = {k: v for k, v in run_cfg.items() if k not in free}
-        if comparable != now:
-            diff = sorted(k for k in now if comparable.get(k) != now.get(k))
-            raise UserError(f"{out} holds a run with a different config ({', '.join(diff)}); use another --out")
-    tmp = cfg_path.with_name(".config.json.tmp")
-    tmp.write_text(json.dumps(run_cfg, indent=1))
-    os.replace(tmp, cfg_path)
+    if main_rank:
+        out.mkdir(parents=True, exist_ok=True)
+        if cfg_path.exists():
+            old = json.loads(cfg_path.read_text())
+            # fields added after a run was made hold their default in it (LEGACY_DEFAULTS: what it meant then)
+            old = {**{f.name: LEGACY_DEFAULTS.get(f.name, f.default) for f in dataclasses.fields(TrainConfig)
+                      if f.name not in old}, **old}
+            old = json.loads(json.dumps(old))
+            comparable = {k: v for k, v in old.items() if k not in FREE_ON_RESUME}
+            now = {k: v for k, v in run_cfg.items() if k not in FREE_ON_RESUME}
+            if comparable != now:
+                diff = sorted(k for k in now if comparable.get(k) != now.get(k))
+                raise UserError(f"{out} holds a run with a different config ({', '.join(diff)}); use another --out")
+        tmp = cfg_path.with_name(".config.json.tmp")
+        tmp.write_text(json.dumps(run_cfg, indent=1))
+        os.replace(tmp, cfg_path)
 
     train_idx, test_idx = split_by_sequence(reader, cfg.train_fraction, cfg.split_seed)
     torch.manual_seed(cfg.seed)
     model = build_hydrafusion(profile=run_profile(run_cfg, out), branches=specs)
-    if cfg.init_from and not (out / "checkpoint.pt").exists():
+    if cfg.sampling == "per-frame":
+        from fusion.nets.sampling import use_frame_seeded_sampling
+
+        use_frame_seeded_sampling(model)
+    ckpt_path = out / "checkpoint.pt"
+    ddp.barrier()  # rank 0 has checked and written config.json; no checkpoint is written before this
+    resuming = ckpt_path.exists()
+    if cfg.init_from and not resuming:
         report = warm_start(model, [torch.load(s, map_location="cpu", weights_only=False)["model"] for s in srcs])
-        (out / "warm_start.json").write_text(json.dumps({"sources": [str(s) for s in srcs], **report}, indent=1))
+        if main_rank:
+            (out / "warm_start.json").write_text(json.dumps({"sources": [str(s) for s in srcs], **report}, indent=1))
         if progress:
             sys.stderr.write(f"warm start from {', '.join(map(str, srcs))}: {report['copied']} tensors copied, "
                              f"{len(report['kept'])} fresh\n")
     model.train()
+    if setup.is_cuda:
+        model.to(setup.torch_device())
     params = [p for p in model.parameters() if p.requires_grad]
     opt = torch.optim.SGD(params, lr=cfg.lr, momentum=0.9, weight_decay=1e-4)
     epoch, step_in_epoch, global_step = 0, 0, 0
     resumed: dict = {}  # the interrupted epoch's running loss sums, so its row averages the whole epoch
-    ckpt_path = out / "checkpoint.pt"
-    if ckpt_path.exists():
+    if resuming:
         state = torch.load(ckpt_path, map_location="cpu", weights_only=False)
         model.load_state_dict(state["model"])
         opt.load_state_dict(state["optimizer"])
@@ -365,6 +454,9 @@ def train(cfg: TrainConfig, out: Path, progress: bool = True) -> dict:
         resumed = state.get("epoch_sums", {}) if step_in_epoch else {}
         if progress:
             sys.stderr.write(f"resuming {out} at epoch {epoch + 1}, step {step_in_epoch}\n")
+    net = ddp.wrap(model, setup)  # DistributedDataParallel under torchrun, the model itself otherwise
+    if progress and ddp.world > 1:
+        sys.stderr.write(f"data-parallel: {ddp.world} processes ({ddp.backend}), global batch {cfg.batch_size}\n")
     sensors = model.sensors_for(None)
     dataset = FrameDataset(cfg.data, train_idx, sensors=sensors, bev_size=model.transform.image_size("radar"),
                            protocol=cfg.protocol)
@@ -375,6 +467,11 @@ def train(cfg: TrainConfig, out: Path, progress: bool = True) -> dict:
         order = np.random.default_rng([cfg.seed, epoch]).permutation(len(dataset))
         flips = np.random.default_rng([cfg.seed, epoch, 1]).random(len(dataset)) < cfg.hflip
         batches = [order[k:k + cfg.batch_size] for k in range(0, len(order), cfg.batch_size)]
+        # under torchrun: this rank's share of each global batch; a rank left without a frame (a
+        # last batch smaller than the world) runs one frame with weight 0 to join the all-reduce
+        shares = [_rank_share(b, ddp.rank, ddp.world) for b in batches] if ddp.world > 1 else batches
+        weights = [len(s) / len(b) for s, b in zip(shares, batches)]
+        shares = [s if len(s) else b[:1] for s, b in zip(shares, batches)]
         sums: dict[str, float] = dict(resumed.get("sums", {}))
         counts = resumed.get("steps", 0)
         t0 = time.perf_counter() - resumed.get("seconds", 0.0)
@@ -382,53 +479,72 @@ def train(cfg: TrainConfig, out: Path, progress: bool = True) -> dict:
         # on a terminal a live bar; in a log file (nohup, CI) a line every few seconds (sim.progress)
         bar = progress_bar(total=steps_per_epoch, initial=step_in_epoch, desc=f"epoch {epoch + 1}/{cfg.epochs}",
                            unit="step", enabled=progress)
-        for k in range(step_in_epoch, len(batches)):
-            inputs, targets, _ = collate([dataset.item(int(i), flip=bool(flips[i])) for i in batches[k]])
+        for k, (inputs, targets, metas) in _batch_stream(dataset, shares, flips, step_in_epoch, setup.workers,
+                                                          setup.is_cuda):
+            inputs, targets = to_device(inputs, targets, setup.device)
             for g in opt.param_groups:
                 g["lr"] = _lr_at(cfg, epoch, global_step)
-            losses = model(inputs, targets)
+            if cfg.sampling == "per-frame":
+                from fusion.nets.sampling import set_sample_keys
+
+                set_sample_keys(model, [(cfg.seed, global_step, m["dataset_index"]) for m in metas])
+            with setup.autocast():
+                losses = net(inputs, targets)
             total = losses["total"]
             if not torch.isfinite(total):
                 raise RuntimeError(f"non-finite loss at epoch {epoch + 1} step {k} (lower --lr?)")
             opt.zero_grad(set_to_none=True)
-            total.backward()
+            if ddp.world > 1:
+                # DDP averages gradients over the processes; weighting each process's mean loss by
+                # its share of the batch makes that the mean over the batch's frames
+                (total * (weights[k] * ddp.world)).backward()
+            else:
+                total.backward()
             if cfg.clip_grad > 0:
                 torch.nn.utils.clip_grad_norm_(params, cfg.clip_grad)
             opt.step()
             global_step += 1
             counts += 1
+            w = weights[k]
             for b, ld in losses["branches"].items():
-                sums[b] = sums.get(b, 0.0) + float(sum(v.detach() for v in ld.values()))
-            sums["total"] = sums.get("total", 0.0) + float(total.detach())
+                v = float(sum(v.detach() for v in ld.values()))
+                sums[b] = sums.get(b, 0.0) + (v if ddp.world == 1 else w * v)
+            sums["total"] = sums.get("total", 0.0) + (float(total.detach()) if ddp.world == 1 else w * float(total.detach()))
             bar.set_postfix(loss=f"{total.item():.3f}", lr=f"{opt.param_groups[0]['lr']:.2e}")
             bar.update(1)
-            if (k + 1) % cfg.checkpoint_steps == 0 and k + 1 < len(batches):
+            if (k + 1) % cfg.checkpoint_steps == 0 and k + 1 < len(batches) and main_rank:
                 _atomic_save({"model": model.state_dict(), "optimizer": opt.state_dict(), "epoch": epoch,
                               "step_in_epoch": k + 1, "global_step": global_step,
                               "torch_rng": torch.get_rng_state(),
                               "epoch_sums": {"sums": sums, "steps": counts, "seconds": time.perf_counter() - t0}},
                              ckpt_path)
         bar.close()
+        train_seconds = time.perf_counter() - t0  # the steps alone, before the epoch's evaluation
+        sums = ddp.sum_dict(sums)  # the batch-mean losses of every process added up (one process: as is)
         epoch += 1
         step_in_epoch = 0
-        _atomic_save({"model": model.state_dict()}, out / f"epoch-{epoch:03d}.pt")
-        evals = evaluate_epoch(model, cfg, reader, test_idx, chosen)
-        row = {"epoch": epoch, "steps": global_step, "lr": opt.param_groups[0]["lr"],
-               **{f"loss_{b}": round(v / max(counts, 1), 4) for b, v in sums.items()}, **evals,
-               "seconds": round(time.perf_counter() - t0, 1)}
-        _append_row(metrics_path, row)
-        plot_training_curves(metrics_path, out / "curves.png")
-        _atomic_save({"model": model.state_dict(), "optimizer": opt.state_dict(), "epoch": epoch, "step_in_epoch": 0,
-                      "global_step": global_step, "torch_rng": torch.get_rng_state()}, ckpt_path)
-        if progress:
-            sys.stderr.write(json.dumps(row) + "\n")
-        result = row
+        if main_rank:
+            _atomic_save({"model": model.state_dict()}, out / f"epoch-{epoch:03d}.pt")
+            evals = evaluate_epoch(model, cfg, reader, test_idx, chosen, setup)
+            row = {"epoch": epoch, "steps": global_step, "lr": opt.param_groups[0]["lr"],
+                   **{f"loss_{b}": round(v / max(counts, 1), 4) for b, v in sums.items()}, **evals,
+                   "seconds": round(time.perf_counter() - t0, 1), "train_seconds": round(train_seconds, 2)}
+            _append_row(metrics_path, row)
+            plot_training_curves(metrics_path, out / "curves.png")
+            _atomic_save({"model": model.state_dict(), "optimizer": opt.state_dict(), "epoch": epoch,
+                          "step_in_epoch": 0, "global_step": global_step, "torch_rng": torch.get_rng_state()},
+                         ckpt_path)
+            if progress:
+                sys.stderr.write(json.dumps(row) + "\n")
+            result = row
+        ddp.barrier()  # the others wait for rank 0's evaluation and checkpoint
     if not result and metrics_path.exists():
         with open(metrics_path) as fh:
             rows = list(csv.DictReader(fh))
         result = rows[-1] if rows else {}
+    ddp.close()
     return {"run": str(out), "epochs": cfg.epochs, "train_frames": len(train_idx), "test_frames": len(test_idx),
-            "branches": chosen, "last": result}
+            "branches": chosen, "last": result, "device": setup.describe(), "processes": ddp.world}
 
 
 def _append_row(path: Path, row: dict) -> None:
@@ -447,14 +563,32 @@ def _append_row(path: Path, row: dict) -> None:
 
 
 def run(args) -> int:
+    resolve_device(args, apply=False)  # a device this machine does not have: refused before anything is written
     cfg = TrainConfig(
         data=str(Path(args.data).resolve()), model_profile=args.profile, branch_set=args.branch_set,
         branches=tuple(args.branches or ()), epochs=args.epochs,
         batch_size=args.batch_size, lr=args.lr, warmup_steps=args.warmup_steps, lr_drop_epoch=args.lr_drop_epoch,
         clip_grad=args.clip_grad, seed=args.seed, eval_frames=args.eval_frames, threads=args.threads,
         checkpoint_steps=args.checkpoint_steps, init_from=",".join(str(Path(r).resolve()) for r in args.init_from or ()),
-        hflip=args.hflip, protocol=args.protocol,
+        hflip=args.hflip, protocol=args.protocol, device=args.device, amp=args.amp, workers=args.workers,
+        sampling=_resolve_sampling(args.sampling, Path(args.out)),
     )
     result = train(cfg, Path(args.out))
-    emit(result, args.json, lambda r: f"run {r['run']}: {r['epochs']} epochs, last epoch {r['last']}")
+    from study.distributed import from_env
+
+    if from_env().rank == 0:  # one JSON object, from one process
+        emit(result, args.json, lambda r: f"run {r['run']}: {r['epochs']} epochs, last epoch {r['last']}")
     return 0
+
+
+def _resolve_sampling(choice: str, out: Path) -> str:
+    """--sampling auto: the run's own (runs from before the option: global); a new run per-frame under
+    torchrun, global in one process (torchvision's behaviour, so one-process results stay as they were)."""
+    if choice != "auto":
+        return choice
+    cfg_path = out / "config.json"
+    if cfg_path.exists():
+        return json.loads(cfg_path.read_text()).get("sampling", "global")
+    from study.distributed import from_env
+
+    return "per-frame" if from_env().world > 1 else "global"

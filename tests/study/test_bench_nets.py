@@ -11,7 +11,7 @@ def test_operator_kinds():
 
 
 def test_a_worker_reports_its_time_per_operator_kind():
-    r = _worker(("cpu", "paper", ["camera_right"], 1, 1, 2, None))
+    r = _worker(("cpu", "paper", ["camera_right"], 1, 1, 2, None, "cpu", False))
     ops = {k: r[f"ops_ms_per_frame/{k}"] for k in OP_KINDS}
     assert ops["conv"] > 0 and ops["roi_align"] > 0 and ops["linear"] > 0
     # the profiled forward's self times add up to about one forward (plus profiler overhead)
