@@ -89,7 +89,7 @@ def test_fused_loss_terms_by_hand():
     assert t[0] == pytest.approx(-math.log(0.8)) and t[1] == pytest.approx(0.0)
     assert t[2] == pytest.approx(-math.log(0.4) - math.log(0.7))
     assert tuple(t[3:]) == (1, 2, 1, 2)  # box 1 missed, 2 positives, 1 TP, 2 FP
-    expected = (-math.log(0.8) - math.log(0.4) - math.log(0.7) - math.log(0.05)) / 2
+    expected = (-math.log(0.8) - math.log(0.4) - math.log(0.7) - math.log(0.05) + 1.07) / 2
     assert fused_loss(dets, scores, labels, gt, gl, diff) == pytest.approx(expected)
     # a shifted true positive adds Faster R-CNN's smooth-L1 of its deltas (dx = 2 / 20)
     t2 = loss_terms(dets[[1]], scores[[1]], labels[[1]], gt[:1], gl[:1])
@@ -97,9 +97,26 @@ def test_fused_loss_terms_by_hand():
     # a wrong class is a false positive and a miss
     t3 = loss_terms(dets[[0]], scores[[0]], np.array([2]), gt[:1], gl[:1])
     assert tuple(t3[3:]) == (1, 1, 0, 1)
-    # finding an object never costs more than missing it (at any kept score >= 0.05)
-    assert fused_loss(dets[[0]], [0.05], [1], gt[:1], gl[:1]) <= fused_loss(dets[:0], [], [], gt[:1], gl[:1]) + 1e-9
-    assert FusedLossSpec(fp_weight=0).combine(t) == pytest.approx((-math.log(0.8) - math.log(0.05)) / 2)
+    assert FusedLossSpec(fp_weight=0).combine(t) == pytest.approx((-math.log(0.8) - math.log(0.05) + 1.07) / 2)
+
+
+def test_finding_an_object_never_costs_more_than_missing_it():
+    """Any box matching at IoU >= 0.5 with a kept score (>= 0.05) costs at most the miss cost: the
+    box term is bounded by MAX_MATCHED_BOX_TERM over every such box (random search)."""
+    from fusion.eco.loss import MAX_MATCHED_BOX_TERM, box_deltas
+
+    rng = np.random.default_rng(1)
+    c, lw = rng.uniform(-0.6, 0.6, (400_000, 2)), rng.uniform(-1, 1, (400_000, 2))
+    w = np.exp(lw)
+    d = np.stack([c[:, 0] - w[:, 0] / 2, c[:, 1] - w[:, 1] / 2, c[:, 0] + w[:, 0] / 2, c[:, 1] + w[:, 1] / 2], 1)
+    g = np.array([[-0.5, -0.5, 0.5, 0.5]])
+    inter = np.clip(np.minimum(d[:, 2:], 0.5) - np.maximum(d[:, :2], -0.5), 0, None).prod(1)
+    ok = inter / (w.prod(1) + 1 - inter) >= 0.5
+    box = smooth_l1(box_deltas(d[ok], np.repeat(g, ok.sum(), 0)), 1 / 9).sum(1)
+    assert ok.sum() > 10_000 and 0.9 < box.max() <= MAX_MATCHED_BOX_TERM
+    worst = d[ok][np.argmax(box)][None]
+    found = fused_loss(worst, [0.05], [1], g, [1])
+    assert found <= fused_loss(worst[:0], [], [], g, [1]) == pytest.approx(FusedLossSpec().miss_cost)
 
 
 # ----- Eq. 7-9 ----------------------------------------------------------------------------------
