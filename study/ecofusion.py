@@ -190,6 +190,7 @@ LOSS_VARIANTS = {
     "no_miss_term": {"miss_cost": 0.0},
     "no_box_term": {"box_weight": 0.0},
     "miss_cost_1": {"miss_cost": 1.0},
+    "first_definition_miss_3.0": {"miss_cost": 2.995732},  # -ln 0.05: a found object could cost more than a miss
 }
 """L_f variants whose ranking of configurations is compared with AP (eco-data's report)."""
 
