@@ -338,14 +338,14 @@ def machine_description(threads: int) -> dict:
 
 
 def measure_latency(model, data, indices, configs, method: str = "soft_nms", repeats: int = 3, threads: int = 1,
-                    counter: str = "auto", check: int = 6, seed: int = 0, progress: bool = True):
+                    counter: str = "auto", check: int = 12, seed: int = 0, progress: bool = True):
     """Time every stem, branch and the fusion block on `indices` (batch 1) and check the additive
     model against configurations timed end to end (stems + branches + fusion in one call).
 
     Returns (LatencyModel, check dict). Each component's time is the median of `repeats` runs
     after one warm-up, averaged over the frames; fusion[n] is the mean over the configurations of
-    n branches (each timed once per repeat). Checked configurations: the named baselines, all
-    branches, and `check` random others (seeded).
+    n branches (each timed once per repeat). Checked end to end: the first `check` of late
+    fusion, all branches, the other named baselines, then random others (seeded).
     """
     import torch
 
@@ -365,13 +365,14 @@ def measure_latency(model, data, indices, configs, method: str = "soft_nms", rep
     direct_t, direct_e = defaultdict(list), defaultdict(list)
     rng = np.random.default_rng(seed)
     members = list(configs.members)
-    checked = list(dict.fromkeys(configs.members[i] for i in configs.baselines.values()))
-    everything = tuple(configs.branches)
-    if everything in members and everything not in checked:
-        checked.append(everything)
-    others = [m for m in members if m not in checked]
-    if others:
-        checked += [others[i] for i in rng.choice(len(others), min(check, len(others)), replace=False)]
+    first = [configs.members[configs.baselines["late"]]] if "late" in configs.baselines else []
+    if tuple(configs.branches) in members:
+        first.append(tuple(configs.branches))
+    first += [configs.members[i] for i in configs.baselines.values()]
+    first = list(dict.fromkeys(first))
+    others = [m for m in members if m not in first]
+    extra = [others[i] for i in rng.permutation(len(others))] if others else []
+    checked = (first + extra)[:max(check, 1)]
     shared = [s for s in model.sensors if SENSORS[s].stem in model.stems]
     by_n = defaultdict(list)
     for m in members:
@@ -455,7 +456,7 @@ def latency_identity(run_dir, s: EcoSettings, threads: int, counter: str) -> dic
 
 def energy_table(run_dir, data, s: EcoSettings = EcoSettings(), threads: int = 1, repeats: int = 3, frames: int = 3,
                  counter: str = "auto", fresh: bool = False, progress: bool = True, model=None, configs=None,
-                 test=None, reuse: bool = False, n_check: int = 6) -> dict:
+                 test=None, reuse: bool = False, n_check: int = 12) -> dict:
     """`hydrabench eco-energy`: the latency model of this run on this machine (cached in
     RUN/eco/latency.json; `fresh` measures again) with its additive check, and each baseline's
     latency and energy. `reuse`: take a cached table of this checkpoint measured with other
@@ -1050,8 +1051,8 @@ def add_eco_energy(sub, name, help_text):
     p.add_argument("--frames", type=pos_int, default=3, help="test frames timed")
     p.add_argument("--counter", default="auto", choices=["auto", "rapl", "nvml", "none"],
                    help="energy counter: auto uses RAPL / NVML where readable, else the --power model")
-    p.add_argument("--check", type=nonneg_int, default=6, help="random configurations timed end to end besides the "
-                   "baselines and all branches, to check the additive model")
+    p.add_argument("--check", type=pos_int, default=12, help="configurations timed end to end to check the additive "
+                   "model: late fusion, all branches, the other baselines, then random ones")
     p.add_argument("--fresh", action="store_true", help="measure again even when RUN/eco/latency.json matches")
     p.set_defaults(run=run_eco_energy)
 
