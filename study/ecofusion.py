@@ -1140,6 +1140,8 @@ def run_eco_evaluate(args) -> int:
     gates = _gates(args.gates)
     if args.execute and args.execute not in GATE_ORDER:
         raise UserError(f"--execute: unknown gate {args.execute!r} (choose from: {', '.join(GATE_ORDER)})")
+    if args.execute and args.execute not in gates:
+        gates.append(args.execute)
     ev = EcoEval(Path(args.run_dir), Path(args.data), s, gates)
     r = evaluate_eco(args.run_dir, args.data, args.lambda_e, args.gamma, s, gates, ev=ev)
     if args.execute:
@@ -1154,7 +1156,7 @@ def run_eco_evaluate(args) -> int:
             lines.append(f"{k:22s} {v['map'] if v['map'] is not None else '-':>7} {v['avg_loss']:8.4f} "
                          f"{v['energy']:8.4f} {v['latency_ms']:10.2f}")
         for g, v in r["against_late"].items():
-            lines.append(f"  {g} vs late: mAP {v['map_minus_late']:+}, energy x{v['energy_ratio']}, "
+            lines.append(f"  {g} vs late: mAP {v['map_minus_late']}, energy x{v['energy_ratio']}, "
                          f"latency x{v['latency_ratio']}")
         if "executed" in r:
             x = r["executed"]
@@ -1176,7 +1178,8 @@ def add_eco_sweep(sub, name, help_text):
     p.add_argument("--lambdas", default=",".join(f"{x:g}" for x in SWEEP_LAMBDAS),
                    help="comma-separated lambda_E values of Figure 4 (Tables 1-2's values are always added)")
     p.add_argument("--gates", default="", help="comma-separated gates (default all four)")
-    p.add_argument("--figure-gate", default="attention", help="the EcoFusion gate of Table 1 and Figure 5")
+    p.add_argument("--figure-gate", default="", help="the EcoFusion gate of Table 1 and Figure 5 (default: attention "
+                   "when evaluated, else the first of --gates)")
     p.set_defaults(run=run_eco_sweep)
 
 
@@ -1191,10 +1194,11 @@ def run_eco_sweep(args) -> int:
     except argparse.ArgumentTypeError as exc:
         raise UserError(f"--lambdas: {exc}") from None
     gates = _gates(args.gates)
-    if args.figure_gate not in gates:
-        raise UserError(f"--figure-gate {args.figure_gate!r} is not among the evaluated gates ({', '.join(gates)})")
+    fig_gate = args.figure_gate or ("attention" if "attention" in gates else gates[0])
+    if fig_gate not in gates:
+        raise UserError(f"--figure-gate {fig_gate!r} is not among the evaluated gates ({', '.join(gates)})")
     out = check_writable_dir(args.out)
-    r = sweep(Path(args.run_dir), Path(args.data), out, args.gamma, lambdas, s, gates, args.figure_gate)
+    r = sweep(Path(args.run_dir), Path(args.data), out, args.gamma, lambdas, s, gates, fig_gate)
 
     def text(r):
         lines = [f"Table 1 ({r['frames']} test frames; energy in {r['energy_unit']})",
