@@ -344,6 +344,11 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "train": ("study.train:add_parser", "train HydraFusion stems and branches (resumable, per-epoch CSV and checkpoints)"),
     "evaluate": ("study.evaluate:add_parser", "VOC mAP@0.5 of a run's branches fused in the right camera (per class, per context)"),
     "train-gate": ("study.gates:add_train_gate", "train the deep or attention gate on a run's stem features and branch losses"),
+    "eco-data": ("study.ecofusion:add_eco_data", "EcoFusion: per-frame stem features and fused loss / AP of every branch configuration"),
+    "eco-energy": ("study.ecofusion:add_eco_energy", "EcoFusion: measured stem / branch / fusion latency and energy of every configuration"),
+    "eco-train-gate": ("study.ecofusion:add_eco_train_gate", "EcoFusion: train the deep or attention configuration gate"),
+    "eco-evaluate": ("study.ecofusion:add_eco_evaluate", "EcoFusion at one lambda_E and gamma: mAP, loss, energy, latency per gate"),
+    "eco-sweep": ("study.ecofusion:add_eco_sweep", "EcoFusion Tables 1-3 and Figures 4-5 over a lambda_E sweep"),
     "bench": ("study.bench:add_parser", "measure throughput (sim, generate, ...) and print the figures"),
 }
 

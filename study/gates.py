@@ -182,9 +182,26 @@ class GateData:
             "branches": list(self.branches), "loss_seed": self.seed,
             "bev_size": list(model.transform.image_size("radar")),
         }
+        self.identity.update(self.extra_identity())
         self.key = hashlib.sha256(json.dumps(self.identity, sort_keys=True).encode()).hexdigest()[:16]
-        self.dir = self.run_dir / "gate_data" / self.key
+        self.dir = self.run_dir / self.subdir / self.key
         self._index: dict[int, tuple[Path, int]] | None = None
+
+    subdir = "gate_data"
+    """Directory under the run that holds this kind of cache (subclasses: their own)."""
+
+    def extra_identity(self) -> dict:
+        """What else the cache key is made of (subclasses add their settings)."""
+        return {}
+
+    def compute(self, model, inputs, targets, metas, features) -> dict[str, np.ndarray]:
+        """Per-frame arrays of one batch (first axis = the batch's frames), stored in the chunks
+        beside "indices" and "features": here each branch's four Faster R-CNN losses, (B, n_branches, 4)."""
+        from fusion.nets import LOSS_NAMES
+
+        per = model.per_sample_losses(inputs, targets, seed=self.seed)
+        return {"losses": np.array([[[float(p[b][n]) for n in LOSS_NAMES] for b in self.branches] for p in per],
+                                   np.float32)}
 
     # -- what is on disk
     def _chunks(self) -> list[Path]:
@@ -228,8 +245,8 @@ class GateData:
         ds = FrameDataset(self.data, todo, sensors=model.sensors, bev_size=model.transform.image_size("radar"),
                           protocol=self.protocol)
         n_chunk = len(self._chunks())
-        bar = _bar(len(todo), "gate dataset", progress)
-        pending: dict[str, list] = {"indices": [], "features": [], "losses": []}
+        bar = _bar(len(todo), self.subdir.replace("_", " "), progress)
+        pending: dict[str, list] = defaultdict(list)
 
         def flush():
             nonlocal n_chunk
@@ -240,12 +257,10 @@ class GateData:
             path = self.dir / f"chunk-{n_chunk:05d}.npz"
             tmp = self.dir / f".chunk-{n_chunk:05d}.tmp-{os.getpid()}.npz"
             np.savez(tmp, indices=np.asarray(pending["indices"], np.int64),
-                     features=np.concatenate(pending["features"]).astype(np.float16),
-                     losses=np.concatenate(pending["losses"]).astype(np.float32))
+                     **{k: np.concatenate(v) for k, v in pending.items() if k != "indices"})
             os.replace(tmp, path)
             n_chunk += 1
-            for v in pending.values():
-                v.clear()
+            pending.clear()
 
         with torch.no_grad():
             for start in range(0, len(todo), batch_size):
@@ -254,13 +269,10 @@ class GateData:
                 inputs, targets = to_device(inputs, targets, device)
                 feats = model.extract_features(inputs, self.sensors)
                 pooled = pool_features(feats, self.sensors, self.grid)
-                per = model.per_sample_losses(inputs, targets, seed=self.seed)
-                from fusion.nets import LOSS_NAMES
-
-                losses = np.array([[[float(p[b][n]) for n in LOSS_NAMES] for b in self.branches] for p in per])
                 pending["indices"].extend(int(m["dataset_index"]) for m in metas)
                 pending["features"].append(pooled.half().cpu().numpy())
-                pending["losses"].append(losses)
+                for k, v in self.compute(model, inputs, targets, metas, feats).items():
+                    pending[k].append(v)
                 bar.update(len(items))
                 if len(pending["indices"]) >= chunk_frames:
                     flush()
@@ -270,6 +282,31 @@ class GateData:
         return len(todo)
 
     # -- reading
+    def arrays(self, indices, keys) -> dict[str, np.ndarray]:
+        """The cached arrays `keys` of `indices`, in that order (first axis = frames). Every frame
+        must be cached (`ensure`)."""
+        idx = self.index()
+        missing = [i for i in indices if int(i) not in idx]
+        if missing:
+            raise UserError(f"{self.subdir.replace('_', ' ')} {self.dir} has no frame {missing[0]} (build it first)")
+        by_chunk: dict[Path, list[tuple[int, int]]] = defaultdict(list)
+        for k, i in enumerate(indices):
+            path, row = idx[int(i)]
+            by_chunk[path].append((k, row))
+        out: dict[str, np.ndarray] = {}
+        if not by_chunk and self._chunks():  # no frames asked: empty arrays of the cached shapes
+            with np.load(self._chunks()[0]) as z:
+                return {key: np.zeros((0, *z[key].shape[1:]), z[key].dtype) for key in keys}
+        for path, pairs in by_chunk.items():
+            ks, rows = [k for k, _ in pairs], [r for _, r in pairs]
+            with np.load(path) as z:
+                for key in keys:
+                    a = z[key]
+                    if key not in out:
+                        out[key] = np.empty((len(indices), *a.shape[1:]), a.dtype)
+                    out[key][ks] = a[rows]
+        return out
+
     def load(self, indices) -> tuple[np.ndarray, np.ndarray]:
         """(features (n, C, rows, cols) float16, losses (n, n_branches) float32, the sum of the four
         Faster R-CNN losses) for `indices`, in that order. Every frame must be cached (`ensure`)."""

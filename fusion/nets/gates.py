@@ -430,6 +430,8 @@ class ConvGate(Gate):
         channels: output channels of the three convs (3x3; the second has stride 2).
         hidden: width of the MLP's hidden layer.
         dropout: before the MLP.
+        outputs: number of predicted losses (default: one per branch; EcoFusion's configuration
+            gates predict one per configuration, `fusion.eco.gates`).
         attention: add SelfAttention2d after the convs (the Attention gate).
 
     Input of the convs: `pool_features(features)` standardised per channel with `input_mean` /
@@ -454,8 +456,12 @@ class ConvGate(Gate):
         channels: Sequence[int] = (64, 32, 16),
         hidden: int = 64,
         dropout: float = 0.2,
+        outputs: int | None = None,
     ) -> None:
         super().__init__(branch_sensors=branch_sensors, branch_frames=branch_frames, k=k)
+        n_out = len(self.branches) if outputs is None else int(outputs)
+        if n_out < 1:
+            raise ValueError(f"outputs: must be at least 1, got {outputs}")
         if sensors is None:
             used = {s for ss in self.branch_sensors.values() for s in ss}
             sensors = [s for s in SENSORS if s in used]
@@ -488,20 +494,20 @@ class ConvGate(Gate):
         self.pool = nn.MaxPool2d(2)
         cells = ((grid[0] + 1) // 2 // 2) * ((grid[1] + 1) // 2 // 2)
         self.mlp = nn.Sequential(nn.Flatten(), nn.Dropout(dropout), nn.Linear(c3 * cells, hidden),
-                                 nn.ReLU(inplace=True), nn.Linear(hidden, len(self.branches)))
+                                 nn.ReLU(inplace=True), nn.Linear(hidden, n_out))
         nn.init.zeros_(self.mlp[-1].weight)
         nn.init.zeros_(self.mlp[-1].bias)
         self.register_buffer("input_mean", torch.zeros(c_in))
         self.register_buffer("input_std", torch.ones(c_in))
-        self.register_buffer("target_center", torch.zeros(len(self.branches)))
-        self.register_buffer("target_scale", torch.ones(len(self.branches)))
+        self.register_buffer("target_center", torch.zeros(n_out))
+        self.register_buffer("target_scale", torch.ones(n_out))
 
     def prepare(self, features: Mapping[str, Tensor]) -> Tensor:
         """What the gate consumes and the gate dataset stores: `pool_features(features, sensors, grid)`."""
         return pool_features(features, self.sensors, self.grid)
 
     def predict_prepared(self, x: Tensor) -> Tensor:
-        """(B, 64 * n_sensors, *grid) pooled features (float16 or float32) -> (B, n_branches)."""
+        """(B, 64 * n_sensors, *grid) pooled features (float16 or float32) -> (B, outputs)."""
         c = self.input_mean.numel()
         if not isinstance(x, Tensor) or x.dim() != 4 or x.shape[1] != c or tuple(x.shape[2:]) != self.grid:
             raise ValueError(f"x: expected pooled features (B, {c}, {self.grid[0]}, {self.grid[1]}), got {_describe(x)}")

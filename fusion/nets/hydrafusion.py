@@ -95,7 +95,9 @@ class HydraFusion(nn.Module):
         gate: optional module called as `gate(features, meta)` with `features` as returned by
             `extract_features` (every sensor present in the inputs) and `meta` as given to
             `forward`; it returns a selection (see `forward`). Used when `forward` gets no selection.
-            None: no gate, a missing selection means all branches.
+            A gate whose `reads` attribute is not "features" (the knowledge gate: external context)
+            is called with features None before any stem runs, and only the stems its selection
+            needs run. None: no gate, a missing selection means all branches.
         fusion_block: optional module called in eval mode as
             `fusion_block(detections, branch_frames, meta)` with `detections` the per-sample,
             per-branch detections described under `forward`; its result is returned instead of
@@ -405,11 +407,18 @@ class HydraFusion(nn.Module):
             raise ValueError(f"meta: {len(meta)} entries for a batch of {batch}")
         if not self.training and targets is not None:
             raise ValueError("targets: only used in training mode; in eval mode use per_sample_losses()")
-        if selection is None and self.gate is not None:
+        if selection is None and self.gate is not None and getattr(self.gate, "reads", "features") == "features":
+            # Algorithm 1 lines 2-4: every stem runs, the gate reads them, the branches reuse them
             features = self.extract_features(inputs)
             per_sample = self.expand_selection(self.gate(features, meta), batch)
             groups, needs = self._plan(inputs, per_sample)  # every needed sensor is in features
             feats = {s: (f, {i: i for i in range(batch)}) for s, f in features.items()}
+        elif selection is None and self.gate is not None:
+            # a gate that reads external context (or losses) decides before any stem runs; then
+            # only the stems the chosen branches need run (EcoFusion 4.2.1, Knowledge gating)
+            per_sample = self.expand_selection(self.gate(None, meta), batch)
+            groups, needs = self._plan(inputs, per_sample)
+            feats = None
         else:
             per_sample = self.expand_selection(selection, batch)
             groups, needs = self._plan(inputs, per_sample)
