@@ -148,7 +148,7 @@ class EcoData(GateData):
             calib = Calibration.from_dict(meta["calibration"])
             mapped = {n: to_reference(d, frames[n], calib) for n, d in per.items()}
             ref = dict.fromkeys(mapped, "camera_right")
-            gt = ground_truth(self.reader.labels(meta["dataset_index"]), "camera_right")
+            gt = ground_truth(self.reader.labels(meta["dataset_index"]), "camera_right", None, meta, self.protocol)
             t_row, ap_row = [], []
             for members in self.configurations.members:
                 f = fuse({n: mapped[n] for n in members}, ref, calib, method=self.fusion)
@@ -662,7 +662,7 @@ class EcoEval:
         members = [self.configs.members[i] for i in choice]
         fused = fuse_choice(self.dets, self.metas, self.ed.branches, self.model.branch_frames, members,
                             fusion_method(self.s.fusion), self.memo)
-        sc = score(fused, self.reader, "camera_right")
+        sc = score(fused, self.reader, "camera_right", protocol=self.ed.protocol)
         rows = np.arange(len(choice))
         lf = self.losses[rows, choice]
         out = {"map": sc["map"], "map_vehicles": sc["map_vehicles"], "avg_loss": round(float(lf.mean()), 4),
