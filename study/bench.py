@@ -206,7 +206,7 @@ def run_inference(args) -> int:
     r.update(machine())
 
     def text(r):
-        lines = [f"device {r['device']} (amp {r['amp']})",
+        lines = [f"device {r.get('device', 'cpu')} (amp {r.get('amp', False)})",
                  f"{'configuration':28s} {'batch 1 [ms]':>12s} {'batch 8 [ms/frame]':>18s} {'peak RSS [MB]':>13s}"
                  + (f" {'peak GPU [MB]':>13s} {'energy [J/frame]':>16s}" if "peak_gpu_mb" in r else "")]
         for name, ms in r["latency_ms"].items():
