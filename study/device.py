@@ -25,6 +25,7 @@ from contextlib import nullcontext
 from dataclasses import dataclass
 
 from sim.errors import UserError
+from study.cli import count_int
 
 
 def available_cores() -> int:
@@ -35,26 +36,16 @@ def available_cores() -> int:
         return max(1, os.cpu_count() or 1)
 
 
-def _count(text: str) -> int:
-    try:
-        v = int(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected an integer, got {text!r}") from None
-    if v < 0:
-        raise argparse.ArgumentTypeError(f"must be >= 0, got {v}")
-    return v
-
-
 def add_device_args(parser, *, workers: bool = True, threads_default: int = 0) -> None:
     """Add --device, --threads, --amp/--no-amp and (when `workers`) --workers to an argparse parser."""
     g = parser.add_argument_group("device")
     g.add_argument("--device", default="auto", help="auto | cpu | cuda | cuda:N (auto: a GPU when one is present)")
-    g.add_argument("--threads", type=_count, default=threads_default,
+    g.add_argument("--threads", type=count_int, default=threads_default,
                    help=f"torch CPU threads (0: the cores available, here {available_cores()})")
     g.add_argument("--amp", action=argparse.BooleanOptionalAction, default=None,
                    help="bf16 autocast of forward passes (default: on for CUDA, off on the CPU)")
     if workers:
-        g.add_argument("--workers", type=_count, default=0,
+        g.add_argument("--workers", type=count_int, default=0,
                        help="DataLoader worker processes decoding frames (0: in the main process)")
 
 

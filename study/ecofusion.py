@@ -43,7 +43,19 @@ from pathlib import Path
 import numpy as np
 
 from sim.errors import UserError
-from study.cli import Formatter, emit, nonneg_int, pos_int
+from study.cli import (
+    Formatter,
+    checkpoint_arg,
+    dataset_dir,
+    emit,
+    name_arg,
+    nonneg_float,
+    nonneg_int,
+    out_dir,
+    pos_float,
+    pos_int,
+    training_run,
+)
 from study.gates import (
     GateData,
     GateTrainConfig,
@@ -953,12 +965,12 @@ test split. Commands share the configuration dataset, the gates and the latency 
 
 
 def _common(p, energy: bool = True) -> None:
-    p.add_argument("run_dir", metavar="RUN", help="training run directory (hydrabench train --out)")
-    p.add_argument("data", help="the run's training dataset")
+    p.add_argument("run_dir", metavar="RUN", type=training_run, help="training run directory (hydrabench train --out)")
+    p.add_argument("data", type=dataset_dir, help="the run's training dataset")
     p.add_argument("--configurations", default="", help="YAML file of the configuration set (keys: subsets all|listed, "
                    "max_branches, configurations, baselines); default: every non-empty subset of the branches")
     p.add_argument("--fusion", default="soft-nms", help="late fusion of a configuration's branches: nms | soft-nms | wbf")
-    p.add_argument("--checkpoint", default="latest", help="latest, or epoch-NNN")
+    p.add_argument("--checkpoint", type=checkpoint_arg, default="latest", help="latest, or epoch-NNN")
     p.add_argument("--batch-size", type=pos_int, default=4, help="frames per forward when building the dataset")
     p.add_argument("--max-frames", type=nonneg_int, default=0, help="use at most this many frames of each split "
                    "(evenly spaced; 0 = all): for slow machines")
@@ -996,18 +1008,6 @@ def _unit(text: str, name: str) -> float:
 
 def _lambda(text: str) -> float:
     return _unit(text, "lambda_E")
-
-
-def _gamma(text: str) -> float:
-    import argparse
-
-    try:
-        v = float(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected a number, got {text!r}") from None
-    if v < 0:
-        raise argparse.ArgumentTypeError(f"gamma must be >= 0, got {v}")
-    return v
 
 
 def _gates(text: str) -> list[str]:
@@ -1089,10 +1089,10 @@ def add_eco_train_gate(sub, name, help_text):
     _common(p, energy=False)
     from study.gates import _fraction, _grid_arg
 
-    p.add_argument("--gate", required=True, help="deep | attention")
+    p.add_argument("--gate", required=True, type=name_arg, help="deep | attention")
     p.add_argument("--epochs", type=pos_int, default=100, help="passes over the training frames (more: continues)")
     p.add_argument("--gate-batch-size", type=pos_int, default=32, help="frames per Adam step")
-    p.add_argument("--lr", type=float, default=5e-5, help="Adam learning rate (HydraFusion 5.3's gate rate)")
+    p.add_argument("--lr", type=pos_float, default=5e-5, help="Adam learning rate (HydraFusion 5.3's gate rate)")
     p.add_argument("--val-fraction", type=_fraction, default=0.15, help="share of train sequences held out to pick the epoch")
     p.add_argument("--grid", type=_grid_arg, default="8x16", help="ROWSxCOLS the stem features are pooled to")
     p.add_argument("--seed", type=nonneg_int, default=0, help="initialisation, data order, validation split")
@@ -1126,7 +1126,7 @@ def add_eco_evaluate(sub, name, help_text):
                        formatter_class=Formatter)
     _common(p)
     p.add_argument("--lambda-e", type=_lambda, default=0.01, help="Eq. 8 energy weight lambda_E in [0, 1]")
-    p.add_argument("--gamma", type=_gamma, default=0.5, help="Eq. 7 loss tolerance gamma (Section 5: 0.5)")
+    p.add_argument("--gamma", type=nonneg_float, default=0.5, help="Eq. 7 loss tolerance gamma (Section 5: 0.5)")
     p.add_argument("--gates", default="", help="comma-separated: knowledge, deep, attention, loss_based (default all; "
                    "deep and attention must be trained with eco-train-gate)")
     p.add_argument("--execute", default="", help="also run this gate wired into the network (only the chosen "
@@ -1173,8 +1173,8 @@ def add_eco_sweep(sub, name, help_text):
     p = sub.add_parser(name, help=help_text, description=__doc__.split("**Evaluation**")[1], epilog=EPILOG,
                        formatter_class=Formatter)
     _common(p)
-    p.add_argument("--out", required=True, help="directory for figure4_loss_energy.png, figure5_scenes.png, result.json")
-    p.add_argument("--gamma", type=_gamma, default=0.5, help="Eq. 7 loss tolerance gamma (Section 5: 0.5)")
+    p.add_argument("--out", required=True, type=out_dir, help="directory for figure4_loss_energy.png, figure5_scenes.png, result.json")
+    p.add_argument("--gamma", type=nonneg_float, default=0.5, help="Eq. 7 loss tolerance gamma (Section 5: 0.5)")
     p.add_argument("--lambdas", default=",".join(f"{x:g}" for x in SWEEP_LAMBDAS),
                    help="comma-separated lambda_E values of Figure 4 (Tables 1-2's values are always added)")
     p.add_argument("--gates", default="", help="comma-separated gates (default all four)")

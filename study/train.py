@@ -245,7 +245,6 @@ def add_parser(sub, name, help_text):
                    "branches from camera_right, BEV ones from radar)")
     p.add_argument("--hflip", type=probability, default=0.0, help="probability of mirroring a training frame left-right "
                    "(all sensors and labels together; not with branches that fuse both cameras)")
-    p.add_argument("--threads", type=pos_int, default=2, help="torch CPU threads")
     p.add_argument("--protocol", default="reference", choices=("reference", "visible", "bev"),
                    help="ground truth to train on and test against (README, 'Evaluation protocols'): reference = "
                    "the projected 3D box of every actor within range that some sensor observes (world truth); "
