@@ -31,7 +31,7 @@ def test_bench_gates_reports_overhead_per_gate_and_topk_latency():
     assert r["topk_branches"]["deep"]["3"] == ["radar", "camera_left", "camera_right"]
 
 
-def test_bench_inference_prints_and_emits_the_gate_figures(monkeypatch, capsys):
+def test_bench_inference_prints_and_emits_the_gate_figures(monkeypatch, capsys, tmp_path):
     """The command's text and JSON carry bench_gates' figures (the slow parts replaced by stubs)."""
     import json
 
@@ -54,7 +54,10 @@ def test_bench_inference_prints_and_emits_the_gate_figures(monkeypatch, capsys):
     assert "gate overhead [ms]: knowledge" in out and "optimal - (needs ground truth)" in out
     assert "top-k with the attention gate [ms]: k=1" in out and "% of top-3" in out
     assert "all_branches: batch-8 gain per operator kind (share of batch-1 time): conv 1.04x (62 %)" in out
-    assert main(["bench", "inference", "--json", "--run", "runs/x"]) == 0
-    assert calls[-1][3] == "runs/x"
+    run = tmp_path / "x"
+    run.mkdir()
+    (run / "config.json").write_text("{}")  # --run is checked to be a training run before any work
+    assert main(["bench", "inference", "--json", "--run", str(run)]) == 0
+    assert calls[-1][3] == str(run)
     r = json.loads(capsys.readouterr().out)
     assert r["gate_overhead_ms"] == gates["gate_overhead_ms"] and set(r["topk_latency_ms"]["deep"]) == {"1", "3", "5"}

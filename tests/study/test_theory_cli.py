@@ -46,12 +46,12 @@ def test_help_explains_the_sample_size(hydrabench, capsys):
         (["--conditions", "city"], "names no weather condition"),
         (["--conditions", "city+rural+fog"], "names two road layouts"),
         (["--conditions", "fog+fog"], "repeats a condition"),
-        (["--severities", "9"], "severity must be 0..5"),
+        (["--severities", "9"], "must be <= 5, got 9"),
         (["--sequences", "1"], "sequences must be >= 2"),
         (["--frames", "3", "--sequences", "4"], "frames (3) must be >= sequences (4)"),
         (["--layout", "moon"], "invalid choice"),
         (["--profile", "gpu"], "unknown profile 'gpu'"),
-        (["--cache", "/proc/forbidden/cache"], "cannot create directory"),
+        (["--cache", "/proc/forbidden/cache"], "/proc is not writable"),
     ],
 )
 def test_bad_input_exits_2_with_one_line(hydrabench, capsys, argv, needle):
