@@ -39,6 +39,21 @@ examples:
 """
 
 
+def ray_address(text: str) -> str:
+    """An argparse type: a Ray cluster address, HOST:PORT, ray://HOST:PORT or auto."""
+    import argparse
+    import re
+
+    t = str(text).strip()
+    if not re.fullmatch(r"auto|(ray://)?[A-Za-z0-9_.\-]+:\d{1,5}", t):
+        raise argparse.ArgumentTypeError(f"expected HOST:PORT (as printed by `ray start --head`), ray://HOST:PORT "
+                                         f"or auto, got {text!r}")
+    return t
+
+
+ray_address.kind = "name"
+
+
 def add_generate(sub, name, help_text):
     p = sub.add_parser(name, help=help_text, description=help_text, epilog=GEN_EPILOG, formatter_class=Formatter)
     p.add_argument("--out", required=True, type=out_dir,
@@ -52,7 +67,7 @@ def add_generate(sub, name, help_text):
                    "--address: the CPUs of the local Ray instance)")
     p.add_argument("--backend", default="local", choices=["local", "ray"],
                    help="local: this process or a local process pool; ray: one Ray task per shard (same bytes)")
-    p.add_argument("--address", default=None, help="with --backend ray: the cluster to join (HOST:PORT printed by "
+    p.add_argument("--address", type=ray_address, default=None, help="with --backend ray: the cluster to join (HOST:PORT printed by "
                    "`ray start --head`, or auto); default: start a local Ray instance for this command")
     p.add_argument("--profile", type=name_arg, default=None, help="sensor profile: cpu or paper [cpu]")
     p.add_argument("--sequence-length", type=pos_int, default=None,

@@ -48,7 +48,9 @@ from study.cli import (
     checkpoint_arg,
     dataset_dir,
     emit,
+    in_file,
     name_arg,
+    name_list,
     nonneg_float,
     nonneg_int,
     out_dir,
@@ -967,15 +969,16 @@ test split. Commands share the configuration dataset, the gates and the latency 
 def _common(p, energy: bool = True) -> None:
     p.add_argument("run_dir", metavar="RUN", type=training_run, help="training run directory (hydrabench train --out)")
     p.add_argument("data", type=dataset_dir, help="the run's training dataset")
-    p.add_argument("--configurations", default="", help="YAML file of the configuration set (keys: subsets all|listed, "
+    p.add_argument("--configurations", type=_configurations_file, default=None, help="YAML file of the configuration set (keys: subsets all|listed, "
                    "max_branches, configurations, baselines); default: every non-empty subset of the branches")
-    p.add_argument("--fusion", default="soft-nms", help="late fusion of a configuration's branches: nms | soft-nms | wbf")
+    p.add_argument("--fusion", default="soft-nms", choices=["nms", "soft-nms", "wbf"],
+                   help="late fusion of a configuration's branches")
     p.add_argument("--checkpoint", type=checkpoint_arg, default="latest", help="latest, or epoch-NNN")
     p.add_argument("--batch-size", type=pos_int, default=4, help="frames per forward when building the dataset")
     p.add_argument("--max-frames", type=nonneg_int, default=0, help="use at most this many frames of each split "
                    "(evenly spaced; 0 = all): for slow machines")
     if energy:
-        p.add_argument("--power", default="px2", help="P of Eq. 6 where no energy counter exists: px2 (45.4 W, the "
+        p.add_argument("--power", type=_power, default="px2", help="P of Eq. 6 where no energy counter exists: px2 (45.4 W, the "
                        "paper's Drive PX2 under load) or watts")
         p.add_argument("--energy-scale", default="px2", choices=["px2", "late", "joules"],
                        help="what lambda_E weighs: px2 = E / E(late) x 3.798 J (PX2-equivalent joules), late = "
@@ -987,9 +990,7 @@ def _common(p, energy: bool = True) -> None:
 
 
 def _settings(args) -> EcoSettings:
-    if args.configurations and not Path(args.configurations).is_file():
-        raise UserError(f"--configurations: {args.configurations} is not a file")
-    return EcoSettings(configurations=args.configurations, fusion=args.fusion, checkpoint=args.checkpoint,
+    return EcoSettings(configurations=args.configurations or "", fusion=args.fusion, checkpoint=args.checkpoint,
                        power=getattr(args, "power", "px2"), energy_scale=getattr(args, "energy_scale", "px2"),
                        rule=getattr(args, "rule", "prose"), batch_size=args.batch_size, max_frames=args.max_frames)
 
@@ -1008,6 +1009,83 @@ def _unit(text: str, name: str) -> float:
 
 def _lambda(text: str) -> float:
     return _unit(text, "lambda_E")
+
+
+def _configurations_file(text: str) -> str:
+    """An argparse type: a configuration-set YAML file that reads (strict keys, valid values)."""
+    import argparse
+
+    from fusion.eco.configurations import load_configurations_config
+
+    path = in_file(text)
+    try:
+        load_configurations_config(path)
+    except (UserError, ValueError, TypeError) as exc:
+        raise argparse.ArgumentTypeError(f"{path}: {exc}") from None
+    return path
+
+
+_configurations_file.kind = "in_file"
+
+
+def _gate_list(text: str) -> str:
+    """An argparse type: a comma-separated list of configuration gates (GATE_ORDER)."""
+    import argparse
+
+    for g in name_list(text):
+        if g not in GATE_ORDER:
+            raise argparse.ArgumentTypeError(f"unknown gate {g!r} (choose from: {', '.join(GATE_ORDER)})")
+    return text
+
+
+_gate_list.kind = "names"
+
+
+def _lambda_list(text: str) -> str:
+    """An argparse type: a comma-separated list of lambda_E values in [0, 1]."""
+    for t in name_list(text):
+        _lambda(t)
+    return text
+
+
+_lambda_list.kind = "names"
+
+
+def _power(text: str) -> str:
+    """An argparse type: 'px2' or a machine power in watts (> 0, finite)."""
+    import argparse
+
+    from fusion.eco.energy import power_model
+
+    text = str(text).strip()
+    try:
+        power_model(text)
+    except ValueError as exc:
+        raise argparse.ArgumentTypeError(str(exc)) from None
+    return text
+
+
+_power.kind = "name"
+
+
+def _require_trained(run_dir, gates) -> None:
+    """Before any work: every learned gate asked for has been trained (RUN/eco/gates/<name>/gate.pt)."""
+    for g in gates:
+        if g in ("deep", "attention") and not (Path(run_dir) / "eco" / "gates" / g / "gate.pt").exists():
+            raise UserError(f"no trained {g} configuration gate in {run_dir} (run: hydrabench eco-train-gate "
+                            f"{run_dir} DATA --gate {g}, or leave it out of --gates)")
+
+
+SWEEP_FILES = ("figure4_loss_energy.png", "figure5_scenes.png", "result.json")
+
+
+def _check_sweep_out(out: Path) -> None:
+    """An eco-sweep --out holds nothing but an earlier sweep's files (they are replaced)."""
+    if out.is_dir():
+        foreign = sorted(p.name for p in out.iterdir() if p.name not in SWEEP_FILES)
+        if foreign:
+            raise UserError(f"--out {out} holds files that are not an eco-sweep's ({foreign[0]}); use a new or "
+                            "empty directory")
 
 
 def _gates(text: str) -> list[str]:
@@ -1127,9 +1205,9 @@ def add_eco_evaluate(sub, name, help_text):
     _common(p)
     p.add_argument("--lambda-e", type=_lambda, default=0.01, help="Eq. 8 energy weight lambda_E in [0, 1]")
     p.add_argument("--gamma", type=nonneg_float, default=0.5, help="Eq. 7 loss tolerance gamma (Section 5: 0.5)")
-    p.add_argument("--gates", default="", help="comma-separated: knowledge, deep, attention, loss_based (default all; "
+    p.add_argument("--gates", type=_gate_list, default=None, help="comma-separated: knowledge, deep, attention, loss_based (default all; "
                    "deep and attention must be trained with eco-train-gate)")
-    p.add_argument("--execute", default="", help="also run this gate wired into the network (only the chosen "
+    p.add_argument("--execute", default="", choices=list(GATE_ORDER), help="also run this gate wired into the network (only the chosen "
                    "branches and their stems run): stem / branch calls per frame, measured latency")
     p.add_argument("--execute-frames", type=nonneg_int, default=0, help="frames for --execute (0 = the test split)")
     p.set_defaults(run=run_eco_evaluate)
@@ -1142,6 +1220,7 @@ def run_eco_evaluate(args) -> int:
         raise UserError(f"--execute: unknown gate {args.execute!r} (choose from: {', '.join(GATE_ORDER)})")
     if args.execute and args.execute not in gates:
         gates.append(args.execute)
+    _require_trained(args.run_dir, gates)
     ev = EcoEval(Path(args.run_dir), Path(args.data), s, gates)
     r = evaluate_eco(args.run_dir, args.data, args.lambda_e, args.gamma, s, gates, ev=ev)
     if args.execute:
@@ -1175,10 +1254,10 @@ def add_eco_sweep(sub, name, help_text):
     _common(p)
     p.add_argument("--out", required=True, type=out_dir, help="directory for figure4_loss_energy.png, figure5_scenes.png, result.json")
     p.add_argument("--gamma", type=nonneg_float, default=0.5, help="Eq. 7 loss tolerance gamma (Section 5: 0.5)")
-    p.add_argument("--lambdas", default=",".join(f"{x:g}" for x in SWEEP_LAMBDAS),
+    p.add_argument("--lambdas", type=_lambda_list, default=",".join(f"{x:g}" for x in SWEEP_LAMBDAS),
                    help="comma-separated lambda_E values of Figure 4 (Tables 1-2's values are always added)")
-    p.add_argument("--gates", default="", help="comma-separated gates (default all four)")
-    p.add_argument("--figure-gate", default="", help="the EcoFusion gate of Table 1 and Figure 5 (default: attention "
+    p.add_argument("--gates", type=_gate_list, default=None, help="comma-separated gates (default all four)")
+    p.add_argument("--figure-gate", default="", choices=list(GATE_ORDER), help="the EcoFusion gate of Table 1 and Figure 5 (default: attention "
                    "when evaluated, else the first of --gates)")
     p.set_defaults(run=run_eco_sweep)
 
@@ -1197,7 +1276,9 @@ def run_eco_sweep(args) -> int:
     fig_gate = args.figure_gate or ("attention" if "attention" in gates else gates[0])
     if fig_gate not in gates:
         raise UserError(f"--figure-gate {fig_gate!r} is not among the evaluated gates ({', '.join(gates)})")
+    _require_trained(args.run_dir, gates)
     out = check_writable_dir(args.out)
+    _check_sweep_out(out)
     r = sweep(Path(args.run_dir), Path(args.data), out, args.gamma, lambdas, s, gates, fig_gate)
 
     def text(r):

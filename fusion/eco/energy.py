@@ -61,8 +61,8 @@ def power_model(spec: str | float | None) -> PowerModel:
         w = float(spec)
     except (TypeError, ValueError):
         raise ValueError(f"power: expected 'px2' or a power in watts, got {spec!r}") from None
-    if not w > 0:
-        raise ValueError(f"power: must be > 0 W, got {w}")
+    if not (w > 0 and w < float("inf")):
+        raise ValueError(f"power: must be a finite number of watts > 0, got {spec!r}")
     return PowerModel(w, "stated machine power")
 
 
