@@ -57,8 +57,8 @@ def test_degradation_physics_notebook_measures_each_law_on_twins(monkeypatch, tm
       fog models; our model keeps exactly the returns the law keeps except those a fog point replaces, and
       neither model keeps a return the law loses;
     - radar, rain: ITU-R P.838-3 at 77 GHz, gamma = 1.13 R^0.72 dB/km over the two-way path, fitted on the
-      8-bit polar images within 5 % at 10-50 mm/h (measured: < 2 %) and within 3 standard errors at 1 mm/h (a
-      fifth of a count over 100 m); fog (ITU-R P.840) within 3 standard errors, under 1 dB two-way over 100 m;
+      8-bit polar images within 3 % at 25-50 mm/h and 5 % at 10 mm/h (measured: < 2 %) and within 3 standard
+      errors at 1 mm/h (a fifth of a count over 100 m); fog (ITU-R P.840) within 3 standard errors, under 1 dB two-way over 100 m;
     - camera, night: the photon-transfer slope gives back the recorded analogue gain within 10 % (measured:
       < 4 %), the gain never exceeds 4 and reaches it at night; the road patch's level within 5 % and its
       noise std within 10 % of Poisson + 4 e- read noise; the image's log-average within 5 % of g k L_bar from
@@ -88,7 +88,9 @@ def test_degradation_physics_notebook_measures_each_law_on_twins(monkeypatch, tm
     for f in fits["radar_gamma_db_per_km"].values():
         law = 1.13 * f["rain_mm_h"] ** 0.72
         assert f["law"] == pytest.approx(law, rel=1e-3)
-        if f["rain_mm_h"] >= 10:
+        if f["rain_mm_h"] >= 25:  # 1-4 dB over 100 m: a 5 % error in the law fails here
+            assert f["fit"] == pytest.approx(law, rel=0.03)
+        elif f["rain_mm_h"] >= 10:
             assert f["fit"] == pytest.approx(law, rel=0.05)
         else:
             assert abs(f["fit"] - law) < 3 * f["se"]
