@@ -1,14 +1,18 @@
-"""The teaching notebooks run top to bottom (nbclient), so they cannot rot.
+"""The teaching notebooks run top to bottom (nbclient), so they cannot rot; the degradation-physics notebook's
+fitted coefficients are held to the laws it teaches.
 
 The fusion-theory notebook reads its simulated measurements from $HYDRABENCH_CACHE/theory, pointed
 here at the session's shared cache: whichever of this test and tests/study/test_theory_measured.py
 runs first measures study.theory.SMALL_CONFIG and the fog bank, the other reads them.
 """
 
+import json
+import math
 import os
 from pathlib import Path
 
 import nbformat
+import pytest
 from nbclient import NotebookClient
 
 ROOT = Path(__file__).resolve().parents[2]
@@ -32,3 +36,76 @@ def test_fusion_theory_notebook_runs_and_draws_its_figures(monkeypatch, tmp_path
     text = "".join(o.get("text", "") for o in outputs if o.get("output_type") == "stream")
     assert "fog (layout motorway)" in text and "night (layout motorway)" in text
     assert not [o for o in outputs if o.get("output_type") == "error"]
+
+
+def fitted_coefficients(nb) -> dict:
+    """The notebook's `FITS` dictionary, printed as one 'FITS {json}' line by its last cell."""
+    text = "".join(o.get("text", "") for c in nb.cells if c.cell_type == "code" for o in c.get("outputs", [])
+                   if o.get("output_type") == "stream")
+    lines = [line for line in text.splitlines() if line.startswith("FITS ")]
+    assert len(lines) == 1, "the notebook prints its fitted coefficients once"
+    return json.loads(lines[0][len("FITS "):])
+
+
+def test_degradation_physics_notebook_measures_each_law_on_twins(monkeypatch, tmp_path_factory):
+    """02_degradation_physics renders twins of one scene and fits each degradation law to what the simulated
+    sensors output; the laws are restated here, independently of the library's constants:
+
+    - camera, fog (Koschmieder, MOR at the 5 % contrast threshold): beta = ln 20 / MOR, fitted on the 8-bit
+      images within 1 % (measured: < 0.1 %);
+    - lidar, fog: P' = P exp(-2 alpha R), alpha = ln 20 / MOR, fitted on the kept returns within 1e-4 for both
+      fog models; our model keeps exactly the returns the law keeps except those a fog point replaces, and
+      neither model keeps a return the law loses;
+    - radar, rain: ITU-R P.838-3 at 77 GHz, gamma = 1.13 R^0.72 dB/km over the two-way path, fitted on the
+      8-bit polar images within 3 % at 25-50 mm/h and 5 % at 10 mm/h (measured: < 2 %) and within 3 standard
+      errors at 1 mm/h (a fifth of a count over 100 m); fog (ITU-R P.840) within 3 standard errors, under 1 dB two-way over 100 m;
+    - camera, night: the photon-transfer slope gives back the recorded analogue gain within 10 % (measured:
+      < 4 %), the gain never exceeds 4 and reaches it at night; the road patch's level within 5 % and its
+      noise std within 10 % of Poisson + 4 e- read noise; the image's log-average within 5 % of g k L_bar from
+      1 lx up (below, the sensor floor lifts it).
+    """
+    nb = run_notebook("02_degradation_physics.ipynb", monkeypatch, tmp_path_factory.getbasetemp() / "hydrabench-cache")
+    outputs = [o for c in nb.cells if c.cell_type == "code" for o in c.get("outputs", [])]
+    assert not [o for o in outputs if o.get("output_type") == "error"]
+    assert len([o for o in outputs if "image/png" in o.get("data", {})]) >= 5  # gallery, camera, lidar, radar, night
+    fits = fitted_coefficients(nb)
+
+    camera = fits["camera_beta_per_m"]
+    assert {600.0, 40.0} <= {round(f["mor_m"]) for f in camera.values()}
+    for f in camera.values():
+        assert f["fit"] == pytest.approx(math.log(20) / f["mor_m"], rel=0.01)
+
+    for key, f in fits["lidar_alpha_per_m"].items():
+        alpha = math.log(20) / f["mor_m"]
+        assert f["ours"] == pytest.approx(alpha, rel=1e-4) and f["hahner"] == pytest.approx(alpha, rel=1e-4)
+        c = fits["lidar_counts"][key]
+        assert c["ours_lost_of_law_kept"] == 0 and c["ours_kept_beyond_law"] == 0 and c["hahner_kept_beyond_law"] == 0
+        assert c["ours_kept"] + c["ours_fog_of_law_kept"] == c["law_kept"]
+    by_mor = sorted(fits["lidar_counts"].items(), key=lambda kv: -fits["lidar_alpha_per_m"][kv[0]]["mor_m"])
+    fog_points = [c["ours_fog_of_law_kept"] for _, c in by_mor]
+    assert fog_points == sorted(fog_points) and fog_points[-1] > 10 * fog_points[0]  # denser fog, more fog points
+
+    for f in fits["radar_gamma_db_per_km"].values():
+        law = 1.13 * f["rain_mm_h"] ** 0.72
+        assert f["law"] == pytest.approx(law, rel=1e-3)
+        if f["rain_mm_h"] >= 25:  # 1-4 dB over 100 m: a 5 % error in the law fails here
+            assert f["fit"] == pytest.approx(law, rel=0.03)
+        elif f["rain_mm_h"] >= 10:
+            assert f["fit"] == pytest.approx(law, rel=0.05)
+        else:
+            assert abs(f["fit"] - law) < 3 * f["se"]
+    fog = fits["radar_fog_gamma_db_per_km"]
+    liquid_water = 0.05 * (fog["mor_m"] / 300.0) ** (-math.log(10) / math.log(6))  # g/m^3, through P.840's points
+    assert fog["law"] == pytest.approx(3.2 * liquid_water, rel=1e-3)  # P.840 at 77 GHz: 3.2 dB/km per g/m^3
+    assert abs(fog["fit"] - fog["law"]) < 3 * fog["se"] and 2 * fog["fit"] * 0.1 < 1.0  # < 1 dB over 100 m and back
+
+    night = fits["night"]
+    assert max(f["gain"] for f in night.values()) == 4.0 and min(f["gain"] for f in night.values()) == 1.0
+    for f in night.values():
+        if f["gain_ptc"] is not None:
+            assert f["gain_ptc"] == pytest.approx(f["gain"], rel=0.10), f
+        assert f["road_mean"] == pytest.approx(f["road_mean_law"], rel=0.05), f
+        assert f["road_std"] == pytest.approx(f["road_std_law"], rel=0.10), f
+        if f["lux"] >= 1.0:
+            assert f["key"] == pytest.approx(f["key_law"], rel=0.05), f
+    assert sum(f["gain_ptc"] is not None for f in night.values()) >= 6
