@@ -79,7 +79,10 @@ def test_eco_data_reports_loss_ap_rank_correlation_and_subsets_fused_afterwards_
     ed = EcoData(eco, data, model, configs, "soft_nms")
     assert ed.dir.parent == eco / "eco_data" and ed.missing(range(8)) == []
     arr = ed.arrays([1, 6], ["features", "detections", "terms", "ap"])
-    assert arr["features"].shape == (2, 4 * 64, 8, 16) and arr["terms"].shape == (2, 31, 7)
+    from fusion.nets.gates import gate_sensors
+
+    assert set(gate_sensors(model)) == {"radar", "camera_left", "camera_right", "lidar", "fwd_lidar"}  # every stem
+    assert arr["features"].shape == (2, 5 * 64, 8, 16) and arr["terms"].shape == (2, 31, 7)
     assert arr["detections"].shape[:2] == (2, 5) and arr["ap"].shape == (2, 31)
     # a configuration run alone in the network, then fused, gives the cached loss terms
     reader = DatasetReader(data)
@@ -165,11 +168,11 @@ def test_eco_sweep_writes_tables_and_figures(eco, data, tmp_path, capsys):
 
 @pytest.mark.parametrize("argv, needle", [
     (["eco-evaluate", "--lambda-e", "2"], "lambda_E must be in [0, 1]"),
-    (["eco-evaluate", "--gamma", "-1"], "gamma must be >= 0"),
+    (["eco-evaluate", "--gamma", "-1"], "--gamma: must be >= 0"),
     (["eco-evaluate", "--gates", "magic"], "unknown gate 'magic'"),
-    (["eco-evaluate", "--fusion", "max"], "unknown fusion method"),
+    (["eco-evaluate", "--fusion", "max"], "--fusion: invalid choice: 'max'"),
     (["eco-train-gate", "--gate", "knowledge"], "nothing to train"),
-    (["eco-sweep", "--out", "/proc/no/such", "--gates", "knowledge"], "cannot create directory"),
+    (["eco-sweep", "--out", "/proc/no/such", "--gates", "knowledge"], "/proc is not writable"),
     (["eco-energy", "--power", "-4"], "--power"),
 ])
 def test_bad_input_exits_2_with_one_line(run, data, argv, needle, capsys):
