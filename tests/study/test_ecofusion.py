@@ -88,7 +88,7 @@ def test_eco_data_reports_loss_ap_rank_correlation_and_subsets_fused_afterwards_
     reader = DatasetReader(data)
     ds = FrameDataset(data, [6], sensors=model.sensors, bev_size=model.transform.image_size("radar"))
     inputs, _t, metas = collate([ds[0]])
-    gt = ground_truth(reader.labels(6), "camera_right")
+    gt = ground_truth(reader.labels(6), "camera_right", None, metas[0], ed.protocol)  # the run's protocol
     for name in ("late", "none_radar", "camera_right+camera_lidar"):
         members = configs.members[configs.index(name)]
         with torch.no_grad():
