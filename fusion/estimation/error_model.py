@@ -384,15 +384,25 @@ def gross_errors(ms: MeasurementSet, st: StrategyErrors) -> dict:
         gross error, "full_true": on objects with a measured one}. records: one dict per gross
         measurement (either kind).
     """
-    from fusion.estimation.gross import CAUSES, GATE_OUTCOMES, GROSS_BOUND, gross_cause, is_gross
+    from fusion.estimation.gross import (
+        CAUSES,
+        GATE_OUTCOMES,
+        GROSS_BOUND,
+        gross_cause,
+        is_gross,
+        shares_error,
+    )
 
     rows = st.rows
     flags = {kind: is_gross(v) for kind, v in st.sensor_nees.items()}  # (n, 3) each
     causes = np.full(flags["nominal"].shape, "", dtype=object)
     for i, k in zip(*np.nonzero(flags["nominal"] | flags["measured"])):
         r = rows[i]
+        e = ms.z[r] - ms.truth[r]  # (3, 2)
+        others = [j for j in range(len(SENSORS)) if j != k and ms.available[r, j]]
+        shared = shares_error(e[k], ms.R[r, k], [e[j] for j in others], [ms.R[r, j] for j in others])
         causes[i, k] = gross_cause(SENSORS[k], int(ms.actor_ids[r]), int(ms.source[r, k]), float(ms.purity[r, k]),
-                                   float(ms.quality[r, k]), float(ms.occlusion[r]), float(ms.truncation[r]))
+                                   float(ms.quality[r, k]), float(ms.occlusion[r]), float(ms.truncation[r]), shared)
     per_sensor = {}
     for kind, flag in flags.items():
         per_sensor[kind] = {}

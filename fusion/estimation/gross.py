@@ -33,13 +33,15 @@ GROSS_BOUND = float(stats.chi2.ppf(GROSS_PROB, 2))  # 13.82
 OCCLUDED = 0.25  # an object at least this share hidden in the camera counts as occluded
 FEW_RETURNS = 10  # a lidar measurement from fewer returns counts as a low point count
 
-CAUSES = ("association", "weather", "static_world", "noise", "occlusion", "out_of_field", "few_returns",
-          "own_object")
+CAUSES = ("association", "weather", "static_world", "noise", "common_mode", "occlusion", "out_of_field",
+          "few_returns", "own_object")
 CAUSE_TEXT = {
     "association": "the data came from another actor (radar peak on a neighbour, stereo match onto another object)",
     "weather": "returns from the air: fog backscatter, rain or snow in the lidar's cluster; radar clutter",
     "static_world": "the data came from the static world (guard rail, background pixels)",
     "noise": "the radar peak is receiver noise",
+    "common_mode": "the object's own data, and another sensor is wrong the same way (the reference point "
+                   "itself: a long vehicle seen obliquely shows its near end); no gate can see it",
     "occlusion": f"the object's own data, but at least {OCCLUDED:.0%} of it is hidden",
     "out_of_field": "the object's own data, but the object is cut by the image border",
     "few_returns": f"the object's own lidar data, from fewer than {FEW_RETURNS} returns",
@@ -76,8 +78,27 @@ def is_gross(nees_values) -> np.ndarray:
     return np.where(np.isfinite(v), v, 0.0) > GROSS_BOUND
 
 
+def shares_error(e: np.ndarray, R: np.ndarray, others_e, others_R, prob: float = 0.99) -> bool:
+    """Whether another sensor is wrong the same way: its error e_j agrees with e (the difference
+    passes the chi-square gate, (e - e_j)' (R + R_j)^-1 (e - e_j) <= chi2.ppf(prob, 2)) and is at least
+    half as large along e (e_j . e >= |e|^2 / 2). Such an error is common to the sensors: it cannot be
+    seen by comparing them."""
+    from fusion.estimation.consistency import nis
+    from fusion.estimation.gating import gate_threshold
+
+    e = np.asarray(e, float)
+    thr = gate_threshold(2, prob)
+    for ej, Rj in zip(others_e, others_R):
+        ej = np.asarray(ej, float)
+        if not np.all(np.isfinite(ej)):
+            continue
+        if float(nis(e - ej, np.asarray(R) + np.asarray(Rj))) <= thr and float(ej @ e) >= 0.5 * float(e @ e):
+            return True
+    return False
+
+
 def gross_cause(sensor: str, actor_id: int, source: int, purity: float, quality: float, occlusion: float,
-                truncation: float) -> str:
+                truncation: float, shared: bool = False) -> str:
     """Why a measurement of object `actor_id` is wrong, from the ground truth recorded with it.
 
     Args:
@@ -86,11 +107,12 @@ def gross_cause(sensor: str, actor_id: int, source: int, purity: float, quality:
             (`MeasurementSet.source`, `purity`).
         quality: the extractor's figure (lidar: number of returns).
         occlusion, truncation: shares of the object hidden / outside the left image.
+        shared: another sensor is wrong the same way (`shares_error`).
 
     Returns:
         The first of CAUSES that applies: another actor's data ("association"); air returns or
         clutter, also a lidar cluster mostly made of them ("weather"); the static world; noise; then,
-        for the object's own data, "occlusion", "out_of_field", "few_returns" (lidar), else
+        for the object's own data, "common_mode" (shared with another sensor), "occlusion", "out_of_field", "few_returns" (lidar), else
         "own_object".
     """
     if source == SOURCE_NONE:
@@ -103,6 +125,8 @@ def gross_cause(sensor: str, actor_id: int, source: int, purity: float, quality:
         return "static_world"
     if source == SOURCE_NOISE:
         return "noise"
+    if shared:
+        return "common_mode"
     if np.isfinite(occlusion) and occlusion >= OCCLUDED:
         return "occlusion"
     if np.isfinite(truncation) and truncation > 0.0:
