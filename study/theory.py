@@ -471,9 +471,10 @@ def _robust_lines(details: dict) -> list[str]:
 
 def _gross_lines(details: dict) -> list[str]:
     """Gross errors per sensor (count of measured, causes), the gate's verdicts, the fused SSE they carry."""
-    lines = [f"  {'sev':>3} gross errors (NEES > {_f(_gross_bound())}) against each sensor's nominal R (gate: "
-             "'gated') and its measured R (gate: 'gated_true'): gross/measured (causes); what the gate did; "
-             "share of full fusion's summed squared error on those objects"]
+    lines = [f"  {'sev':>3} gross errors, NEES > {_f(_gross_bound())} against each sensor's nominal R (its gate: 'gated') "
+             "or measured R (its gate: 'gated_true'):",
+             f"  {'':>3} gross/measured (causes) | what the gate did | share of full fusion's summed squared error "
+             "on those objects; MSE on the other objects"]
     for sev, det in details.items():
         if "gross" not in det:
             continue
@@ -487,8 +488,10 @@ def _gross_lines(details: dict) -> list[str]:
                     gate[o] = gate.get(o, 0) + n
             verdict = ", ".join(f"{o} {n}" for o, n in gate.items()) or "-"
             share = g["sse_share"][fused]
+            without = g["mse_without_gross"][kind]
+            rest = ", ".join(f"{name} {_f(without[name])}" for name in ("lidar", "radar", fused))
             lines.append(f"  {sev if i == 0 else '':>3} {kind + ' R:':<12} " + "; ".join(parts)
-                         + f" | gate: {verdict} | {fused} SSE share {_pct(share)}")
+                         + f" | gate: {verdict} | {fused} SSE share {_pct(share)}; MSE without them: {rest}")
     return lines
 
 

@@ -381,8 +381,10 @@ def gross_errors(ms: MeasurementSet, st: StrategyErrors) -> dict:
         "gate": {"nominal"|"measured": {outcome: count}}}}} for kind "nominal" and "measured".
         objects_with_gross: {kind: objects with at least one gross measurement of that kind}.
         sse_share: {"full_nominal": share of its summed squared error on objects with a nominal
-        gross error, "full_true": on objects with a measured one}. records: one dict per gross
-        measurement (either kind).
+        gross error, "full_true": on objects with a measured one}. mse_without_gross: {kind: {name:
+        MSE over the objects with no gross error of that kind}} for every sensor and strategy (a
+        diagnosis that uses the truth, not a strategy). records: one dict per gross measurement
+        (either kind).
     """
     from fusion.estimation.gross import (
         CAUSES,
@@ -415,6 +417,14 @@ def gross_errors(ms: MeasurementSet, st: StrategyErrors) -> dict:
                 "gate": {g: {o: int(np.sum(st.gate_outcomes[g][sel, k] == o)) for o in GATE_OUTCOMES
                              if np.any(st.gate_outcomes[g][sel, k] == o)} for g in st.gate_outcomes},
             }
+    clean = {}  # a diagnosis by truth, not a strategy: what each would score without those objects
+    for kind, flag in flags.items():
+        keep = ~flag.any(axis=1)
+        clean[kind] = {}
+        for name, e in st.errors.items():
+            sq = np.sum(e[keep] ** 2, axis=1)
+            sq = sq[np.isfinite(sq)]
+            clean[kind][name] = _round(sq.mean()) if len(sq) else None
     share = {}
     for name, kind in (("full_nominal", "nominal"), ("full_true", "measured")):
         sq = np.sum(st.errors[name] ** 2, axis=1)
@@ -436,4 +446,4 @@ def gross_errors(ms: MeasurementSet, st: StrategyErrors) -> dict:
         })
     return {"bound": round(GROSS_BOUND, 3), "per_sensor": per_sensor,
             "objects_with_gross": {kind: int(f.any(axis=1).sum()) for kind, f in flags.items()},
-            "sse_share": share, "records": records}
+            "sse_share": share, "mse_without_gross": clean, "records": records}
