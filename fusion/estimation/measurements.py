@@ -52,7 +52,7 @@ from sim.actors import CLASS_SIZE, CLASSES
 SENSORS = ("camera", "lidar", "radar")
 # Bump when an extractor, the nominal R or the evaluation set changes: cached measurements made by
 # another version are measured again.
-EXTRACTOR_VERSION = 5  # 5: each measurement records where its data came from (source, purity)
+EXTRACTOR_VERSION = 6  # 5, 6: each measurement records where its data came from (source, purity)
 
 # --- evaluation set --------------------------------------------------------------------------
 MIN_RANGE_M, MAX_RANGE_M = 5.0, 60.0  # reference-point distance from the ego origin [m]
@@ -578,8 +578,10 @@ def _lidar_returns(clean_instance, degraded, calib: Calibration, actor_id: int, 
 
 def lidar_source(clean_instance: np.ndarray, degraded, calib: Calibration, actor_id: int,
                  directions: np.ndarray) -> tuple[int, float]:
-    """Where a lidar measurement's data came from: (what the central return nearest the range
-    quantile hit, the share of central returns that hit the object itself).
+    """Where a lidar measurement's data came from: (what the returns that set the range hit, the
+    share of central returns that hit the object itself). The range is the LIDAR_RANGE_QUANTILE
+    quantile of the central returns, interpolated between two of them: if either is a weather
+    return, the range is (partly) the air's.
 
     The region holds only rays that hit the object in clear air, so a return on them hit either
     the object or the air: the degradation marks a weather return (fog backscatter, a rain drop, a
@@ -590,11 +592,11 @@ def lidar_source(clean_instance: np.ndarray, degraded, calib: Calibration, actor
     if ret is None:
         return SOURCE_NONE, np.nan
     region, rng, _, central = ret
-    own = degraded.instance[region] == actor_id
-    r = float(np.quantile(rng[central], LIDAR_RANGE_QUANTILE))
-    idx = np.flatnonzero(central)
-    k = idx[int(np.argmin(np.abs(rng[idx] - r)))]
-    return (int(actor_id) if own[k] else SOURCE_WEATHER), float(own[central].mean())
+    own = degraded.instance[region][central] == actor_id
+    order = np.argsort(rng[central], kind="stable")
+    pos = LIDAR_RANGE_QUANTILE * (len(order) - 1)  # np.quantile interpolates between these two returns
+    setters = order[[int(np.floor(pos)), int(np.ceil(pos))]]
+    return (int(actor_id) if own[setters].all() else SOURCE_WEATHER), float(own.mean())
 
 
 # ---------------------------------------------------------------------------------------------

@@ -130,6 +130,15 @@ def test_a_lidar_cluster_of_fog_returns_is_recorded_as_weather():
     fog.instance[12:20][:, az] = 0  # sensors.degrade.lidar marks a weather return with instance 0
     src, purity = M.lidar_source(clean.instance, fog, CALIB, 7, dirs)
     assert src == M.SOURCE_WEATHER and purity == 0.0
+    # rain drops on 3 of the 7 central columns (|offset| <= span / 6): a minority of the returns, but
+    # the nearest quarter, so the 25 % range quantile is set by drops while most returns are the car's
+    rain = clean.copy()
+    rain.range[12:20][:, az[9:12]] = 5.0  # 3 of the 7 central columns (central: |offset| <= span / 6)
+    rain.instance[12:20][:, az[9:12]] = 0
+    z, _, _ = M.lidar_measurement(clean.instance, rain, CALIB, 7, 1, dirs)
+    src, purity = M.lidar_source(clean.instance, rain, CALIB, 7, dirs)
+    assert np.linalg.norm(z - CALIB.ego_from_lidar[:2, 3]) < 20.0  # pulled short of 25 m
+    assert src == M.SOURCE_WEATHER and 0.5 < purity < 1.0
 
 
 def test_a_stereo_match_landing_on_another_object_is_recorded_as_that_object():
