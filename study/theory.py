@@ -15,7 +15,9 @@ measured, each fusing the sensors that measured the object (`fusion.estimation.e
 
 Errors are heavy-tailed, so details.<condition>.<severity> also carries, for every sensor and
 strategy (gated_true: the same gate on the measured covariances), `robust`: the mean squared error
-with its standard error beside the median and the 10 % trimmed mean; and `gross`: the gross
+with its standard error beside the median and the 10 % trimmed mean; `paired_vs_best_single`: each
+strategy's squared error minus the better of lidar and radar alone, object by object (mean, se);
+and `gross`: the gross
 errors, measurements whose NEES exceeds the chi-square 99.9 % bound (13.8) of the sensor's nominal
 R or of its measured error second moment, counted per sensor and per cause (read from the
 simulator's ground truth: another actor's data, weather returns, the static world, noise,
@@ -337,7 +339,7 @@ def cell_report(ms, gate_prob: float) -> tuple[dict, dict]:
         result = {"mse_single": {s: None for s in SENSORS}, "mse_full_nominal": None, "mse_full_true": None,
                   "mse_selective": None, "mse_gated": None, "nees_mean": None, "nees_bounds": None}
         return result, details
-    from fusion.estimation.error_model import STRATEGIES, gross_errors
+    from fusion.estimation.error_model import REQUIRED, STRATEGIES, gross_errors
     from fusion.estimation.gross import robust_summary
 
     r = _sig
@@ -345,6 +347,15 @@ def cell_report(ms, gate_prob: float) -> tuple[dict, dict]:
     for name in list(SENSORS) + list(STRATEGIES):
         summary = robust_summary(np.sum(st.errors[name] ** 2, axis=1))
         robust[name] = {k: (v if k == "n" else r(v)) for k, v in summary.items()}
+    # each strategy against the best of the sensors every compared object has, object by object
+    best = min(REQUIRED, key=lambda s: st.mse[s])
+    sq_best = np.sum(st.errors[best] ** 2, axis=1)
+    paired = {"best_single": best}
+    for name in STRATEGIES:
+        diff = np.sum(st.errors[name] ** 2, axis=1) - sq_best
+        diff[np.abs(diff) < 1e-9 * (1.0 + sq_best)] = 0.0  # the same estimate (round-off)
+        d = robust_summary(diff)
+        paired[name] = {"mean": r(d["mean"]), "se": r(d["se"])}
     result = {
         "mse_single": {s: r(st.mse[s]) for s in SENSORS},
         "mse_full_nominal": r(st.mse["full_nominal"]),
@@ -361,6 +372,7 @@ def cell_report(ms, gate_prob: float) -> tuple[dict, dict]:
         "measured": st.measured,
         "mse_full_nominal_predicted": r(st.mse_full_nominal_predicted),
         "robust": robust,
+        "paired_vs_best_single": paired,
         "gross": gross_errors(ms, st),
     })
     return result, details
@@ -454,7 +466,8 @@ ROBUST_FIGURES = (("mean", "mean"), ("se", "+- se"), ("median", "median"), ("tri
 
 
 def _robust_lines(details: dict) -> list[str]:
-    """Mean, its standard error, median and 10 % trimmed mean of the squared errors, per column."""
+    """Mean, its standard error, median and 10 % trimmed mean of the squared errors, per column; each
+    strategy's paired difference from the better of lidar and radar alone (mean and its se)."""
     head = [f"{'camera':>8} {'lidar':>8} {'radar':>8}", f"{'full_nom':>8} {'full_true':>9} {'selective':>9} "
             f"{'gated':>8} {'gated_true':>10}"]
     lines = [f"  {'sev':>3} {'squared error':<14} {head[0]} | {head[1]}"]
@@ -466,6 +479,12 @@ def _robust_lines(details: dict) -> list[str]:
             v = [_f(rob[c][key]) for c in ROBUST_COLUMNS]
             lines.append(f"  {sev if i == 0 else '':>3} {label:<14} {v[0]:>8} {v[1]:>8} {v[2]:>8} | {v[3]:>8} "
                          f"{v[4]:>9} {v[5]:>9} {v[6]:>8} {v[7]:>10}")
+        paired = det["paired_vs_best_single"]
+        for key, label in (("mean", f"- {paired['best_single']}"), ("se", "  +- se")):
+            v = [_f(paired[c][key]) if key == "se" or paired[c][key] is None
+                 else f"{paired[c][key]:+.3g}" for c in ROBUST_COLUMNS[3:]]
+            lines.append(f"  {'':>3} {label:<14} {'':>8} {'':>8} {'':>8} | {v[0]:>8} {v[1]:>9} {v[2]:>9} {v[3]:>8} "
+                         f"{v[4]:>10}")
     return lines
 
 
