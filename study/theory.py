@@ -64,11 +64,12 @@ each) a motorway cell holds ~107 objects; the lidar measures ~80 % of them, the 
 ~25 % in clear weather (it stops at 27 m and rejects unconfident matches), so ~85 objects are seen
 by both active sensors and compared (the camera fused where it matched). Errors are heavy-tailed:
 an MSE from ~85 of them has a relative standard error of 20-40 % (--json gives each one in
-details.mse_se), so read factors, not digits; a mean NEES from ~25-300 values separates "right" (~2)
+details.mse_se), up to 90 % where one or two gross errors decide it (compare the median and the
+trimmed mean printed beside it, and the gross-error lines), so read factors, not digits; a mean NEES from ~25-300 values separates "right" (~2)
 from "wrong" (tens to 10^4) but not 2 from 3. --frames 160
 --sequences 16 quarters the variances (about 15 minutes on 2 cores).
 The default sweep takes ~4 minutes on 2 cores (21 cells, 840 frames); every later run with the same
-settings reads the cache and takes seconds.
+settings reads the cache and takes about a minute (the analysis: two gated fusions per object).
 
 examples:
   hydrabench theory                                   (all conditions, severities 0-5, ~4 min cold)
