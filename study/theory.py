@@ -13,6 +13,17 @@ measured, each fusing the sensors that measured the object (`fusion.estimation.e
     nees_mean         mean NEES of full nominal fusion against its own P (2 if honest)
     nees_bounds       two-sided 95 % bounds of that mean for the number of objects
 
+Errors are heavy-tailed, so details.<condition>.<severity> also carries, for every sensor and
+strategy (gated_true: the same gate on the measured covariances), `robust`: the mean squared error
+with its standard error beside the median and the 10 % trimmed mean; `paired_vs_best_single`: each
+strategy's squared error minus the better of lidar and radar alone, object by object (mean, se);
+and `gross`: the gross
+errors, measurements whose NEES exceeds the chi-square 99.9 % bound (13.8) of the sensor's nominal
+R or of its measured error second moment, counted per sensor and per cause (read from the
+simulator's ground truth: another actor's data, weather returns, the static world, noise,
+occlusion, the image border, few lidar returns, or the object's own data), with what each gate did
+with them and the share of the fused squared error they carry (fusion.estimation.gross).
+
 Every cell uses the same sequence seeds (common random numbers): the same traffic is measured in
 every weather, so differences between cells come from the weather, not from the draw. Severity 0
 is clear weather on the condition's layout, measured once for all conditions on that layout.
@@ -53,11 +64,12 @@ each) a motorway cell holds ~107 objects; the lidar measures ~80 % of them, the 
 ~25 % in clear weather (it stops at 27 m and rejects unconfident matches), so ~85 objects are seen
 by both active sensors and compared (the camera fused where it matched). Errors are heavy-tailed:
 an MSE from ~85 of them has a relative standard error of 20-40 % (--json gives each one in
-details.mse_se), so read factors, not digits; a mean NEES from ~25-300 values separates "right" (~2)
+details.mse_se), up to 90 % where one or two gross errors decide it (compare the median and the
+trimmed mean printed beside it, and the gross-error lines), so read factors, not digits; a mean NEES from ~25-300 values separates "right" (~2)
 from "wrong" (tens to 10^4) but not 2 from 3. --frames 160
 --sequences 16 quarters the variances (about 15 minutes on 2 cores).
 The default sweep takes ~4 minutes on 2 cores (21 cells, 840 frames); every later run with the same
-settings reads the cache and takes seconds.
+settings reads the cache and takes about a minute (the analysis: two gated fusions per object).
 
 examples:
   hydrabench theory                                   (all conditions, severities 0-5, ~4 min cold)
@@ -328,7 +340,23 @@ def cell_report(ms, gate_prob: float) -> tuple[dict, dict]:
         result = {"mse_single": {s: None for s in SENSORS}, "mse_full_nominal": None, "mse_full_true": None,
                   "mse_selective": None, "mse_gated": None, "nees_mean": None, "nees_bounds": None}
         return result, details
+    from fusion.estimation.error_model import REQUIRED, STRATEGIES, gross_errors
+    from fusion.estimation.gross import robust_summary
+
     r = _sig
+    robust = {}
+    for name in list(SENSORS) + list(STRATEGIES):
+        summary = robust_summary(np.sum(st.errors[name] ** 2, axis=1))
+        robust[name] = {k: (v if k == "n" else r(v)) for k, v in summary.items()}
+    # each strategy against the best of the sensors every compared object has, object by object
+    best = min(REQUIRED, key=lambda s: st.mse[s])
+    sq_best = np.sum(st.errors[best] ** 2, axis=1)
+    paired = {"best_single": best}
+    for name in STRATEGIES:
+        diff = np.sum(st.errors[name] ** 2, axis=1) - sq_best
+        diff[np.abs(diff) < 1e-9 * (1.0 + sq_best)] = 0.0  # the same estimate (round-off)
+        d = robust_summary(diff)
+        paired[name] = {"mean": r(d["mean"]), "se": r(d["se"])}
     result = {
         "mse_single": {s: r(st.mse[s]) for s in SENSORS},
         "mse_full_nominal": r(st.mse["full_nominal"]),
@@ -344,6 +372,9 @@ def cell_report(ms, gate_prob: float) -> tuple[dict, dict]:
         "selective_subsets": [list(s) for s in st.subsets],
         "measured": st.measured,
         "mse_full_nominal_predicted": r(st.mse_full_nominal_predicted),
+        "robust": robust,
+        "paired_vs_best_single": paired,
+        "gross": gross_errors(ms, st),
     })
     return result, details
 
@@ -426,7 +457,72 @@ def format_text(result: dict) -> str:
                 vr = e["variance_ratio"]
                 cells.append(f"{_f(vr[0]) + '/' + _f(vr[1]):>13} NEES {_f(e['nees_mean']):>6} {100 * e['availability']:3.0f}%")
             lines.append(f"  {sev:>3} {'':<26} " + "  ".join(f"{c:<31}" for c in cells))
+        lines.extend(_robust_lines(result["details"][cond]))
+        lines.extend(_gross_lines(result["details"][cond]))
     return "\n".join(lines)
+
+
+ROBUST_COLUMNS = ("camera", "lidar", "radar", "full_nominal", "full_true", "selective", "gated", "gated_true")
+ROBUST_FIGURES = (("mean", "mean"), ("se", "+- se"), ("median", "median"), ("trimmed", "trimmed"))
+
+
+def _robust_lines(details: dict) -> list[str]:
+    """Mean, its standard error, median and 10 % trimmed mean of the squared errors, per column; each
+    strategy's paired difference from the better of lidar and radar alone (mean and its se)."""
+    head = [f"{'camera':>8} {'lidar':>8} {'radar':>8}", f"{'full_nom':>8} {'full_true':>9} {'selective':>9} "
+            f"{'gated':>8} {'gated_true':>10}"]
+    lines = [f"  {'sev':>3} {'squared error':<14} {head[0]} | {head[1]}"]
+    for sev, det in details.items():
+        if "robust" not in det:
+            continue
+        rob = det["robust"]
+        for i, (key, label) in enumerate(ROBUST_FIGURES):
+            v = [_f(rob[c][key]) for c in ROBUST_COLUMNS]
+            lines.append(f"  {sev if i == 0 else '':>3} {label:<14} {v[0]:>8} {v[1]:>8} {v[2]:>8} | {v[3]:>8} "
+                         f"{v[4]:>9} {v[5]:>9} {v[6]:>8} {v[7]:>10}")
+        paired = det["paired_vs_best_single"]
+        for key, label in (("mean", f"- {paired['best_single']}"), ("se", "  +- se")):
+            v = [_f(paired[c][key]) if key == "se" or paired[c][key] is None
+                 else f"{paired[c][key]:+.3g}" for c in ROBUST_COLUMNS[3:]]
+            lines.append(f"  {'':>3} {label:<14} {'':>8} {'':>8} {'':>8} | {v[0]:>8} {v[1]:>9} {v[2]:>9} {v[3]:>8} "
+                         f"{v[4]:>10}")
+    return lines
+
+
+def _gross_lines(details: dict) -> list[str]:
+    """Gross errors per sensor (count of measured, causes), the gate's verdicts, the fused SSE they carry."""
+    lines = [f"  {'sev':>3} gross errors, NEES > {_f(_gross_bound())} against each sensor's nominal R (its gate: 'gated') "
+             "or measured R (its gate: 'gated_true'):",
+             f"  {'':>3} gross/measured (causes) | what the gate did | share of full fusion's summed squared error "
+             "on those objects; MSE on the other objects"]
+    for sev, det in details.items():
+        if "gross" not in det:
+            continue
+        g = det["gross"]
+        for i, (kind, fused) in enumerate((("nominal", "full_nominal"), ("measured", "full_true"))):
+            parts, gate = [], {}
+            for s, d in g["per_sensor"][kind].items():
+                causes = ", ".join(f"{c} {n}" for c, n in d["causes"].items())
+                parts.append(f"{s} {d['gross']}/{d['n']}" + (f" ({causes})" if causes else ""))
+                for o, n in d["gate"][kind].items():
+                    gate[o] = gate.get(o, 0) + n
+            verdict = ", ".join(f"{o} {n}" for o, n in gate.items()) or "-"
+            share = g["sse_share"][fused]
+            without = g["mse_without_gross"][kind]
+            rest = ", ".join(f"{name} {_f(without[name])}" for name in ("lidar", "radar", fused))
+            lines.append(f"  {sev if i == 0 else '':>3} {kind + ' R:':<12} " + "; ".join(parts)
+                         + f" | gate: {verdict} | {fused} SSE share {_pct(share)}; MSE without them: {rest}")
+    return lines
+
+
+def _gross_bound() -> float:
+    from fusion.estimation.gross import GROSS_BOUND
+
+    return GROSS_BOUND
+
+
+def _pct(v) -> str:
+    return "-" if v is None else f"{100 * v:.0f} %"
 
 
 def _f(v) -> str:

@@ -8,6 +8,9 @@
 - `consistency`: NEES / NIS and their chi-square bounds (`nees`, `nis`, `chi2_interval`,
   `mean_chi2_interval`, `consistency_report`, `is_consistent`).
 - `gating`: chi-square innovation gating (`gate_threshold`, `gated_update`, `gated_wls`).
+- `gross`: robust figures and gross errors of measured sensors (`gross.robust_summary`,
+  `gross.is_gross`, `gross.gross_cause`, `gross.gate_outcome`; `error_model.gross_errors` applies
+  them to a cell's measurements).
 - `ci`: covariance intersection for unknown correlation (`covariance_intersection`,
   `covariance_intersection_n`, `ci_combine`, `naive_fusion`).
 - `tracker`: a constant-velocity Kalman tracker per object fed by several sensors (`CVTracker`,

@@ -22,7 +22,9 @@ requiring it would leave nothing to compare exactly where the theory matters. Th
 - full fusion with the true R: each sensor weighted by its measured error second moment
   Q' L (C + m m') L' Q (covariance plus squared bias: the bias cannot be removed without truth);
 - selective fusion: the subset of sensors whose nominal fusion has the smallest measured MSE;
-- chi-square-gated fusion (`gated_wls`, nominal R, RAIM-style exclusion).
+- chi-square-gated fusion (`gated_wls`, nominal R, RAIM-style exclusion);
+- the same gate on the measured second moments ("gated_true"): does a gate with the right
+  covariance remove what the nominal one cannot?
 The true error model and the selected subset are estimated on one half of the sequences and
 applied to the other (two-fold cross-fitting by sequence), so neither sees the errors it is scored
 on; a subset picked on the same data would beat full fusion by selection bias alone.
@@ -38,6 +40,7 @@ from scipy import stats
 
 from fusion.estimation.consistency import mean_chi2_interval, nees
 from fusion.estimation.gating import gated_wls
+from fusion.estimation.gross import gate_outcome
 from fusion.estimation.measurements import SENSORS, MeasurementSet, los_frame
 from fusion.estimation.mismatch import fused_error
 from fusion.estimation.wls import wls
@@ -46,7 +49,8 @@ CHI2_95_DOF2 = float(stats.chi2.ppf(0.95, 2))  # 5.99: the 95 % ellipse of a 2-D
 MIN_CALIBRATION = 3  # objects a sensor needs in a training fold to estimate its error model
 MIN_PER_FOLD = 3  # objects seen by every required sensor needed in each fold to compare the strategies
 REQUIRED = ("lidar", "radar")  # sensors every compared object was measured by (the active sensors)
-STRATEGIES = ("full_nominal", "full_true", "selective", "gated")
+STRATEGIES = ("full_nominal", "full_true", "selective", "gated", "gated_true")
+GATES = {"gated": "nominal", "gated_true": "measured"}  # gated strategy -> the covariance its gate uses
 H2 = np.eye(2)  # every sensor measures the reference point itself: z_i = I x + v_i
 
 
@@ -219,6 +223,14 @@ class StrategyErrors:
         subsets: the selected subset (sensor names) of each fold.
         mse_full_nominal_predicted: the MSE of full nominal fusion the fitted error models predict
             through `fused_error` (trace(sum K R_true K') + |sum K b|^2, averaged over objects).
+        rows: (n,) index in the evaluated MeasurementSet of each compared object, in the order of
+            the error arrays.
+        sensor_nees: {"nominal": (n, 3), "measured": (n, 3)} NEES of each sensor's error against its
+            nominal R and against its measured (cross-fitted) error second moment; NaN where the
+            sensor gave nothing.
+        gate_outcomes: {"nominal": (n, 3), "measured": (n, 3)} what the gate of "gated" (nominal R)
+            and "gated_true" (measured R) did with each measurement (`gross.gate_outcome`; "" where
+            the sensor gave nothing).
     """
 
     n: int
@@ -231,6 +243,9 @@ class StrategyErrors:
     subsets: tuple
     mse_full_nominal_predicted: float
     measured: dict
+    rows: np.ndarray
+    sensor_nees: dict
+    gate_outcomes: dict
 
     @property
     def nees_mean(self) -> float:
@@ -261,9 +276,13 @@ def evaluate_strategies(ms: MeasurementSet, gate_prob: float = 0.99) -> Strategy
             return None
     names = list(SENSORS) + list(STRATEGIES)
     errors: dict[str, list] = {name: [] for name in names}
-    nees_all, predicted, chosen = [], [], []
+    nees_all, predicted, chosen, rows = [], [], [], []
+    sensor_nees: dict[str, list] = {"nominal": [], "measured": []}
+    outcomes: dict[str, list] = {"nominal": [], "measured": []}
     for f in (0, 1):
-        train, test = ms[fold_of != f], ms[(fold_of == f) & common]
+        test_rows = np.flatnonzero((fold_of == f) & common)
+        rows.append(test_rows)
+        train, test = ms[fold_of != f], ms[test_rows]
         models = {s: fit_error_model(train, s) for s in SENSORS}
         applied = [models[s].apply(test, s) for s in SENSORS]
         bias = np.stack([a[0] for a in applied], axis=1)  # (n, 3, 2)
@@ -274,18 +293,29 @@ def evaluate_strategies(ms: MeasurementSet, gate_prob: float = 0.99) -> Strategy
         truth = test.truth
         for k, s in enumerate(SENSORS):
             errors[s].append(test.z[:, k] - truth)
+        e_k = test.z - truth[:, None, :]  # (n, 3, 2)
+        sensor_nees["nominal"].append(_nees_or_nan(e_k, test.R))
+        sensor_nees["measured"].append(_nees_or_nan(e_k, second))
         x, P = fuse(test, (0, 1, 2))
         errors["full_nominal"].append(x - truth)
         nees_all.append(nees(x - truth, P))
         errors["full_true"].append(fuse(test, (0, 1, 2), second)[0] - truth)
         errors["selective"].append(fuse(test, best)[0] - truth)
-        gated = np.empty((len(test), 2))
+        gated = {name: np.empty((len(test), 2)) for name in GATES}
+        fold_outcomes = {kind: np.full((len(test), len(SENSORS)), "", dtype=object) for kind in GATES.values()}
         for i in range(len(test)):
             ks = np.flatnonzero(test.available[i])
-            g = gated_wls([H2] * len(ks), list(test.R[i, ks]), list(test.z[i, ks]), prob=gate_prob)
-            gated[i] = g.x - truth[i]
+            for name, kind in GATES.items():
+                Rs = test.R[i, ks] if kind == "nominal" else second[i, ks]
+                g = gated_wls([H2] * len(ks), list(Rs), list(test.z[i, ks]), prob=gate_prob)
+                gated[name][i] = g.x - truth[i]
+                for j, k in enumerate(ks):
+                    fold_outcomes[kind][i, k] = gate_outcome(j, g)
             predicted.append(fused_error([H2] * len(ks), list(test.R[i, ks]), list(cov[i, ks]), list(bias[i, ks])).mse)
-        errors["gated"].append(gated)
+        for name in GATES:
+            errors[name].append(gated[name])
+        for kind in outcomes:
+            outcomes[kind].append(fold_outcomes[kind])
     err = {name: np.concatenate(v) for name, v in errors.items()}
     sq = {name: np.sum(e**2, axis=1) for name, e in err.items()}
     sq = {name: s[np.isfinite(s)] for name, s in sq.items()}  # a sensor's: the objects it measured
@@ -303,7 +333,19 @@ def evaluate_strategies(ms: MeasurementSet, gate_prob: float = 0.99) -> Strategy
         subsets=tuple(chosen),
         mse_full_nominal_predicted=float(np.mean(predicted)),
         measured={s: int(len(sq[s])) for s in SENSORS},
+        rows=np.concatenate(rows),
+        sensor_nees={kind: np.concatenate(v) for kind, v in sensor_nees.items()},
+        gate_outcomes={kind: np.concatenate(v) for kind, v in outcomes.items()},
     )
+
+
+def _nees_or_nan(e: np.ndarray, R: np.ndarray) -> np.ndarray:
+    """(n, k) NEES e' R^-1 e of (n, k, 2) errors against (n, k, 2, 2) covariances; NaN where e is NaN."""
+    out = np.full(e.shape[:2], np.nan)
+    ok = np.isfinite(e[..., 0])
+    if ok.any():
+        out[ok] = nees(e[ok], R[ok])
+    return out
 
 
 def _best_subset(ms: MeasurementSet, candidates: list[tuple[int, ...]] | None = None) -> tuple[int, ...]:
@@ -323,3 +365,85 @@ def _best_subset(ms: MeasurementSet, candidates: list[tuple[int, ...]] | None = 
 def _round(v) -> float | None:
     v = float(v)
     return None if not np.isfinite(v) else float(f"{v:.4g}")
+
+
+def gross_errors(ms: MeasurementSet, st: StrategyErrors) -> dict:
+    """The gross errors among the compared objects' measurements, their causes and the gates' verdicts.
+
+    A measurement is gross under a covariance when its NEES exceeds `gross.GROSS_BOUND` (the
+    chi2(2) 99.9 % quantile): "nominal" against the sensor's claimed R, "measured" against its
+    cross-fitted error second moment (what full fusion with the true R weights by). Its cause is
+    `gross.gross_cause` of the ground truth recorded with the measurement; the verdicts are those of
+    the nominal-R gate ("gated") and the measured-R gate ("gated_true").
+
+    Returns (JSON-ready):
+        bound: the NEES bound. per_sensor: {kind: {sensor: {"n", "gross", "causes": {cause: count},
+        "gate": {"nominal"|"measured": {outcome: count}}}}} for kind "nominal" and "measured".
+        objects_with_gross: {kind: objects with at least one gross measurement of that kind}.
+        sse_share: {"full_nominal": share of its summed squared error on objects with a nominal
+        gross error, "full_true": on objects with a measured one}. mse_without_gross: {kind: {name:
+        MSE over the objects with no gross error of that kind}} for every sensor and strategy (a
+        diagnosis that uses the truth, not a strategy). records: one dict per gross measurement
+        (either kind).
+    """
+    from fusion.estimation.gross import (
+        CAUSES,
+        GATE_OUTCOMES,
+        GROSS_BOUND,
+        gross_cause,
+        is_gross,
+        shares_error,
+    )
+
+    rows = st.rows
+    flags = {kind: is_gross(v) for kind, v in st.sensor_nees.items()}  # (n, 3) each
+    causes = np.full(flags["nominal"].shape, "", dtype=object)
+    for i, k in zip(*np.nonzero(flags["nominal"] | flags["measured"])):
+        r = rows[i]
+        e = ms.z[r] - ms.truth[r]  # (3, 2)
+        others = [j for j in range(len(SENSORS)) if j != k and ms.available[r, j]]
+        shared = shares_error(e[k], ms.R[r, k], [e[j] for j in others], [ms.R[r, j] for j in others])
+        causes[i, k] = gross_cause(SENSORS[k], int(ms.actor_ids[r]), int(ms.source[r, k]), float(ms.purity[r, k]),
+                                   float(ms.quality[r, k]), float(ms.occlusion[r]), float(ms.truncation[r]), shared)
+    per_sensor = {}
+    for kind, flag in flags.items():
+        per_sensor[kind] = {}
+        for k, s in enumerate(SENSORS):
+            sel = flag[:, k]
+            per_sensor[kind][s] = {
+                "n": int(np.isfinite(st.sensor_nees[kind][:, k]).sum()),
+                "gross": int(sel.sum()),
+                "causes": {c: int(np.sum(causes[sel, k] == c)) for c in CAUSES if np.any(causes[sel, k] == c)},
+                "gate": {g: {o: int(np.sum(st.gate_outcomes[g][sel, k] == o)) for o in GATE_OUTCOMES
+                             if np.any(st.gate_outcomes[g][sel, k] == o)} for g in st.gate_outcomes},
+            }
+    clean = {}  # a diagnosis by truth, not a strategy: what each would score without those objects
+    for kind, flag in flags.items():
+        keep = ~flag.any(axis=1)
+        clean[kind] = {}
+        for name, e in st.errors.items():
+            sq = np.sum(e[keep] ** 2, axis=1)
+            sq = sq[np.isfinite(sq)]
+            clean[kind][name] = _round(sq.mean()) if len(sq) else None
+    share = {}
+    for name, kind in (("full_nominal", "nominal"), ("full_true", "measured")):
+        sq = np.sum(st.errors[name] ** 2, axis=1)
+        share[name] = _round(sq[flags[kind].any(axis=1)].sum() / sq.sum()) if sq.sum() > 0 else None
+    records = []
+    Q = los_frame(ms.truth[rows])
+    for i, k in zip(*np.nonzero(flags["nominal"] | flags["measured"])):
+        r = rows[i]
+        e = Q[i] @ (ms.z[r, k] - ms.truth[r])
+        records.append({
+            "sensor": SENSORS[k], "sequence": int(ms.sequence[r]), "frame": int(ms.frame[r]),
+            "actor": int(ms.actor_ids[r]), "class": int(ms.classes[r]),
+            "range_m": _round(np.hypot(*ms.truth[r])), "error_m": [_round(e[0]), _round(e[1])],
+            "nees_nominal": _round(st.sensor_nees["nominal"][i, k]),
+            "nees_measured": _round(st.sensor_nees["measured"][i, k]),
+            "gross": [kind for kind in ("nominal", "measured") if flags[kind][i, k]],
+            "cause": causes[i, k], "source": int(ms.source[r, k]), "purity": _round(ms.purity[r, k]),
+            "gate": {g: st.gate_outcomes[g][i, k] for g in st.gate_outcomes},
+        })
+    return {"bound": round(GROSS_BOUND, 3), "per_sensor": per_sensor,
+            "objects_with_gross": {kind: int(f.any(axis=1).sum()) for kind, f in flags.items()},
+            "sse_share": share, "mse_without_gross": clean, "records": records}

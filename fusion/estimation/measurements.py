@@ -52,7 +52,7 @@ from sim.actors import CLASS_SIZE, CLASSES
 SENSORS = ("camera", "lidar", "radar")
 # Bump when an extractor, the nominal R or the evaluation set changes: cached measurements made by
 # another version are measured again.
-EXTRACTOR_VERSION = 4
+EXTRACTOR_VERSION = 6  # 5, 6: each measurement records where its data came from (source, purity)
 
 # --- evaluation set --------------------------------------------------------------------------
 MIN_RANGE_M, MAX_RANGE_M = 5.0, 60.0  # reference-point distance from the ego origin [m]
@@ -87,6 +87,14 @@ LIDAR_MIN_POINTS = 3
 RADAR_WINDOW_AZ, RADAR_WINDOW_RANGE = 2, 3  # search window half-widths [bins]
 RADAR_MIN_SNR_DB = 6.0
 
+# --- where a measurement's data came from (MeasurementSet.source) --------------------------------
+# A positive value is the simulator id of the actor whose surface gave the data (the measured
+# object's own id, or another actor's: a wrong association).
+SOURCE_NONE = -1  # the sensor gave no measurement
+SOURCE_WORLD = 0  # the static world or the sky (guard rails, buildings; background pixels)
+SOURCE_WEATHER = -2  # returns from the air: fog backscatter, rain drops, snow flakes; radar clutter
+SOURCE_NOISE = -3  # radar receiver noise
+
 
 @dataclass(frozen=True)
 class MeasurementSet:
@@ -103,6 +111,19 @@ class MeasurementSet:
         z: (N, 3, 2) measured reference point per sensor [m], NaN where the sensor gave none.
         R: (N, 3, 2, 2) nominal covariance of z [m^2], NaN where z is NaN.
         quality: (N, 3) each extractor's own figure: camera NCC, lidar return count, radar peak SNR [dB].
+        source: (N, 3) int64 where each measurement's data came from, read from the simulator's
+            ground truth (clean instance maps, the degraded data's own bookkeeping of weather returns
+            and clutter): an actor id (the object's own, or another's), or SOURCE_WORLD,
+            SOURCE_WEATHER, SOURCE_NOISE; SOURCE_NONE where the sensor gave nothing. Camera: the
+            actor most of the matched pixels land on in the clean right image; lidar: what the return
+            that set the range hit; radar: the largest of the peak cell's signal (its actor, or the
+            static world), clutter and noise.
+        purity: (N, 3) share of the measurement's data that came from the object itself: camera,
+            matched pixels landing on it; lidar, central returns from it (not weather); radar, its
+            share of the peak cell's power. NaN where the sensor gave nothing.
+        occlusion: (N,) share of the object hidden in the left camera; truncation: (N,) share of its
+            projected box outside the left image (sensors.labels).
+        Sets built without the last four fields get SOURCE_NONE / NaN.
     """
 
     sequence: np.ndarray
@@ -113,6 +134,18 @@ class MeasurementSet:
     z: np.ndarray
     R: np.ndarray
     quality: np.ndarray
+    source: np.ndarray | None = None
+    purity: np.ndarray | None = None
+    occlusion: np.ndarray | None = None
+    truncation: np.ndarray | None = None
+
+    def __post_init__(self) -> None:
+        n, k = self.truth.shape[0], len(SENSORS)
+        defaults = {"source": np.full((n, k), SOURCE_NONE, np.int64), "purity": np.full((n, k), np.nan),
+                    "occlusion": np.full(n, np.nan), "truncation": np.full(n, np.nan)}
+        for name, value in defaults.items():
+            if getattr(self, name) is None:
+                object.__setattr__(self, name, value)
 
     def __len__(self) -> int:
         return int(self.truth.shape[0])
@@ -140,9 +173,10 @@ class MeasurementSet:
     def from_arrays(arrays) -> MeasurementSet:
         """Inverse of `arrays` (accepts an open np.load archive); checks the shapes."""
         ms = MeasurementSet(**{f: np.asarray(arrays[f]) for f in MeasurementSet.__dataclass_fields__})
-        n = len(ms)
+        n, k = len(ms), len(SENSORS)
         expected = {"sequence": (n,), "frame": (n,), "actor_ids": (n,), "classes": (n,), "truth": (n, 2),
-                    "z": (n, len(SENSORS), 2), "R": (n, len(SENSORS), 2, 2), "quality": (n, len(SENSORS))}
+                    "z": (n, k, 2), "R": (n, k, 2, 2), "quality": (n, k), "source": (n, k), "purity": (n, k),
+                    "occlusion": (n,), "truncation": (n,)}
         for f, shape in expected.items():
             if getattr(ms, f).shape != shape:
                 raise ValueError(f"{f} must have shape {shape}, got {getattr(ms, f).shape}")
@@ -377,6 +411,34 @@ def edge_centre(image: np.ndarray, mask: np.ndarray, search_px: int = CAMERA_EDG
     return float(np.median(centres)), len(centres)
 
 
+def camera_band(mask: np.ndarray) -> np.ndarray:
+    """The lower CAMERA_BAND of a region's rows (the surface facing the camera), as a mask."""
+    rows = np.flatnonzero(mask.any(axis=1))
+    cut = rows[-1] + 1 - CAMERA_BAND * (rows[-1] + 1 - rows[0])
+    return mask & (np.arange(mask.shape[0])[:, None] >= cut)
+
+
+def camera_source(instance_left: np.ndarray, instance_right: np.ndarray, actor_id: int,
+                  disparity: float) -> tuple[int, float]:
+    """Where a stereo match landed: (the actor id most of the matched band's pixels fall on in the
+    clean right image, 0 for the static world or sky; the share that falls on the object itself).
+
+    A left pixel (u, v) matched at disparity d is the right pixel (u - d, v); the clean right
+    instance map says what surface is there. (SOURCE_NONE, NaN) when there is no match.
+    """
+    if not np.isfinite(disparity):
+        return SOURCE_NONE, np.nan
+    band = camera_band(instance_left == actor_id)
+    vs, us = np.nonzero(band)
+    ur = np.rint(us - disparity).astype(np.int64)
+    ok = (ur >= 0) & (ur < instance_right.shape[1])
+    if not ok.any():
+        return SOURCE_WORLD, 0.0
+    hit = instance_right[vs[ok], ur[ok]]
+    ids, counts = np.unique(hit, return_counts=True)
+    return int(ids[np.argmax(counts)]), float(np.mean(hit == actor_id))
+
+
 def camera_measurement(left: np.ndarray, right: np.ndarray, instance_left: np.ndarray, actor_id: int,
                        calib: Calibration, class_id: int) -> tuple[np.ndarray, np.ndarray, StereoMatch]:
     """Stereo position of one object: (z (2,), R (2, 2), match); z and R are NaN when rejected.
@@ -393,9 +455,8 @@ def camera_measurement(left: np.ndarray, right: np.ndarray, instance_left: np.nd
     nan2, nan22 = np.full(2, np.nan), np.full((2, 2), np.nan)
     if not mask.any():
         return nan2, nan22, StereoMatch(np.nan, np.nan, np.nan, 0, "not_visible")
+    band = camera_band(mask)
     rows = np.flatnonzero(mask.any(axis=1))
-    cut = rows[-1] + 1 - CAMERA_BAND * (rows[-1] + 1 - rows[0])
-    band = mask & (np.arange(mask.shape[0])[:, None] >= cut)
     max_d = int(np.ceil(fb / MIN_RANGE_M)) + 2
     m = match_region(left, right, band, max_d)
     if not np.isfinite(m.disparity):
@@ -484,11 +545,23 @@ def lidar_measurement(clean_instance: np.ndarray, degraded, calib: Calibration, 
     clean_instance: (32, A) actor id each ray would hit in clear air (the object's region);
     degraded: the frame's degraded LidarObservation; directions: (32, A, 3) beam directions.
     """
-    region = (clean_instance == actor_id) & degraded.returned
     nan2, nan22 = np.full(2, np.nan), np.full((2, 2), np.nan)
-    n = int(region.sum())
-    if n < LIDAR_MIN_POINTS:
-        return nan2, nan22, n
+    ret = _lidar_returns(clean_instance, degraded, calib, actor_id, directions)
+    if ret is None:
+        return nan2, nan22, int(((clean_instance == actor_id) & degraded.returned).sum())
+    region, rng, mean_az, central = ret
+    r = float(np.quantile(rng[central], LIDAR_RANGE_QUANTILE))
+    origin = calib.ego_from_lidar[:2, 3]
+    z = origin + r * np.array([np.cos(mean_az), np.sin(mean_az)])
+    return z, lidar_R(r, mean_az, class_id, z), int(region.sum())
+
+
+def _lidar_returns(clean_instance, degraded, calib: Calibration, actor_id: int, directions: np.ndarray):
+    """The degraded returns on the object's rays: (region (32, A) bool, horizontal ranges of the
+    returns (n,) [m], their mean azimuth [rad], the central ones (n,) bool); None when < 3 returns."""
+    region = (clean_instance == actor_id) & degraded.returned
+    if int(region.sum()) < LIDAR_MIN_POINTS:
+        return None
     pts = directions[region] * degraded.range[region][:, None].astype(np.float64)
     origin = calib.ego_from_lidar[:2, 3]
     xy = transform_points(calib.ego_from_lidar, pts)[:, :2] - origin
@@ -500,10 +573,30 @@ def lidar_measurement(clean_instance: np.ndarray, degraded, calib: Calibration, 
     # the central sixth of the object's azimuth span; when the returns fall in two clusters (an
     # occluder splits the object) the mean azimuth can lie in the gap: then take the nearest column
     width = max(spread / 6.0, 2 * np.pi / calib.lidar_azimuth_steps, float(np.abs(off).min()))
-    central = np.abs(off) <= width
-    r = float(np.quantile(rng[central], LIDAR_RANGE_QUANTILE))
-    z = origin + r * np.array([np.cos(mean_az), np.sin(mean_az)])
-    return z, lidar_R(r, mean_az, class_id, z), n
+    return region, rng, mean_az, np.abs(off) <= width
+
+
+def lidar_source(clean_instance: np.ndarray, degraded, calib: Calibration, actor_id: int,
+                 directions: np.ndarray) -> tuple[int, float]:
+    """Where a lidar measurement's data came from: (what the returns that set the range hit, the
+    share of central returns that hit the object itself). The range is the LIDAR_RANGE_QUANTILE
+    quantile of the central returns, interpolated between two of them: if either is a weather
+    return, the range is (partly) the air's.
+
+    The region holds only rays that hit the object in clear air, so a return on them hit either
+    the object or the air: the degradation marks a weather return (fog backscatter, a rain drop, a
+    snow flake) that replaced the surface return with instance 0 (sensors.degrade.lidar), here
+    SOURCE_WEATHER. (SOURCE_NONE, NaN) when there are fewer than 3 returns.
+    """
+    ret = _lidar_returns(clean_instance, degraded, calib, actor_id, directions)
+    if ret is None:
+        return SOURCE_NONE, np.nan
+    region, rng, _, central = ret
+    own = degraded.instance[region][central] == actor_id
+    order = np.argsort(rng[central], kind="stable")
+    pos = LIDAR_RANGE_QUANTILE * (len(order) - 1)  # np.quantile interpolates between these two returns
+    setters = order[[int(np.floor(pos)), int(np.ceil(pos))]]
+    return (int(actor_id) if own[setters].all() else SOURCE_WEATHER), float(own.mean())
 
 
 # ---------------------------------------------------------------------------------------------
@@ -534,18 +627,13 @@ def radar_measurement(clean_instance: np.ndarray, degraded, calib: Calibration, 
     clean_instance: (A, B) actor id per polar cell in clear air (the object's cells); degraded: the
     frame's degraded RadarObservation; noise_floor: the scan's mean noise power estimate.
     """
-    cells = clean_instance == actor_id
     nan2, nan22 = np.full(2, np.nan), np.full((2, 2), np.nan)
-    if not cells.any():
+    peak = radar_peak(clean_instance, degraded, actor_id)
+    if peak is None:
         return nan2, nan22, np.nan
-    A, B = cells.shape
-    # window: dilate the cells by the half-widths (azimuth wraps around)
-    win = ndimage.binary_dilation(np.vstack([cells[-RADAR_WINDOW_AZ:], cells, cells[:RADAR_WINDOW_AZ]]),
-                                  structure=np.ones((2 * RADAR_WINDOW_AZ + 1, 2 * RADAR_WINDOW_RANGE + 1), bool))
-    win = win[RADAR_WINDOW_AZ:RADAR_WINDOW_AZ + A]
+    a, b = peak
     P = degraded.power.astype(np.float64)
-    flat = np.where(win, P, -np.inf)
-    a, b = np.unravel_index(int(np.argmax(flat)), P.shape)
+    A, B = P.shape
     snr_db = float(10 * np.log10(max(P[a, b] - noise_floor, 1e-12) / noise_floor))
     if snr_db < RADAR_MIN_SNR_DB:
         return nan2, nan22, snr_db
@@ -567,6 +655,53 @@ def radar_measurement(clean_instance: np.ndarray, degraded, calib: Calibration, 
     rng -= echo_depth(class_id, calib.radar_height_m)[0]  # the echo lies behind the facing surface
     z = origin + rng * np.array([np.cos(bearing), np.sin(bearing)])
     return z, radar_R(rng, bearing, snr_db, class_id, calib, z), snr_db
+
+
+def radar_peak(clean_instance: np.ndarray, degraded, actor_id: int) -> tuple[int, int] | None:
+    """(azimuth row, range column) of the strongest degraded cell within RADAR_WINDOW_AZ rows and
+    RADAR_WINDOW_RANGE columns of the object's clear-air cells; None when it has no cells."""
+    cells = clean_instance == actor_id
+    if not cells.any():
+        return None
+    A = cells.shape[0]
+    # window: dilate the cells by the half-widths (azimuth wraps around)
+    win = ndimage.binary_dilation(np.vstack([cells[-RADAR_WINDOW_AZ:], cells, cells[:RADAR_WINDOW_AZ]]),
+                                  structure=np.ones((2 * RADAR_WINDOW_AZ + 1, 2 * RADAR_WINDOW_RANGE + 1), bool))
+    win = win[RADAR_WINDOW_AZ:RADAR_WINDOW_AZ + A]
+    P = degraded.power.astype(np.float64)
+    a, b = np.unravel_index(int(np.argmax(np.where(win, P, -np.inf))), P.shape)
+    return int(a), int(b)
+
+
+def radar_source(clean_instance: np.ndarray, degraded, actor_id: int) -> tuple[int, float]:
+    """Where a radar peak came from: (the largest of the peak cell's three powers, read apart in
+    the degraded scan: its signal's actor (sensors.radar: the actor contributing most power to the
+    cell; 0 the static world), SOURCE_WEATHER for clutter or SOURCE_NOISE for receiver noise; the
+    object's share of the cell's power, 0 when the cell's signal is another actor's).
+
+    Computed for every object with cells (SOURCE_NONE, NaN without): the caller blanks those whose
+    peak fell below RADAR_MIN_SNR_DB.
+    """
+    peak = radar_peak(clean_instance, degraded, actor_id)
+    if peak is None:
+        return SOURCE_NONE, np.nan
+    sig, clut, noise = (float(np.asarray(x, np.float64)[peak]) for x in (degraded.signal, degraded.clutter,
+                                                                          degraded.noise))
+    owner = int(degraded.instance[peak])
+    a, b = peak
+    A = degraded.instance.shape[0]
+    for da in range(1, RADAR_WINDOW_AZ + 1):  # the beam smears an echo over neighbouring azimuth rows
+        if owner:
+            break
+        for side in (-da, da):
+            if degraded.instance[(a + side) % A, b]:
+                owner = int(degraded.instance[(a + side) % A, b])
+                break
+    total = max(sig + clut + noise, 1e-300)
+    purity = sig / total if owner == actor_id else 0.0
+    if sig >= clut and sig >= noise:
+        return owner, purity
+    return (SOURCE_WEATHER if clut >= noise else SOURCE_NOISE), purity
 
 
 def noise_floor(radar_obs) -> float:
@@ -603,11 +738,13 @@ def measure_frame(scene, clean, degraded, calib: Calibration, images: dict | Non
     Returns:
         MeasurementSet with one row per object of `evaluation_set`.
     """
-    ids, classes, truth = evaluation_set(scene, clean, calib)
+    ids, classes, truth, occlusion, truncation = evaluation_set(scene, clean, calib, with_visibility=True)
     n, k = len(ids), len(SENSORS)
     z = np.full((n, k, 2), np.nan)
     R = np.full((n, k, 2, 2), np.nan)
     q = np.full((n, k), np.nan)
+    source = np.full((n, k), SOURCE_NONE, np.int64)
+    purity = np.full((n, k), np.nan)
     if n:
         images = exposed_images(degraded) if images is None else images
         left, right = luma(images["camera_left"]), luma(images["camera_right"])
@@ -618,8 +755,14 @@ def measure_frame(scene, clean, degraded, calib: Calibration, images: dict | Non
             q[i, 0] = m.ncc
             z[i, 1], R[i, 1], q[i, 1] = lidar_measurement(clean.lidar.instance, degraded.lidar, calib, aid, cls, dirs)
             z[i, 2], R[i, 2], q[i, 2] = radar_measurement(clean.radar.instance, degraded.radar, calib, aid, cls, floor)
+            source[i, 0], purity[i, 0] = camera_source(clean.camera_left.instance, clean.camera_right.instance, aid,
+                                                       m.disparity if np.isfinite(z[i, 0, 0]) else np.nan)
+            source[i, 1], purity[i, 1] = lidar_source(clean.lidar.instance, degraded.lidar, calib, aid, dirs)
+            source[i, 2], purity[i, 2] = radar_source(clean.radar.instance, degraded.radar, aid)
+        gone = ~np.isfinite(z[..., 0])  # rejected measurements (low SNR, ...) have no source
+        source[gone], purity[gone] = SOURCE_NONE, np.nan
     return MeasurementSet(np.full(n, sequence, np.int64), np.full(n, scene.frame_index, np.int64), ids,
-                          classes.astype(np.int64), truth, z, R, q)
+                          classes.astype(np.int64), truth, z, R, q, source, purity, occlusion, truncation)
 
 
 def measure_sequence(spec, sequence: int = 0, obstructions: bool = False, on_frame=None) -> MeasurementSet:
@@ -655,17 +798,20 @@ def measure_sequence(spec, sequence: int = 0, obstructions: bool = False, on_fra
     return MeasurementSet.concat(parts)
 
 
-def evaluation_set(scene, clean, calib: Calibration) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def evaluation_set(scene, clean, calib: Calibration, with_visibility: bool = False) -> tuple[np.ndarray, ...]:
     """The objects whose measurements are evaluated: reference point 5-60 m from the ego, visible in
     the left camera with at most MAX_OCCLUSION hidden and MAX_TRUNCATION cut by the image border
-    (exact labels from the clean instance and depth maps). Returns (ids, classes, truth (N, 2))."""
+    (exact labels from the clean instance and depth maps). Returns (ids, classes, truth (N, 2)), and
+    with_visibility also each object's occlusion (N,) and truncation (N,)."""
     from sensors.labels import fwd_labels
 
     lab = fwd_labels(clean.camera_left.instance, clean.camera_left.depth, scene.actors, calib.camera_left,
                      scene.ego.pose)
     if not lab["ids"]:
-        return np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros((0, 2))
-    ok = (np.array(lab["occlusion"]) <= MAX_OCCLUSION) & (np.array(lab["truncation"]) <= MAX_TRUNCATION)
+        empty = (np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros((0, 2)))
+        return empty + (np.zeros(0), np.zeros(0)) if with_visibility else empty
+    occ, trunc = np.array(lab["occlusion"], float), np.array(lab["truncation"], float)
+    ok = (occ <= MAX_OCCLUSION) & (trunc <= MAX_TRUNCATION)
     ids = np.array(lab["ids"], np.int64)[ok]
     row = {int(a): i for i, a in enumerate(scene.actors.ids)}
     rows = np.array([row[int(a)] for a in ids], np.int64)
@@ -676,4 +822,5 @@ def evaluation_set(scene, clean, calib: Calibration) -> tuple[np.ndarray, np.nda
     truth = reference_points(centers, A.sizes[rows, :2], A.yaws[rows] - ego_yaw)
     dist = np.hypot(truth[:, 0], truth[:, 1])
     keep = (dist >= MIN_RANGE_M) & (dist <= MAX_RANGE_M)
-    return ids[keep], A.classes[rows][keep], truth[keep]
+    out = (ids[keep], A.classes[rows][keep], truth[keep])
+    return out + (occ[ok][keep], trunc[ok][keep]) if with_visibility else out

@@ -108,3 +108,32 @@ def test_cells_share_seeds_and_severity_zero_is_the_layout():
     assert theory.condition_name("Night+City") == "city+night"
     city = theory.sequence_specs(cfg, "city+night", 0) + theory.sequence_specs(cfg, "city+night", 4)
     assert [s.context for s in city[::3]] == ["city", "night"]  # night's own layout is the city
+
+
+def test_json_and_text_carry_robust_figures_and_gross_errors_with_causes(hydrabench, capsys, cache):
+    from fusion.estimation.error_model import STRATEGIES
+    from fusion.estimation.gross import CAUSES, GATE_OUTCOMES, GROSS_BOUND
+
+    argv = ["theory", "--conditions", "fog", "--severities", "5", "--frames", "24", "--sequences", "2",
+            "--workers", "1", "--cache", str(cache)]
+    code, out, _ = hydrabench([*argv, "--json"], capsys)
+    assert code == 0
+    det = json.loads(out)["details"]["fog"]["5"]
+    for name in ("camera", "lidar", "radar", *STRATEGIES):
+        rob = det["robust"][name]
+        assert set(rob) == {"n", "mean", "se", "median", "trimmed"}, name
+    assert det["robust"]["full_nominal"]["mean"] == json.loads(out)["results"]["fog"]["5"]["mse_full_nominal"]
+    paired = det["paired_vs_best_single"]
+    assert paired["best_single"] == "radar"  # in dense fog
+    assert paired["full_nominal"]["mean"] > 5 * paired["full_nominal"]["se"]  # the fog returns, object by object (8.6 se)
+    g = det["gross"]
+    assert g["bound"] == pytest.approx(GROSS_BOUND, abs=1e-3)
+    for kind in ("nominal", "measured"):
+        for s, d in g["per_sensor"][kind].items():
+            assert sum(d["causes"].values()) == d["gross"] <= d["n"], (kind, s)
+            assert set(d["causes"]) <= set(CAUSES)
+            for gate in ("nominal", "measured"):
+                assert sum(d["gate"][gate].values()) == d["gross"] and set(d["gate"][gate]) <= set(GATE_OUTCOMES)
+    assert g["records"] and all(r["cause"] in CAUSES and r["gross"] for r in g["records"])
+    code, text, _ = hydrabench(argv, capsys)
+    assert "median" in text and "trimmed" in text and "gross errors" in text and "gated_true" in text
