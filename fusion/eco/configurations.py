@@ -120,7 +120,13 @@ def config_name(members: Sequence[str]) -> str:
 def named_baselines(branch_sensors: Mapping[str, Sequence[str]]) -> dict[str, tuple[str, ...]]:
     """The paper's baselines that exist among these branches (Section 5.2): "none_<branch>" for
     each single-sensor branch of C_L, C_R, R, L; "early" for the branch fusing exactly C_L, C_R
-    and the forward lidar; "late" for the four single-sensor branches when all exist."""
+    and the forward lidar; "late" for the four single-sensor branches when all exist.
+
+    A network with only some of the four single-sensor branches (e.g. camera_right, radar, lidar)
+    gets "late" = every single-sensor branch it has, late-fused, when it has two or more: the same
+    rule (fuse every single-sensor detector) on the sensors it has, so that EcoFusion can still be
+    compared with late fusion (and lambda_E's energy scale, E / E(late), still exists). Results name
+    the configuration, so the departure from C_L + C_R + L + R is visible."""
     out: dict[str, tuple[str, ...]] = {}
     singles = {}
     for b, sensors in branch_sensors.items():
@@ -129,7 +135,7 @@ def named_baselines(branch_sensors: Mapping[str, Sequence[str]]) -> dict[str, tu
             singles[sensors[0]] = b
         if frozenset(sensors) == EARLY_SENSORS:
             out.setdefault("early", (b,))
-    if all(s in singles for s in SINGLE_SENSORS):
+    if len(singles) >= 2:
         out["late"] = tuple(b for b in branch_sensors if b in singles.values())
     return out
 

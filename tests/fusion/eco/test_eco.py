@@ -260,3 +260,12 @@ def test_build_config_gate_on_a_network(tmp_path):
     g = build_config_gate("attention", model, configs)
     assert g.sensors == ("camera_left", "camera_right", "fwd_lidar", "radar", "lidar")
     assert isinstance(build_config_gate("knowledge", model, configs), KnowledgeConfigurationGate)
+
+
+def test_late_fusion_of_the_single_sensor_branches_a_network_has():
+    from fusion.eco.configurations import named_baselines
+
+    three = {"radar": ("radar",), "camera_right": ("camera_right",), "lidar": ("lidar",)}
+    b = named_baselines(three)
+    assert b["late"] == ("radar", "camera_right", "lidar") and "early" not in b
+    assert "late" not in named_baselines({"radar": ("radar",), "radar_lidar": ("radar", "lidar")})  # one single
