@@ -74,6 +74,8 @@ from study.gates import (
 ECO_DATA_VERSION = 1
 LATENCY_VERSION = 1
 GATE_ORDER = ("knowledge", "deep", "attention", "loss_based")
+FEATURE_GATES = ("deep", "attention")
+"""Gates that read the stems' features, so every stem they read runs before they decide."""
 TABLE1_LAMBDAS = (0.0, 0.01, 0.05)
 TABLE2_LAMBDAS = (0.0, 0.01, 0.1)
 SWEEP_LAMBDAS = (0.0, 0.001, 0.002, 0.005, 0.01, 0.02, 0.05, 0.1, 0.2, 0.3, 0.5, 0.7, 1.0)
@@ -668,8 +670,26 @@ class EcoEval:
     def fixed(self, name: str) -> np.ndarray:
         return np.full(len(self.test), self.configs.index(name))
 
-    def metrics(self, choice: np.ndarray, per_scene: bool = False) -> dict:
-        """mAP, mean actual L_f, energy and latency of per-frame configuration choices."""
+    def gate_overhead(self, choice: np.ndarray, gate: str | None):
+        """(seconds, sensors) a gate adds to each frame's configuration: a gate reading stem features
+        (deep, attention) runs every stem it reads before it decides, so the stems the chosen
+        configuration does not need are extra time (and energy, at the configuration's own power),
+        and every sensor it reads must measure (no clock gating for them). The knowledge gate
+        decides from external context before any stem runs, and the loss-based oracle is
+        a-posteriori: neither adds anything. The gate network's own few small convolutions are not
+        counted."""
+        if gate not in FEATURE_GATES:
+            return np.zeros(len(choice)), [set() for _ in choice]
+        from fusion.nets.gates import gate_sensors
+
+        read = set(gate_sensors(self.model))
+        stems = self.latency_model.stems
+        extra = np.array([sum(stems.get(x, 0.0) for x in read - set(self.sensors[c])) for c in choice])
+        return extra, [read for _ in choice]
+
+    def metrics(self, choice: np.ndarray, per_scene: bool = False, gate: str | None = None) -> dict:
+        """mAP, mean actual L_f, energy and latency of per-frame configuration choices; with `gate`,
+        the energy and latency include what that gate costs to decide (`gate_overhead`)."""
         from fusion.eco.energy import total_energy
         from study.detect import fusion_method, score
 
@@ -679,19 +699,25 @@ class EcoEval:
         sc = score(fused, self.reader, "camera_right", protocol=self.ed.protocol)
         rows = np.arange(len(choice))
         lf = self.losses[rows, choice]
+        extra, read = self.gate_overhead(choice, gate)
+        t = self.t[choice] + extra
+        scale = t / self.t[choice]  # E = P t at the configuration's own power
+        e, e_raw = self.e[choice] * scale, self.e_raw[choice] * scale
         out = {"map": sc["map"], "map_vehicles": sc["map_vehicles"], "avg_loss": round(float(lf.mean()), 4),
-               "energy": round(float(self.e[choice].mean()), 4),
-               "energy_j": round(float(self.e_raw[choice].mean()), 4),
-               "latency_ms": round(1000 * float(self.t[choice].mean()), 2),
+               "energy": round(float(e.mean()), 4),
+               "energy_j": round(float(e_raw.mean()), 4),
+               "latency_ms": round(1000 * float(t.mean()), 2),
+               "gate_stems_ms": round(1000 * float(extra.mean()), 2),
                "mean_branches": round(float(np.mean([len(m) for m in members])), 3)}
         if per_scene:
-            sensor_e = np.array([total_energy(self.e[c], self.sensors[c], "clock") for c in choice])
-            sensor_off = np.array([total_energy(self.e[c], self.sensors[c], "off") for c in choice])
+            measuring = [sorted(set(self.sensors[c]) | r) for c, r in zip(choice, read)]
+            sensor_e = np.array([total_energy(ek, ms, "clock") for ek, ms in zip(e, measuring)])
+            sensor_off = np.array([total_energy(ek, ms, "off") for ek, ms in zip(e, measuring)])
             scenes = {}
             for ctx in sorted(set(self.contexts)):
                 k = np.array([c == ctx for c in self.contexts])
                 scenes[ctx] = {"frames": int(k.sum()), "avg_loss": round(float(lf[k].mean()), 4),
-                               "energy": round(float(self.e[choice][k].mean()), 4),
+                               "energy": round(float(e[k].mean()), 4),
                                "energy_clock_gated": round(float(sensor_e[k].mean()), 4),
                                "energy_all_sensors_on": round(float(sensor_off[k].mean()), 4),
                                "map": sc["map_per_context"].get(ctx)}
@@ -722,7 +748,7 @@ def evaluate_eco(run_dir, data, lambda_e: float = 0.01, gamma: float = 0.5, s: E
     joint = {}
     for g in ev.predicted:
         ch = ev.choose(g, lambda_e, gamma)
-        rows[g] = {**ev.metrics(ch, per_scene=True), "selected": ev.selection_counts(ch)}
+        rows[g] = {**ev.metrics(ch, per_scene=True, gate=g), "selected": ev.selection_counts(ch)}
         joint[g] = float(joint_loss(ev.losses[np.arange(len(ch)), ch], ev.e[ch], lambda_e).mean())
         rows[g]["avg_joint_loss"] = round(joint[g], 4)
     for name in ev.configs.baselines:
@@ -762,7 +788,7 @@ def sweep(run_dir, data, out: Path, gamma: float = 0.5, lambdas=SWEEP_LAMBDAS, s
     for g in gates:
         for lam in lambdas:
             ch = ev.choose(g, lam, gamma)
-            curve[g][lam] = {**ev.metrics(ch, per_scene=(lam == 0.01)), "selected": ev.selection_counts(ch, 3)}
+            curve[g][lam] = {**ev.metrics(ch, per_scene=(lam == 0.01), gate=g), "selected": ev.selection_counts(ch, 3)}
             bar.update(1)
     bar.close()
     base = {name: {**ev.metrics(ev.fixed(name), per_scene=True), "configuration": ev.configs.names[i]}
