@@ -92,6 +92,7 @@ class TrainSection:
     Fields:
         branches: branches of the paper set to train (empty = all seven).
         early_fusion: also train the early-fusion set (cameras, cameras + lidar, radar + lidar).
+        early_branches: which of the early-fusion models (empty = all three).
         epochs, batch_size, lr, warmup_steps, clip_grad, seed, checkpoint_steps: as TrainConfig.
         eval_frames: test frames scored after each epoch (0 = all).
         protocol: ground truth to train on and score against (reference | visible | bev-free).
@@ -99,6 +100,7 @@ class TrainSection:
 
     branches: tuple[str, ...] = ()
     early_fusion: bool = True
+    early_branches: tuple[str, ...] = ()
     epochs: int = 10
     batch_size: int = 4
     lr: float = 5e-3
@@ -118,6 +120,10 @@ class TrainSection:
             raise UserError(f"train.lr must be > 0, got {self.lr}")
         if self.clip_grad < 0:
             raise UserError(f"train.clip_grad must be >= 0, got {self.clip_grad}")
+        early = ("early_cameras", "early_camera_lidar", "early_radar_lidar")
+        bad = [b for b in self.early_branches if b not in early]
+        if bad:
+            raise UserError(f"train.early_branches: unknown model {bad[0]!r} (choose from: {', '.join(early)})")
         if self.protocol not in ("reference", "visible"):
             raise UserError(f"train.protocol must be reference or visible (the study fuses in the right camera), "
                             f"got {self.protocol!r}")
@@ -466,7 +472,7 @@ def run_study(cfg: StudyConfig, out: str | Path, until: str = "report", progress
         digests = {}
         runs = {"paper": ("paper", t.branches)}
         if t.early_fusion:
-            runs["early"] = ("early_fusion", ())
+            runs["early"] = ("early_fusion", t.early_branches)
         for name, (bset, branches) in runs.items():
             study.say(f"train: {name} ({bset} branch set)")
             train(train_config(bset, branches), work / name, progress=progress)
