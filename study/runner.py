@@ -575,10 +575,11 @@ def run_study(cfg: StudyConfig, out: str | Path, until: str = "report", progress
     return _finish(study, result, t_start)
 
 
-def _report_version() -> int:
-    from study.report import REPORT_VERSION
+def _report_version() -> str:
+    """The report code's identity: a changed report.py renders the report again."""
+    import study.report
 
-    return REPORT_VERSION
+    return _digest([study.report.REPORT_VERSION, Path(study.report.__file__).read_text()])[:16]
 
 
 def _finish(study: Study, result: dict, t_start: float) -> dict:
