@@ -146,7 +146,14 @@ def evaluate_study(run, run_early, data, cfg, s, work: Path, setup=None, progres
         eco_choice[g] = ev.choose(g, e.lambda_e, e.gamma)
         choices[f"ecofusion:{g}"] = [ev.configs.members[c] for c in eco_choice[g]]
         kinds[f"ecofusion:{g}"] = f"EcoFusion, {g} gate, lambda_E {e.lambda_e:g}, gamma {e.gamma:g}"
-    scores = {name: M.score(ch) for name, ch in choices.items()}
+    from sim.progress import progress as progress_bar
+
+    bar = progress_bar(total=len(choices), desc="fuse and score the methods", unit="method", enabled=progress)
+    scores = {}
+    for name, ch in choices.items():
+        scores[name] = M.score(ch)
+        bar.update(1)
+    bar.close()
 
     # the early-fusion run (Table 2 (ii)) ----------------------------------------------------
     early, early_per_frame, early_model = {}, None, None
@@ -212,6 +219,7 @@ def evaluate_study(run, run_early, data, cfg, s, work: Path, setup=None, progres
     swept = [m for m in scores if m.split(":")[0] in ("single", "early") or m in
              ("late", "all_branches", f"hydrafusion:{e.hydra_gate}", "hydrafusion:optimal",
               f"ecofusion:{e.eco_gate}", "ecofusion:loss_based")]
+    bar = progress_bar(total=len(conditions) * len(swept), desc="severity sweeps", unit="curve", enabled=progress)
     for cond in conditions:
         keep = [c == cond for c in contexts]
         sweep_rows[cond] = {}
@@ -243,6 +251,8 @@ def evaluate_study(run, run_early, data, cfg, s, work: Path, setup=None, progres
                      "clear": None if clear is None else clear["map_vehicles_per_severity"].get(sv),
                      "frames": int(sum(1 for c, x in zip(contexts, severities) if c == cond and str(x) == sv))}
                 for sv in sev}
+            bar.update(1)
+    bar.close()
 
     # range bins per context -------------------------------------------------------------------
     range_rows = {name: scores[name]["map_vehicles_per_context_range"] for name in swept}
