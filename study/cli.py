@@ -309,6 +309,17 @@ def training_run(text: str) -> str:
 _typed(training_run, "run")
 
 
+def study_config(text: str):
+    """An argparse type: a study preset name (configs/study/<name>.yaml) or a YAML file of
+    `study.runner.StudyConfig` fields, loaded and checked whole (unknown keys, bad values)."""
+    from study.runner import load_study_config
+
+    return _as_type_error(load_study_config, _path_text(text))
+
+
+_typed(study_config, "study_config")
+
+
 def emit(result: dict, as_json: bool, text: Callable[[dict], str] | None = None) -> None:
     """Print a command's result: one JSON object with --json, else readable text."""
     if as_json:
@@ -349,6 +360,8 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "eco-train-gate": ("study.ecofusion:add_eco_train_gate", "EcoFusion: train the deep or attention configuration gate"),
     "eco-evaluate": ("study.ecofusion:add_eco_evaluate", "EcoFusion at one lambda_E and gamma: mAP, loss, energy, latency per gate"),
     "eco-sweep": ("study.ecofusion:add_eco_sweep", "EcoFusion Tables 1-3 and Figures 4-5 over a lambda_E sweep"),
+    "study": ("study.cmd_study:add_parser", "the whole HydraFusion + EcoFusion study as cached, resumable stages, "
+              "and its report"),
     "bench": ("study.bench:add_parser", "measure throughput (sim, generate, ...) and print the figures"),
 }
 

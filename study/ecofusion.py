@@ -774,12 +774,13 @@ def evaluate_eco(run_dir, data, lambda_e: float = 0.01, gamma: float = 0.5, s: E
 
 
 def sweep(run_dir, data, out: Path, gamma: float = 0.5, lambdas=SWEEP_LAMBDAS, s: EcoSettings = EcoSettings(),
-          gates=None, fig_gate: str = "attention", progress: bool = True) -> dict:
-    """`hydrabench eco-sweep`: Tables 1-3 and Figures 4-5 (see README)."""
+          gates=None, fig_gate: str = "attention", progress: bool = True, ev: EcoEval | None = None) -> dict:
+    """`hydrabench eco-sweep`: Tables 1-3 and Figures 4-5 (see README). `ev`: an `EcoEval` of the
+    same run, data and settings already loaded (the study's evaluation reuses it)."""
     from fusion.eco.energy import SENSOR_DEVICES, sensor_energy
     from fusion.eco.optimise import pareto_front
 
-    ev = EcoEval(run_dir, data, s, gates, progress=progress)
+    ev = ev or EcoEval(run_dir, data, s, gates, progress=progress)
     gates = list(ev.predicted)
     eco_gate = fig_gate if fig_gate in gates else gates[0]
     lambdas = sorted(set(lambdas) | set(TABLE1_LAMBDAS) | set(TABLE2_LAMBDAS))

@@ -109,3 +109,24 @@ def test_degradation_physics_notebook_measures_each_law_on_twins(monkeypatch, tm
         if f["lux"] >= 1.0:
             assert f["key"] == pytest.approx(f["key_law"], rel=0.05), f
     assert sum(f["gain_ptc"] is not None for f in night.values()) >= 6
+
+
+def test_selective_fusion_notebook_reads_a_tiny_study_and_answers_its_three_questions(monkeypatch, tmp_path_factory):
+    """03 on the tiny study (configs/study/tiny.yaml), shared with tests/study/test_study_runner.py:
+    whichever runs first runs the study, the other finds every stage done."""
+    from study.runner import load_study_config, run_study
+
+    cache = tmp_path_factory.getbasetemp() / "hydrabench-cache"
+    study = Path(os.environ.get("HYDRABENCH_TINY_STUDY") or cache / "study-tiny")
+    run_study(load_study_config("tiny"), study, progress=False)
+    monkeypatch.setenv("HYDRABENCH_STUDY", str(study))
+    nb = run_notebook("03_selective_fusion.ipynb", monkeypatch, cache)
+    outputs = [o for c in nb.cells if c.cell_type == "code" for o in c.get("outputs", [])]
+    assert not [o for o in outputs if o.get("output_type") == "error"]
+    figures = [o for o in outputs if "image/png" in o.get("data", {})]
+    assert len(figures) >= 3  # selection per context, loss against energy, selection minus late fusion
+    text = "".join(o.get("text", "") for o in outputs if o.get("output_type") == "stream")
+    assert "THESE NUMBERS MEAN NOTHING" in text and "scale tiny" in text
+    assert "hydrafusion / optimal" in text and "ecofusion / loss_based" in text  # what each gate picks
+    assert "fog (severity 4): ranking" in text  # why: the knowledge gate's table rows
+    assert "lambda_E 0 -> 1" in text and "selection - late" in text and "hurts in" in text

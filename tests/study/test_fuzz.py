@@ -200,6 +200,8 @@ def valid_value(action, world) -> str:
         return str(box / "new_dir")
     if k == "out_path":
         return str(box / "new" / "out.png")
+    if k == "study_config":
+        return "tiny"
     if action.choices:
         return str(list(action.choices)[0])
     for opt in action.option_strings:
@@ -263,6 +265,9 @@ def bad_values(action, world) -> list[str]:
         return ["", "/proc/hydrabench-fuzz/d", "/sys/d", str(root / "a_file")]
     if k == "in_file":
         return ["", str(box / "missing.yaml"), str(root / "empty_dir")] + [
+            str(root / f) for f in ("bad.yaml", "wrong_types.yaml", "list.yaml", "unknown_key.yaml")]
+    if k == "study_config":
+        return ["", BOGUS, str(box / "missing.yaml"), str(root / "empty_dir")] + [
             str(root / f) for f in ("bad.yaml", "wrong_types.yaml", "list.yaml", "unknown_key.yaml")]
     if k == "dataset":
         return ["", str(box / "missing"), str(root / "a_file"), str(root / "empty_dir"), str(world["run"])]

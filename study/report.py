@@ -1,0 +1,306 @@
+"""The study's report: `report.md`, a self-contained `report.html` (figures embedded as base64
+PNG) and `report.json` (every number of both), from the evaluation stage's `results.json`.
+
+Both documents are rendered from one list of blocks (headings, paragraphs, tables, figures), so
+they hold the same tables. Every table's caption names the protocol, the scale, the dataset size
+and the machine. A study whose numbers mean nothing (smoke, tests) says so in its first line.
+"""
+
+from __future__ import annotations
+
+import base64
+import html
+import json
+import os
+from pathlib import Path
+
+REPORT_VERSION = 1
+
+
+def _fmt(v) -> str:
+    if v is None:
+        return "-"
+    if isinstance(v, float):
+        return f"{v:.3f}" if abs(v) < 1000 else f"{v:.0f}"
+    return str(v)
+
+
+class Doc:
+    def __init__(self) -> None:
+        self.blocks: list[tuple] = []
+
+    def h(self, level: int, text: str) -> None:
+        self.blocks.append(("h", level, text))
+
+    def p(self, text: str) -> None:
+        self.blocks.append(("p", text))
+
+    def table(self, caption: str, header: list[str], rows: list[list]) -> None:
+        self.blocks.append(("table", caption, header, [[_fmt(c) for c in r] for r in rows]))
+
+    def img(self, caption: str, path: Path) -> None:
+        if Path(path).is_file():
+            self.blocks.append(("img", caption, Path(path)))
+
+    def markdown(self, rel_to: Path) -> str:
+        out = []
+        for b in self.blocks:
+            if b[0] == "h":
+                out.append("#" * b[1] + " " + b[2])
+            elif b[0] == "p":
+                out.append(b[1])
+            elif b[0] == "table":
+                _, caption, header, rows = b
+                out.append(f"*{caption}*\n")
+                out.append("| " + " | ".join(header) + " |")
+                out.append("|" + "|".join("---" for _ in header) + "|")
+                out.extend("| " + " | ".join(r) + " |" for r in rows)
+            elif b[0] == "img":
+                out.append(f"![{b[1]}]({os.path.relpath(b[2], rel_to)})\n\n*{b[1]}*")
+            out.append("")
+        return "\n".join(out)
+
+    def html(self, title: str) -> str:
+        parts = [f"<!DOCTYPE html><html><head><meta charset='utf-8'><title>{html.escape(title)}</title>",
+                 "<style>body{font-family:sans-serif;max-width:1100px;margin:auto;padding:1em}"
+                 "table{border-collapse:collapse;margin:0.5em 0 1.5em}td,th{border:1px solid #bbb;padding:2px 6px;"
+                 "font-size:13px;text-align:right}th{background:#eee}td:first-child{text-align:left}"
+                 "caption{caption-side:top;text-align:left;font-style:italic;font-size:13px;padding:4px}"
+                 "img{max-width:100%}</style></head><body>"]
+        for b in self.blocks:
+            if b[0] == "h":
+                parts.append(f"<h{b[1]}>{html.escape(b[2])}</h{b[1]}>")
+            elif b[0] == "p":
+                text = html.escape(b[1]).replace("**", "")
+                parts.append(f"<p>{text}</p>")
+            elif b[0] == "table":
+                _, caption, header, rows = b
+                parts.append(f"<table><caption>{html.escape(caption)}</caption><tr>"
+                             + "".join(f"<th>{html.escape(x)}</th>" for x in header) + "</tr>")
+                for r in rows:
+                    parts.append("<tr>" + "".join(f"<td>{html.escape(x)}</td>" for x in r) + "</tr>")
+                parts.append("</table>")
+            elif b[0] == "img":
+                data = base64.b64encode(b[2].read_bytes()).decode()
+                parts.append(f"<figure><img alt='{html.escape(b[1])}' src='data:image/png;base64,{data}'>"
+                             f"<figcaption>{html.escape(b[1])}</figcaption></figure>")
+        parts.append("</body></html>")
+        return "\n".join(parts)
+
+
+def _severity_figure(results: dict, path: Path) -> bool:
+    """mAP (vehicles) against severity per condition, one line per method; dashed: clear twins."""
+    sev = results.get("severity") or {}
+    if not sev:
+        return False
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from study.outputs import savefig_atomic
+
+    conds = list(sev)
+    fig, axes = plt.subplots(1, len(conds), figsize=(4.2 * len(conds), 3.6), squeeze=False, sharey=True)
+    for ax, cond in zip(axes[0], conds):
+        for name, rows in sev[cond].items():
+            xs = [int(s) for s in rows if rows[s]["degraded"] is not None]
+            ys = [rows[str(s)]["degraded"] for s in xs]
+            if not xs:
+                continue
+            line, = ax.plot(xs, ys, "o-", label=name, lw=1.2, ms=4)
+            xc = [int(s) for s in rows if rows[s]["clear"] is not None]
+            if xc:
+                ax.plot(xc, [rows[str(s)]["clear"] for s in xc], ":", color=line.get_color(), lw=1)
+        ax.set_title(cond)
+        ax.set_xlabel("severity")
+        ax.grid(alpha=0.3)
+    axes[0][0].set_ylabel("vehicle mAP@0.5 (dotted: clear twins)")
+    axes[0][-1].legend(fontsize=6, loc="best")
+    fig.suptitle("mAP against severity per condition (test frames; twins differ only by the weather)", fontsize=10)
+    savefig_atomic(fig, path, dpi=100, bbox_inches="tight")
+    plt.close(fig)
+    return True
+
+
+def build(results: dict, context: dict, work: Path, eval_dir: Path) -> tuple[Doc, dict]:
+    r = results
+    ds = r["dataset"]
+    m = r["machine"]
+    dev = r.get("device")
+    dev = dev.get("device", "") if isinstance(dev, dict) else str(dev or "")
+    machine = f"{m.get('cpu') or m.get('platform', '?')}, {m.get('threads', '?')} thread(s), device {dev}"
+    scale = context["scale"]
+    tag = (f"protocol {r['protocol']}; scale {scale}; dataset {ds['frames']} frames ({ds['train_frames']} train, "
+           f"{ds['test_frames']} test); machine {machine}")
+    doc = Doc()
+    if context.get("meaningless"):
+        doc.p(f"**These numbers mean nothing**: scale `{scale}` trains for minutes on a handful of frames, to check "
+              "that every stage runs; read a `cpu` or `paper` study for results.")
+    doc.h(1, f"hydrabench study: selective against fixed fusion (scale {scale})")
+    doc.p(f"{tag}. Metric: {r['metric']}. Late fusion method: {r['fusion']}. Every method is scored on the same "
+          f"{ds['test_frames']} test frames (contexts: {', '.join(ds['contexts'])}).")
+    stages = context.get("stages", {})
+    if stages:
+        doc.table(f"Stages (seconds when each ran; {tag})", ["stage", "key", "seconds"],
+                  [[n, s.get("key"), s.get("seconds")] for n, s in stages.items()])
+
+    # HydraFusion Table 2
+    doc.h(2, "HydraFusion Table 2 analogue: single sensors, early, late, HydraFusion")
+    t2 = r["hydra_table2"]
+    rows = []
+    for group, label in (("single_sensors", "(i) single sensor"), ("early_fusion", "(ii) early fusion"),
+                         ("late_fusion", "(iii) late fusion (best of nms, soft-nms, wbf)"),
+                         ("hydrafusion", "(iv) HydraFusion"), ("ecofusion", "EcoFusion")):
+        for name, v in t2.get(group, {}).items():
+            rows.append([label, name, v])
+    doc.table(f"mAP@0.5 ({tag})", ["set", "model", "mAP"], rows)
+    ctxs = ds["contexts"]
+    rows = [[name, v["what"], v["map"], *[v["map_per_context"].get(c) for c in ctxs]] for name, v in r["methods"].items()]
+    doc.table(f"mAP@0.5 per context, every method ({tag})", ["method", "what", "all", *ctxs], rows)
+
+    # Table 3
+    doc.h(2, "HydraFusion Table 3 analogue: best fusion per gate and k")
+    t3 = r["hydra_table3"]
+    ks = sorted({k for v in t3.values() for k in v["map"]}, key=lambda k: (k == "all", k))
+    doc.table(f"mAP@0.5 of each gate's best fusion method ({tag})", ["gate", "fusion", *[f"k={k}" for k in ks]],
+              [[g, v["fusion"], *[v["map"].get(k) for k in ks]] for g, v in t3.items()])
+
+    # Table 4
+    doc.h(2, "HydraFusion Table 4 analogue: latency and energy per model")
+    doc.p(f"Latency: the additive model of measured stem, branch and fusion latencies on this machine (batch 1); "
+          f"energy: {r['energy_unit']}. Gated methods: the mean over frames of the chosen branches.")
+    doc.table(f"Latency and energy ({tag})", ["method", "branches run", "latency [ms]", "energy [J]",
+                                              "energy (lambda_E scale)"],
+              [[n, v["branches"], v["latency_ms"], v["energy_j"], v["energy"]] for n, v in r["hydra_table4"].items()])
+
+    # Table 5
+    if r["hydra_table5"]:
+        doc.h(2, "HydraFusion Table 5 analogue: late fusion methods")
+        doc.table(f"mAP@0.5 of late-fused single-sensor branches ({tag})", ["sensors", "wbf", "nms", "soft-nms"],
+                  [[c, v.get("wbf"), v.get("nms"), v.get("soft_nms")] for c, v in r["hydra_table5"].items()])
+
+    # Table 6, 7
+    doc.h(2, "HydraFusion Tables 6 and 7 analogues: gates x fusion x k; branch selection rates")
+    rows = []
+    for g, per in r["hydra_table6"].items():
+        for f, row in per.items():
+            rows.append([g, f, *[row.get(k) for k in ks]])
+    doc.table(f"mAP@0.5 per gate, fusion and k ({tag})", ["gate", "fusion", *[f"k={k}" for k in ks]], rows)
+    branches = r["branches"]
+    rows = []
+    for k in ks:
+        if k == "all":
+            continue
+        for g, per in r["hydra_table7"].items():
+            rows.append([k, g, *[per[k].get(b) for b in branches]])
+    doc.table(f"Branch selection rate [% of test frames] ({tag})", ["k", "gate", *branches], rows)
+
+    # EcoFusion
+    eco = r["eco"]
+    doc.h(2, "EcoFusion Table 1 analogue: energy and performance")
+    doc.p(f"Energy: {r['energy_unit']}; gamma {r['gamma']}, Eq. 7 rule {r['rule']}.")
+    doc.table(f"mAP, energy and latency ({tag})", ["model", "configuration", "mAP", "energy", "energy [J]", "latency [ms]"],
+              [[n, v.get("configuration", ""), v.get("map"), v.get("energy"), v.get("energy_j"), v.get("latency_ms")]
+               for n, v in eco["table1"].items()])
+    doc.h(2, "EcoFusion Table 2 analogue: gates x lambda_E")
+    rows = []
+    for lam, per in eco["table2"].items():
+        for g, v in per.items():
+            rows.append([lam, g, v.get("map"), v.get("avg_loss"), v.get("energy")])
+    doc.table(f"mAP, mean fused loss L_f and energy per gate ({tag})", ["lambda_E", "gate", "mAP", "avg L_f", "energy"],
+              rows)
+    doc.h(2, "EcoFusion Table 3 analogue: sensor clock gating per scene")
+    if not eco.get("table3"):
+        doc.p("Not computable here: Table 3 compares against late fusion of camera_left, camera_right, radar and "
+              f"lidar, and this study's branches ({', '.join(r['branches'])}) do not include all four.")
+    else:
+        t3e = eco["table3"]
+        scenes = sorted({c for v in t3e.values() for c in v})
+        doc.table(f"Platform + sensor energy per frame, clock-gated where unused ({tag})", ["method", *scenes],
+                  [[n, *[v.get(c) for c in scenes]] for n, v in t3e.items()])
+    figs = r.get("figures", {})
+    doc.img(f"EcoFusion Figure 4 analogue: loss against energy per gate, lambda_E colour-coded ({tag})",
+            eval_dir / figs.get("figure4", "missing.png"))
+    doc.img(f"EcoFusion Figure 5 analogue: loss and energy per scene ({tag})", eval_dir / figs.get("figure5", "missing.png"))
+
+    # beyond the papers
+    doc.h(2, "mAP against severity per condition")
+    doc.p("Vehicle mAP@0.5 of the test frames of each condition at each severity; beside it the same frames' "
+          "clear-weather twins (everything but the condition held: the difference is the weather alone). "
+          + ("Gated methods choose per frame from the degraded frame, so they have no twin column."
+             if r.get("severity_clear_twins") else "This dataset has no twins."))
+    for cond, per in r["severity"].items():
+        sevs = sorted({s for v in per.values() for s in v}, key=int)
+        rows = [[name, *[f"{_fmt(v.get(s, {}).get('degraded'))} / {_fmt(v.get(s, {}).get('clear'))}" for s in sevs]]
+                for name, v in per.items()]
+        frames = {s: next((v[s]["frames"] for v in per.values() if s in v), 0) for s in sevs}
+        doc.table(f"{cond}: vehicle mAP degraded / clear twin per severity ({tag})", ["method",
+                  *[f"sev {s} ({frames[s]} fr)" for s in sevs]], rows)
+    if _severity_figure(r, work / "severity.png"):
+        doc.img(f"mAP against severity per condition ({tag})", work / "severity.png")
+
+    doc.h(2, "mAP per range bin per context")
+    for name, per in r["range_per_context"].items():
+        bins = sorted({b for v in per.values() for b in v}, key=lambda b: float(b.split("-")[0]))
+        doc.table(f"{name}: vehicle mAP@0.5 per range bin [m] per context ({tag})", ["context", *bins],
+                  [[c, *[v.get(b) for b in bins]] for c, v in per.items()])
+
+    doc.h(2, "Gate regret against the oracle, per context")
+    doc.p(f"HydraFusion: each gate's top-{r['k']} against Optimal gating (the k lowest a-posteriori branch losses); "
+          f"EcoFusion at lambda_E {r['lambda_e']:g}: each gate against Loss-based (the a-posteriori L_f). regret = "
+          "oracle minus gate (mAP; for L_f gate minus oracle): positive = the gate loses that much; differs = "
+          "percent of frames where the gate's choice is not the oracle's.")
+    for fam, per in r["regret"].items():
+        for g, rows_ in per.items():
+            cols = list(rows_)
+            if fam == "hydrafusion":
+                doc.table(f"{fam} {g} gate against the oracle ({tag})", ["", *cols],
+                          [["mAP", *[rows_[c]["map"] for c in cols]], ["oracle mAP", *[rows_[c]["map_oracle"] for c in cols]],
+                           ["regret (mAP)", *[rows_[c]["regret_map"] for c in cols]],
+                           ["differs [%]", *[rows_[c]["differs_pct"] for c in cols]]])
+            else:
+                doc.table(f"{fam} {g} gate against the oracle ({tag})", ["", *cols],
+                          [["mAP", *[rows_[c]["map"] for c in cols]], ["oracle mAP", *[rows_[c]["map_oracle"] for c in cols]],
+                           ["regret (mAP)", *[rows_[c]["regret_map"] for c in cols]],
+                           ["regret (L_f)", *[rows_[c]["regret_loss"] for c in cols]],
+                           ["differs [%]", *[rows_[c]["differs_pct"] for c in cols]]])
+
+    doc.h(2, "Each sensor's fusion regret")
+    doc.p("Late fusion of the single-sensor branches with the sensor against without it, per context: regret = "
+          "mAP without minus mAP with (positive: fusing the sensor costs that much there); L_f regret = mean fused "
+          "loss with minus without.")
+    fr = r["fusion_regret"]
+    if fr:
+        cols = list(next(iter(fr.values()))["per_context"])
+        doc.table(f"mAP regret of fusing each sensor, per context ({tag})", ["sensor", *cols, "hurts in"],
+                  [[b, *[v["per_context"][c]["regret_map"] for c in cols],
+                    ", ".join(f"{c} ({_fmt(x)})" for c, x in v["hurts_in"].items()) or "nowhere"] for b, v in fr.items()])
+        doc.table(f"L_f regret of fusing each sensor, per context ({tag})", ["sensor", *cols],
+                  [[b, *[v["per_context"][c]["regret_loss"] for c in cols]] for b, v in fr.items()])
+
+    doc.h(2, "What each gate picks per context")
+    for fam, per in r["picks"].items():
+        for g, by in per.items():
+            doc.table(f"{fam} {g}: most chosen branch sets [% of the context's test frames] ({tag})",
+                      ["context", "choices"],
+                      [[c, "; ".join(f"{k} {_fmt(v)}" for k, v in d.items())] for c, d in by.items()])
+    summary = {"scale": scale, "meaningless": bool(context.get("meaningless")), "protocol": r["protocol"],
+               "dataset": ds, "machine": m, "device": r.get("device"), "tag": tag}
+    return doc, summary
+
+
+def write_report(results: dict, context: dict, work: Path, eval_dir: Path, rel_to: Path | None = None) -> dict:
+    """Write report.md, report.html and report.json into `work`; returns the report JSON. The
+    Markdown's image links are relative to `rel_to` (where report.md is copied; default `work`)."""
+    work, eval_dir = Path(work), Path(eval_dir)
+    doc, summary = build(results, context, work, eval_dir)
+    report = {**summary, "report_version": REPORT_VERSION, "config": context.get("config"),
+              "stages": {n: {"key": s.get("key"), "seconds": s.get("seconds")} for n, s in context.get("stages", {}).items()},
+              "results": results}
+    for name, text in (("report.md", doc.markdown(Path(rel_to or work))), ("report.html", doc.html(f"hydrabench study ({summary['scale']})")),
+                       ("report.json", json.dumps(report, indent=1, default=str))):
+        tmp = work / f".{name}.tmp-{os.getpid()}"
+        tmp.write_text(text)
+        os.replace(tmp, work / name)
+    return report

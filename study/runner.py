@@ -1,0 +1,590 @@
+"""`hydrabench study`: the whole HydraFusion + EcoFusion comparison as cached, resumable stages.
+
+    generate -> train -> gatedata -> gates -> evaluate -> report
+
+Each stage is a function of its config section (`StudyConfig`) and of the digests of the stages it
+reads. Its key is the SHA-256 of both; its output lives in `DIR/stages/<stage>-<key>/` with a
+`manifest.json` (the key, what it was made of, its output digest, the seconds it took). A stage
+works in `DIR/stages/<stage>-<key>.partial/` and is renamed to its final name when complete, so:
+
+- a stage whose final directory exists (same key) is skipped: a second run does no work;
+- killed anywhere (even kill -9), the next run continues in the partial directory: generation
+  completes its missing shards, training resumes from its last checkpoint (`study.train`), the gate
+  datasets from their last chunk, gate training from its last epoch; evaluation starts again;
+- a changed field changes the key of its stage and of every stage below it (their inputs' digests
+  change), and only those run again; the stages above keep theirs. Old keys stay in DIR/stages as
+  a cache (delete them to reclaim the space).
+
+Stages below `train` work on a *farm* of the run directory: the upstream run's directories are
+recreated and its files symlinked (relative links), so what a stage writes (gate caches, gates,
+latency tables) lands in its own directory and never changes a finished stage.
+
+Execution settings (`run:` section: device, threads, workers, backend) are not part of any key:
+they decide where and how fast a stage runs, not what it computes.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import os
+import shutil
+import sys
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+from sim.config import from_dict, load_yaml, to_dict
+from sim.errors import UserError
+
+STUDY_VERSION = 1
+PRESETS_DIR = Path(__file__).resolve().parents[1] / "configs" / "study"
+STAGES = ("generate", "train", "gatedata", "gates", "evaluate", "report")
+MARKER = "study.json"
+"""The file that makes DIR a study directory (a folder of other files is refused)."""
+
+
+def _positive(where: str, value, lo=1) -> None:
+    if value < lo:
+        raise UserError(f"{where} must be >= {lo}, got {value}")
+
+
+@dataclass(frozen=True)
+class DataSection:
+    """The datasets (`sensors.generate.GenerateConfig`): one dataset, split by sequence into train
+    and test by the training run; with `twins` every frame also has its clear-weather twin (only
+    the condition differs), which the severity sweeps compare against.
+
+    Fields:
+        contexts: context names or combinations; "all" = the eight.
+        frames_per_context: [frames] per context.
+        sequence_length: [frames] per sequence (= per shard; the split is by sequence).
+        frame_rate_hz: [Hz] within a sequence.
+        severities: condition severities drawn per sequence (0-5).
+        twins: also render every frame in clear weather.
+        seed: root seed of the scenes.
+    """
+
+    contexts: tuple[str, ...] = ("all",)
+    frames_per_context: int = 20
+    sequence_length: int = 10
+    frame_rate_hz: float = 2.0
+    severities: tuple[int, ...] = (1, 2, 3, 4, 5)
+    twins: bool = True
+    seed: int = 0
+
+    def generate_config(self, profile: str):
+        from sensors.generate import GenerateConfig
+        from sim.scenario import CONTEXT_NAMES
+
+        contexts = tuple(CONTEXT_NAMES) if tuple(self.contexts) == ("all",) else tuple(self.contexts)
+        return GenerateConfig(contexts=contexts, frames_per_context=self.frames_per_context, seed=self.seed,
+                              profile=profile, sequence_length=self.sequence_length, frame_rate_hz=self.frame_rate_hz,
+                              severities=tuple(self.severities), twins=self.twins)
+
+
+@dataclass(frozen=True)
+class TrainSection:
+    """Training (`study.train.TrainConfig`, HydraFusion 5.3): one run of the paper's branches (the
+    single-sensor branches among them give Table 2 (i) and late fusion (iii)) and, with
+    `early_fusion`, one run of the input-level early-fusion models (Table 2 (ii)).
+
+    Fields:
+        branches: branches of the paper set to train (empty = all seven).
+        early_fusion: also train the early-fusion set (cameras, cameras + lidar, radar + lidar).
+        early_branches: which of the early-fusion models (empty = all three).
+        epochs, batch_size, lr, warmup_steps, clip_grad, seed, checkpoint_steps: as TrainConfig.
+        eval_frames: test frames scored after each epoch (0 = all).
+        protocol: ground truth to train on and score against (reference | visible | bev-free).
+    """
+
+    branches: tuple[str, ...] = ()
+    early_fusion: bool = True
+    early_branches: tuple[str, ...] = ()
+    epochs: int = 10
+    batch_size: int = 4
+    lr: float = 5e-3
+    warmup_steps: int = 100
+    clip_grad: float = 10.0
+    seed: int = 0
+    checkpoint_steps: int = 100
+    eval_frames: int = 0
+    protocol: str = "reference"
+
+    def __post_init__(self) -> None:
+        for name in ("epochs", "batch_size", "checkpoint_steps"):
+            _positive(f"train.{name}", getattr(self, name))
+        for name in ("warmup_steps", "eval_frames", "seed"):
+            _positive(f"train.{name}", getattr(self, name), 0)
+        if not self.lr > 0:
+            raise UserError(f"train.lr must be > 0, got {self.lr}")
+        if self.clip_grad < 0:
+            raise UserError(f"train.clip_grad must be >= 0, got {self.clip_grad}")
+        early = ("early_cameras", "early_camera_lidar", "early_radar_lidar")
+        bad = [b for b in self.early_branches if b not in early]
+        if bad:
+            raise UserError(f"train.early_branches: unknown model {bad[0]!r} (choose from: {', '.join(early)})")
+        if self.protocol not in ("reference", "visible"):
+            raise UserError(f"train.protocol must be reference or visible (the study fuses in the right camera), "
+                            f"got {self.protocol!r}")
+
+
+@dataclass(frozen=True)
+class GatesSection:
+    """Gate datasets and gates: HydraFusion's per-branch gates (`study.gates`, Section 5.2.2) and
+    EcoFusion's per-configuration gates (`study.ecofusion`), and the latency table (Eq. 6).
+
+    Fields:
+        gates: the learned gates to train (deep, attention); knowledge and the oracles need none.
+        epochs, batch_size, lr, val_fraction, seed: as GateTrainConfig (HydraFusion 5.3: lr 5e-5).
+        eco_max_frames: at most this many frames of each split for EcoFusion (0 = all).
+        fusion: late fusion of a configuration (nms | soft-nms | wbf).
+        energy_frames, energy_repeats, energy_check: the latency measurement (eco-energy).
+    """
+
+    gates: tuple[str, ...] = ("deep", "attention")
+    epochs: int = 100
+    batch_size: int = 32
+    lr: float = 5e-5
+    val_fraction: float = 0.15
+    seed: int = 0
+    eco_max_frames: int = 0
+    fusion: str = "soft-nms"
+    energy_frames: int = 3
+    energy_repeats: int = 3
+    energy_check: int = 12
+
+    def __post_init__(self) -> None:
+        bad = [g for g in self.gates if g not in ("deep", "attention")]
+        if bad:
+            raise UserError(f"gates.gates: {bad[0]!r} is not a learned gate (choose from: deep, attention)")
+        for name in ("epochs", "batch_size", "energy_frames", "energy_repeats"):
+            _positive(f"gates.{name}", getattr(self, name))
+        for name in ("eco_max_frames", "energy_check", "seed"):
+            _positive(f"gates.{name}", getattr(self, name), 0)
+        if not self.lr > 0:
+            raise UserError(f"gates.lr must be > 0, got {self.lr}")
+        if not 0 <= self.val_fraction < 1:
+            raise UserError(f"gates.val_fraction must be in [0, 1), got {self.val_fraction}")
+        if self.fusion not in ("nms", "soft-nms", "wbf"):
+            raise UserError(f"gates.fusion must be nms, soft-nms or wbf, got {self.fusion!r}")
+
+
+@dataclass(frozen=True)
+class EvaluateSection:
+    """Evaluation on the run's test split.
+
+    Fields:
+        k: branches HydraFusion's gate keeps per frame (HydraFusion Table 2 (iv): top 3).
+        hydra_gate: the gate of the HydraFusion rows (knowledge | deep | attention).
+        eco_gate: the gate of the EcoFusion rows (knowledge | deep | attention).
+        lambda_e: EcoFusion's energy weight (Eq. 8) of the EcoFusion rows.
+        gamma: candidate margin of Eq. 7 (EcoFusion Section 5: 0.5).
+        rule: Eq. 7 as "prose" (within gamma of the best) or "equation" (as printed).
+        power: P of Eq. 6 where no counter exists: "px2" (45.4 W) or watts as a string.
+        energy_scale: px2 | late | joules (`fusion.eco.optimise.normalise_energy`).
+        twins: score the clear-weather twins of the test frames too (severity sweeps).
+    """
+
+    k: int = 3
+    hydra_gate: str = "attention"
+    eco_gate: str = "attention"
+    lambda_e: float = 0.01
+    gamma: float = 0.5
+    rule: str = "prose"
+    power: str = "px2"
+    energy_scale: str = "px2"
+    twins: bool = True
+
+    def __post_init__(self) -> None:
+        _positive("evaluate.k", self.k)
+        for name in ("hydra_gate", "eco_gate"):
+            if getattr(self, name) not in ("knowledge", "deep", "attention"):
+                raise UserError(f"evaluate.{name} must be knowledge, deep or attention, got {getattr(self, name)!r}")
+        if not 0 <= self.lambda_e <= 1:
+            raise UserError(f"evaluate.lambda_e must be in [0, 1], got {self.lambda_e}")
+        if not self.gamma >= 0:
+            raise UserError(f"evaluate.gamma must be >= 0, got {self.gamma}")
+        if self.rule not in ("prose", "equation"):
+            raise UserError(f"evaluate.rule must be prose or equation, got {self.rule!r}")
+        if self.energy_scale not in ("px2", "late", "joules"):
+            raise UserError(f"evaluate.energy_scale must be px2, late or joules, got {self.energy_scale!r}")
+        from fusion.eco.energy import power_model
+
+        try:
+            power_model(self.power)
+        except ValueError as exc:
+            raise UserError(f"evaluate.power: {exc}") from None
+
+
+@dataclass(frozen=True)
+class RunSection:
+    """Where and how fast the stages run; part of no key (the same results on any setting, up to
+    floating-point reduction order on other devices).
+
+    Fields:
+        device: auto | cpu | cuda | cuda:N.
+        threads: torch CPU threads (0: the cores available).
+        workers: generation processes (and Ray CPUs with backend ray).
+        backend: local | ray (generation: one Ray task per shard).
+    """
+
+    device: str = "auto"
+    threads: int = 0
+    workers: int = 1
+    backend: str = "local"
+
+    def __post_init__(self) -> None:
+        _positive("run.threads", self.threads, 0)
+        _positive("run.workers", self.workers)
+        if self.backend not in ("local", "ray"):
+            raise UserError(f"run.backend must be local or ray, got {self.backend!r}")
+
+
+@dataclass(frozen=True)
+class StudyConfig:
+    """One study (YAML: these keys, each section with its own; unknown keys are errors).
+
+    Fields:
+        scale: the name every table carries (smoke, cpu, paper, or your own).
+        meaningless: the numbers are too small to mean anything (smoke, tests): the report says so
+            in its first line.
+        profile: sensor and model profile (cpu | paper).
+        data, train, gates, evaluate, run: the sections above.
+    """
+
+    scale: str = "custom"
+    meaningless: bool = False
+    profile: str = "cpu"
+    data: DataSection = field(default_factory=DataSection)
+    train: TrainSection = field(default_factory=TrainSection)
+    gates: GatesSection = field(default_factory=GatesSection)
+    evaluate: EvaluateSection = field(default_factory=EvaluateSection)
+    run: RunSection = field(default_factory=RunSection)
+
+    def __post_init__(self) -> None:
+        if not self.scale.strip():
+            raise UserError("scale must name the study's scale")
+        self.data.generate_config(self.profile)  # contexts, severities, profile: refused here
+        from fusion.nets import load_profile
+
+        try:
+            paper = [b.name for b in load_profile(self.profile).branches]
+        except (UserError, OSError, ValueError) as exc:
+            raise UserError(f"profile: {exc}") from None
+        bad = [b for b in self.train.branches if b not in paper]
+        if bad:
+            raise UserError(f"train.branches: unknown branch {bad[0]!r} (choose from: {', '.join(paper)})")
+        if len(set(self.train.branches)) != len(self.train.branches):
+            raise UserError("train.branches names a branch twice")
+
+
+def load_study_config(spec: str) -> StudyConfig:
+    """A preset name (configs/study/<name>.yaml) or a YAML file path -> StudyConfig (strict)."""
+    path = Path(spec)
+    if not spec.endswith((".yaml", ".yml")) and not path.exists():
+        preset = PRESETS_DIR / f"{spec}.yaml"
+        if not preset.is_file():
+            names = sorted(p.stem for p in PRESETS_DIR.glob("*.yaml"))
+            raise UserError(f"{spec!r} is neither a preset ({', '.join(names)}) nor a YAML file")
+        path = preset
+    if not path.is_file():
+        raise UserError(f"{spec}: " + ("not a file" if path.exists() else "does not exist"))
+    return load_yaml(StudyConfig, path)
+
+
+def study_config_from_dict(data: dict) -> StudyConfig:
+    return from_dict(StudyConfig, data, "study config")
+
+
+# ----- stage machinery ------------------------------------------------------------------------
+
+
+def _digest(obj) -> str:
+    return hashlib.sha256(json.dumps(obj, sort_keys=True, default=str).encode()).hexdigest()
+
+
+def file_sha256(path: Path) -> str:
+    h = hashlib.sha256()
+    with open(path, "rb") as fh:
+        for block in iter(lambda: fh.read(1 << 22), b""):
+            h.update(block)
+    return h.hexdigest()
+
+
+def _atomic_json(path: Path, obj) -> None:
+    tmp = path.with_name(f".{path.name}.tmp-{os.getpid()}")
+    tmp.write_text(json.dumps(obj, indent=1, default=str))
+    os.replace(tmp, path)
+
+
+def link_farm(src: Path, dst: Path) -> None:
+    """Recreate `src`'s directories under `dst` and symlink its files (relative links); entries
+    already in `dst` are kept (a resumed stage keeps what it wrote)."""
+    src, dst = Path(src).resolve(), Path(dst)
+    for dirpath, _dirs, filenames in os.walk(src):
+        rel = Path(dirpath).relative_to(src)
+        target_dir = dst / rel
+        target_dir.mkdir(parents=True, exist_ok=True)
+        for f in filenames:
+            if f.startswith(".") and ".tmp" in f:
+                continue
+            link = target_dir / f
+            if not link.exists() and not link.is_symlink():
+                os.symlink(os.path.relpath(Path(dirpath) / f, target_dir.resolve()), link)
+
+
+@dataclass
+class StageRecord:
+    name: str
+    key: str
+    dir: Path
+    status: str = "pending"
+    seconds: float = 0.0
+    digest: str = ""
+    manifest: dict = field(default_factory=dict)
+
+
+class Study:
+    """One study directory: its config, its stages and their records."""
+
+    def __init__(self, cfg: StudyConfig, out: str | Path, progress: bool = True) -> None:
+        self.cfg, self.out, self.progress = cfg, Path(out), progress
+        self.stages_dir = self.out / "stages"
+        self.records: dict[str, StageRecord] = {}
+
+    # -- bookkeeping --
+    def say(self, text: str) -> None:
+        if self.progress:
+            sys.stderr.write(f"[study] {text}\n")
+            sys.stderr.flush()
+
+    def prepare(self) -> None:
+        """Refuse a directory of other files; write the marker and the config."""
+        if self.out.exists():
+            if not self.out.is_dir():
+                raise UserError(f"--out {self.out} exists and is not a directory")
+            entries = [e.name for e in self.out.iterdir()]
+            if entries and MARKER not in entries:
+                raise UserError(f"--out {self.out} is not empty and holds no study (no {MARKER}); use a new or "
+                                "empty directory")
+        self.stages_dir.mkdir(parents=True, exist_ok=True)
+        _atomic_json(self.out / MARKER, {"version": STUDY_VERSION, "config": to_dict(self.cfg)})
+
+    def stage(self, name: str, inputs: dict, func) -> StageRecord:
+        """Run `func(work_dir, record) -> (outputs digest, extra manifest fields)` unless the stage
+        with this key is done; see the module docstring."""
+        key = _digest({"stage": name, "version": STUDY_VERSION, **inputs})[:16]
+        final = self.stages_dir / f"{name}-{key}"
+        partial = self.stages_dir / f"{name}-{key}.partial"
+        rec = StageRecord(name, key, final)
+        manifest_path = final / "manifest.json"
+        if manifest_path.is_file():
+            rec.manifest = json.loads(manifest_path.read_text())
+            rec.status, rec.digest = "skipped", rec.manifest["digest"]
+            self.say(f"{name}: skipped (done, key {key}, took {rec.manifest['seconds']} s when it ran)")
+            self.records[name] = rec
+            return rec
+        resumed = partial.exists()
+        partial.mkdir(parents=True, exist_ok=True)
+        self.say(f"{name}: {'resuming' if resumed else 'running'} (key {key})")
+        t0 = time.perf_counter()
+        rec.dir = partial
+        digest, extra = func(partial, rec)
+        rec.seconds = round(time.perf_counter() - t0, 2)
+        rec.digest = digest
+        rec.manifest = {"stage": name, "key": key, "inputs": inputs, "digest": digest, "seconds": rec.seconds,
+                        "finished": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()), **extra}
+        _atomic_json(partial / "manifest.json", rec.manifest)
+        if final.exists():  # a stale final directory without a manifest (cannot happen via rename) is replaced
+            shutil.rmtree(final)
+        os.replace(partial, final)
+        rec.dir, rec.status = final, "ran"
+        self.say(f"{name}: done in {rec.seconds} s")
+        self.records[name] = rec
+        return rec
+
+    def summary(self) -> dict:
+        return {n: {"key": r.key, "status": r.status, "seconds": r.seconds, "dir": str(r.dir)}
+                for n, r in self.records.items()}
+
+
+def _device_setup(cfg: StudyConfig):
+    from study.device import resolve_device
+
+    return resolve_device(device=cfg.run.device, threads=cfg.run.threads)
+
+
+def eco_settings(cfg: StudyConfig):
+    from study.ecofusion import EcoSettings
+
+    return EcoSettings(fusion=cfg.gates.fusion, power=cfg.evaluate.power, energy_scale=cfg.evaluate.energy_scale,
+                       rule=cfg.evaluate.rule, batch_size=cfg.train.batch_size, max_frames=cfg.gates.eco_max_frames)
+
+
+# ----- the stages -----------------------------------------------------------------------------
+
+
+def run_study(cfg: StudyConfig, out: str | Path, until: str = "report", progress: bool = True) -> dict:
+    """Run (or continue) the study in `out` up to stage `until`; returns the stage summary and,
+    when the report stage ran or was skipped, the report's JSON (every number of the report)."""
+    if until not in STAGES:
+        raise UserError(f"--until: unknown stage {until!r} (choose from: {', '.join(STAGES)})")
+    study = Study(cfg, out, progress)
+    study.prepare()
+    setup = _device_setup(cfg)
+    t_start = time.perf_counter()
+    last = STAGES.index(until)
+    profile = cfg.profile
+
+    # generate ------------------------------------------------------------------------------
+    gcfg = cfg.data.generate_config(profile)
+
+    def do_generate(work: Path, rec):
+        from sensors.generate import generate
+
+        generate(gcfg, work / "data", workers=cfg.run.workers, progress=progress, backend=cfg.run.backend)
+        return file_sha256(work / "data" / "manifest.json"), {"frames": len(json.loads(
+            (work / "data" / "manifest.json").read_text())["frames"])}
+
+    gen = study.stage("generate", {"data": gcfg.to_dict()}, do_generate)
+    data = gen.dir / "data"
+    result: dict = {"out": str(study.out)}
+    if last < 1:
+        return _finish(study, result, t_start)
+
+    # train ---------------------------------------------------------------------------------
+    t = cfg.train
+    train_fields = {k: v for k, v in to_dict(t).items()}
+
+    def train_config(branch_set: str, branches):
+        from study.train import TrainConfig
+
+        return TrainConfig(data=str(data.resolve()), model_profile=profile, branch_set=branch_set,
+                           branches=tuple(branches), epochs=t.epochs, batch_size=t.batch_size, lr=t.lr,
+                           warmup_steps=t.warmup_steps, clip_grad=t.clip_grad, seed=t.seed,
+                           checkpoint_steps=t.checkpoint_steps, eval_frames=t.eval_frames, threads=setup.threads,
+                           protocol=t.protocol, device=setup.device)
+
+    def do_train(work: Path, rec):
+        from study.train import train
+
+        digests = {}
+        runs = {"paper": ("paper", t.branches)}
+        if t.early_fusion:
+            runs["early"] = ("early_fusion", t.early_branches)
+        for name, (bset, branches) in runs.items():
+            study.say(f"train: {name} ({bset} branch set)")
+            train(train_config(bset, branches), work / name, progress=progress)
+            digests[name] = file_sha256(work / name / "checkpoint.pt")
+        return _digest(digests), {"checkpoints_sha256": digests}
+
+    tr = study.stage("train", {"generate": gen.digest, "profile": profile, "train": train_fields}, do_train)
+    run_paper = tr.dir / "paper"
+    run_early = tr.dir / "early" if t.early_fusion else None
+    if last < 2:
+        return _finish(study, result, t_start)
+
+    # gate datasets -------------------------------------------------------------------------
+    g = cfg.gates
+    s = eco_settings(cfg)
+
+    def do_gatedata(work: Path, rec):
+        from study.detect import frames_for, load_run
+        from study.ecofusion import build_eco_data
+        from study.gates import GateData
+
+        run = work / "run"
+        link_farm(run_paper, run)
+        model, run_cfg = load_run(run, "latest", device=setup.device)
+        train_idx, _ = frames_for(run_cfg, data, "train")
+        test_idx, _ = frames_for(run_cfg, data, "test")
+        gd = GateData(run, data, model)
+        gd.ensure(train_idx + test_idx, batch_size=t.batch_size, progress=progress)
+        eco = build_eco_data(run, data, s, progress=progress)
+        return _digest({"gate_data": gd.key, "eco_data": Path(eco["eco_data"]).name}), {
+            "gate_data_key": gd.key, "eco_data": eco}
+
+    gdr = study.stage("gatedata", {"train": tr.digest, "eco_max_frames": g.eco_max_frames, "fusion": g.fusion},
+                      do_gatedata)
+    if last < 3:
+        return _finish(study, result, t_start)
+
+    # gates ---------------------------------------------------------------------------------
+    def do_gates(work: Path, rec):
+        from study.ecofusion import energy_table, train_eco_gate
+        from study.gates import GateTrainConfig, train_gate
+
+        run = work / "run"
+        link_farm(gdr.dir / "run", run)
+        out, digests = {}, {}
+        for gate in g.gates:
+            gcfg_ = GateTrainConfig(gate=gate, epochs=g.epochs, batch_size=g.batch_size, lr=g.lr,
+                                    val_fraction=g.val_fraction, seed=g.seed, threads=setup.threads)
+            study.say(f"gates: HydraFusion {gate} gate")
+            out[f"hydra_{gate}"] = train_gate(run, data, gcfg_, progress=progress, setup=setup)
+            digests[f"hydra_{gate}"] = file_sha256(run / "gates" / gate / "gate.pt")
+            study.say(f"gates: EcoFusion {gate} gate")
+            out[f"eco_{gate}"] = train_eco_gate(run, data, gate, gcfg_, s, progress=progress)
+            digests[f"eco_{gate}"] = file_sha256(run / "eco" / "gates" / gate / "gate.pt")
+        study.say("gates: latency and energy of every configuration")
+        energy = energy_table(run, data, s, threads=1, repeats=g.energy_repeats, frames=g.energy_frames,
+                              progress=progress, n_check=g.energy_check)
+        energy = {k: v for k, v in energy.items() if not k.startswith("_")}
+        digests["latency"] = file_sha256(run / "eco" / "latency.json")
+        return _digest(digests), {"gates": out, "energy": energy}
+
+    gt = study.stage("gates", {"gatedata": gdr.digest, "gates": to_dict(g)}, do_gates)
+    if last < 4:
+        return _finish(study, result, t_start)
+
+    # evaluate ------------------------------------------------------------------------------
+    def do_evaluate(work: Path, rec):
+        from study.study_eval import evaluate_study
+
+        run = work / "run"
+        link_farm(gt.dir / "run", run)
+        res = evaluate_study(run, run_early, data, cfg, s, work, setup=setup, progress=progress)
+        _atomic_json(work / "results.json", res)
+        return file_sha256(work / "results.json"), {}
+
+    ev = study.stage("evaluate", {"gates": gt.digest, "train": tr.digest, "evaluate": to_dict(cfg.evaluate)},
+                     do_evaluate)
+    if last < 5:
+        return _finish(study, result, t_start)
+
+    # report --------------------------------------------------------------------------------
+    def do_report(work: Path, rec):
+        from study.report import write_report
+
+        results = json.loads((ev.dir / "results.json").read_text())
+        context = {"scale": cfg.scale, "meaningless": cfg.meaningless, "config": to_dict(cfg),
+                   "stages": {n: r.manifest for n, r in study.records.items()},
+                   "stage_dirs": {n: str(r.dir) for n, r in study.records.items()}}
+        write_report(results, context, work, ev.dir, rel_to=study.out)
+        return file_sha256(work / "report.json"), {"files": sorted(p.name for p in work.iterdir())}
+
+    rp = study.stage("report", {"evaluate": ev.digest, "scale": cfg.scale, "meaningless": cfg.meaningless,
+                                "report_version": _report_version()}, do_report)
+    for name in ("report.md", "report.html", "report.json"):
+        tmp = study.out / f".{name}.tmp-{os.getpid()}"
+        shutil.copyfile(rp.dir / name, tmp)
+        os.replace(tmp, study.out / name)
+    result["report"] = {n: str(study.out / n) for n in ("report.md", "report.html", "report.json")}
+    result["report_json"] = json.loads((study.out / "report.json").read_text())
+    return _finish(study, result, t_start)
+
+
+def _report_version() -> str:
+    """The report code's identity: a changed report.py renders the report again."""
+    import study.report
+
+    return _digest([study.report.REPORT_VERSION, Path(study.report.__file__).read_text()])[:16]
+
+
+def _finish(study: Study, result: dict, t_start: float) -> dict:
+    result["stages"] = study.summary()
+    result["seconds"] = round(time.perf_counter() - t_start, 2)
+    ran = [n for n, r in study.records.items() if r.status == "ran"]
+    study.say(f"finished in {result['seconds']} s; ran: {', '.join(ran) or 'nothing (every stage was done)'}")
+    return result

@@ -1,0 +1,215 @@
+"""`hydrabench study` end to end on the tiny preset (configs/study/tiny.yaml): every stage runs and
+writes its report; a second run does no work; a changed downstream field reruns only the stages
+below it; a run killed with SIGKILL mid-stage continues and gives what an uninterrupted run gives;
+the report's numbers obey the equations they come from; bad configs are one-line errors.
+
+The tiny study is kept in the session's shared cache (HYDRABENCH_CACHE layout of the notebook
+tests), so tests/notebooks/test_notebooks.py reads the same study instead of running it again.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+
+from sim.errors import UserError
+from study.runner import STAGES, load_study_config, run_study, study_config_from_dict
+
+ROOT = Path(__file__).resolve().parents[2]
+
+
+def tiny_study_dir(tmp_path_factory) -> Path:
+    """Where the session's tiny study lives (shared with the notebook test); HYDRABENCH_TINY_STUDY
+    keeps one across sessions (its stages are keyed, so a stale one is never reused)."""
+    if os.environ.get("HYDRABENCH_TINY_STUDY"):
+        return Path(os.environ["HYDRABENCH_TINY_STUDY"])
+    return tmp_path_factory.getbasetemp() / "hydrabench-cache" / "study-tiny"
+
+
+@pytest.fixture(scope="module")
+def tiny(tmp_path_factory):
+    cfg = load_study_config("tiny")
+    out = tiny_study_dir(tmp_path_factory)
+    t0 = time.perf_counter()
+    first = run_study(cfg, out, progress=True)
+    return {"cfg": cfg, "out": out, "first": first, "seconds": time.perf_counter() - t0}
+
+
+def test_every_stage_runs_and_writes_the_report_with_its_tables(tiny):
+    out, first = tiny["out"], tiny["first"]
+    assert list(first["stages"]) == list(STAGES)
+    for name, s in first["stages"].items():
+        assert s["status"] in ("ran", "skipped"), name
+        d = Path(s["dir"])
+        assert d.name == f"{name}-{s['key']}" and (d / "manifest.json").is_file()
+        assert not Path(str(d) + ".partial").exists()
+    md = (out / "report.md").read_text()
+    assert md.splitlines()[0].startswith("**These numbers mean nothing**")
+    for title in ("HydraFusion Table 2", "HydraFusion Table 3", "HydraFusion Table 4", "HydraFusion Table 5",
+                  "HydraFusion Tables 6 and 7", "EcoFusion Table 1", "EcoFusion Table 2", "EcoFusion Table 3",
+                  "mAP against severity per condition", "mAP per range bin per context",
+                  "Gate regret against the oracle", "fusion regret", "What each gate picks"):
+        assert title in md, title
+    captions = [line for line in md.splitlines() if line.startswith("*") and line.endswith("*")
+                and not line.startswith("**")]
+    tables = sum(line.startswith("|---") for line in md.splitlines())
+    assert tables >= 15 and len(captions) >= tables  # every table has its caption
+    for c in captions:  # ... naming protocol, scale, dataset size and machine
+        if "Figure" in c or "severity per condition (" in c:
+            continue
+        assert "protocol reference" in c and "scale tiny" in c and "4 frames (2 train, 2 test)" in c, c
+        assert "machine " in c and "thread(s)" in c, c
+    html = (out / "report.html").read_text()
+    assert html.count("data:image/png;base64,") >= 3  # figures 4, 5 and the severity sweep, embedded
+    assert "src='http" not in html and 'src="http' not in html and "<img src='stages" not in html
+    assert html.count("<table>") == tables
+    rep = json.loads((out / "report.json").read_text())
+    assert rep["scale"] == "tiny" and rep["meaningless"] and rep["protocol"] == "reference"
+    assert rep["results"]["dataset"]["test_frames"] == 2
+
+
+def test_report_numbers_follow_their_definitions(tiny):
+    r = json.loads((tiny["out"] / "report.json").read_text())["results"]
+    m = r["methods"]
+    # Table 2 (i) is each single-sensor method's mAP; (iv) the configured gate's top-k
+    for b, v in r["hydra_table2"]["single_sensors"].items():
+        assert v == m[f"single:{b}"]["map"]
+    assert set(r["hydra_table2"]["early_fusion"]) == {"early_radar_lidar"}
+    assert list(r["hydra_table2"]["hydrafusion"].values()) == [m["hydrafusion:attention"]["map"]]
+    # Table 5's best fusion method is what Table 2 (iii) shows
+    for combo, row in r["hydra_table5"].items():
+        assert r["hydra_table2"]["late_fusion"][combo] == max(v for v in row.values() if v is not None)
+    # Eq. 6 with no energy counter here: E = P t, P = 45.4 W (the PX2), for every fixed configuration
+    assert r["energy_unit"].endswith("modelled: 45.4 W (EcoFusion Table 1: Drive PX2 under load)") or \
+        "45.4 W" in r["energy_unit"]
+    for name in ("late", "single:radar", "all_branches"):
+        row = r["hydra_table4"][name]
+        assert row["energy_j"] == pytest.approx(45.4 * row["latency_ms"] / 1000, rel=2e-3, abs=2e-4)
+    assert r["hydra_table4"]["late"]["branches"] == len(r["late"])
+    assert r["hydra_table4"]["hydrafusion:attention"]["branches"] == r["k"] == 2
+    # fusion regret = mAP without the sensor minus mAP with it; "with" is late fusion itself
+    for b, v in r["fusion_regret"].items():
+        assert b in r["late"]
+        for ctx, row in v["per_context"].items():
+            assert row["map_with"] == (m["late"]["map"] if ctx == "all" else m["late"]["map_per_context"][ctx])
+            if row["map_with"] is not None and row["map_without"] is not None:
+                assert row["regret_map"] == pytest.approx(row["map_without"] - row["map_with"], abs=1e-4)
+        assert set(v["hurts_in"]) == {c for c, row in v["per_context"].items()
+                                      if c != "all" and (row["regret_map"] or 0) > 0}
+    # regret against the oracle: oracle minus gate, and the share of frames whose choice differs
+    for fam, oracle in (("hydrafusion", "optimal"), ("ecofusion", "loss_based")):
+        for rows in r["regret"][fam].values():
+            for ctx, row in rows.items():
+                key = f"{fam}:{oracle}"
+                o = m[key]["map"] if ctx == "all" else m[key]["map_per_context"][ctx]
+                assert row["map_oracle"] == o
+                if row["map"] is not None and o is not None:
+                    assert row["regret_map"] == pytest.approx(o - row["map"], abs=1e-4)
+                assert 0 <= row["differs_pct"] <= 100
+                assert row["differs_pct"] * row["frames"] / 100 == pytest.approx(round(row["differs_pct"] * row["frames"] / 100), abs=0.06)
+    # severity sweep: fog frames at severity 4 only (the preset), with their clear twins scored
+    fog = r["severity"]["fog"]
+    assert set(fog["late"]) == {"4"} and fog["late"]["4"]["frames"] == 1
+    assert "clear" in fog["single:radar"]["4"] and r["severity_clear_twins"]
+    # range bins per context come from the same scoring as the methods table
+    assert r["range_per_context"]["late"] == m["late"]["map_vehicles_per_context_range"]
+
+
+def test_a_second_run_does_no_work_and_json_is_one_object(tiny, capsys):
+    from study.cli import main
+
+    cfg_file = tiny["out"].parent / "tiny_copy.yaml"
+    cfg_file.write_text((ROOT / "configs" / "study" / "tiny.yaml").read_text())
+    t0 = time.perf_counter()
+    assert main(["study", str(cfg_file), "--out", str(tiny["out"]), "--json"]) == 0
+    seconds = time.perf_counter() - t0
+    out, err = capsys.readouterr()
+    assert out.count("\n") == 1
+    r = json.loads(out)
+    assert {s["status"] for s in r["stages"].values()} == {"skipped"}
+    assert r["seconds"] < 5 and seconds < 60, (r["seconds"], seconds)
+    assert err.count("skipped (done") == len(STAGES)
+    assert r["report_json"]["results"]["methods"]["late"]["map"] == \
+        json.loads((tiny["out"] / "report.json").read_text())["results"]["methods"]["late"]["map"]
+
+
+def test_changing_a_downstream_field_reruns_only_the_stages_below_it(tiny):
+    cfg, out = tiny["cfg"], tiny["out"]
+    before = json.loads((out / "report.json").read_text())
+    changed = dataclasses.replace(cfg, evaluate=dataclasses.replace(cfg.evaluate, lambda_e=0.05))
+    r = run_study(changed, out)
+    status = {n: s["status"] for n, s in r["stages"].items()}
+    assert status == {"generate": "skipped", "train": "skipped", "gatedata": "skipped", "gates": "skipped",
+                      "evaluate": "ran", "report": "ran"}
+    assert r["report_json"]["results"]["lambda_e"] == 0.05
+    for n in ("generate", "train", "gatedata", "gates"):
+        assert r["stages"][n]["key"] == tiny["first"]["stages"][n]["key"]
+    # back to the original config: every stage is cached again, and the report is the original's
+    again = run_study(cfg, out, progress=False)
+    assert {s["status"] for s in again["stages"].values()} == {"skipped"}
+    assert json.loads((out / "report.json").read_text()) == before
+
+
+def test_killed_with_sigkill_mid_run_it_continues_and_equals_an_uninterrupted_run(tiny, tmp_path):
+    out = tmp_path / "killed"
+    env = dict(os.environ, PYTHONPATH=os.pathsep.join([str(ROOT), os.environ.get("PYTHONPATH", "")]).rstrip(os.pathsep))
+    proc = subprocess.Popen([sys.executable, "-m", "study.cli", "study", "tiny", "--out", str(out), "--until", "train"],
+                            env=env, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    deadline = time.time() + 300
+    try:
+        while time.time() < deadline and not list((out / "stages").glob("generate-*/manifest.json")):
+            assert proc.poll() is None, "the study ended before it could be killed"
+            time.sleep(0.2)
+        time.sleep(2.0)  # into the train stage
+        assert proc.poll() is None, "the train stage finished before it could be killed"
+        proc.send_signal(signal.SIGKILL)
+        proc.wait(30)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+    assert proc.returncode == -signal.SIGKILL
+    assert list((out / "stages").glob("train-*.partial")) and not list((out / "stages").glob("train-*/manifest.json"))
+    r = run_study(tiny["cfg"], out, until="train")
+    assert r["stages"]["generate"]["status"] == "skipped" and r["stages"]["train"]["status"] == "ran"
+    assert not list((out / "stages").glob("*.partial"))
+    # the same inputs give the same keys, and the resumed training the same checkpoints (its digest
+    # is the SHA-256 of each run's checkpoint.pt)
+    ref = {n: json.loads((Path(tiny["first"]["stages"][n]["dir"]) / "manifest.json").read_text())
+           for n in ("generate", "train")}
+    for n in ("generate", "train"):
+        got = json.loads((Path(r["stages"][n]["dir"]) / "manifest.json").read_text())
+        assert got["key"] == ref[n]["key"] and got["digest"] == ref[n]["digest"], n
+    assert got["checkpoints_sha256"] == ref["train"]["checkpoints_sha256"]
+
+
+def test_bad_configs_are_one_line_errors(tmp_path, capsys):
+    from study.cli import main
+
+    for text, needle in (("scale: x\nbogus: 1\n", "unknown key 'bogus'"),
+                         ("train:\n  epochs: 0\n", "train.epochs must be >= 1"),
+                         ("train:\n  branches: [sonar]\n", "unknown branch 'sonar'"),
+                         ("evaluate:\n  lambda_e: 2\n", "evaluate.lambda_e"),
+                         ("data:\n  contexts: [mars]\n", "mars"),
+                         ("gates:\n  gates: [optimal]\n", "not a learned gate"),
+                         ("data: [1, 2]\n", "data")):
+        path = tmp_path / "bad.yaml"
+        path.write_text(text)
+        assert main(["study", str(path), "--out", str(tmp_path / "out")]) == 2
+        out, err = capsys.readouterr()
+        assert out == "" and len(err.strip().splitlines()) == 1 and needle in err, (text, err)
+        assert not (tmp_path / "out").exists()
+    with pytest.raises(UserError, match="unknown key"):
+        study_config_from_dict({"train": {"epoch": 3}})
+    foreign = tmp_path / "foreign"
+    foreign.mkdir()
+    (foreign / "notes.txt").write_text("mine")
+    assert main(["study", "tiny", "--out", str(foreign)]) == 2
+    assert "holds no study" in capsys.readouterr().err and os.listdir(foreign) == ["notes.txt"]
