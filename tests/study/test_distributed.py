@@ -158,7 +158,7 @@ def test_device_options_refuse_what_this_machine_cannot_do(data, tmp_path, capsy
     err = capsys.readouterr().err
     assert code == 2 and "--amp" in err and len(err.strip().splitlines()) == 1
     assert main(["train", str(data), "--out", str(tmp_path / "x"), "--device", "tpu"]) == 2
-    assert "choose from auto, cpu, cuda" in capsys.readouterr().err
+    assert "--device: expected auto, cpu, cuda or cuda:N" in capsys.readouterr().err
     if not torch.cuda.is_available():  # every network command shares the same options and refusal
         for argv in (["evaluate", str(tmp_path), str(data)], ["train-gate", str(tmp_path), str(data), "--gate", "deep"],
                      ["bench", "inference"]):
