@@ -52,6 +52,24 @@ def load_run(run: str | Path, which: str = "latest", device: str = "cpu"):
     return model, cfg
 
 
+def run_train_test(run_cfg: dict, data: str | Path, who: str) -> tuple[list[int], list[int]]:
+    """(train, test) frames of the run's own split of `data`, which must be the run's training dataset
+    (a gate trains on the train split and is tested on the test split). UserError naming `who` (the
+    command) otherwise, or when either split is empty."""
+    from sensors.dataset import DatasetReader
+    from sim.errors import UserError
+
+    if DatasetReader(data).manifest["config"] != run_cfg.get("data_config"):
+        raise UserError(f"{who} needs the run's training dataset ({run_cfg.get('data')}), not {data}: gates train "
+                        "on the run's train split and are tested on its test split")
+    train, _ = frames_for(run_cfg, data, "train")
+    test, _ = frames_for(run_cfg, data, "test")
+    if not train or not test:
+        raise UserError(f"the run's split of {data} has {len(train)} train and {len(test)} test frames; {who} "
+                        "needs both")
+    return train, test
+
+
 def frames_for(run_cfg: dict, data: str | Path, split: str = "auto") -> tuple[list[int], str]:
     """Which frames of `data` to evaluate: the run's test split when `data` is its training dataset
     (same generation config), every frame otherwise; `split` = "test" | "train" | "all" forces it.

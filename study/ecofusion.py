@@ -64,6 +64,7 @@ from study.gates import (
     _atomic_text,
     _atomic_torch_save,
     _bar,
+    _predict,
     cached_sha256,
     checkpoint_path,
     fit_gate,
@@ -291,18 +292,9 @@ def _subsample(indices: list[int], n: int) -> list[int]:
 
 
 def _splits(cfg, data, max_frames: int = 0) -> tuple[list[int], list[int]]:
-    from sensors.dataset import DatasetReader
-    from study.detect import frames_for
+    from study.detect import run_train_test
 
-    reader = DatasetReader(data)
-    if reader.manifest["config"] != cfg.get("data_config"):
-        raise UserError(f"EcoFusion needs the run's training dataset ({cfg.get('data')}), not {data}: gates train "
-                        "on the run's train split and are tested on its test split")
-    train, _ = frames_for(cfg, data, "train")
-    test, _ = frames_for(cfg, data, "test")
-    if not train or not test:
-        raise UserError(f"the run's split of {data} has {len(train)} train and {len(test)} test frames; EcoFusion "
-                        "needs both")
+    train, test = run_train_test(cfg, data, "EcoFusion")
     return _subsample(train, max_frames), _subsample(test, max_frames)
 
 
@@ -580,17 +572,6 @@ def train_eco_gate(run_dir, data, gate: str, cfg: GateTrainConfig, s: EcoSetting
                         "data_key": ed.key, "result": result}, out / "gate.pt")
     _atomic_text(out / "result.json", json.dumps(result, indent=1))
     return result
-
-
-def _predict(gate, feats: np.ndarray, batch: int = 256) -> np.ndarray:
-    import torch
-
-    gate.eval()
-    out = []
-    with torch.no_grad():
-        for k in range(0, len(feats), batch):
-            out.append(gate.predict_prepared(torch.from_numpy(feats[k:k + batch])).numpy())
-    return np.concatenate(out) if out else np.zeros((0, len(gate.configurations)), np.float32)
 
 
 def load_eco_gate(run_dir, name: str, model, configs, data_key: str):

@@ -407,6 +407,8 @@ def mae(pred: np.ndarray, target: np.ndarray) -> float:
 
 
 def _predict(gate, feats: np.ndarray, batch: int = 256) -> np.ndarray:
+    """A gate's predictions (one per branch, or per configuration for EcoFusion's configuration
+    gates) on prepared pooled features, in batches, without gradients."""
     import torch
 
     gate.eval()
@@ -414,7 +416,8 @@ def _predict(gate, feats: np.ndarray, batch: int = 256) -> np.ndarray:
     with torch.no_grad():
         for k in range(0, len(feats), batch):
             out.append(gate.predict_prepared(torch.from_numpy(feats[k:k + batch])).numpy())
-    return np.concatenate(out) if out else np.zeros((0, len(gate.branches)), np.float32)
+    width = len(getattr(gate, "configurations", None) or gate.branches)
+    return np.concatenate(out) if out else np.zeros((0, width), np.float32)
 
 
 def ranking_agreement(pred: np.ndarray, truth: np.ndarray, k: int) -> float:
@@ -508,7 +511,7 @@ def train_gate(run_dir, data, cfg: GateTrainConfig, progress: bool = True, fresh
 
     from fusion.nets.gates import GATES, build_gate
     from sensors.dataset import DatasetReader
-    from study.detect import frames_for, load_run
+    from study.detect import load_run, run_train_test
 
     cls = GATES.get(cfg.gate)
     if not cls.trainable:
@@ -519,14 +522,7 @@ def train_gate(run_dir, data, cfg: GateTrainConfig, progress: bool = True, fresh
     run_dir, data = Path(run_dir), Path(data)
     model, run_cfg = load_run(run_dir, cfg.checkpoint, device=setup.device)
     reader = DatasetReader(data)
-    if reader.manifest["config"] != run_cfg.get("data_config"):
-        raise UserError(f"train-gate needs the run's training dataset ({run_cfg.get('data')}), not {data}: the gate "
-                        "trains on the run's train split and is tested on its test split")
-    train_idx, _ = frames_for(run_cfg, data, "train")
-    test_idx, _ = frames_for(run_cfg, data, "test")
-    if not train_idx or not test_idx:
-        raise UserError(f"the run's split of {data} has {len(train_idx)} train and {len(test_idx)} test frames; "
-                        "a gate needs both")
+    train_idx, test_idx = run_train_test(run_cfg, data, "train-gate")
     gd = GateData(run_dir, data, model, cfg.checkpoint, cfg.grid)
     out = run_dir / "gates" / cfg.gate
     state = None
