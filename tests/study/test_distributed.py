@@ -143,7 +143,7 @@ def test_per_frame_sampling_changes_nothing_but_the_draws_and_global_stays_the_d
     assert not isinstance(model.branches["radar"].rpn.fg_bg_sampler, FrameSeededSampler)  # inference: untouched
 
 
-def test_device_options_refuse_what_this_machine_cannot_do(data, tmp_path, capsys):
+def test_device_options_refuse_what_this_machine_cannot_do(data, single, tmp_path, capsys):
     from study.device import resolve_device
 
     setup = resolve_device(device="cpu", threads=1, apply=False)
@@ -160,7 +160,7 @@ def test_device_options_refuse_what_this_machine_cannot_do(data, tmp_path, capsy
     assert main(["train", str(data), "--out", str(tmp_path / "x"), "--device", "tpu"]) == 2
     assert "--device: expected auto, cpu, cuda or cuda:N" in capsys.readouterr().err
     if not torch.cuda.is_available():  # every network command shares the same options and refusal
-        for argv in (["evaluate", str(tmp_path), str(data)], ["train-gate", str(tmp_path), str(data), "--gate", "deep"],
+        for argv in (["evaluate", str(single), str(data)], ["train-gate", str(single), str(data), "--gate", "deep"],
                      ["bench", "inference"]):
             assert main([*argv, "--device", "cuda:0"]) == 2, argv
             assert "no CUDA GPU" in capsys.readouterr().err
