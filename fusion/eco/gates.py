@@ -74,7 +74,8 @@ class ConfigurationGate(nn.Module):
         self.branch_frames = dict(branch_frames)
 
     def predict(self, features: Mapping[str, Tensor] | None, meta: Sequence[Any] | None) -> Tensor:
-        raise NotImplementedError
+        """(B, n_configurations) predicted L_f, lower = better; each registered gate defines it."""
+        raise NotImplementedError(f"{type(self).__name__}: a configuration gate subclass defines predict()")
 
     def extra_repr(self) -> str:
         return f"configurations={len(self.configurations)}"
