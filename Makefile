@@ -6,6 +6,9 @@ VENV   := .venv
 BIN    := $(VENV)/bin
 STAMP  := $(VENV)/.hydrabench-installed
 DEMO   ?= demo
+# pytest-xdist workers for `make test`: one per core this shell may use (tests/conftest.py pins each
+# worker to its share of the cores, so torch and subprocesses do not fight over them)
+TEST_WORKERS ?= $(shell nproc 2>/dev/null || echo 1)
 CONTEXTS := city junction motorway rural rain fog snow night
 
 export PYOPENGL_PLATFORM := egl
@@ -37,7 +40,7 @@ lint: $(STAMP)
 
 test: $(STAMP)
 	$(BIN)/ruff check .
-	$(BIN)/python -m pytest
+	$(BIN)/python -m pytest -n $(TEST_WORKERS) --dist loadfile
 
 # Regenerate the lock from requirements.txt in a scratch venv (needs the registries).
 lock:

@@ -2,3 +2,68 @@ import os
 
 os.environ.setdefault("PYOPENGL_PLATFORM", "egl")
 os.environ["SDL_VIDEODRIVER"] = "offscreen"
+
+
+def _pin_xdist_worker() -> None:
+    """Under pytest-xdist (`make test` runs one worker per core), give each worker its own cores.
+
+    Two workers that each let torch, numba or a subprocess use every core would fight over them
+    (measured: 2 threads on a loaded 2-core machine run at 0.43-0.49 of 1 thread). Pinning the
+    worker's affinity makes `study.device.available_cores()`, torch's thread count and every
+    subprocess the test starts use that worker's share of the machine. Results do not depend on it:
+    every determinism test compares runs made under the same pinning.
+    """
+    worker = os.environ.get("PYTEST_XDIST_WORKER", "")
+    count = int(os.environ.get("PYTEST_XDIST_WORKER_COUNT", "1") or 1)
+    if not worker.startswith("gw") or count < 2 or not hasattr(os, "sched_setaffinity"):
+        return
+    cores = sorted(os.sched_getaffinity(0))
+    index = int(worker[2:])
+    share = [c for i, c in enumerate(cores) if i % count == index % count] or [cores[index % len(cores)]]
+    os.sched_setaffinity(0, share)
+    os.environ["OMP_NUM_THREADS"] = str(len(share))
+    import torch
+
+    torch.set_num_threads(len(share))
+
+
+_pin_xdist_worker()
+
+
+# ------------------------------------------------------------------------------------------------
+# One cache for the whole session, shared by the xdist workers: the theory measurements and the
+# tiny study are computed once (by whichever test needs them first) and read by the others. A file
+# lock makes a second worker wait for the first instead of computing the same thing beside it.
+
+import contextlib  # noqa: E402
+import fcntl  # noqa: E402
+from pathlib import Path  # noqa: E402
+
+import pytest  # noqa: E402
+
+
+@pytest.fixture(scope="session")
+def shared_cache(tmp_path_factory) -> Path:
+    """`<session tmp>/hydrabench-cache`, the same folder for every xdist worker of the session."""
+    base = tmp_path_factory.getbasetemp()
+    if os.environ.get("PYTEST_XDIST_WORKER"):
+        base = base.parent  # each worker's basetemp is <session tmp>/popen-gwN
+    root = base / "hydrabench-cache"
+    root.mkdir(parents=True, exist_ok=True)
+    return root
+
+
+@pytest.fixture(scope="session")
+def cache_lock(shared_cache):
+    """`with cache_lock("theory"):` holds an exclusive lock on one part of the shared cache."""
+
+    @contextlib.contextmanager
+    def hold(name: str):
+        with open(shared_cache / f".{name}.lock", "w") as fh:
+            fcntl.flock(fh, fcntl.LOCK_EX)
+            try:
+                yield shared_cache / name
+            finally:
+                fcntl.flock(fh, fcntl.LOCK_UN)
+
+    return hold

@@ -28,8 +28,9 @@ def run_notebook(name: str, monkeypatch, cache_root: Path):
     return nb
 
 
-def test_fusion_theory_notebook_runs_and_draws_its_figures(monkeypatch, tmp_path_factory):
-    nb = run_notebook("01_fusion_theory.ipynb", monkeypatch, tmp_path_factory.getbasetemp() / "hydrabench-cache")
+def test_fusion_theory_notebook_runs_and_draws_its_figures(monkeypatch, shared_cache, cache_lock):
+    with cache_lock("theory"):
+        nb = run_notebook("01_fusion_theory.ipynb", monkeypatch, shared_cache)
     outputs = [o for c in nb.cells if c.cell_type == "code" for o in c.get("outputs", [])]
     figures = [o for o in outputs if "image/png" in o.get("data", {})]
     assert len(figures) >= 5
@@ -47,7 +48,7 @@ def fitted_coefficients(nb) -> dict:
     return json.loads(lines[0][len("FITS "):])
 
 
-def test_degradation_physics_notebook_measures_each_law_on_twins(monkeypatch, tmp_path_factory):
+def test_degradation_physics_notebook_measures_each_law_on_twins(monkeypatch, shared_cache):
     """02_degradation_physics renders twins of one scene and fits each degradation law to what the simulated
     sensors output; the laws are restated here, independently of the library's constants:
 
@@ -64,7 +65,7 @@ def test_degradation_physics_notebook_measures_each_law_on_twins(monkeypatch, tm
       noise std within 10 % of Poisson + 4 e- read noise; the image's log-average within 5 % of g k L_bar from
       1 lx up (below, the sensor floor lifts it).
     """
-    nb = run_notebook("02_degradation_physics.ipynb", monkeypatch, tmp_path_factory.getbasetemp() / "hydrabench-cache")
+    nb = run_notebook("02_degradation_physics.ipynb", monkeypatch, shared_cache)
     outputs = [o for c in nb.cells if c.cell_type == "code" for o in c.get("outputs", [])]
     assert not [o for o in outputs if o.get("output_type") == "error"]
     assert len([o for o in outputs if "image/png" in o.get("data", {})]) >= 5  # gallery, camera, lidar, radar, night
@@ -111,14 +112,16 @@ def test_degradation_physics_notebook_measures_each_law_on_twins(monkeypatch, tm
     assert sum(f["gain_ptc"] is not None for f in night.values()) >= 6
 
 
-def test_selective_fusion_notebook_reads_a_tiny_study_and_answers_its_three_questions(monkeypatch, tmp_path_factory):
+def test_selective_fusion_notebook_reads_a_tiny_study_and_answers_its_three_questions(monkeypatch, shared_cache,
+                                                                                      cache_lock):
     """03 on the tiny study (configs/study/tiny.yaml), shared with tests/study/test_study_runner.py:
     whichever runs first runs the study, the other finds every stage done."""
     from study.runner import load_study_config, run_study
 
-    cache = tmp_path_factory.getbasetemp() / "hydrabench-cache"
+    cache = shared_cache
     study = Path(os.environ.get("HYDRABENCH_TINY_STUDY") or cache / "study-tiny")
-    run_study(load_study_config("tiny"), study, progress=False)
+    with cache_lock("study-tiny"):
+        run_study(load_study_config("tiny"), study, progress=False)
     monkeypatch.setenv("HYDRABENCH_STUDY", str(study))
     nb = run_notebook("03_selective_fusion.ipynb", monkeypatch, cache)
     outputs = [o for c in nb.cells if c.cell_type == "code" for o in c.get("outputs", [])]

@@ -26,21 +26,24 @@ from study.runner import STAGES, load_study_config, run_study, study_config_from
 ROOT = Path(__file__).resolve().parents[2]
 
 
-def tiny_study_dir(tmp_path_factory) -> Path:
+def tiny_study_dir(shared_cache) -> Path:
     """Where the session's tiny study lives (shared with the notebook test); HYDRABENCH_TINY_STUDY
     keeps one across sessions (its stages are keyed, so a stale one is never reused)."""
     if os.environ.get("HYDRABENCH_TINY_STUDY"):
         return Path(os.environ["HYDRABENCH_TINY_STUDY"])
-    return tmp_path_factory.getbasetemp() / "hydrabench-cache" / "study-tiny"
+    return shared_cache / "study-tiny"
 
 
 @pytest.fixture(scope="module")
-def tiny(tmp_path_factory):
+def tiny(shared_cache, cache_lock):
     cfg = load_study_config("tiny")
-    out = tiny_study_dir(tmp_path_factory)
+    out = tiny_study_dir(shared_cache)
     t0 = time.perf_counter()
-    first = run_study(cfg, out, progress=True)
-    return {"cfg": cfg, "out": out, "first": first, "seconds": time.perf_counter() - t0}
+    # held for the whole module: the notebook test on another xdist worker may be running the study,
+    # and the tests below change it (a downstream field, then back) while the notebook would read it
+    with cache_lock("study-tiny"):
+        first = run_study(cfg, out, progress=True)
+        yield {"cfg": cfg, "out": out, "first": first, "seconds": time.perf_counter() - t0}
 
 
 def test_every_stage_runs_and_writes_the_report_with_its_tables(tiny):

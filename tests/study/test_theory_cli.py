@@ -24,10 +24,12 @@ def hydrabench(monkeypatch):
     return run
 
 
-@pytest.fixture(scope="session")
-def cache(tmp_path_factory):
-    """One cache for every theory test of the session (and the notebook test)."""
-    return tmp_path_factory.getbasetemp() / "hydrabench-cache" / "theory"
+@pytest.fixture
+def cache(cache_lock):
+    """One cache for every theory test of the session (and the notebook test), held while a test
+    uses it so that another xdist worker does not measure the same cells beside it."""
+    with cache_lock("theory") as path:
+        yield path
 
 
 def test_help_explains_the_sample_size(hydrabench, capsys):

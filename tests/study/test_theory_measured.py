@@ -24,13 +24,9 @@ CHI2_MEDIAN = float(stats.chi2.median(2))  # 1.386
 
 
 @pytest.fixture(scope="session")
-def cache(tmp_path_factory):
-    return tmp_path_factory.getbasetemp() / "hydrabench-cache" / "theory"
-
-
-@pytest.fixture(scope="session")
-def cells(cache):
-    data, _ = theory.collect(theory.SMALL_CONFIG, cache, workers=2, progress=False)
+def cells(cache_lock):
+    with cache_lock("theory") as cache:  # measured once per session, by whichever test comes first
+        data, _ = theory.collect(theory.SMALL_CONFIG, cache, workers=2, progress=False)
     return data
 
 
@@ -119,11 +115,12 @@ def test_an_overconfident_lidar_in_fog_makes_full_fusion_lose_to_selective_fusio
     assert st.mse["full_true"] < st.mse["full_nominal"] / 10
 
 
-def test_chi2_gating_keeps_a_tracker_on_target_through_a_fog_bank(cache):
+def test_chi2_gating_keeps_a_tracker_on_target_through_a_fog_bank(cache_lock):
     """A constant-velocity tracker fed every sensor at its nominal R follows the lidar's fog returns
     while the bank passes (sample: 19 m error); the same tracker with a 99 % chi-square gate rejects
     them and stays within a couple of metres (sample: <= 1.2 m); the lidar is rejected only in fog."""
-    bank = theory.fog_bank_tracks(cache)
+    with cache_lock("theory") as cache:
+        bank = theory.fog_bank_tracks(cache)
     foggy = bank.visibility_m < 100.0
     clear = bank.visibility_m > 5000.0
     assert foggy.sum() >= 5 and clear.sum() >= 10

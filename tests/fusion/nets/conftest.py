@@ -5,7 +5,7 @@ import torch
 
 from fusion.nets import FRAMES, SENSORS, build_hydrafusion
 
-torch.set_num_threads(2)
+torch.set_num_threads(min(2, torch.get_num_threads()))
 
 # The cpu profile's architecture at test size: 64 x 96 camera and 64 x 64 BEV images, narrower
 # RoI heads and fewer proposals, so a seven-branch forward + backward takes about a second.
