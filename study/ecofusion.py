@@ -114,8 +114,8 @@ def detections_from_array(a: np.ndarray, branches) -> dict:
 def frame_ap(det, gt) -> float:
     """VOC AP@0.5 of one frame's detections (mean over the classes with non-difficult ground
     truth in the frame; NaN when it has none)."""
+    from fusion.metrics import evaluate_detections
     from sim.actors import CLASSES
-    from study.metrics import evaluate_detections
 
     res = evaluate_detections([{"boxes": det.boxes, "scores": det.scores, "labels": det.labels}], [gt],
                               classes=range(1, len(CLASSES) + 1))
