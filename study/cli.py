@@ -362,7 +362,7 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "eco-sweep": ("study.ecofusion:add_eco_sweep", "EcoFusion Tables 1-3 and Figures 4-5 over a lambda_E sweep"),
     "study": ("study.cmd_study:add_parser", "the whole HydraFusion + EcoFusion study as cached, resumable stages, "
               "and its report"),
-    "bench": ("study.bench:add_parser", "measure throughput (sim, generate, ...) and print the figures"),
+    "bench": ("study.commands.bench:add_parser", "measure throughput (sim, generate, ...) and print the figures"),
 }
 
 
