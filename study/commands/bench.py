@@ -19,7 +19,7 @@ from study.cli import (
     pos_int,
     training_run,
 )
-from study.device import add_device_args
+from study.commands.device import add_device_args
 
 
 def parts_arg(text: str) -> tuple[str, ...]:
