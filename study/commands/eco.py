@@ -1,5 +1,5 @@
 """The EcoFusion commands (eco-data, eco-energy, eco-train-gate, eco-evaluate, eco-sweep): the command
-lines of `study.ecofusion` (what each computes is described there) and their text."""
+lines of `study.eco` (what each computes is described there) and their text."""
 
 from __future__ import annotations
 
@@ -7,7 +7,7 @@ import argparse
 from pathlib import Path
 
 from sim.errors import UserError
-from study import ecofusion
+from study import eco
 from study.cli import (
     Formatter,
     checkpoint_arg,
@@ -24,18 +24,11 @@ from study.cli import (
     training_run,
 )
 from study.commands.gates import _fraction, _grid_arg
-from study.ecofusion import (
-    GATE_ORDER,
-    SWEEP_LAMBDAS,
-    EcoEval,
-    EcoSettings,
-    build_eco_data,
-    energy_table,
-    evaluate_eco,
-    execute_ecofusion,
-    sweep,
-    train_eco_gate,
-)
+from study.eco.data import EcoSettings, build_eco_data
+from study.eco.energy import energy_table
+from study.eco.evaluate import GATE_ORDER, EcoEval, evaluate_eco, execute_ecofusion
+from study.eco.gates import train_eco_gate
+from study.eco.sweep import SWEEP_LAMBDAS, sweep
 from study.gates import GateTrainConfig
 
 EPILOG = """\
@@ -173,7 +166,7 @@ def _gates(text: str) -> list[str]:
 
 
 def add_eco_data(sub, name, help_text):
-    p = sub.add_parser(name, help=help_text, description=ecofusion.__doc__.split("**Latency")[0], epilog=EPILOG,
+    p = sub.add_parser(name, help=help_text, description=eco.__doc__.split("**Latency")[0], epilog=EPILOG,
                        formatter_class=Formatter)
     _common(p, energy=False)
     p.set_defaults(run=run_eco_data)
@@ -197,7 +190,7 @@ def run_eco_data(args) -> int:
 
 
 def add_eco_energy(sub, name, help_text):
-    p = sub.add_parser(name, help=help_text, description=ecofusion.__doc__.split("**Latency and energy**")[1].split("**Gates**")[0],
+    p = sub.add_parser(name, help=help_text, description=eco.__doc__.split("**Latency and energy**")[1].split("**Gates**")[0],
                        epilog=EPILOG, formatter_class=Formatter)
     _common(p)
     p.add_argument("--threads", type=pos_int, default=1, help="torch CPU threads while timing")
@@ -238,7 +231,7 @@ def run_eco_energy(args) -> int:
 
 
 def add_eco_train_gate(sub, name, help_text):
-    p = sub.add_parser(name, help=help_text, description=ecofusion.__doc__.split("**Gates**")[1].split("**Evaluation**")[0],
+    p = sub.add_parser(name, help=help_text, description=eco.__doc__.split("**Gates**")[1].split("**Evaluation**")[0],
                        epilog=EPILOG, formatter_class=Formatter)
     _common(p, energy=False)
     p.add_argument("--gate", required=True, type=name_arg, help="deep | attention")
@@ -274,7 +267,7 @@ def run_eco_train_gate(args) -> int:
 
 
 def add_eco_evaluate(sub, name, help_text):
-    p = sub.add_parser(name, help=help_text, description=ecofusion.__doc__.split("**Evaluation**")[1], epilog=EPILOG,
+    p = sub.add_parser(name, help=help_text, description=eco.__doc__.split("**Evaluation**")[1], epilog=EPILOG,
                        formatter_class=Formatter)
     _common(p)
     p.add_argument("--lambda-e", type=_lambda, default=0.01, help="Eq. 8 energy weight lambda_E in [0, 1]")
@@ -323,7 +316,7 @@ def run_eco_evaluate(args) -> int:
 
 
 def add_eco_sweep(sub, name, help_text):
-    p = sub.add_parser(name, help=help_text, description=ecofusion.__doc__.split("**Evaluation**")[1], epilog=EPILOG,
+    p = sub.add_parser(name, help=help_text, description=eco.__doc__.split("**Evaluation**")[1], epilog=EPILOG,
                        formatter_class=Formatter)
     _common(p)
     p.add_argument("--out", required=True, type=out_dir, help="directory for figure4_loss_energy.png, figure5_scenes.png, result.json")
