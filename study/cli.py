@@ -320,6 +320,16 @@ def study_config(text: str):
 _typed(study_config, "study_config")
 
 
+def module_doc(name: str) -> str:
+    """The docstring of module `name`, read from its source without importing it: a command's help can
+    quote its experiment's docstring without importing what the experiment imports (torch)."""
+    import ast
+    import importlib.util
+
+    spec = importlib.util.find_spec(name)
+    return ast.get_docstring(ast.parse(Path(spec.origin).read_text()), clean=False) or ""
+
+
 def emit(result: dict, as_json: bool, text: Callable[[dict], str] | None = None) -> None:
     """Print a command's result: one JSON object with --json, else readable text."""
     if as_json:

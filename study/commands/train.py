@@ -5,12 +5,12 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
-from study import train as training
 from study.cli import (
     Formatter,
     count_int,
     dataset_dir,
     emit,
+    module_doc,
     name_arg,
     name_list,
     nonneg_float,
@@ -35,7 +35,7 @@ evaluation). --branches picks a subset of the set by name.
 
 
 def add_parser(sub, name, help_text):
-    p = sub.add_parser(name, help=help_text, description=training.__doc__.split("\n\n", 1)[1], epilog=EPILOG,
+    p = sub.add_parser(name, help=help_text, description=module_doc("study.train").split("\n\n", 1)[1], epilog=EPILOG,
                        formatter_class=Formatter)
     p.add_argument("data", type=dataset_dir, help="dataset directory")
     p.add_argument("--out", required=True, type=out_dir, help="run directory (created; an existing run is resumed)")
@@ -72,6 +72,8 @@ def add_parser(sub, name, help_text):
 
 
 def run(args) -> int:
+    from study import train as training
+
     resolve_device(args, apply=False)  # a device this machine does not have: refused before anything is written
     cfg = training.TrainConfig(
         data=str(Path(args.data).resolve()), model_profile=args.profile, branch_set=args.branch_set,
