@@ -14,4 +14,4 @@ if [ -z "$py" ]; then
 fi
 export PYOPENGL_PLATFORM=egl SDL_VIDEODRIVER=offscreen
 export PYTHONPATH="$root${PYTHONPATH:+:$PYTHONPATH}"
-exec "$py" -m study.gpu_check "$@"
+exec "$py" -m study.commands.gpu_check "$@"

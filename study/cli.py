@@ -320,6 +320,16 @@ def study_config(text: str):
 _typed(study_config, "study_config")
 
 
+def module_doc(name: str) -> str:
+    """The docstring of module `name`, read from its source without importing it: a command's help can
+    quote its experiment's docstring without importing what the experiment imports (torch)."""
+    import ast
+    import importlib.util
+
+    spec = importlib.util.find_spec(name)
+    return ast.get_docstring(ast.parse(Path(spec.origin).read_text()), clean=False) or ""
+
+
 def emit(result: dict, as_json: bool, text: Callable[[dict], str] | None = None) -> None:
     """Print a command's result: one JSON object with --json, else readable text."""
     if as_json:
@@ -344,25 +354,25 @@ def _json_default(obj):
 # `hydrabench --help` and light commands never import torch.
 
 COMMANDS: dict[str, tuple[str, str]] = {
-    "scenes": ("study.cmd_scenes:add_parser", "simulate scenes of a context, summarise and draw them top-down"),
-    "generate": ("study.cmd_dataset:add_generate", "generate a sharded sensor dataset (cameras, lidar, radar, labels)"),
-    "verify": ("study.cmd_dataset:add_verify", "check a dataset's shards against its manifest checksums"),
-    "export-coco": ("study.cmd_dataset:add_export", "write a dataset's FWD labels as COCO JSON"),
-    "labels": ("study.label_stats:add_parser", "what each evaluation protocol asks a detector to find (counts per range bin)"),
-    "show": ("study.cmd_dataset:add_show", "draw one frame of a dataset with every sensor and its labels"),
-    "gallery": ("study.cmd_gallery:add_parser", "one scene under every condition and severity, all sensors side by side"),
-    "theory": ("study.theory:add_parser", "HydraFusion Sec. 1.1 measured: single sensors vs full, selective and gated fusion per weather"),
-    "train": ("study.train:add_parser", "train HydraFusion stems and branches (resumable, per-epoch CSV and checkpoints)"),
-    "evaluate": ("study.evaluate:add_parser", "VOC mAP@0.5 of a run's branches fused in the right camera (per class, per context)"),
-    "train-gate": ("study.gates:add_train_gate", "train the deep or attention gate on a run's stem features and branch losses"),
-    "eco-data": ("study.ecofusion:add_eco_data", "EcoFusion: per-frame stem features and fused loss / AP of every branch configuration"),
-    "eco-energy": ("study.ecofusion:add_eco_energy", "EcoFusion: measured stem / branch / fusion latency and energy of every configuration"),
-    "eco-train-gate": ("study.ecofusion:add_eco_train_gate", "EcoFusion: train the deep or attention configuration gate"),
-    "eco-evaluate": ("study.ecofusion:add_eco_evaluate", "EcoFusion at one lambda_E and gamma: mAP, loss, energy, latency per gate"),
-    "eco-sweep": ("study.ecofusion:add_eco_sweep", "EcoFusion Tables 1-3 and Figures 4-5 over a lambda_E sweep"),
-    "study": ("study.cmd_study:add_parser", "the whole HydraFusion + EcoFusion study as cached, resumable stages, "
+    "scenes": ("study.commands.scenes:add_parser", "simulate scenes of a context, summarise and draw them top-down"),
+    "generate": ("study.commands.dataset:add_generate", "generate a sharded sensor dataset (cameras, lidar, radar, labels)"),
+    "verify": ("study.commands.dataset:add_verify", "check a dataset's shards against its manifest checksums"),
+    "export-coco": ("study.commands.dataset:add_export", "write a dataset's FWD labels as COCO JSON"),
+    "labels": ("study.commands.labels:add_parser", "what each evaluation protocol asks a detector to find (counts per range bin)"),
+    "show": ("study.commands.dataset:add_show", "draw one frame of a dataset with every sensor and its labels"),
+    "gallery": ("study.commands.gallery:add_parser", "one scene under every condition and severity, all sensors side by side"),
+    "theory": ("study.commands.theory:add_parser", "HydraFusion Sec. 1.1 measured: single sensors vs full, selective and gated fusion per weather"),
+    "train": ("study.commands.train:add_parser", "train HydraFusion stems and branches (resumable, per-epoch CSV and checkpoints)"),
+    "evaluate": ("study.commands.evaluate:add_parser", "VOC mAP@0.5 of a run's branches fused in the right camera (per class, per context)"),
+    "train-gate": ("study.commands.gates:add_train_gate", "train the deep or attention gate on a run's stem features and branch losses"),
+    "eco-data": ("study.commands.eco:add_eco_data", "EcoFusion: per-frame stem features and fused loss / AP of every branch configuration"),
+    "eco-energy": ("study.commands.eco:add_eco_energy", "EcoFusion: measured stem / branch / fusion latency and energy of every configuration"),
+    "eco-train-gate": ("study.commands.eco:add_eco_train_gate", "EcoFusion: train the deep or attention configuration gate"),
+    "eco-evaluate": ("study.commands.eco:add_eco_evaluate", "EcoFusion at one lambda_E and gamma: mAP, loss, energy, latency per gate"),
+    "eco-sweep": ("study.commands.eco:add_eco_sweep", "EcoFusion Tables 1-3 and Figures 4-5 over a lambda_E sweep"),
+    "study": ("study.commands.study:add_parser", "the whole HydraFusion + EcoFusion study as cached, resumable stages, "
               "and its report"),
-    "bench": ("study.bench:add_parser", "measure throughput (sim, generate, ...) and print the figures"),
+    "bench": ("study.commands.bench:add_parser", "measure throughput (sim, generate, ...) and print the figures"),
 }
 
 

@@ -14,11 +14,11 @@ from torch.utils.data import DataLoader
 
 from fusion.data import FrameDataset, collate, split_by_sequence
 from fusion.late import Detections, fuse
+from fusion.metrics import evaluate_detections
 from sensors.dataset import DatasetReader
 from sensors.rig import Calibration
 from sim.actors import CLASSES
 from sim.errors import UserError
-from study.metrics import evaluate_detections
 
 FUSION_ALIASES = {"nms": "nms", "soft-nms": "soft_nms", "soft_nms": "soft_nms", "wbf": "wbf"}
 
@@ -161,8 +161,8 @@ def in_range_bin(dets: list, gts: list, metas: list, frame: str, lo: float, hi: 
     overlaps a ground-truth box of its class at IoU >= 0.5 takes that object's range (its best
     match); any other detection, a false positive, is placed by its own estimated range
     (fusion.protocol.detection_ranges). Detections placed outside the bin are dropped."""
+    from fusion.metrics import box_iou
     from fusion.protocol import detection_ranges
-    from study.metrics import box_iou
 
     out_d, out_g = [], []
     for d, g, meta in zip(dets, gts, metas):
@@ -291,8 +291,8 @@ def recall_by_visibility(per_frame: list, reader: DatasetReader, frame: str = "c
     MOR); default: each frame's own `meta["weather"]["visibility_m"]`.
     Returns {"<lo>-<hi>": {"objects", "found", "recall", "contrast": [at lo, at hi]}} in bin order.
     """
+    from fusion.metrics import matched_ground_truth
     from sim.weather import LN20
-    from study.metrics import matched_ground_truth
 
     vehicles = [CLASSES.index(c) + 1 for c in VEHICLES]
     edges = np.asarray(edges, float)

@@ -1,8 +1,8 @@
 """Where the networks run: one place for `--device`, `--threads`, `--amp` and `--workers`.
 
 Every command that runs a network (train, evaluate, train-gate, the EcoFusion commands, bench
-inference) adds the same four options with `add_device_args(parser)` and turns them into a
-`DeviceSetup` with `resolve_device(args)`:
+inference) adds the same four options with `study.commands.device.add_device_args(parser)` and
+turns them into a `DeviceSetup` with `resolve_device(args)` (experiments pass keywords instead):
 
     --device auto|cpu|cuda|cuda:N   auto: the first GPU when torch sees one, else the CPU.
                                     A GPU asked for on a machine without one is bad input (exit 2).
@@ -19,13 +19,11 @@ the same operations in the same order, so the same weights.
 
 from __future__ import annotations
 
-import argparse
 import os
 from contextlib import nullcontext
 from dataclasses import dataclass
 
 from sim.errors import UserError
-from study.cli import count_int
 
 
 def available_cores() -> int:
@@ -34,33 +32,6 @@ def available_cores() -> int:
         return max(1, len(os.sched_getaffinity(0)))
     except (AttributeError, OSError):
         return max(1, os.cpu_count() or 1)
-
-
-def device_arg(text: str) -> str:
-    """An argparse type: auto | cpu | cuda | cuda:N, spelled right (whether the GPU is here is checked
-    when the command resolves it, `parse_device`)."""
-    import re
-
-    t = str(text).strip().lower()
-    if not re.fullmatch(r"auto|cpu|cuda(:\d{1,3})?", t):
-        raise argparse.ArgumentTypeError(f"expected auto, cpu, cuda or cuda:N, got {text!r}")
-    return t
-
-
-device_arg.kind = "name"
-
-
-def add_device_args(parser, *, workers: bool = True, threads_default: int = 0) -> None:
-    """Add --device, --threads, --amp/--no-amp and (when `workers`) --workers to an argparse parser."""
-    g = parser.add_argument_group("device")
-    g.add_argument("--device", type=device_arg, default="auto", help="auto | cpu | cuda | cuda:N (auto: a GPU when one is present)")
-    g.add_argument("--threads", type=count_int, default=threads_default,
-                   help=f"torch CPU threads (0: the cores available, here {available_cores()})")
-    g.add_argument("--amp", action=argparse.BooleanOptionalAction, default=None,
-                   help="bf16 autocast of forward passes (default: on for CUDA, off on the CPU)")
-    if workers:
-        g.add_argument("--workers", type=count_int, default=0,
-                       help="DataLoader worker processes decoding frames (0: in the main process)")
 
 
 @dataclass(frozen=True)

@@ -132,7 +132,7 @@ class TrainSection:
 @dataclass(frozen=True)
 class GatesSection:
     """Gate datasets and gates: HydraFusion's per-branch gates (`study.gates`, Section 5.2.2) and
-    EcoFusion's per-configuration gates (`study.ecofusion`), and the latency table (Eq. 6).
+    EcoFusion's per-configuration gates (`study.eco`), and the latency table (Eq. 6).
 
     Fields:
         gates: the learned gates to train (deep, attention); knowledge and the oracles need none.
@@ -416,7 +416,7 @@ def _device_setup(cfg: StudyConfig):
 
 
 def eco_settings(cfg: StudyConfig):
-    from study.ecofusion import EcoSettings
+    from study.eco.data import EcoSettings
 
     return EcoSettings(fusion=cfg.gates.fusion, power=cfg.evaluate.power, energy_scale=cfg.evaluate.energy_scale,
                        rule=cfg.evaluate.rule, batch_size=cfg.train.batch_size, max_frames=cfg.gates.eco_max_frames)
@@ -491,8 +491,8 @@ def run_study(cfg: StudyConfig, out: str | Path, until: str = "report", progress
 
     def do_gatedata(work: Path, rec):
         from study.detect import frames_for, load_run
-        from study.ecofusion import build_eco_data
-        from study.gates import GateData
+        from study.eco.data import build_eco_data
+        from study.gate_data import GateData
 
         run = work / "run"
         link_farm(run_paper, run)
@@ -512,7 +512,8 @@ def run_study(cfg: StudyConfig, out: str | Path, until: str = "report", progress
 
     # gates ---------------------------------------------------------------------------------
     def do_gates(work: Path, rec):
-        from study.ecofusion import energy_table, train_eco_gate
+        from study.eco.energy import energy_table
+        from study.eco.gates import train_eco_gate
         from study.gates import GateTrainConfig, train_gate
 
         run = work / "run"

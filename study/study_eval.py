@@ -2,7 +2,7 @@
 branches, gates trained), the early-fusion run, and the run's test split.
 
 Everything is computed from each branch's detections on each test frame, computed once (the
-EcoFusion configuration dataset holds them, `study.ecofusion.EcoData`): a method is a per-frame
+EcoFusion configuration dataset holds them, `study.eco.data.EcoData`): a method is a per-frame
 choice of branches whose detections are late-fused in the right camera and scored with VOC
 mAP@0.5 under the run's protocol (`study.detect.score`). Fusing afterwards equals running only the
 chosen branches (a branch depends only on its own sensors' stems; tested in tests/study). Methods:
@@ -16,7 +16,7 @@ chosen branches (a branch depends only on its own sensors' stems; tested in test
 - EcoFusion: a configuration gate's choice at lambda_E, gamma (Eq. 7-9); loss_based = the oracle.
 
 Besides the papers' tables (HydraFusion 3, 6, 7 from `study.gates.evaluate_all_gates`; EcoFusion
-1-3 and Figures 4-5 from `study.ecofusion.sweep`) it measures what neither paper has: mAP against
+1-3 and Figures 4-5 from `study.eco.sweep.sweep`) it measures what neither paper has: mAP against
 severity per condition with the clear twins of the same frames, mAP per range bin per context,
 each gate's regret against its oracle per context and how often its choice differs from the
 oracle's, and each sensor's fusion regret (late fusion with it against late fusion without it).
@@ -52,7 +52,7 @@ class Methods:
         self.frames = ev.model.branch_frames
 
     def fused(self, members: list[tuple[str, ...]], method: str | None = None):
-        from study.ecofusion import fuse_choice
+        from study.eco.data import fuse_choice
 
         method = method or self.method
         memo = self.memo.setdefault(method, {})
@@ -78,7 +78,8 @@ def _summary(sc: dict) -> dict:
 
 def hydra_predictions(run, data, ev, gates) -> dict[str, np.ndarray]:
     """Predicted (or, for optimal, a-posteriori) per-branch losses on the test frames, (n, n_branches)."""
-    from study.gates import GateData, _predict, load_trained_gate, make_gate
+    from study.gate_data import GateData
+    from study.gates import _predict, load_trained_gate, make_gate
 
     out = {}
     for g in gates:
@@ -106,7 +107,9 @@ def evaluate_study(run, run_early, data, cfg, s, work: Path, setup=None, progres
     EcoSettings; figures are written under `work`."""
     from fusion.eco.configurations import SINGLE_SENSORS
     from study.detect import fusion_method
-    from study.ecofusion import GATE_ORDER, EcoEval, machine_description, sweep
+    from study.eco.energy import machine_description
+    from study.eco.evaluate import GATE_ORDER, EcoEval
+    from study.eco.sweep import sweep
     from study.gates import evaluate_all_gates
 
     e = cfg.evaluate

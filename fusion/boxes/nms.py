@@ -5,7 +5,7 @@ Same arguments as `ensemble_boxes.nms` / `ensemble_boxes.soft_nms` 1.0.9 (boxes 
 so only callers passing those by keyword need to rename them), plus a keyword-only `compat`
 switch: ``compat=False`` (default) is the textbook behaviour, ``compat=True`` reproduces
 ensemble-boxes where it deviates. Differences (their effect on mAP is measured by
-`study.bench_boxes.compat_map_effect`; figures in BENCHMARKS.md):
+`study.bench.boxes.compat_map_effect`; figures in BENCHMARKS.md):
 
 - Soft-NMS scores: Bodla et al. return every kept box with its *decayed* score; ensemble-boxes
   decays scores only to decide which boxes pass `thresh` and returns the kept boxes with their

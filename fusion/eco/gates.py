@@ -14,7 +14,7 @@ A configuration gate predicts the fused loss L_f(phi) of every configuration of 
   in the paper (Sections 5.1, 5.3). It reads no stem features, so no stem runs before its decision.
 - **deep** / **attention** (4.2.2-4.2.3): HydraFusion's gate architectures
   (`fusion.nets.gates.DeepGate` / `AttentionGate`: three convs, [SAGAN self-attention], max-pool,
-  MLP) with one output per configuration, regressing L_f (trained by `study.ecofusion`).
+  MLP) with one output per configuration, regressing L_f (trained by `study.eco.gates`).
 - **loss_based** (4.2.4): the a-posteriori L_f of every configuration on the frame (needs ground
   truth and every branch's output: `meta[i]["config_losses"]`): the oracle.
 

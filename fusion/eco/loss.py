@@ -5,7 +5,7 @@ loss [19] "after the outputs of phi are fused via late fusion". Fused boxes have
 proposals and no sampled RoIs, so that loss is not defined for them as it stands. Here it is
 defined explicitly on what fusion returns (boxes, one score, one label per box):
 
-1. Matching, exactly as VOC AP@0.5 matches (study.metrics): detections of a class in descending
+1. Matching, exactly as VOC AP@0.5 matches (fusion.metrics): detections of a class in descending
    score; each goes to the ground-truth box of its class it overlaps most; IoU >= `iou_thr` with an
    unclaimed box: a true positive that claims it; with a *difficult* box: ignored; otherwise (low
    IoU, or the box already claimed: a duplicate) a false positive.

@@ -8,6 +8,7 @@ import numpy as np
 import pytest
 
 from fusion.data import FrameDataset
+from fusion.metrics import box_iou
 from fusion.protocol import RANGE_BINS, Protocol, detection_ranges, frame_labels
 from sensors.dataset import DatasetReader
 from sensors.generate import GenerateConfig, generate, plan
@@ -16,7 +17,6 @@ from sensors.rig import Calibration
 from sim.errors import UserError
 from sim.scenario import Context, stream
 from sim.weather import CLEAR_VISIBILITY_M, DAYLIGHT_LUX, OVERCAST_LUX, sample_weather_and_twin
-from study.metrics import box_iou
 
 CONFIG = GenerateConfig(contexts=("city", "fog", "night"), frames_per_context=1, sequence_length=1, seed=21,
                         twins=True, severities=(4, 5))

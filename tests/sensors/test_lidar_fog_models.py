@@ -184,7 +184,7 @@ def test_selection_is_recorded_replayable_and_validated(motorway):
 
 def test_generate_cli_takes_lidar_fog():
     from study.cli import build_parser
-    from study.cmd_dataset import build_config
+    from study.commands.dataset import build_config
 
     args = build_parser().parse_args(["generate", "--out", "x", "--lidar-fog", "hahner"])
     assert build_config(args).lidar_fog == "hahner"

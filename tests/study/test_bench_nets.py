@@ -1,6 +1,6 @@
 """bench inference: where a forward's time goes, per operator kind."""
 
-from study.bench_nets import OP_KINDS, _worker, op_kind
+from study.bench.nets import OP_KINDS, _worker, op_kind
 
 
 def test_operator_kinds():

@@ -14,7 +14,7 @@ from pathlib import Path
 import pytest
 
 from sim.errors import UserError
-from study.bench_scale import alive, ratios, run_job, stop_tree
+from study.bench.scale import alive, ratios, run_job, stop_tree
 from study.cli import main
 
 

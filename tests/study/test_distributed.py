@@ -167,7 +167,7 @@ def test_device_options_refuse_what_this_machine_cannot_do(data, single, tmp_pat
 
 
 def test_gpu_check_plans_a_smaller_cpu_run_and_says_so():
-    from study.gpu_check import plan
+    from study.bench.gpu_check import plan
 
     gpu, cpu = plan(True, None, None), plan(False, None, None)
     assert gpu["profile"] == "paper" and gpu["contexts"] == "all" and gpu["configurations"] is None

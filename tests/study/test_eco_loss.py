@@ -11,7 +11,7 @@ import numpy as np
 from fusion.boxes import soft_nms
 from fusion.eco.loss import FusedLossSpec, loss_terms
 from fusion.late import Detections
-from study.ecofusion import frame_ap, rank_correlation
+from study.eco.data import frame_ap, rank_correlation
 
 W, H = 336.0, 188.0
 

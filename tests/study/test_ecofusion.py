@@ -67,7 +67,7 @@ def test_eco_data_reports_loss_ap_rank_correlation_and_subsets_fused_afterwards_
     from sensors.dataset import DatasetReader
     from sensors.rig import Calibration
     from study.detect import ground_truth, load_run, to_detections
-    from study.ecofusion import EcoData
+    from study.eco.data import EcoData
 
     assert main(["eco-data", str(eco), str(data), "--json"]) == 0
     r = _json(capsys)

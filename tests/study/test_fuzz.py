@@ -471,7 +471,7 @@ def test_entry_point_end_to_end_in_a_subprocess(world, tmp_path):
     """The module entry point in a fresh process, not main(): no traceback there either, nothing on stdout."""
     env = dict(os.environ, HYDRABENCH_CACHE=str(tmp_path / "cache"))
     cmd = [sys.executable, "-m", "study.cli"]
-    cases = [  # each subprocess imports torch (build_parser imports every command): keep them few
+    cases = [  # each subprocess is a fresh interpreter (seconds on a loaded machine): keep them few
         (["train", str(world["damaged"] / "npy_truncated"), "--out", str(tmp_path / "run")], "camera_right.npy"),
     ]
     for argv, needle in cases:

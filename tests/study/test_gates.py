@@ -12,7 +12,7 @@ import torch
 from sensors.generate import GenerateConfig, generate
 from study.cli import main
 from study.detect import load_run
-from study.gates import GateData
+from study.gate_data import GateData
 from study.train import TrainConfig, train
 
 BRANCHES = ("radar", "camera_right", "lidar", "radar_lidar")  # k = 1, 3 and all exist for 4 branches

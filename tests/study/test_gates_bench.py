@@ -3,7 +3,7 @@
 import pytest
 import torch
 
-from study.bench_nets import bench_gates
+from study.bench.nets import bench_gates
 from tests.fusion.nets.conftest import TINY
 
 
@@ -35,8 +35,8 @@ def test_bench_inference_prints_and_emits_the_gate_figures(monkeypatch, capsys, 
     """The command's text and JSON carry bench_gates' figures (the slow parts replaced by stubs)."""
     import json
 
-    import study.bench_boxes
-    import study.bench_nets
+    import study.bench.boxes
+    import study.bench.nets
     from study.cli import main
 
     gates = bench_gates("cpu", repeats=1, threads=1, overrides=TINY, ks=(1, 3, 5))
@@ -46,8 +46,8 @@ def test_bench_inference_prints_and_emits_the_gate_figures(monkeypatch, capsys, 
             "batch8_gain_per_op_kind": {"all_branches": {"conv": 1.04, "roi_align": 0.82}},
             "op_share_batch_1": {"all_branches": {"conv": 0.625, "roi_align": 0.164}}, **gates}
     calls = []
-    monkeypatch.setattr(study.bench_nets, "bench_inference", lambda *a, **k: calls.append(a) or dict(fake))
-    monkeypatch.setattr(study.bench_boxes, "bench_box_fusion", lambda **k: {"methods": {}})
+    monkeypatch.setattr(study.bench.nets, "bench_inference", lambda *a, **k: calls.append(a) or dict(fake))
+    monkeypatch.setattr(study.bench.boxes, "bench_box_fusion", lambda **k: {"methods": {}})
     assert main(["bench", "inference"]) == 0
     out = capsys.readouterr().out
     assert calls[-1][3] is None  # no --run: random weights (the option must not collide with the handler)

@@ -8,7 +8,7 @@ import math
 import numpy as np
 import pytest
 
-from study.metrics import average_precision, box_iou, evaluate_detections, mean_average_precision
+from fusion.metrics import average_precision, box_iou, evaluate_detections, mean_average_precision
 
 A = [0.1, 0.1, 0.3, 0.3]
 B = [0.6, 0.6, 0.9, 0.9]
@@ -317,7 +317,7 @@ def test_recall_by_visibility_bins_objects_by_distance_over_mor_and_adds_up_to_t
 
 
 def test_matched_ground_truth_marks_exactly_the_true_positives_of_evaluate_detections():
-    from study.metrics import evaluate_detections, matched_ground_truth
+    from fusion.metrics import evaluate_detections, matched_ground_truth
 
     rng = np.random.default_rng(3)
     for _ in range(30):

@@ -14,7 +14,7 @@ RESULT_KEYS = {"mse_single", "mse_full_nominal", "mse_full_true", "mse_selective
 @pytest.fixture
 def hydrabench(monkeypatch):
     """study.cli.main with the theory command registered (as study/cli.py's COMMANDS table will)."""
-    monkeypatch.setitem(cli.COMMANDS, "theory", ("study.theory:add_parser", "fusion theory, measured"))
+    monkeypatch.setitem(cli.COMMANDS, "theory", ("study.commands.theory:add_parser", "fusion theory, measured"))
 
     def run(argv, capsys):
         code = cli.main(argv)

@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from study.bench_boxes import (
+from study.bench.boxes import (
     bench_box_fusion,
     compat_map_effect,
     same_detections,

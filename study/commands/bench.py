@@ -1,12 +1,11 @@
-"""`hydrabench bench <what>`: throughput measurements. Figures go to BENCHMARKS.md by hand,
-with the command that produced them; nothing here asserts a time."""
+"""`hydrabench bench <what>`: throughput measurements (`study.bench`). Figures go to BENCHMARKS.md by
+hand, with the command that produced them; nothing here asserts a time."""
 
 from __future__ import annotations
 
-import os
-import platform
-import time
+import argparse
 
+from study.bench.pipeline import machine
 from study.cli import (
     Formatter,
     dataset_dir,
@@ -20,11 +19,21 @@ from study.cli import (
     pos_int,
     training_run,
 )
-from study.device import add_device_args
+from study.commands.device import add_device_args
 
 
-def machine() -> dict:
-    return {"cores": os.cpu_count(), "machine": platform.machine(), "python": platform.python_version()}
+def parts_arg(text: str) -> tuple[str, ...]:
+    """An argparse type: comma-separated parts of `bench scale` (train, ddp, generate), each once."""
+    from study.bench.scale import PARTS
+
+    items = name_list(text)
+    bad = [p for p in items if p not in PARTS]
+    if bad:
+        raise argparse.ArgumentTypeError(f"unknown part {bad[0]!r} (choose from: {', '.join(PARTS)})")
+    return items
+
+
+parts_arg.kind = "names"
 
 
 def add_parser(sub, name, help_text):
@@ -95,8 +104,6 @@ def add_parser(sub, name, help_text):
                    help="also draw the table into this PNG file")
     f.add_argument("--json", action="store_true", help="print one JSON object on stdout")
     f.set_defaults(run=run_lidar_fog)
-    from study.bench_scale import parts_arg
-
     c = what.add_parser("scale", help="training images/s at 1 and 2 threads, DDP 2 processes vs 1, generate local pool vs Ray",
                         description="In one run, back to back on a small dataset it generates (or --data): CPU "
                         "training images/s of `hydrabench train` at --threads 1 and 2; DDP with 2 gloo processes "
@@ -134,27 +141,9 @@ def add_parser(sub, name, help_text):
 
 
 def run_sim(args) -> int:
-    from tqdm import tqdm
+    from study.bench.pipeline import bench_sim
 
-    from sim.scenario import CONTEXT_NAMES, Context, ScenarioSpec, Simulator
-
-    per_ctx, setup = {}, {}
-    for c in tqdm(CONTEXT_NAMES, desc="bench sim", file=__import__("sys").stderr, disable=None):
-        sev = 3 if Context.parse(c).conditions else 0
-        t0 = time.perf_counter()
-        sim = Simulator(ScenarioSpec(context=c, severity=sev, seed=args.seed, frames=args.frames))
-        t1 = time.perf_counter()
-        n = sum(1 for _ in sim.scenes())
-        t2 = time.perf_counter()
-        per_ctx[c] = round(n / (t2 - t1), 1)
-        setup[c] = round(t1 - t0, 3)
-    result = {
-        "scenes_per_second": per_ctx,
-        "setup_seconds": setup,
-        "frames": args.frames,
-        "min_scenes_per_second": min(per_ctx.values()),
-        **machine(),
-    }
+    result = bench_sim(frames=args.frames, seed=args.seed)
     emit(result, args.json, lambda r: "\n".join(
         [f"{c:9s} {v:8.1f} scenes/s  (setup {r['setup_seconds'][c]:.2f} s incl. warm-up)"
          for c, v in r["scenes_per_second"].items()]))
@@ -162,34 +151,10 @@ def run_sim(args) -> int:
 
 
 def run_generate(args) -> int:
-    import tempfile
+    from study.bench.pipeline import bench_generate
 
-    from sensors.generate import GenerateConfig, generate
-
-    profiles, workers = list(args.profiles), list(args.workers)
-    configs = {profile: GenerateConfig(frames_per_context=args.frames_per_context, sequence_length=args.sequence_length,
-                                       seed=args.seed, profile=profile) for profile in profiles}  # all valid first
-    runs, components = [], {}
-    for profile in profiles:
-        for w in workers:
-            config = configs[profile]
-            with tempfile.TemporaryDirectory(prefix="hydrabench-bench-") as tmp:
-                r = generate(config, tmp, workers=w, progress=True)
-            runs.append({"profile": profile, "workers": w, "frames": r["frames"], "seconds": r["seconds"],
-                         "frames_per_second": r["frames_per_second"]})
-            if w == workers[0]:
-                components[profile] = r["ms_per_frame"]
-    degradation = {}
-    for profile, ms in components.items():
-        total = sum(v for k, v in ms.items() if not k.startswith("degrade/") and k != "degradation")
-        total += ms.get("degradation", 0.0)
-        degradation[profile] = {
-            "ms_per_model": {k.split("/", 1)[1]: v for k, v in ms.items() if k.startswith("degrade/")},
-            "ms_total": ms.get("degradation", 0.0),
-            "share_of_frame": round(ms.get("degradation", 0.0) / total, 3) if total else None,
-        }
-    result = {"runs": runs, "ms_per_component": components, "degradation": degradation,
-              "frames_per_context": args.frames_per_context, "sequence_length": args.sequence_length, **machine()}
+    result = bench_generate(profiles=args.profiles, workers=args.workers, frames_per_context=args.frames_per_context,
+                            sequence_length=args.sequence_length, seed=args.seed)
 
     def text(r):
         lines = [f"{x['profile']:6s} workers {x['workers']}: {x['frames_per_second']} frames/s "
@@ -206,7 +171,7 @@ def run_generate(args) -> int:
 
 
 def run_boxes(args) -> int:
-    from study.bench_boxes import bench_box_fusion, compat_map_effect
+    from study.bench.boxes import bench_box_fusion, compat_map_effect
 
     timing = bench_box_fusion(n_lists=args.lists, n_boxes=args.boxes, repeats=args.repeats, seed=args.seed)
     effect = compat_map_effect(n_lists=args.lists, n_boxes=args.boxes, seed=args.seed)
@@ -229,8 +194,8 @@ def run_boxes(args) -> int:
 
 def run_inference(args) -> int:
     from fusion.nets import load_profile
-    from study.bench_boxes import bench_box_fusion
-    from study.bench_nets import bench_inference
+    from study.bench.boxes import bench_box_fusion
+    from study.bench.nets import bench_inference
     from study.device import resolve_device
 
     load_profile(args.profile)  # an unknown profile is refused before any worker process starts
@@ -276,7 +241,7 @@ def run_inference(args) -> int:
 
 def run_lidar_fog(args) -> int:
     from sim.errors import UserError
-    from study.bench_lidar_fog import LAYOUTS, lidar_fog_comparison, plot_lidar_fog
+    from study.bench.lidar_fog import LAYOUTS, lidar_fog_comparison, plot_lidar_fog
     from study.outputs import check_writable_file
 
     try:
@@ -320,7 +285,7 @@ def run_lidar_fog(args) -> int:
 
 
 def run_scale(args) -> int:
-    from study.bench_scale import ScaleConfig, bench_scale, check, plot_scale, text_table
+    from study.bench.scale import ScaleConfig, bench_scale, check, plot_scale, text_table
     from study.outputs import check_writable_file
 
     cfg = ScaleConfig(parts=tuple(args.parts), data=args.data, contexts=tuple(args.contexts),

@@ -1,11 +1,6 @@
-"""`hydrabench scenes`: simulate a context, summarise it and draw it top-down."""
+"""`hydrabench scenes`: simulate a context, summarise it and draw it top-down (`study.scenes`)."""
 
 from __future__ import annotations
-
-import hashlib
-import time
-from collections import Counter
-from pathlib import Path
 
 from study.cli import (
     IMAGE_SUFFIXES,
@@ -48,32 +43,7 @@ def add_parser(sub, name, help_text):
     p.set_defaults(run=run)
 
 
-def summarise(scenes, seconds: float) -> dict:
-    last = scenes[-1]
-    counts = Counter()
-    for s in scenes:
-        counts.update(s.actors.class_names())
-    from sim.world import STRUCTURE_KINDS
-
-    digest = hashlib.sha256("".join(s.digest() for s in scenes).encode()).hexdigest()
-    return {
-        "context": last.context.name,
-        "layout": last.context.layout,
-        "conditions": list(last.context.conditions),
-        "severity": last.severity,
-        "frames": len(scenes),
-        "seconds": round(seconds, 3),
-        "scenes_per_second": round(len(scenes) / seconds, 1) if seconds > 0 else None,
-        "actors_per_class": {k: round(v / len(scenes), 2) for k, v in sorted(counts.items())},
-        "structures": {k: last.structures.count(k) for k in STRUCTURE_KINDS},
-        "weather_first": scenes[0].weather.summary(),
-        "weather_last": last.weather.summary(),
-        "sequence_id": last.sequence_id,
-        "digest": digest,
-    }
-
-
-def _text(result: dict) -> str:
+def format_scenes(result: dict) -> str:
     lines = []
     for r in result.get("contexts", {}).values() if "contexts" in result else [result]:
         lines.append(f"{r['context']} (layout {r['layout']}, severity {r['severity']}): "
@@ -91,8 +61,7 @@ def _text(result: dict) -> str:
 
 
 def run(args) -> int:
-    from sim.progress import progress
-    from sim.scenario import CONTEXT_NAMES, Context, ScenarioSpec, Simulator
+    from sim.scenario import CONTEXT_NAMES, Context, ScenarioSpec
     from study.outputs import check_writable_dir, check_writable_file
 
     contexts = list(CONTEXT_NAMES) if args.context == "all" else [args.context]
@@ -111,22 +80,12 @@ def run(args) -> int:
             plots = {s.context: out / f"scene_{Context.parse(s.context).name.replace('+', '_')}.png" for s in specs}
         else:
             plots = {specs[0].context: check_writable_file(args.plot, IMAGE_SUFFIXES)}
-    from study.plots import plot_scene
+    from study.scenes import simulate_scenes
 
     results = {}
     for spec in specs:
-        t0 = time.perf_counter()
-        bar = progress(total=spec.frames, desc=f"scenes {spec.context}", unit="frame")
-        scenes = []
-        for scene in Simulator(spec).scenes():
-            scenes.append(scene)
-            bar.update(1)
-        bar.close()
-        r = summarise(scenes, time.perf_counter() - t0)
-        if spec.context in plots:
-            plot_scene(scenes[-1], str(plots[spec.context]))
-            r["plot"] = str(Path(plots[spec.context]))
+        r = simulate_scenes(spec, plots.get(spec.context))
         results[r["context"]] = r
     result = next(iter(results.values())) if len(results) == 1 else {"contexts": results}
-    emit(result, args.json, _text)
+    emit(result, args.json, format_scenes)
     return 0

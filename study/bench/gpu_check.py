@@ -14,11 +14,7 @@ what was skipped or shrunk. Progress goes to stderr.
 
 from __future__ import annotations
 
-import argparse
-import json
-import os
 import sys
-import tempfile
 import time
 from pathlib import Path
 
@@ -46,7 +42,7 @@ def run_check(work: Path, frames_per_context: int | None = None, steps: int | No
 
     from sensors.generate import GenerateConfig, generate
     from sim.scenario import CONTEXT_NAMES
-    from study.bench_nets import bench_inference
+    from study.bench.nets import bench_inference
     from study.device import available_cores, resolve_device
     from study.train import TrainConfig, train
 
@@ -116,36 +112,3 @@ def run_check(work: Path, frames_per_context: int | None = None, steps: int | No
     summary["skipped"] = skipped
     summary["seconds"] = round(time.perf_counter() - t_all, 1)
     return summary
-
-
-def main(argv=None) -> int:
-    ap = argparse.ArgumentParser(prog="gpu_check", description=__doc__,
-                                 formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--work", default=None, help="directory for the dataset and the run (default: a temporary one, "
-                    "removed at the end)")
-    ap.add_argument("--frames-per-context", type=int, default=None, help="dataset size (default 4)")
-    ap.add_argument("--steps", type=int, default=None, help="training steps of the seven-branch network "
-                    "(default 20 on a GPU, 2 on the CPU)")
-    ap.add_argument("--cpu", action="store_true", help="run the CPU version even where a GPU is present")
-    args = ap.parse_args(argv)
-    os.environ.setdefault("PYOPENGL_PLATFORM", "egl")
-    os.environ["SDL_VIDEODRIVER"] = "offscreen"
-    from sim.errors import UserError
-
-    try:
-        if args.work:
-            work = Path(args.work)
-            work.mkdir(parents=True, exist_ok=True)
-            summary = run_check(work, args.frames_per_context, args.steps, args.cpu)
-        else:
-            with tempfile.TemporaryDirectory(prefix="hydrabench-gpu-check-") as tmp:
-                summary = run_check(Path(tmp), args.frames_per_context, args.steps, args.cpu)
-    except UserError as exc:
-        sys.stderr.write(f"gpu_check: error: {str(exc).splitlines()[0]}\n")
-        return 2
-    sys.stdout.write(json.dumps(summary) + "\n")
-    return 0
-
-
-if __name__ == "__main__":
-    sys.exit(main())

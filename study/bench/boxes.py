@@ -198,7 +198,7 @@ def compat_map_effect(n_images: int = 100, n_lists: int = 7, n_boxes: int = 100,
     detectors (`synthetic_detections`: 80 % recall, jittered boxes, 20 % duplicates, clutter).
     Each method fuses them in textbook mode and in compat mode, without weights and with equal
     weights ``[1] * n_lists``, with HydraFusion's parameters. Reported per configuration: VOC
-    mAP@0.5 (`study.metrics`) and the recall of the detections scoring >= `score_thr` (what a
+    mAP@0.5 (`fusion.metrics`) and the recall of the detections scoring >= `score_thr` (what a
     deployed detector with a confidence cut-off would find). A single detector's mAP is the
     baseline.
 
@@ -208,7 +208,7 @@ def compat_map_effect(n_images: int = 100, n_lists: int = 7, n_boxes: int = 100,
         plus the parameters}.
     """
     from fusion.boxes import HYDRAFUSION_PARAMS, nms, soft_nms, weighted_boxes_fusion
-    from study.metrics import evaluate_detections
+    from fusion.metrics import evaluate_detections
 
     if min(n_images, n_lists, n_boxes, n_classes) < 1:
         raise ValueError("n_images, n_lists, n_boxes and n_classes must be >= 1")

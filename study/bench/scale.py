@@ -29,7 +29,6 @@ subprocesses (and torchrun's workers, which run in sessions of their own) are si
 
 from __future__ import annotations
 
-import argparse
 import csv
 import json
 import os
@@ -49,21 +48,7 @@ from pathlib import Path
 from sim.errors import UserError
 
 PARTS = ("train", "ddp", "generate")
-REPO = Path(__file__).resolve().parents[1]
-
-
-def parts_arg(text: str) -> tuple[str, ...]:
-    """An argparse type: comma-separated parts of the benchmark (train, ddp, generate), each once."""
-    from study.cli import name_list
-
-    items = name_list(text)
-    bad = [p for p in items if p not in PARTS]
-    if bad:
-        raise argparse.ArgumentTypeError(f"unknown part {bad[0]!r} (choose from: {', '.join(PARTS)})")
-    return items
-
-
-parts_arg.kind = "names"
+REPO = Path(__file__).resolve().parents[2]
 
 
 @dataclass(frozen=True)

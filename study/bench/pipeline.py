@@ -1,0 +1,78 @@
+"""Pipeline throughput (`hydrabench bench sim`, `hydrabench bench generate`): scene steps per
+second of the simulator, and full generated frames per second with milliseconds per pipeline
+component and per degradation model. Figures go to BENCHMARKS.md by hand, with the command that
+produced them; nothing here asserts a time."""
+
+from __future__ import annotations
+
+import os
+import platform
+import sys
+import time
+
+
+def machine() -> dict:
+    """The machine a figure was measured on (recorded with every bench result)."""
+    return {"cores": os.cpu_count(), "machine": platform.machine(), "python": platform.python_version()}
+
+
+def bench_sim(frames: int = 200, seed: int = 0) -> dict:
+    """Simulate each context for `frames` frames after its setup (severity 3 for conditions, 0 for
+    layouts) and report steady-state scene steps per second (one process, one core) and the setup
+    time of each context."""
+    from tqdm import tqdm
+
+    from sim.scenario import CONTEXT_NAMES, Context, ScenarioSpec, Simulator
+
+    per_ctx, setup = {}, {}
+    for c in tqdm(CONTEXT_NAMES, desc="bench sim", file=sys.stderr, disable=None):
+        sev = 3 if Context.parse(c).conditions else 0
+        t0 = time.perf_counter()
+        sim = Simulator(ScenarioSpec(context=c, severity=sev, seed=seed, frames=frames))
+        t1 = time.perf_counter()
+        n = sum(1 for _ in sim.scenes())
+        t2 = time.perf_counter()
+        per_ctx[c] = round(n / (t2 - t1), 1)
+        setup[c] = round(t1 - t0, 3)
+    return {
+        "scenes_per_second": per_ctx,
+        "setup_seconds": setup,
+        "frames": frames,
+        "min_scenes_per_second": min(per_ctx.values()),
+        **machine(),
+    }
+
+
+def bench_generate(profiles=("cpu", "paper"), workers=(1, 2), frames_per_context: int = 10,
+                   sequence_length: int = 10, seed: int = 0) -> dict:
+    """Generate a temporary dataset over every context for each profile and worker count: frames
+    per second, and (at the first worker count) milliseconds per pipeline component and per
+    degradation model, summed over workers, per rendered frame."""
+    import tempfile
+
+    from sensors.generate import GenerateConfig, generate
+
+    profiles, workers = list(profiles), list(workers)
+    configs = {profile: GenerateConfig(frames_per_context=frames_per_context, sequence_length=sequence_length,
+                                       seed=seed, profile=profile) for profile in profiles}  # all valid first
+    runs, components = [], {}
+    for profile in profiles:
+        for w in workers:
+            config = configs[profile]
+            with tempfile.TemporaryDirectory(prefix="hydrabench-bench-") as tmp:
+                r = generate(config, tmp, workers=w, progress=True)
+            runs.append({"profile": profile, "workers": w, "frames": r["frames"], "seconds": r["seconds"],
+                         "frames_per_second": r["frames_per_second"]})
+            if w == workers[0]:
+                components[profile] = r["ms_per_frame"]
+    degradation = {}
+    for profile, ms in components.items():
+        total = sum(v for k, v in ms.items() if not k.startswith("degrade/") and k != "degradation")
+        total += ms.get("degradation", 0.0)
+        degradation[profile] = {
+            "ms_per_model": {k.split("/", 1)[1]: v for k, v in ms.items() if k.startswith("degrade/")},
+            "ms_total": ms.get("degradation", 0.0),
+            "share_of_frame": round(ms.get("degradation", 0.0) / total, 3) if total else None,
+        }
+    return {"runs": runs, "ms_per_component": components, "degradation": degradation,
+            "frames_per_context": frames_per_context, "sequence_length": sequence_length, **machine()}

@@ -1,0 +1,196 @@
+"""EcoFusion Eq. 6 measured: each stem, branch and the fusion block timed on real frames
+(`measure_latency`), the additive latency model checked end to end, and each configuration's
+latency and energy (`energy_table`, `hydrabench eco-energy`). See `study.eco`."""
+
+from __future__ import annotations
+
+import json
+import os
+import platform
+import sys
+import time
+from collections import defaultdict
+from pathlib import Path
+
+import numpy as np
+
+from sim.errors import UserError
+from study.eco.data import EcoSettings, _setup, _splits
+from study.gate_data import _atomic_text, _bar, cached_sha256, checkpoint_path
+
+LATENCY_VERSION = 1
+
+
+def machine_description(threads: int) -> dict:
+    cpu = platform.processor() or ""
+    try:
+        for line in open("/proc/cpuinfo"):
+            if line.startswith("model name"):
+                cpu = line.split(":", 1)[1].strip()
+                break
+    except OSError:
+        pass
+    import torch
+
+    return {"cpu": cpu, "cores": os.cpu_count(), "threads": threads, "torch": torch.__version__,
+            "platform": platform.platform(), "device": "cpu"}
+
+
+def measure_latency(model, data, indices, configs, method: str = "soft_nms", repeats: int = 3, threads: int = 1,
+                    counter: str = "auto", check: int = 12, seed: int = 0, progress: bool = True):
+    """Time every stem, branch and the fusion block on `indices` (batch 1) and check the additive
+    model against configurations timed end to end (stems + branches + fusion in one call).
+
+    Returns (LatencyModel, check dict). Each component's time is the median of `repeats` runs
+    after one warm-up, averaged over the frames; fusion[n] is the mean over the configurations of
+    n branches (each timed once per repeat). Checked end to end: the first `check` of late
+    fusion, all branches, the other named baselines, then random others (seeded).
+    """
+    import torch
+
+    from fusion.data import FrameDataset, collate
+    from fusion.eco.energy import LatencyModel, open_counter
+    from fusion.late import fuse
+    from fusion.nets import SENSORS
+    from sensors.rig import Calibration
+    from study.detect import to_detections
+
+    torch.set_num_threads(threads)
+    ctr = open_counter(counter, "cpu")
+    ds = FrameDataset(data, indices, sensors=model.sensors, bev_size=model.transform.image_size("radar"))
+    frames = model.branch_frames
+    stems_s, branch_s, fusion_s = defaultdict(list), defaultdict(list), defaultdict(list)
+    energy = defaultdict(list) if ctr is not None else None
+    direct_t, direct_e = defaultdict(list), defaultdict(list)
+    rng = np.random.default_rng(seed)
+    members = list(configs.members)
+    first = [configs.members[configs.baselines["late"]]] if "late" in configs.baselines else []
+    if tuple(configs.branches) in members:
+        first.append(tuple(configs.branches))
+    first += [configs.members[i] for i in configs.baselines.values()]
+    first = list(dict.fromkeys(first))
+    others = [m for m in members if m not in first]
+    extra = [others[i] for i in rng.permutation(len(others))] if others else []
+    checked = (first + extra)[:max(check, 1)]
+    shared = [s for s in model.sensors if SENSORS[s].stem in model.stems]
+    by_n = defaultdict(list)
+    for m in members:
+        by_n[len(m)].append(m)
+
+    def timed(fn):
+        """(median seconds, mean joules or None) of `repeats` calls after one warm-up."""
+        fn()
+        ts, es = [], []
+        for _ in range(repeats):
+            before = ctr.read() if ctr is not None else None
+            t = time.perf_counter()
+            fn()
+            ts.append(time.perf_counter() - t)
+            if ctr is not None:
+                es.append(ctr.joules(before, ctr.read()))
+        return float(np.median(ts)), (float(np.mean(es)) if es else None)
+
+    def record(key, table, value):
+        t, e = value
+        table.append(t)
+        if energy is not None:
+            energy[key].append(e)
+
+    bar = _bar(len(indices), "latency", progress)
+    with torch.no_grad():
+        for k in range(len(ds)):
+            inputs, _t, metas = collate([ds[k]])
+            calib = Calibration.from_dict(metas[0]["calibration"])
+            for s in shared:
+                record(f"stem:{s}", stems_s[s], timed(lambda s=s, x=inputs: model.extract_features(x, [s])))
+            feats = model.extract_features(inputs)
+            for b, branch in model.branches.items():
+                if branch.fusion == "input":
+                    xs = [model.transform(s, inputs[s]) for s in branch.sensors]
+                else:
+                    xs = [feats[s] for s in branch.sensors]
+                record(f"branch:{b}", branch_s[b], timed(lambda br=branch, xs=xs: br(xs)))
+            per = {n: to_detections(d) for n, d in model(inputs, selection=list(model.branches))[0].items()}
+            for n, ms in by_n.items():
+                def fuse_all(ms=ms, per=per, calib=calib):
+                    for m in ms:
+                        fuse({b: per[b] for b in m}, frames, calib, method=method)
+                t, e = timed(fuse_all)  # every configuration of n branches once: the mean per configuration
+                record(f"fusion:{n}", fusion_s[n], (t / len(ms), None if e is None else e / len(ms)))
+            for m in checked:
+                def run(m=m, inputs=inputs, calib=calib):
+                    dets = model(inputs, selection=list(m))[0]
+                    fuse({b: to_detections(d) for b, d in dets.items()}, frames, calib, method=method)
+                t, e = timed(run)
+                direct_t[m].append(t)
+                if e is not None:
+                    direct_e[m].append(e)
+            bar.update(1)
+    bar.close()
+    lat = LatencyModel({s: float(np.mean(v)) for s, v in stems_s.items()},
+                       {b: float(np.mean(v)) for b, v in branch_s.items()},
+                       {n: float(np.mean(v)) for n, v in sorted(fusion_s.items())},
+                       {b: (tuple(br.sensors) if br.fusion == "features" else ()) for b, br in model.branches.items()},
+                       {k: float(np.mean(v)) for k, v in energy.items()} if energy is not None else None,
+                       {"frames": len(ds), "repeats": repeats, "counter": ctr.name if ctr is not None else None,
+                        "machine": machine_description(threads), "method": method})
+    rows = {}
+    for m in checked:
+        pred, meas = lat.latency(m), float(np.mean(direct_t[m]))
+        rows["+".join(m)] = {"measured_ms": round(1000 * meas, 2), "additive_ms": round(1000 * pred, 2),
+                             "relative_error": round((pred - meas) / meas, 4)}
+        if direct_e.get(m):
+            rows["+".join(m)].update(measured_j=round(float(np.mean(direct_e[m])), 4),
+                                     additive_j=round(lat.measured_energy(m), 4))
+    errs = [abs(r["relative_error"]) for r in rows.values()]
+    check_out = {"configurations": rows, "mean_abs_relative_error": round(float(np.mean(errs)), 4),
+                 "max_abs_relative_error": round(float(np.max(errs)), 4)}
+    return lat, check_out
+
+
+def latency_identity(run_dir, s: EcoSettings, threads: int, counter: str) -> dict:
+    return {"version": LATENCY_VERSION, "checkpoint_sha256": cached_sha256(checkpoint_path(run_dir, s.checkpoint)),
+            "machine": machine_description(threads), "counter": counter, "fusion": s.fusion}
+
+
+def energy_table(run_dir, data, s: EcoSettings = EcoSettings(), threads: int = 1, repeats: int = 3, frames: int = 3,
+                 counter: str = "auto", fresh: bool = False, progress: bool = True, model=None, configs=None,
+                 test=None, reuse: bool = False, n_check: int = 12) -> dict:
+    """`hydrabench eco-energy`: the latency model of this run on this machine (cached in
+    RUN/eco/latency.json; `fresh` measures again) with its additive check, and each baseline's
+    latency and energy. `reuse`: take a cached table of this checkpoint measured with other
+    thread / counter settings (what evaluation does) instead of measuring again."""
+    from fusion.eco.energy import LatencyModel, configuration_energy, power_model
+    from study.detect import fusion_method
+
+    run_dir, data = Path(run_dir), Path(data)
+    if model is None:
+        model, cfg, configs, _ed = _setup(run_dir, data, s, threads)
+        _train, test = _splits(cfg, data, s.max_frames)
+    try:
+        power = power_model(s.power)
+    except ValueError as exc:
+        raise UserError(f"--power: {exc}") from None
+    path = run_dir / "eco" / "latency.json"
+    ident = latency_identity(run_dir, s, threads, counter)
+    cached = json.loads(path.read_text()) if path.exists() else None
+    usable = cached is not None and not fresh and (
+        cached.get("identity") == ident
+        or (reuse and all(cached["identity"].get(k) == ident[k] for k in ("version", "checkpoint_sha256", "fusion"))))
+    if usable:
+        lat, check = LatencyModel.from_dict(cached["model"]), cached["check"]
+    else:
+        if progress:
+            sys.stderr.write(f"measuring latency on {frames} test frames ({threads} thread(s), {repeats} repeats)\n")
+        lat, check = measure_latency(model, data, test[:frames], configs, fusion_method(s.fusion), repeats, threads,
+                                     counter, check=n_check, progress=progress)
+        path.parent.mkdir(parents=True, exist_ok=True)
+        _atomic_text(path, json.dumps({"identity": ident, "model": lat.to_dict(), "check": check}, indent=1))
+    t, e, source = configuration_energy(lat, configs.members, power)
+    base = {k: {"configuration": configs.names[i], "latency_ms": round(1000 * t[i], 2), "energy_j": round(e[i], 4)}
+            for k, i in configs.baselines.items()}
+    return {"latency_model": {"stems_ms": {k: round(1000 * v, 2) for k, v in lat.stems.items()},
+                              "branches_ms": {k: round(1000 * v, 2) for k, v in lat.branches.items()},
+                              "fusion_ms": {str(k): round(1000 * v, 3) for k, v in lat.fusion.items()}},
+            "additive_check": check, "baselines": base, "energy_source": source, "machine": lat.meta.get("machine"),
+            "latency_cache": str(path), "_model": lat, "_t": t, "_e": e}

@@ -1,0 +1,102 @@
+"""EcoFusion's learned configuration gates: trained to regress L_f of every configuration from the
+pooled stem features (`train_eco_gate`, `hydrabench eco-train-gate`) and loaded for evaluation
+(`load_eco_gate`). See `study.eco`."""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import sys
+from pathlib import Path
+
+import numpy as np
+
+from sim.errors import UserError
+from study.eco.data import EcoSettings, _setup, _splits
+from study.gate_data import _atomic_text, _atomic_torch_save
+from study.gates import GateTrainConfig, _predict, fit_gate, mae, validation_split
+
+
+def train_eco_gate(run_dir, data, gate: str, cfg: GateTrainConfig, s: EcoSettings = EcoSettings(),
+                   progress: bool = True, fresh: bool = False) -> dict:
+    """`hydrabench eco-train-gate`: the deep or attention configuration gate, regressing L_f of
+    every configuration (mean absolute error, Adam), on the run's train split; saved in
+    RUN/eco/gates/<gate>/ (resumable, like train-gate)."""
+    import torch
+
+    from fusion.eco.gates import CONFIG_GATES, build_config_gate
+    from sensors.dataset import DatasetReader
+
+    cls = CONFIG_GATES.get(gate)
+    if not cls.trainable:
+        raise UserError(f"--gate {gate}: nothing to train (train deep or attention)")
+    run_dir, data = Path(run_dir), Path(data)
+    model, run_cfg, configs, ed = _setup(run_dir, data, s, cfg.threads)
+    train, test = _splits(run_cfg, data, s.max_frames)
+    ed.ensure(train + test, batch_size=s.batch_size, progress=progress)
+    out = run_dir / "eco" / "gates" / gate
+    settings = {**dataclasses.asdict(cfg), "gate": gate, "data_key": ed.key}
+    for k in ("epochs", "threads"):
+        settings.pop(k)
+    state = None
+    if (out / "checkpoint.pt").exists() and not fresh:
+        state = torch.load(out / "checkpoint.pt", map_location="cpu", weights_only=False)
+        old = {**state["config"], "gate": gate, "data_key": state.get("data_key")}
+        for k in ("epochs", "threads"):
+            old.pop(k, None)
+        if json.loads(json.dumps(old)) != json.loads(json.dumps(settings)):
+            diff = sorted(k for k in settings if json.loads(json.dumps(old.get(k))) != json.loads(json.dumps(settings[k])))
+            raise UserError(f"{out} holds a {gate} gate trained with other settings or data ({', '.join(diff)}); "
+                            "pass --fresh to train it again")
+        if progress:
+            sys.stderr.write(f"resuming {out} at epoch {state['epoch'] + 1}\n")
+    fit_idx, val_idx = validation_split(DatasetReader(data), train, cfg.val_fraction, cfg.seed)
+    x_fit, x_val, x_test = (ed.arrays(i, ["features"])["features"] for i in (fit_idx, val_idx, test))
+    y_fit, y_val, y_test = (ed.losses(i).astype(np.float32) for i in (fit_idx, val_idx, test))
+    out.mkdir(parents=True, exist_ok=True)
+    torch.manual_seed(cfg.seed)
+    g = build_config_gate(gate, model, configs, sensors=list(ed.sensors), **cfg.gate_options())
+    cfg_named = dataclasses.replace(cfg, gate=gate)
+    fitted = fit_gate(g.net, x_fit, y_fit, x_val, y_val, cfg_named, out=out, progress=progress, state=state,
+                      extra={"data_key": ed.key})
+    pred = _predict(g, x_test)
+    mean_c = y_fit.mean(axis=0)
+    from fusion.eco.optimise import select
+
+    zero = np.zeros(len(configs))
+    pick = select(pred, zero, 0.0, 0.0, "prose")
+    result = {
+        "gate": gate, "run": str(run_dir), "data": str(data), "configurations": len(configs), "optimizer": "Adam",
+        "lr": cfg.lr, "loss": "mean absolute error of L_f per configuration", "epochs": cfg.epochs,
+        "best_epoch": fitted["best_epoch"], "val_mae": fitted["best_val_mae"], "train_frames": len(fit_idx),
+        "val_frames": len(val_idx), "test_frames": len(test), "test_mae": round(mae(pred, y_test), 6),
+        "constant_mean_mae": round(mae(np.broadcast_to(mean_c, y_test.shape), y_test), 6),
+        "test_loss_of_predicted_best": round(float(y_test[np.arange(len(test)), pick].mean()), 4),
+        "test_loss_of_oracle_best": round(float(y_test.min(axis=1).mean()), 4),
+        "test_loss_of_constant_best": round(float(y_test[:, int(np.argmin(mean_c))].mean()), 4),
+        "gate_path": str(out / "gate.pt"), "eco_data": str(ed.dir),
+    }
+    _atomic_torch_save({"name": gate, "options": {**cfg.gate_options(), "sensors": list(ed.sensors)},
+                        "configurations": [list(m) for m in configs.members], "state": g.state_dict(),
+                        "data_key": ed.key, "result": result}, out / "gate.pt")
+    _atomic_text(out / "result.json", json.dumps(result, indent=1))
+    return result
+
+
+def load_eco_gate(run_dir, name: str, model, configs, data_key: str):
+    """A trained configuration gate from RUN/eco/gates/<name>/gate.pt (for this configuration dataset)."""
+    import torch
+
+    from fusion.eco.gates import build_config_gate
+
+    path = Path(run_dir) / "eco" / "gates" / name / "gate.pt"
+    if not path.exists():
+        raise UserError(f"no trained {name} configuration gate in {run_dir} "
+                        f"(run: hydrabench eco-train-gate {run_dir} DATA --gate {name})")
+    saved = torch.load(path, map_location="cpu", weights_only=False)
+    if saved.get("data_key") != data_key:
+        raise UserError(f"{path} was trained on another configuration dataset (checkpoint, configurations, fusion "
+                        f"or loss differ); train it again with --fresh")
+    g = build_config_gate(name, model, configs, **saved["options"])
+    g.load_state_dict(saved["state"])
+    return g.eval()

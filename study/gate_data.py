@@ -1,0 +1,282 @@
+"""The gate dataset of a trained run (HydraFusion Section 5.2.2) and the file identities it is keyed by.
+
+**Gate dataset** (Section 5.2.2: "the stem outputs and branch losses of a fully trained HydraFusion
+model as the inputs and targets for the gate"). For every frame of a dataset, what the learned
+gates consume, `fusion.nets.gates.pool_features` of the stem outputs (float16, 64 channels per
+sensor on an 8 x 16 grid by default: 80 kB a frame for five sensors), and each branch's four
+Faster R-CNN losses from `HydraFusion.per_sample_losses` (seed 0; the gate target is their sum).
+Cached under the run directory, keyed by the checkpoint's SHA-256, the dataset manifest's SHA-256,
+the grid, the sensors, the branches and the seed:
+
+    RUN/gate_data/<key>/info.json         what the key was made of
+    RUN/gate_data/<key>/chunk-NNNNN.npz   indices (n,), features (n, C, rows, cols) float16,
+                                          losses (n, n_branches, 4) float32; written atomically
+
+Interrupted, it continues with the frames no chunk holds yet.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import os
+import sys
+from collections import defaultdict
+from pathlib import Path
+
+import numpy as np
+
+from sim.errors import UserError
+
+GATE_DATA_VERSION = 1
+LOSS_SEED = 0
+
+
+# ----- identities and small helpers -----------------------------------------------------------
+
+
+def file_sha256(path: Path) -> str:
+    h = hashlib.sha256()
+    with open(path, "rb") as fh:
+        for block in iter(lambda: fh.read(1 << 22), b""):
+            h.update(block)
+    return h.hexdigest()
+
+
+_SHA_CACHE: dict[tuple[str, int, int], str] = {}
+
+
+def cached_sha256(path: Path) -> str:
+    """file_sha256, remembered per (resolved path, size, mtime) within the process (checkpoints are
+    hundreds of MB)."""
+    st = Path(path).stat()
+    key = (str(Path(path).resolve()), st.st_size, st.st_mtime_ns)
+    if key not in _SHA_CACHE:
+        _SHA_CACHE[key] = file_sha256(path)
+    return _SHA_CACHE[key]
+
+
+def checkpoint_path(run_dir: Path, checkpoint: str = "latest") -> Path:
+    return Path(run_dir) / ("checkpoint.pt" if checkpoint == "latest" else f"{checkpoint}.pt")
+
+
+def _atomic_torch_save(obj, path: Path) -> None:
+    import torch
+
+    tmp = path.with_name(f".{path.name}.tmp-{os.getpid()}")
+    torch.save(obj, tmp)
+    os.replace(tmp, path)
+
+
+def _atomic_text(path: Path, text: str) -> None:
+    tmp = path.with_name(f".{path.name}.tmp-{os.getpid()}")
+    tmp.write_text(text)
+    os.replace(tmp, path)
+
+
+def _bar(total: int, desc: str, progress: bool):
+    from tqdm import tqdm
+
+    tty = sys.stderr.isatty()
+    return tqdm(total=total, desc=desc, file=sys.stderr, disable=not progress, dynamic_ncols=tty,
+                mininterval=0.1 if tty else 30.0, leave=False)
+
+
+# ----- the gate dataset -----------------------------------------------------------------------
+
+
+class GateData:
+    """Pooled stem features and per-branch losses of a dataset's frames under one run checkpoint.
+
+    Args:
+        run_dir: the training run; the cache lives in `run_dir/gate_data/<key>/`.
+        data: dataset directory.
+        model: the run's network at `checkpoint` (eval mode), as `study.detect.load_run` gives it.
+        checkpoint: "latest" or "epoch-NNN" (its file's SHA-256 is part of the key).
+        grid: the pooling grid of `pool_features` (rows, columns).
+        seed: RNG seed of the per-sample loss sampling.
+    """
+
+    def __init__(self, run_dir, data, model, checkpoint: str = "latest", grid=None, seed: int = LOSS_SEED) -> None:
+        from fusion.nets.gates import DEFAULT_GRID, gate_sensors
+
+        self.run_dir, self.data, self.model = Path(run_dir), Path(data), model
+        self.grid = tuple(int(g) for g in (grid or DEFAULT_GRID))
+        self.seed = int(seed)
+        self.sensors = gate_sensors(model)
+        if not self.sensors:
+            raise UserError("gates read stem features, and this run's branches have no shared stems")
+        self.branches = tuple(model.branches)
+        ckpt = checkpoint_path(self.run_dir, checkpoint)
+        if not ckpt.exists():
+            raise UserError(f"{ckpt} does not exist")
+        manifest = self.data / "manifest.json"
+        if not manifest.exists():
+            raise UserError(f"{self.data} has no manifest.json (not a dataset)")
+        from study.train import run_protocol
+
+        # the per-branch losses are measured against the ground truth of the run's protocol
+        self.protocol = run_protocol(json.loads((self.run_dir / "config.json").read_text()))
+        self.identity = {
+            "protocol": self.protocol,
+            "version": GATE_DATA_VERSION, "checkpoint": checkpoint, "checkpoint_sha256": cached_sha256(ckpt),
+            "dataset_manifest_sha256": cached_sha256(manifest), "grid": list(self.grid), "sensors": list(self.sensors),
+            "branches": list(self.branches), "loss_seed": self.seed,
+            "bev_size": list(model.transform.image_size("radar")),
+        }
+        self.identity.update(self.extra_identity())
+        self.key = hashlib.sha256(json.dumps(self.identity, sort_keys=True).encode()).hexdigest()[:16]
+        self.dir = self.run_dir / self.subdir / self.key
+        self._index: dict[int, tuple[Path, int]] | None = None
+
+    subdir = "gate_data"
+    """Directory under the run that holds this kind of cache (subclasses: their own)."""
+
+    def extra_identity(self) -> dict:
+        """What else the cache key is made of (subclasses add their settings)."""
+        return {}
+
+    def compute(self, model, inputs, targets, metas, features) -> dict[str, np.ndarray]:
+        """Per-frame arrays of one batch (first axis = the batch's frames), stored in the chunks
+        beside "indices" and "features": here each branch's four Faster R-CNN losses, (B, n_branches, 4)."""
+        from fusion.nets import LOSS_NAMES
+
+        per = model.per_sample_losses(inputs, targets, seed=self.seed)
+        return {"losses": np.array([[[float(p[b][n]) for n in LOSS_NAMES] for b in self.branches] for p in per],
+                                   np.float32)}
+
+    # -- what is on disk
+    def _chunks(self) -> list[Path]:
+        return sorted(self.dir.glob("chunk-*.npz")) if self.dir.is_dir() else []
+
+    def index(self) -> dict[int, tuple[Path, int]]:
+        """Dataset frame index -> (chunk file, row) for every frame already cached."""
+        if self._index is None:
+            out: dict[int, tuple[Path, int]] = {}
+            for path in self._chunks():
+                with np.load(path) as z:
+                    for row, i in enumerate(z["indices"].tolist()):
+                        out.setdefault(int(i), (path, row))
+            self._index = out
+        return self._index
+
+    def missing(self, indices) -> list[int]:
+        have = self.index()
+        return sorted({int(i) for i in indices} - set(have))
+
+    # -- building
+    def ensure(self, indices, batch_size: int = 4, chunk_frames: int = 32, progress: bool = True) -> int:
+        """Compute and cache every frame of `indices` not cached yet; returns how many were computed."""
+        import torch
+
+        from fusion.data import FrameDataset, collate
+        from fusion.nets.gates import pool_features
+
+        todo = self.missing(indices)
+        if not todo:
+            return 0
+        self.dir.mkdir(parents=True, exist_ok=True)
+        info = self.dir / "info.json"
+        if not info.exists():
+            _atomic_text(info, json.dumps({**self.identity, "key": self.key, "run": str(self.run_dir),
+                                           "data": str(self.data)}, indent=1))
+        from study.device import to_device
+
+        model = self.model.eval()
+        device = next(model.parameters()).device  # the network runs where it is (`study.device`), in float32
+        ds = FrameDataset(self.data, todo, sensors=model.sensors, bev_size=model.transform.image_size("radar"),
+                          protocol=self.protocol)
+        n_chunk = len(self._chunks())
+        bar = _bar(len(todo), self.subdir.replace("_", " "), progress)
+        pending: dict[str, list] = defaultdict(list)
+
+        def flush():
+            nonlocal n_chunk
+            if not pending["indices"]:
+                return
+            while (self.dir / f"chunk-{n_chunk:05d}.npz").exists():
+                n_chunk += 1
+            path = self.dir / f"chunk-{n_chunk:05d}.npz"
+            tmp = self.dir / f".chunk-{n_chunk:05d}.tmp-{os.getpid()}.npz"
+            np.savez(tmp, indices=np.asarray(pending["indices"], np.int64),
+                     **{k: np.concatenate(v) for k, v in pending.items() if k != "indices"})
+            os.replace(tmp, path)
+            n_chunk += 1
+            pending.clear()
+
+        with torch.no_grad():
+            for start in range(0, len(todo), batch_size):
+                items = [ds[k] for k in range(start, min(start + batch_size, len(todo)))]
+                inputs, targets, metas = collate(items)
+                inputs, targets = to_device(inputs, targets, device)
+                feats = model.extract_features(inputs, self.sensors)
+                pooled = pool_features(feats, self.sensors, self.grid)
+                pending["indices"].extend(int(m["dataset_index"]) for m in metas)
+                pending["features"].append(pooled.half().cpu().numpy())
+                for k, v in self.compute(model, inputs, targets, metas, feats).items():
+                    pending[k].append(v)
+                bar.update(len(items))
+                if len(pending["indices"]) >= chunk_frames:
+                    flush()
+        flush()
+        bar.close()
+        self._index = None
+        return len(todo)
+
+    # -- reading
+    def arrays(self, indices, keys) -> dict[str, np.ndarray]:
+        """The cached arrays `keys` of `indices`, in that order (first axis = frames). Every frame
+        must be cached (`ensure`)."""
+        idx = self.index()
+        missing = [i for i in indices if int(i) not in idx]
+        if missing:
+            raise UserError(f"{self.subdir.replace('_', ' ')} {self.dir} has no frame {missing[0]} (build it first)")
+        by_chunk: dict[Path, list[tuple[int, int]]] = defaultdict(list)
+        for k, i in enumerate(indices):
+            path, row = idx[int(i)]
+            by_chunk[path].append((k, row))
+        out: dict[str, np.ndarray] = {}
+        if not by_chunk and self._chunks():  # no frames asked: empty arrays of the cached shapes
+            with np.load(self._chunks()[0]) as z:
+                return {key: np.zeros((0, *z[key].shape[1:]), z[key].dtype) for key in keys}
+        for path, pairs in by_chunk.items():
+            ks, rows = [k for k, _ in pairs], [r for _, r in pairs]
+            with np.load(path) as z:
+                for key in keys:
+                    a = z[key]
+                    if key not in out:
+                        out[key] = np.empty((len(indices), *a.shape[1:]), a.dtype)
+                    out[key][ks] = a[rows]
+        return out
+
+    def load(self, indices) -> tuple[np.ndarray, np.ndarray]:
+        """(features (n, C, rows, cols) float16, losses (n, n_branches) float32, the sum of the four
+        Faster R-CNN losses) for `indices`, in that order. Every frame must be cached (`ensure`)."""
+        idx = self.index()
+        missing = [i for i in indices if int(i) not in idx]
+        if missing:
+            raise UserError(f"gate dataset {self.dir} has no frame {missing[0]} (build it first)")
+        by_chunk: dict[Path, list[tuple[int, int]]] = defaultdict(list)
+        for k, i in enumerate(indices):
+            path, row = idx[int(i)]
+            by_chunk[path].append((k, row))
+        feats = losses = None
+        for path, pairs in by_chunk.items():
+            with np.load(path) as z:
+                f, lo = z["features"], z["losses"]
+                if feats is None:
+                    feats = np.empty((len(indices), *f.shape[1:]), np.float16)
+                    losses = np.empty((len(indices), lo.shape[1]), np.float32)
+                ks = [k for k, _ in pairs]
+                rows = [r for _, r in pairs]
+                feats[ks] = f[rows]
+                losses[ks] = lo[rows].sum(axis=2)
+        if feats is None:
+            c = 64 * len(self.sensors)
+            return np.zeros((0, c, *self.grid), np.float16), np.zeros((0, len(self.branches)), np.float32)
+        return feats, losses
+
+    def branch_losses(self, indices) -> list[dict[str, float]]:
+        """Per frame: branch name -> a-posteriori loss (what the optimal gate reads)."""
+        _, losses = self.load(indices)
+        return [dict(zip(self.branches, map(float, row))) for row in losses]

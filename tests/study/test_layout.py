@@ -1,0 +1,179 @@
+"""The shape of the code (README, "Layout of `study/`"), read from the source without importing it.
+
+- argparse lives in `study/cli.py` and `study/commands/` only: the experiments (`study/*.py`,
+  `study/eco/`), the benches (`study/bench/`) and the library never build a parser;
+- a command adapter holds parsers, argument types, `run*` functions and text, nothing else, and
+  imports no torch at module level, so `hydrabench --help` and the light commands import no torch;
+- experiments never import the command line back (`study.cli`, `study.commands`);
+- nothing in `sim/`, `sensors/`, `fusion/` imports `study` (packages import one way);
+- every module path the README and BENCHMARKS.md name in code spans exists.
+"""
+
+from __future__ import annotations
+
+import ast
+import re
+import subprocess
+import sys
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[2]
+STUDY = ROOT / "study"
+COMMANDS = STUDY / "commands"
+PARSER_CALLS = {"add_argument", "add_parser", "add_subparsers", "add_argument_group", "add_mutually_exclusive_group",
+                "parse_args", "parse_known_args", "ArgumentParser"}
+ADAPTER_PREFIXES = ("add_", "run", "format_", "parse_", "build_config", "main")
+FILE_SUFFIXES = {"json", "yaml", "md", "html", "png", "csv", "npz", "npy", "pt", "txt"}
+"""A code span such as `study.json` names a file, not a module."""
+
+
+def _py(root: Path) -> list[Path]:
+    return sorted(p for p in root.rglob("*.py") if "__pycache__" not in p.parts)
+
+
+def _tree(path: Path) -> ast.Module:
+    return ast.parse(path.read_text(), filename=str(path))
+
+
+def _imports(node: ast.AST) -> list[str]:
+    """Every module name an import statement under `node` names (`from a.b import c`: a.b and a.b.c)."""
+    out = []
+    for n in ast.walk(node):
+        if isinstance(n, ast.Import):
+            out += [a.name for a in n.names]
+        elif isinstance(n, ast.ImportFrom) and n.module and not n.level:
+            out += [n.module] + [f"{n.module}.{a.name}" for a in n.names]
+    return out
+
+
+def _module_level_imports(tree: ast.Module) -> list[str]:
+    """Imports executed when the module is imported: top-level statements, also inside a top-level
+    if / try / with, but not inside functions or classes."""
+    out = []
+    todo = list(tree.body)
+    while todo:
+        n = todo.pop()
+        if isinstance(n, (ast.FunctionDef, ast.AsyncFunctionDef, ast.ClassDef)):
+            continue
+        if isinstance(n, (ast.Import, ast.ImportFrom)):
+            out += _imports(n)
+        else:
+            todo += [c for c in ast.iter_child_nodes(n) if isinstance(c, ast.stmt)]
+    return out
+
+
+def _rel(path: Path) -> str:
+    return str(path.relative_to(ROOT))
+
+
+def test_argparse_only_in_the_cli_and_the_command_adapters():
+    allowed = {STUDY / "cli.py", *_py(COMMANDS)}
+    offenders = []
+    for pkg in ("sim", "sensors", "fusion", "study"):
+        for path in _py(ROOT / pkg):
+            if path in allowed:
+                continue
+            tree = _tree(path)
+            if any(m == "argparse" or m.startswith("argparse.") for m in _imports(tree)):
+                offenders.append(f"{_rel(path)} imports argparse")
+            for n in ast.walk(tree):
+                if isinstance(n, ast.Call):
+                    name = n.func.attr if isinstance(n.func, ast.Attribute) else getattr(n.func, "id", "")
+                    if name in PARSER_CALLS:
+                        offenders.append(f"{_rel(path)}:{n.lineno} calls {name}")
+    assert not offenders, "argparse belongs in study/cli.py and study/commands/: " + "; ".join(offenders)
+
+
+def test_command_adapters_hold_parsers_types_runs_and_text_only():
+    offenders = []
+    for path in _py(COMMANDS):
+        tree = _tree(path)
+        typed = {t.value.id for n in tree.body if isinstance(n, ast.Assign) for t in n.targets
+                 if isinstance(t, ast.Attribute) and t.attr == "kind" and isinstance(t.value, ast.Name)}
+        for n in tree.body:
+            if isinstance(n, ast.ClassDef):
+                offenders.append(f"{_rel(path)} defines class {n.name} (experiments and their configs live beside "
+                                 "study/commands/, not in it)")
+            elif isinstance(n, ast.FunctionDef) and not n.name.startswith("_"):
+                if not n.name.startswith(ADAPTER_PREFIXES) and n.name not in typed:
+                    offenders.append(f"{_rel(path)} defines {n.name}() (an adapter's public functions are add_*, "
+                                     "run*, format_*, parse_*, main, or argparse types carrying a .kind)")
+    assert not offenders, "; ".join(offenders)
+
+
+def test_command_line_imports_no_torch_at_module_level():
+    for path in [STUDY / "cli.py", *_py(COMMANDS)]:
+        heavy = [m for m in _module_level_imports(_tree(path)) if m.split(".")[0] in ("torch", "torchvision")]
+        assert not heavy, f"{_rel(path)} imports {heavy[0]} at module level (import it inside the run function)"
+
+
+def test_help_and_the_parsers_import_no_torch():
+    """Building every command's parser (what `hydrabench --help` and every command do first) imports
+    no torch, directly or through the experiment modules an adapter imports."""
+    code = ("import sys; import study.cli as cli; cli.build_parser(); "
+            "sys.exit(sorted(m for m in sys.modules if m.split('.')[0] in ('torch', 'torchvision'))[:1] or 0)")
+    r = subprocess.run([sys.executable, "-c", code], cwd=ROOT, capture_output=True, text=True, timeout=120)
+    assert r.returncode == 0, f"building the parsers imported {r.stderr.strip() or r.stdout.strip()}"
+
+
+def test_every_command_runs_through_an_adapter_in_study_commands():
+    tree = _tree(STUDY / "cli.py")
+    table = next(n.value for n in tree.body if isinstance(n, ast.AnnAssign) and getattr(n.target, "id", "") == "COMMANDS")
+    targets = [ast.literal_eval(v)[0] for v in table.values]
+    assert targets and all(t.startswith("study.commands.") for t in targets), targets
+    for t in targets:
+        module, func = t.split(":")
+        path = ROOT / (module.replace(".", "/") + ".py")
+        assert func in {n.name for n in _tree(path).body if isinstance(n, ast.FunctionDef)}, t
+
+
+def test_experiments_and_benches_never_import_the_command_line():
+    offenders = []
+    for path in _py(STUDY):
+        if path == STUDY / "cli.py" or COMMANDS in path.parents:
+            continue
+        for m in _imports(_tree(path)):
+            if m in ("study.cli", "study.commands") or m.startswith(("study.cli.", "study.commands.")):
+                offenders.append(f"{_rel(path)} imports {m}")
+    assert not offenders, "; ".join(offenders)
+
+
+def test_library_packages_never_import_study():
+    offenders = [f"{_rel(path)} imports {m}" for pkg in ("sim", "sensors", "fusion") for path in _py(ROOT / pkg)
+                 for m in _imports(_tree(path)) if m == "study" or m.startswith("study.")]
+    assert not offenders, "packages import one way, sim <- sensors <- fusion <- study: " + "; ".join(offenders)
+
+
+def _resolves(dotted: str) -> bool:
+    """`a.b.c.Name.attr`: the longest prefix that is a module file or package of this repository, and
+    the next part (if any) a top-level name of that module."""
+    parts = dotted.split(".")
+    for k in range(len(parts), 0, -1):
+        base = ROOT.joinpath(*parts[:k])
+        path = base.with_suffix(".py") if base.with_suffix(".py").is_file() else base / "__init__.py"
+        if not path.is_file():
+            continue
+        if k == len(parts):
+            return True
+        tree = _tree(path)
+        names = {n.name for n in tree.body if isinstance(n, (ast.FunctionDef, ast.ClassDef))}
+        names |= {t.id for n in tree.body if isinstance(n, (ast.Assign, ast.AnnAssign))
+                  for t in (n.targets if isinstance(n, ast.Assign) else [n.target]) if isinstance(t, ast.Name)}
+        names |= {a.asname or a.name for n in tree.body if isinstance(n, ast.ImportFrom) for a in n.names}
+        names |= {"__file__", "__doc__"}
+        return parts[k] in names or (ROOT.joinpath(*parts[:k + 1]).is_dir())
+    return False
+
+
+def test_module_paths_named_in_the_docs_exist():
+    missing = []
+    for doc in ("README.md", "BENCHMARKS.md"):
+        text = (ROOT / doc).read_text()
+        for span in re.findall(r"`([^`\n]+)`", text):
+            for ref in re.findall(r"(?<![\w/.-])((?:sim|sensors|fusion|study)(?:\.[A-Za-z_][A-Za-z0-9_]*)+)", span):
+                if ref.rsplit(".", 1)[1] not in FILE_SUFFIXES and not _resolves(ref):
+                    missing.append(f"{doc}: {ref}")
+            for ref in re.findall(r"(?<![\w/.-])((?:sim|sensors|fusion|study|scripts)/[\w/]+\.(?:py|sh))\b", span):
+                if not (ROOT / ref).is_file():
+                    missing.append(f"{doc}: {ref}")
+    assert not missing, "the docs name modules that do not exist: " + "; ".join(missing)
