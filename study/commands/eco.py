@@ -13,6 +13,7 @@ from study.cli import (
     checkpoint_arg,
     dataset_dir,
     emit,
+    float_range,
     in_file,
     name_arg,
     name_list,
@@ -54,6 +55,12 @@ def _common(p, energy: bool = True) -> None:
     p.add_argument("--batch-size", type=pos_int, default=4, help="frames per forward when building the dataset")
     p.add_argument("--max-frames", type=nonneg_int, default=0, help="use at most this many frames of each split "
                    "(evenly spaced; 0 = all): for slow machines")
+    p.add_argument("--fp-weight", type=_fp_weight, default=1.0,
+                   help="weight of L_f's false-positive term (fusion.eco.loss): what the learned gates regress and "
+                   "the Loss-based oracle minimises. Lower it to let the gates choose fusion, which adds "
+                   "low-score boxes that AP tolerates but the false-positive term charges. The cached "
+                   "configuration dataset is reused; gates trained at another weight live in "
+                   "RUN/eco/gates/<gate>-fp<w>/ (default: 1, EcoFusion's loss as defined here)")
     if energy:
         p.add_argument("--power", type=_power, default="px2", help="P of Eq. 6 where no energy counter exists: px2 (45.4 W, the "
                        "paper's Drive PX2 under load) or watts")
@@ -66,10 +73,14 @@ def _common(p, energy: bool = True) -> None:
     p.add_argument("--json", action="store_true", help="print one JSON object on stdout")
 
 
+_fp_weight = float_range(0.0, 100.0, "fp_weight")
+
+
 def _settings(args) -> EcoSettings:
     return EcoSettings(configurations=args.configurations or "", fusion=args.fusion, checkpoint=args.checkpoint,
                        power=getattr(args, "power", "px2"), energy_scale=getattr(args, "energy_scale", "px2"),
-                       rule=getattr(args, "rule", "prose"), batch_size=args.batch_size, max_frames=args.max_frames)
+                       rule=getattr(args, "rule", "prose"), batch_size=args.batch_size, max_frames=args.max_frames,
+                       fp_weight=args.fp_weight)
 
 
 def _unit(text: str, name: str) -> float:
@@ -137,12 +148,14 @@ def _power(text: str) -> str:
 _power.kind = "name"
 
 
-def _require_trained(run_dir, gates) -> None:
-    """Before any work: every learned gate asked for has been trained (RUN/eco/gates/<name>/gate.pt)."""
+def _require_trained(run_dir, gates, s: EcoSettings) -> None:
+    """Before any work: every learned gate asked for has been trained for these settings' L_f
+    (`EcoSettings.gate_dir`/gate.pt)."""
+    fp = "" if s.fp_weight == 1.0 else f" --fp-weight {s.fp_weight:g}"
     for g in gates:
-        if g in ("deep", "attention") and not (Path(run_dir) / "eco" / "gates" / g / "gate.pt").exists():
-            raise UserError(f"no trained {g} configuration gate in {run_dir} (run: hydrabench eco-train-gate "
-                            f"{run_dir} DATA --gate {g}, or leave it out of --gates)")
+        if g in ("deep", "attention") and not (s.gate_dir(run_dir, g) / "gate.pt").exists():
+            raise UserError(f"no trained {g} configuration gate in {run_dir}{' for' + fp if fp else ''} (run: "
+                            f"hydrabench eco-train-gate {run_dir} DATA --gate {g}{fp}, or leave it out of --gates)")
 
 
 SWEEP_FILES = ("figure4_loss_energy.png", "figure5_scenes.png", "result.json")
@@ -182,7 +195,9 @@ def run_eco_data(args) -> int:
         for k, v in r["loss_vs_ap_test"].items():
             lines.append(f"  {k:24s} Spearman {v['spearman_mean']}  Kendall {v['kendall_mean']}  lowest loss has the best "
                          f"AP in {v['lowest_loss_has_best_ap']} of {v['frames']} frames")
-        lines.append("mean L_f of the baselines: " + ", ".join(f"{k} {v}" for k, v in r["mean_loss_test"].items()))
+        lines.append(f"mean L_f per configuration (fp weight {r['loss_definition']['fp_weight']:g}): "
+                     + ", ".join(f"{k} {v}" for k, v in r["mean_loss_test"].items())
+                     + f"; lowest: {r['lowest_mean_loss_test']}")
         return "\n".join(lines)
 
     emit(r, args.json, text)
@@ -287,7 +302,7 @@ def run_eco_evaluate(args) -> int:
         raise UserError(f"--execute: unknown gate {args.execute!r} (choose from: {', '.join(GATE_ORDER)})")
     if args.execute and args.execute not in gates:
         gates.append(args.execute)
-    _require_trained(args.run_dir, gates)
+    _require_trained(args.run_dir, gates, s)
     ev = EcoEval(Path(args.run_dir), Path(args.data), s, gates)
     r = evaluate_eco(args.run_dir, args.data, args.lambda_e, args.gamma, s, gates, ev=ev)
     if args.execute:
@@ -341,7 +356,7 @@ def run_eco_sweep(args) -> int:
     fig_gate = args.figure_gate or ("attention" if "attention" in gates else gates[0])
     if fig_gate not in gates:
         raise UserError(f"--figure-gate {fig_gate!r} is not among the evaluated gates ({', '.join(gates)})")
-    _require_trained(args.run_dir, gates)
+    _require_trained(args.run_dir, gates, s)
     out = check_writable_dir(args.out)
     _check_sweep_out(out)
     r = sweep(Path(args.run_dir), Path(args.data), out, args.gamma, lambdas, s, gates, fig_gate)

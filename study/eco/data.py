@@ -69,13 +69,18 @@ class EcoData(GateData):
     subdir = "eco_data"
 
     def __init__(self, run_dir, data, model, configurations, fusion: str = "soft_nms", loss_spec=None,
-                 checkpoint: str = "latest", grid=None) -> None:
+                 checkpoint: str = "latest", grid=None, weights=None) -> None:
         from fusion.eco.loss import FusedLossSpec
         from sensors.dataset import DatasetReader
 
         self.configurations = configurations
         self.fusion = fusion
-        self.loss_spec = loss_spec or FusedLossSpec()
+        self.loss_spec = loss_spec or FusedLossSpec()  # computes the cached terms (part of the key)
+        # combines them into L_f (`losses`): only the weights may differ from `loss_spec`, since
+        # the terms depend on the matching (iou_thr) and the box term's beta alone
+        self.weights = weights or self.loss_spec
+        if (self.weights.iou_thr, self.weights.beta) != (self.loss_spec.iou_thr, self.loss_spec.beta):
+            raise ValueError("weights may change the weights of L_f, not its matching or box term")
         prof = getattr(model, "profile", None)
         self.max_det = int(prof.box_detections_per_img) if prof is not None else 100
         self.reader = DatasetReader(data)
@@ -115,8 +120,8 @@ class EcoData(GateData):
         return {"detections": np.asarray(det_arr), "terms": np.asarray(terms), "ap": np.asarray(aps)}
 
     def losses(self, indices) -> np.ndarray:
-        """(n, n_configurations) L_f of each frame and configuration."""
-        return self.loss_spec.combine(self.arrays(indices, ["terms"])["terms"])
+        """(n, n_configurations) L_f of each frame and configuration (with `weights`)."""
+        return self.weights.combine(self.arrays(indices, ["terms"])["terms"])
 
 
 def fuse_choice(per_frame_dets, metas, branches, frames, chosen_members, method, memo=None) -> list:
@@ -175,6 +180,11 @@ class EcoSettings:
         max_frames: at most this many frames of each split (evenly spaced over the split, so every
             context keeps its share); 0 = every frame. For machines where a forward of every
             branch on every frame takes too long; results say how many frames they are on.
+        fp_weight: [1] weight of L_f's false-positive term (`fusion.eco.loss.FusedLossSpec`): what
+            the learned gates regress, what the Loss-based oracle minimises and what "avg L_f"
+            reports. The cached terms do not depend on it (only on matching), so changing it
+            reuses the configuration dataset; a gate trained at one weight is kept apart from
+            the others (`gate_dir`).
     """
 
     configurations: str = ""
@@ -185,6 +195,19 @@ class EcoSettings:
     rule: str = "prose"
     batch_size: int = 4
     max_frames: int = 0
+    fp_weight: float = 1.0
+
+    def loss_spec(self):
+        """The L_f definition these settings combine the cached terms with."""
+        from fusion.eco.loss import FusedLossSpec
+
+        return dataclasses.replace(FusedLossSpec(), fp_weight=float(self.fp_weight))
+
+    def gate_dir(self, run_dir, gate: str) -> Path:
+        """RUN/eco/gates/<gate>/ for the default L_f; RUN/eco/gates/<gate>-fp<w>/ for another
+        false-positive weight, so gates trained on different targets never overwrite each other."""
+        name = gate if self.fp_weight == 1.0 else f"{gate}-fp{self.fp_weight:g}"
+        return Path(run_dir) / "eco" / "gates" / name
 
 
 def _setup(run_dir, data, s: EcoSettings, threads: int = 2):
@@ -201,7 +224,7 @@ def _setup(run_dir, data, s: EcoSettings, threads: int = 2):
         raise UserError("EcoFusion's learned gates read the shared stems; this run's branches have none")
     ccfg = load_configurations_config(s.configurations or None)
     configs = build_configurations(model.branch_sensors, ccfg)
-    ed = EcoData(run_dir, data, model, configs, method, checkpoint=s.checkpoint)
+    ed = EcoData(run_dir, data, model, configs, method, checkpoint=s.checkpoint, weights=s.loss_spec())
     return model, cfg, configs, ed
 
 
@@ -235,14 +258,17 @@ def build_eco_data(run_dir, data, s: EcoSettings = EcoSettings(), progress: bool
     for name, kw in LOSS_VARIANTS.items():
         spec = dataclasses.replace(FusedLossSpec(), **kw)
         corr[name] = rank_correlation(spec.combine(arr["terms"]), arr["ap"])
-    lf = ed.loss_spec.combine(arr["terms"])
+    if ed.weights != FusedLossSpec():
+        corr[f"fp_weight_{ed.weights.fp_weight:g}"] = rank_correlation(ed.weights.combine(arr["terms"]), arr["ap"])
+    lf = ed.weights.combine(arr["terms"])
     return {
         "run": str(run_dir), "data": str(data), "eco_data": str(ed.dir), "configurations": len(configs),
         "baselines": {k: configs.names[v] for k, v in configs.baselines.items()},
         "frames": {"train": len(train), "test": len(test)}, "computed_frames": computed,
-        "seconds": round(seconds, 1), "fusion": ed.fusion, "loss_definition": dataclasses.asdict(ed.loss_spec),
+        "seconds": round(seconds, 1), "fusion": ed.fusion, "loss_definition": dataclasses.asdict(ed.weights),
         "loss_vs_ap_test": corr,
-        "mean_loss_test": {configs.names[i]: round(float(lf[:, i].mean()), 4) for i in configs.baselines.values()},
+        "mean_loss_test": {configs.names[i]: round(float(lf[:, i].mean()), 4) for i in range(len(configs))},
+        "lowest_mean_loss_test": configs.names[int(np.argmin(lf.mean(axis=0)))] if len(lf) else None,
         "note": "rank correlation per frame across configurations between L_f and the frame's AP@0.5 "
                 "(negative = lower loss ranks higher AP), then averaged over frames",
     }

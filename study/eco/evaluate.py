@@ -46,7 +46,7 @@ class EcoEval:
         self.features = arr["features"]
         self.dets = [detections_from_array(a, self.ed.branches) for a in arr["detections"]]
         self.terms = arr["terms"]
-        self.losses = self.ed.loss_spec.combine(self.terms)
+        self.losses = self.ed.weights.combine(self.terms)
         self.ap = arr["ap"]
         self.energy_info = energy_table(self.run_dir, self.data, s, threads=latency_threads, progress=progress,
                                         model=self.model, configs=self.configs, test=self.test, reuse=True)
@@ -68,7 +68,7 @@ class EcoEval:
             elif g == "knowledge":
                 self.predicted[g] = build_config_gate(g, self.model, self.configs).predict(None, self.metas).numpy()
             else:
-                gate = load_eco_gate(self.run_dir, g, self.model, self.configs, self.ed.key)
+                gate = load_eco_gate(self.run_dir, g, self.model, self.configs, self.ed.key, s)
                 self.predicted[g] = _predict(gate, self.features)
 
     def choose(self, gate: str, lambda_e: float, gamma: float) -> np.ndarray:
@@ -176,7 +176,7 @@ def evaluate_eco(run_dir, data, lambda_e: float = 0.01, gamma: float = 0.5, s: E
                          else round(r["map"] - late["map"], 4),
                          "energy_ratio": round(r["energy"] / late["energy"], 4),
                          "latency_ratio": round(r["latency_ms"] / late["latency_ms"], 4)}
-    return {"lambda_e": lambda_e, "gamma": gamma, "rule": s.rule, "gates": rows, "baselines": base,
+    return {"lambda_e": lambda_e, "gamma": gamma, "rule": s.rule, "fp_weight": s.fp_weight, "gates": rows, "baselines": base,
             "against_late": ratios, "frames": len(ev.test), "configurations": len(ev.configs),
             "energy_unit": ev.energy_label(), "latency": "additive model of measured component latencies, "
             "this machine", "metric": METRIC, "run": str(run_dir), "data": str(data)}

@@ -11,6 +11,7 @@ from pathlib import Path
 
 import numpy as np
 
+from fusion.eco.loss import FusedLossSpec
 from sim.errors import UserError
 from study.eco.data import EcoSettings, _setup, _splits
 from study.gate_data import _atomic_text, _atomic_torch_save
@@ -34,14 +35,16 @@ def train_eco_gate(run_dir, data, gate: str, cfg: GateTrainConfig, s: EcoSetting
     model, run_cfg, configs, ed = _setup(run_dir, data, s, cfg.threads)
     train, test = _splits(run_cfg, data, s.max_frames)
     ed.ensure(train + test, batch_size=s.batch_size, progress=progress)
-    out = run_dir / "eco" / "gates" / gate
-    settings = {**dataclasses.asdict(cfg), "gate": gate, "data_key": ed.key}
+    out = s.gate_dir(run_dir, gate)
+    loss = dataclasses.asdict(ed.weights)
+    settings = {**dataclasses.asdict(cfg), "gate": gate, "data_key": ed.key, "loss": loss}
     for k in ("epochs", "threads"):
         settings.pop(k)
     state = None
     if (out / "checkpoint.pt").exists() and not fresh:
         state = torch.load(out / "checkpoint.pt", map_location="cpu", weights_only=False)
-        old = {**state["config"], "gate": gate, "data_key": state.get("data_key")}
+        old = {**state["config"], "gate": gate, "data_key": state.get("data_key"),
+               "loss": state.get("loss", dataclasses.asdict(FusedLossSpec()))}
         for k in ("epochs", "threads"):
             old.pop(k, None)
         if json.loads(json.dumps(old)) != json.loads(json.dumps(settings)):
@@ -58,7 +61,7 @@ def train_eco_gate(run_dir, data, gate: str, cfg: GateTrainConfig, s: EcoSetting
     g = build_config_gate(gate, model, configs, sensors=list(ed.sensors), **cfg.gate_options())
     cfg_named = dataclasses.replace(cfg, gate=gate)
     fitted = fit_gate(g.net, x_fit, y_fit, x_val, y_val, cfg_named, out=out, progress=progress, state=state,
-                      extra={"data_key": ed.key})
+                      extra={"data_key": ed.key, "loss": loss})
     pred = _predict(g, x_test)
     mean_c = y_fit.mean(axis=0)
     from fusion.eco.optimise import select
@@ -67,7 +70,8 @@ def train_eco_gate(run_dir, data, gate: str, cfg: GateTrainConfig, s: EcoSetting
     pick = select(pred, zero, 0.0, 0.0, "prose")
     result = {
         "gate": gate, "run": str(run_dir), "data": str(data), "configurations": len(configs), "optimizer": "Adam",
-        "lr": cfg.lr, "loss": "mean absolute error of L_f per configuration", "epochs": cfg.epochs,
+        "lr": cfg.lr, "loss": "mean absolute error of L_f per configuration", "loss_definition": loss,
+        "epochs": cfg.epochs,
         "best_epoch": fitted["best_epoch"], "val_mae": fitted["best_val_mae"], "train_frames": len(fit_idx),
         "val_frames": len(val_idx), "test_frames": len(test), "test_mae": round(mae(pred, y_test), 6),
         "constant_mean_mae": round(mae(np.broadcast_to(mean_c, y_test.shape), y_test), 6),
@@ -78,25 +82,29 @@ def train_eco_gate(run_dir, data, gate: str, cfg: GateTrainConfig, s: EcoSetting
     }
     _atomic_torch_save({"name": gate, "options": {**cfg.gate_options(), "sensors": list(ed.sensors)},
                         "configurations": [list(m) for m in configs.members], "state": g.state_dict(),
-                        "data_key": ed.key, "result": result}, out / "gate.pt")
+                        "data_key": ed.key, "loss": loss, "result": result}, out / "gate.pt")
     _atomic_text(out / "result.json", json.dumps(result, indent=1))
     return result
 
 
-def load_eco_gate(run_dir, name: str, model, configs, data_key: str):
-    """A trained configuration gate from RUN/eco/gates/<name>/gate.pt (for this configuration dataset)."""
+def load_eco_gate(run_dir, name: str, model, configs, data_key: str, s: EcoSettings = EcoSettings()):
+    """A trained configuration gate from `s.gate_dir(run_dir, name)`/gate.pt (for this configuration
+    dataset and this L_f)."""
     import torch
 
     from fusion.eco.gates import build_config_gate
 
-    path = Path(run_dir) / "eco" / "gates" / name / "gate.pt"
+    path = s.gate_dir(run_dir, name) / "gate.pt"
+    fp = "" if s.fp_weight == 1.0 else f" --fp-weight {s.fp_weight:g}"
     if not path.exists():
-        raise UserError(f"no trained {name} configuration gate in {run_dir} "
-                        f"(run: hydrabench eco-train-gate {run_dir} DATA --gate {name})")
+        raise UserError(f"no trained {name} configuration gate in {run_dir}{' for' + fp if fp else ''} "
+                        f"(run: hydrabench eco-train-gate {run_dir} DATA --gate {name}{fp})")
     saved = torch.load(path, map_location="cpu", weights_only=False)
     if saved.get("data_key") != data_key:
         raise UserError(f"{path} was trained on another configuration dataset (checkpoint, configurations, fusion "
                         f"or loss differ); train it again with --fresh")
+    if saved.get("loss", dataclasses.asdict(FusedLossSpec())) != dataclasses.asdict(s.loss_spec()):
+        raise UserError(f"{path} was trained on another L_f (false-positive weight); train it again with --fresh")
     g = build_config_gate(name, model, configs, **saved["options"])
     g.load_state_dict(saved["state"])
     return g.eval()

@@ -172,6 +172,59 @@ def test_eco_sweep_writes_tables_and_figures(eco, data, tmp_path, capsys):
         assert r["figure4"][g]["1"]["energy"] <= r["figure4"][g]["0"]["energy"] + 1e-9
 
 
+def test_fp_weight_reweights_cached_terms_and_keeps_its_gates_apart(eco, data, capsys):
+    """--fp-weight changes only how the cached L_f terms combine: eco-data computes nothing new and its
+    mean losses follow L_f = (tp + box + w fp + miss n_miss) / n_pos; gates trained at w live in
+    RUN/eco/gates/<gate>-fp<w>/ beside the default ones, and a command at w refuses to use untrained or
+    differently trained gates."""
+    from fusion.eco.configurations import build_configurations
+    from fusion.eco.loss import FusedLossSpec
+    from study.detect import load_run
+    from study.eco.data import EcoData, EcoSettings, _splits
+
+    assert main(["eco-data", str(eco), str(data), "--fp-weight", "0.25", "--json"]) == 0
+    r = _json(capsys)
+    assert r["computed_frames"] == 0 and r["loss_definition"]["fp_weight"] == 0.25
+    assert "fp_weight_0.25" in r["loss_vs_ap_test"]
+    model, cfg = load_run(eco)
+    configs = build_configurations(model.branch_sensors)
+    ed = EcoData(eco, data, model, configs, "soft_nms")
+    _, test = _splits(cfg, data)
+    t = ed.arrays(test, ["terms"])["terms"]
+    law = (t[..., 0] + t[..., 1] + 0.25 * t[..., 2] + FusedLossSpec().miss_cost * t[..., 3]) / np.maximum(t[..., 4], 1)
+    for name, v in r["mean_loss_test"].items():
+        assert v == pytest.approx(law[:, configs.names.index(name)].mean(), abs=1e-4), name
+    assert r["lowest_mean_loss_test"] == configs.names[int(np.argmin(law.mean(axis=0)))]
+    assert len(r["mean_loss_test"]) == len(configs)
+
+    # no deep gate at 0.25 yet: refused before any work, naming the command that trains it
+    assert main(["eco-evaluate", str(eco), str(data), "--fp-weight", "0.25", "--gates", "deep", "--json"]) == 2
+    err = capsys.readouterr().err
+    assert "--fp-weight 0.25" in err and "eco-train-gate" in err
+    before = (eco / "eco" / "gates" / "deep" / "gate.pt").read_bytes()
+    assert main(["eco-train-gate", str(eco), str(data), "--gate", "deep", "--epochs", "2", "--val-fraction", "0",
+                 "--threads", "1", "--fp-weight", "0.25", "--json"]) == 0
+    g = _json(capsys)
+    assert g["loss_definition"]["fp_weight"] == 0.25 and g["gate_path"].endswith("deep-fp0.25/gate.pt")
+    assert (eco / "eco" / "gates" / "deep" / "gate.pt").read_bytes() == before  # the default gate untouched
+    assert EcoSettings(fp_weight=0.25).gate_dir(eco, "deep") == eco / "eco" / "gates" / "deep-fp0.25"
+    assert main(["eco-evaluate", str(eco), str(data), "--fp-weight", "0.25", "--gates", "deep,loss_based",
+                 "--lambda-e", "0", "--gamma", "0", "--json"]) == 0
+    e = _json(capsys)
+    assert e["fp_weight"] == 0.25
+    # the oracle minimises L_f at this weight: its mean loss is the mean of each frame's lowest
+    assert e["gates"]["loss_based"]["avg_loss"] == pytest.approx(law.min(axis=1).mean(), abs=1e-4)
+    # a gate file whose L_f differs from the one asked for is refused (here: copied by hand)
+    import shutil
+
+    bad = eco / "eco" / "gates" / "deep-fp0.5"
+    bad.mkdir()
+    shutil.copy(eco / "eco" / "gates" / "deep-fp0.25" / "gate.pt", bad / "gate.pt")
+    assert main(["eco-evaluate", str(eco), str(data), "--fp-weight", "0.5", "--gates", "deep", "--json"]) == 2
+    assert "another L_f" in capsys.readouterr().err
+    shutil.rmtree(bad)
+
+
 @pytest.mark.parametrize("argv, needle", [
     (["eco-evaluate", "--lambda-e", "2"], "lambda_E must be in [0, 1]"),
     (["eco-evaluate", "--gamma", "-1"], "--gamma: must be >= 0"),
@@ -180,6 +233,8 @@ def test_eco_sweep_writes_tables_and_figures(eco, data, tmp_path, capsys):
     (["eco-train-gate", "--gate", "knowledge"], "nothing to train"),
     (["eco-sweep", "--out", "/proc/no/such", "--gates", "knowledge"], "/proc is not writable"),
     (["eco-energy", "--power", "-4"], "--power"),
+    (["eco-train-gate", "--gate", "deep", "--fp-weight", "-1"], "--fp-weight: must be >= 0"),
+    (["eco-sweep", "--out", "/tmp/x", "--fp-weight", "nan"], "--fp-weight: expected a finite number"),
 ])
 def test_bad_input_exits_2_with_one_line(run, data, argv, needle, capsys):
     cmd, *rest = argv
