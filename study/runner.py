@@ -36,6 +36,7 @@ from pathlib import Path
 
 from sim.config import from_dict, load_yaml, to_dict
 from sim.errors import UserError
+from study.gate_data import file_sha256
 
 STUDY_VERSION = 1
 PRESETS_DIR = Path(__file__).resolve().parents[1] / "configs" / "study"
@@ -302,14 +303,6 @@ def study_config_from_dict(data: dict) -> StudyConfig:
 
 def _digest(obj) -> str:
     return hashlib.sha256(json.dumps(obj, sort_keys=True, default=str).encode()).hexdigest()
-
-
-def file_sha256(path: Path) -> str:
-    h = hashlib.sha256()
-    with open(path, "rb") as fh:
-        for block in iter(lambda: fh.read(1 << 22), b""):
-            h.update(block)
-    return h.hexdigest()
 
 
 def _atomic_json(path: Path, obj) -> None:

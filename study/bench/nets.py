@@ -87,6 +87,17 @@ def _meta(calib_dict, batch):
     return [{"calibration": calib_dict} for _ in range(batch)]
 
 
+def _load_run_weights(model, run_dir) -> None:
+    """Copy a trained run's weights into `model` where the module names match (nothing without a run)."""
+    if not run_dir:
+        return
+    from study.detect import load_run
+
+    trained, _ = load_run(run_dir)
+    own = model.state_dict()
+    model.load_state_dict({k: v for k, v in trained.state_dict().items() if k in own}, strict=False)
+
+
 def _worker(args) -> dict:
     """Fresh process: build the configuration, time `repeats` forwards at `batch`, report peak RSS."""
     profile, set_name, names, batch, repeats, threads, run_dir, device, amp = args
@@ -106,12 +117,7 @@ def _worker(args) -> dict:
         specs = [s for s in specs if s.name in names]
     torch.manual_seed(0)
     model = build_hydrafusion(profile=profile, branches=specs).eval()
-    if run_dir:
-        from study.detect import load_run
-
-        trained, _ = load_run(run_dir)
-        own = model.state_dict()
-        model.load_state_dict({k: v for k, v in trained.state_dict().items() if k in own}, strict=False)
+    _load_run_weights(model, run_dir)
     model.to(device)
     calib = make_calibration(sensor_profile(profile))
     inputs = _inputs(model, batch, device=device)
@@ -234,12 +240,7 @@ def bench_gates(profile: str = "cpu", repeats: int = 5, threads: int = 2, run_di
     torch.manual_seed(0)
     model = build_hydrafusion(profile=profile, branches=branch_set("paper", profile), **(overrides or {})).eval()
     gates_from = "random initialisation"
-    if run_dir:
-        from study.detect import load_run
-
-        trained, _ = load_run(run_dir)
-        own = model.state_dict()
-        model.load_state_dict({k: v for k, v in trained.state_dict().items() if k in own}, strict=False)
+    _load_run_weights(model, run_dir)
     model.to(device)
     calib = make_calibration(sensor_profile(profile))
     inputs = _inputs(model, 1, device=device)
