@@ -1,4 +1,9 @@
+import contextlib
+import fcntl
 import os
+from pathlib import Path
+
+import pytest
 
 os.environ.setdefault("PYOPENGL_PLATFORM", "egl")
 os.environ["SDL_VIDEODRIVER"] = "offscreen"
@@ -34,12 +39,6 @@ _pin_xdist_worker()
 # One cache for the whole session, shared by the xdist workers: the theory measurements and the
 # tiny study are computed once (by whichever test needs them first) and read by the others. A file
 # lock makes a second worker wait for the first instead of computing the same thing beside it.
-
-import contextlib  # noqa: E402
-import fcntl  # noqa: E402
-from pathlib import Path  # noqa: E402
-
-import pytest  # noqa: E402
 
 
 @pytest.fixture(scope="session")
