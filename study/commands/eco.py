@@ -151,7 +151,7 @@ _power.kind = "name"
 def _require_trained(run_dir, gates, s: EcoSettings) -> None:
     """Before any work: every learned gate asked for has been trained for these settings' L_f
     (`EcoSettings.gate_dir`/gate.pt)."""
-    fp = "" if s.fp_weight == 1.0 else f" --fp-weight {s.fp_weight:g}"
+    fp = s.fp_flag()
     for g in gates:
         if g in ("deep", "attention") and not (s.gate_dir(run_dir, g) / "gate.pt").exists():
             raise UserError(f"no trained {g} configuration gate in {run_dir}{' for' + fp if fp else ''} (run: "

@@ -203,6 +203,10 @@ class EcoSettings:
 
         return dataclasses.replace(FusedLossSpec(), fp_weight=float(self.fp_weight))
 
+    def fp_flag(self) -> str:
+        """" --fp-weight W" for a non-default weight (to name in messages), else ""."""
+        return "" if self.fp_weight == 1.0 else f" --fp-weight {self.fp_weight:g}"
+
     def gate_dir(self, run_dir, gate: str) -> Path:
         """RUN/eco/gates/<gate>/ for the default L_f; RUN/eco/gates/<gate>-fp<w>/ for another
         false-positive weight, so gates trained on different targets never overwrite each other."""

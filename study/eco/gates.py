@@ -95,7 +95,7 @@ def load_eco_gate(run_dir, name: str, model, configs, data_key: str, s: EcoSetti
     from fusion.eco.gates import build_config_gate
 
     path = s.gate_dir(run_dir, name) / "gate.pt"
-    fp = "" if s.fp_weight == 1.0 else f" --fp-weight {s.fp_weight:g}"
+    fp = s.fp_flag()
     if not path.exists():
         raise UserError(f"no trained {name} configuration gate in {run_dir}{' for' + fp if fp else ''} "
                         f"(run: hydrabench eco-train-gate {run_dir} DATA --gate {name}{fp})")
