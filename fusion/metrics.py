@@ -188,9 +188,11 @@ def _images(detections, ground_truths) -> list[_Image]:
     return images
 
 
-def _evaluate_class(images: list[_Image], cls: int, iou_thr: float, hits: list[np.ndarray] | None = None):
-    """(tp, fp, scores) flags of the class's ranked non-ignored detections, n_pos, n_det.
-    `hits`: per image, a boolean array over its ground truth, set where a true positive matched."""
+def _evaluate_class(images: list[_Image], cls: int, iou_thr: float, hits: list[np.ndarray] | None = None,
+                    ranked: list | None = None):
+    """(tp, fp) flags of the class's ranked non-ignored detections, n_pos, n_det.
+    `hits`: per image, a boolean array over its ground truth, set where a true positive matched.
+    `ranked`: receives the scores of those detections, in the same (rank) order."""
     image_idx, det_scores, best_gt, best_iou = [], [], [], []
     difficult_of, offset = [], 0  # ground truth of the class, numbered across images
     owner = []  # (image, box) of each of those
@@ -216,6 +218,8 @@ def _evaluate_class(images: list[_Image], cls: int, iou_thr: float, hits: list[n
         difficult_of.append(gt_difficult)
         offset += len(gt_boxes)
     if not det_scores:
+        if ranked is not None:
+            ranked.append(np.zeros(0))
         return np.zeros(0, bool), np.zeros(0, bool), n_pos, 0
     scores = np.concatenate(det_scores)
     order = np.argsort(-scores, kind="stable")  # images were concatenated in order: ties stay put
@@ -234,6 +238,8 @@ def _evaluate_class(images: list[_Image], cls: int, iou_thr: float, hits: list[n
             i, b = owner[t]
             hits[i][b] = True
     keep = ~ignored
+    if ranked is not None:
+        ranked.append(scores[order][keep])
     return tp[keep], ~tp[keep], n_pos, len(scores)
 
 
@@ -255,6 +261,64 @@ def matched_ground_truth(detections: Sequence, ground_truths: Sequence, *, iou_t
     for cls in (int(c) for c in _classes_of(images, classes)):
         _evaluate_class(images, cls, float(iou_thr), hits)
     return hits
+
+
+@dataclass(frozen=True)
+class ImageMatches:
+    """Each image's VOC matching, kept apart so that AP over any multiset of the images (a bootstrap
+    draw) needs no new matching: a detection only ever matches ground truth of its own image, so
+    ranking, duplicates and difficult boxes resolve image by image.
+
+    per_image[i][cls] = (scores, tp, n_pos): the scores of image i's non-ignored detections of the
+    class in rank order, their true-positive flags, and its number of non-difficult boxes.
+    """
+
+    per_image: list
+    classes: tuple
+    interpolation: str
+
+    @classmethod
+    def of(cls, detections: Sequence, ground_truths: Sequence, *, iou_thr: float = 0.5,
+           classes: Sequence[int] | None = None, interpolation: Interpolation = "all") -> ImageMatches:
+        """Arguments as `evaluate_detections` (same validation and errors)."""
+        if not 0.0 <= float(iou_thr) <= 1.0:
+            raise ValueError(f"iou_thr must be in [0, 1], got {iou_thr!r}")
+        if interpolation not in INTERPOLATIONS:
+            raise ValueError(f"interpolation must be one of {INTERPOLATIONS}, got {interpolation!r}")
+        images = _images(detections, ground_truths)
+        class_ids = tuple(int(c) for c in _classes_of(images, classes))
+        per_image = []
+        for im in images:
+            row = {}
+            for c in class_ids:
+                ranked: list = []
+                tp, _fp, n_pos, _n_det = _evaluate_class([im], c, float(iou_thr), ranked=ranked)
+                row[c] = (ranked[0], tp, n_pos)
+            per_image.append(row)
+        return cls(per_image, class_ids, interpolation)
+
+    def ap(self, images: Sequence[int]) -> dict[int, float]:
+        """AP per class over these images (repeats allowed, in this order): equal to
+        `evaluate_detections` on the same list of images, to the last bit (tested)."""
+        out = {}
+        for c in self.classes:
+            rows = [self.per_image[i][c] for i in images]
+            n_pos = sum(r[2] for r in rows)
+            if not n_pos:
+                out[c] = float("nan")
+                continue
+            scores = np.concatenate([r[0] for r in rows]) if rows else np.zeros(0)
+            tp = np.concatenate([r[1] for r in rows]) if rows else np.zeros(0, bool)
+            tp = tp[np.argsort(-scores, kind="stable")]  # ties keep image order, as when pooled
+            ctp, cfp = np.cumsum(tp), np.cumsum(~tp)
+            prec = ctp / np.maximum(ctp + cfp, 1)
+            out[c] = average_precision(ctp / n_pos, prec, self.interpolation)
+        return out
+
+    def mean_ap(self, images: Sequence[int]) -> float:
+        """Mean of `ap` over the classes with ground truth in these images (NaN when none has)."""
+        finite = [v for v in self.ap(images).values() if not np.isnan(v)]
+        return float(np.mean(finite)) if finite else float("nan")
 
 
 def evaluate_detections(detections: Sequence, ground_truths: Sequence, *, iou_thr: float = 0.5,

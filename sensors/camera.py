@@ -266,8 +266,7 @@ def lighting_for(weather, light, lamp_positions: np.ndarray, headlights: list) -
     elev = np.radians(light.sun_elevation_deg)
     az = np.radians(light.sun_azimuth_deg)
     sun_dir = np.array([np.cos(elev) * np.cos(az), np.cos(elev) * np.sin(az), np.sin(elev)])
-    overcast = weather.rain_mm_h > 0 or weather.snow_mm_h > 0 or weather.fog_visibility_m < 2000
-    direct_share = 0.0 if (overcast or elev <= np.radians(2)) else 0.75
+    direct_share = 0.0 if (weather.sky_overcast or elev <= np.radians(2)) else 0.75
     E = weather.illuminance_lux
     sun_normal = E * direct_share / max(np.sin(elev), 0.05) if direct_share else 0.0
     return Lighting(sun_dir, float(sun_normal), float(E * (1 - direct_share)), lamp_positions, headlights,

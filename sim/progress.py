@@ -41,6 +41,7 @@ class LineProgress:
         self.postfix = ""
         self.closed = False
         self.printed = 0
+        self.shown = None  # (n, postfix) of the last line printed
 
     def _line(self) -> str:
         elapsed = time.monotonic() - self.t0
@@ -58,6 +59,7 @@ class LineProgress:
             self.stream.write(self._line() + "\n")
             self.stream.flush()
             self.printed += 1
+            self.shown = (self.n, self.postfix)
         self.last = time.monotonic()
 
     def update(self, n: int = 1) -> None:
@@ -71,6 +73,8 @@ class LineProgress:
     def close(self) -> None:
         if not self.closed:
             self.closed = True
+            if self.shown == (self.n, self.postfix):
+                return  # the last line already says where it ended
             if self.printed or time.monotonic() - self.t0 >= self.interval:
                 self._emit()
 

@@ -66,6 +66,7 @@ SEVERITY_TABLE: dict[str, dict] = {
 CLEAR_VISIBILITY_M = (10_000.0, 30_000.0)  # clean air / light haze
 DAYLIGHT_LUX = (10_000.0, 100_000.0)  # overcast to direct sun
 OVERCAST_LUX = (2_000.0, 20_000.0)  # daylight under precipitation or fog
+OVERCAST_BELOW_MOR_M = 2_000.0  # fog denser than this hides the sun (WeatherState.sky_overcast)
 # Raindrops / snow on the lens: maximum coverage per severity [%]; each camera draws its own.
 LENS_COVERAGE_MAX_PCT = {"rain": (1.0, 3.0, 8.0, 15.0, 30.0), "snow": (1.0, 3.0, 6.0, 12.0, 25.0)}
 
@@ -110,6 +111,10 @@ class WeatherState:
         water_film_mm: water film depth on the road surface [mm].
         illuminance_lux: horizontal illuminance at road level from sky and sun [lx].
         lens_coverage_pct: fraction of each camera lens covered by drops or snow [%], (left, right).
+        overcast: the sky is overcast (no direct sun; all light is diffuse sky light). None = follows
+            the hydrometeors (overcast whenever fog below 2 km MOR, rain or snow is present); a
+            counterfactual twin of a fog, rain or snow frame sets it True, so the twin keeps the
+            frame's light and loses only the condition (issue 13, part 3).
     """
 
     fog_visibility_m: float = 20_000.0
@@ -118,6 +123,7 @@ class WeatherState:
     water_film_mm: float = 0.0
     illuminance_lux: float = 30_000.0
     lens_coverage_pct: tuple[float, float] = (0.0, 0.0)
+    overcast: bool | None = None
 
     def __post_init__(self) -> None:
         if self.fog_visibility_m <= 0:
@@ -166,6 +172,13 @@ class WeatherState:
         return 0.05 * (self.fog_visibility_m / 300.0) ** (-math.log(10) / math.log(6))
 
     @property
+    def sky_overcast(self) -> bool:
+        """No direct sun: set explicitly, or (overcast=None) whenever fog, rain or snow is present."""
+        if self.overcast is not None:
+            return bool(self.overcast)
+        return self.rain_mm_h > 0 or self.snow_mm_h > 0 or self.fog_visibility_m < OVERCAST_BELOW_MOR_M
+
+    @property
     def is_night(self) -> bool:
         return self.illuminance_lux < 400.0
 
@@ -178,6 +191,7 @@ class WeatherState:
             "water_film_mm": round(self.water_film_mm, 3),
             "illuminance_lux": round(self.illuminance_lux, 3),
             "lens_coverage_pct": [round(c, 2) for c in self.lens_coverage_pct],
+            "overcast": self.sky_overcast,
         }
 
 
@@ -280,7 +294,9 @@ def sample_weather_and_twin(
         state[spec["quantity"]] = value
         if c in LENS_COVERAGE_MAX_PCT:
             lens = np.maximum(lens, lens_u * LENS_COVERAGE_MAX_PCT[c][severity - 1])
-    twin = WeatherState(fog_visibility_m=vis, illuminance_lux=lux)
+    # overcast=True keeps the fog / rain / snow frame's diffuse sky in its twin (without it the clear
+    # twin would get direct sun at the low elevation its overcast illuminance maps to)
+    twin = WeatherState(fog_visibility_m=vis, illuminance_lux=lux, overcast=True if overcast else None)
     return _state(state, (float(lens[0]), float(lens[1]))), twin
 
 

@@ -4,7 +4,6 @@ fuse them in the reference frame and score them (VOC mAP@0.5, difficult boxes ig
 from __future__ import annotations
 
 import json
-import sys
 from collections import defaultdict
 from pathlib import Path
 
@@ -14,7 +13,7 @@ from torch.utils.data import DataLoader
 
 from fusion.data import FrameDataset, collate, split_by_sequence
 from fusion.late import Detections, fuse
-from fusion.metrics import evaluate_detections
+from fusion.metrics import ImageMatches, evaluate_detections
 from sensors.dataset import DatasetReader
 from sensors.rig import Calibration
 from sim.actors import CLASSES
@@ -111,16 +110,18 @@ def run_branches(model, data, indices, branches, batch_size: int = 4, progress: 
     loader = DataLoader(ds, batch_size=batch_size, shuffle=False, collate_fn=collate, num_workers=workers,
                         pin_memory=device.type == "cuda")
     autocast = DeviceSetup(str(device), 0, amp and device.type == "cuda").autocast
-    from tqdm import tqdm
+    from sim.progress import progress as progress_bar
 
     out = []
-    with torch.no_grad():
-        for inputs, _targets, metas in tqdm(loader, desc=progress, file=sys.stderr, disable=None, leave=False):
+    # a bar on a terminal, a line every few seconds in a log (sim.progress)
+    with torch.no_grad(), progress_bar(total=len(ds), desc=progress, unit="frame") as bar:
+        for inputs, _targets, metas in loader:
             inputs, _ = to_device(inputs, None, device)
             with autocast():
                 dets = model(inputs, selection=list(branches))
             for meta, per in zip(metas, dets):
                 out.append((meta, {n: to_detections(d) for n, d in per.items()}))
+            bar.update(len(metas))
     return out
 
 
@@ -319,6 +320,64 @@ def recall_by_visibility(per_frame: list, reader: DatasetReader, frame: str = "c
     return {name(lo, hi): {"objects": int(n), "found": int(f), "recall": _round(f / n) if n else None,
                            "contrast": [_round(np.exp(-LN20 * lo)), _round(np.exp(-LN20 * hi))]}
             for lo, hi, n, f in zip(edges[:-1], edges[1:], objects, found)}
+
+
+def paired_bootstrap(deg_frames: list, clr_frames: list, reader, clear_reader, frame: str, bev_crop=None,
+                     protocol=None, resamples: int = 200, seed: int = 0, severities=None,
+                     desc: str = "bootstrap") -> dict:
+    """95 % intervals of the vehicle mAP on degraded frames, on their clear twins, and of their ratio.
+
+    Frames of one sequence share their traffic and weather, so whole sequences are drawn with
+    replacement (a cluster bootstrap), and each draw is scored degraded and clear on the same
+    frames (paired). `severities`: also per severity, resampling the sequences of each. Percentile
+    intervals over `resamples` draws; the generator is seeded, so a rerun gives the same interval.
+    """
+    from sim.progress import progress as progress_bar
+
+    vehicles = [CLASSES.index(c) + 1 for c in VEHICLES]
+
+    keys = sorted(meta["dataset_index"] for meta, _ in deg_frames)
+    if keys != sorted(meta["dataset_index"] for meta, _ in clr_frames):
+        raise ValueError("paired_bootstrap: the degraded and clear frames differ")
+    row = {k: j for j, k in enumerate(keys)}
+
+    def matches(frames, rdr) -> ImageMatches:
+        by = {meta["dataset_index"]: (meta, d) for meta, d in frames}
+        dets = [{"boxes": by[k][1].boxes, "scores": by[k][1].scores, "labels": by[k][1].labels} for k in keys]
+        gts = [ground_truth(rdr.labels(k), frame, bev_crop, by[k][0], protocol) for k in keys]
+        return ImageMatches.of(dets, gts, classes=vehicles)  # matched once; each draw only pools
+
+    deg, clr = matches(deg_frames, reader), matches(clr_frames, clear_reader)
+    seq_of = {meta["dataset_index"]: (meta["sequence_id"], str(meta.get("severity", 0))) for meta, _ in deg_frames}
+
+    def vmap(m: ImageMatches, ks) -> float:
+        return m.mean_ap([row[k] for k in ks])
+
+    def interval(keys) -> dict:
+        by_seq = defaultdict(list)
+        for k in sorted(keys):
+            by_seq[seq_of[k][0]].append(k)
+        seqs = sorted(by_seq)
+        rng = np.random.default_rng(seed)
+        draws = np.empty((resamples, 3))
+        for r in range(resamples):
+            ks = [k for j in rng.integers(0, len(seqs), len(seqs)) for k in by_seq[seqs[j]]]
+            d, c = vmap(deg, ks), vmap(clr, ks)
+            draws[r] = (d, c, d / c if c > 0 else np.nan)
+            bar.update(1)
+
+        def pct(col) -> list | None:
+            v = draws[:, col][np.isfinite(draws[:, col])]
+            return [_round(np.percentile(v, 2.5)), _round(np.percentile(v, 97.5))] if len(v) else None
+
+        return {"sequences": len(seqs), "degraded": pct(0), "clear": pct(1), "retained": pct(2)}
+
+    present = [s for s in severities or () if any(seq_of[k][1] == s for k in keys)]
+    with progress_bar(total=resamples * (1 + len(present)), desc=desc, unit="draw") as bar:
+        out = {"resamples": int(resamples), "unit": "sequence", "seed": int(seed), "all": interval(keys)}
+        if severities:
+            out["per_severity"] = {s: interval([k for k in keys if seq_of[k][1] == s]) for s in present}
+    return out
 
 
 def _mean_of(res, classes) -> float | None:

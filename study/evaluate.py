@@ -23,16 +23,18 @@ from __future__ import annotations
 
 from sensors.dataset import DatasetReader
 from sim.errors import UserError
+from sim.weather import OVERCAST_BELOW_MOR_M
 from study.device import resolve_device
 
 
 def evaluate(run_dir, data, branches="all", fusion="soft-nms", split="auto", weights=None, checkpoint="latest",
              batch_size: int = 4, contexts=(), twins: bool = False, protocol: str | None = None,
-             setup=None) -> dict:
+             setup=None, bootstrap: int = 0) -> dict:
     """mAP of `branches` of a run fused with `fusion` (see the module doc). `twins`: also run them on
     the clear-weather twins of the same frames and report what each branch keeps ("twins").
     `protocol`: reference | visible | bev (None: the run's own). `setup`: a `study.device.DeviceSetup`
-    (default: --device auto, threads = the cores available)."""
+    (default: --device auto, threads = the cores available). `bootstrap` (with `twins`): a 95 %
+    interval of each degraded / clear / retained figure from that many sequence resamples."""
 
     from fusion.protocol import PROTOCOLS, Protocol
     from study.detect import (
@@ -99,7 +101,7 @@ def evaluate(run_dir, data, branches="all", fusion="soft-nms", split="auto", wei
         result["per_branch_reference"] = {b: {k: alone[b][k] for k in keys} for b in names}
     if twins:
         result["twins"] = _twins(model, data, indices, names, frames, method, weights, batch_size, per_frame, reader,
-                                 proto, opts)
+                                 proto, opts, bootstrap)
     result.update({
         "branches": names, "fusion": method, "split": used_split, "contexts": sorted(set(contexts)) or "all",
         "run": str(run_dir), "data": str(data), "frames": len(per_frame),
@@ -112,7 +114,7 @@ def evaluate(run_dir, data, branches="all", fusion="soft-nms", split="auto", wei
 
 
 def _twins(model, data, indices, names, frames, method, weights, batch_size, per_frame, reader, protocol=None,
-           run=None) -> dict:
+           run=None, bootstrap: int = 0) -> dict:
     """The same frames in clear weather: per branch (in its own frame, vehicle classes) the mAP on
     the degraded frames, on their clear twins, and their ratio, overall and per severity; and the same
     for the fused result. The frames and labels are identical; only the weather differs."""
@@ -122,6 +124,7 @@ def _twins(model, data, indices, names, frames, method, weights, batch_size, per
         fused,
         native,
         operating_point,
+        paired_bootstrap,
         recall_by_visibility,
         run_branches,
         score,
@@ -139,7 +142,7 @@ def _twins(model, data, indices, names, frames, method, weights, batch_size, per
         return {k: {"objects": v["objects"], "degraded": v["recall"], "clear": clr[k]["recall"],
                     "contrast": v["contrast"]} for k, v in deg.items()}
 
-    def pair(deg_frames, clr_frames, frame, bev) -> dict:
+    def pair(deg_frames, clr_frames, frame, bev, name) -> dict:
         deg = score(deg_frames, reader, frame, bev, protocol)
         clr = score(clr_frames, clear_reader, frame, bev, protocol)
         op_d = operating_point(deg_frames, reader, frame, bev, protocol=protocol)
@@ -148,29 +151,51 @@ def _twins(model, data, indices, names, frames, method, weights, batch_size, per
         rng = {k: {"degraded": v, "clear": clr["map_vehicles_per_range"].get(k),
                    "retained": _ratio(v, clr["map_vehicles_per_range"].get(k))}
                for k, v in deg["map_vehicles_per_range"].items()}
-        return {"degraded": deg["map_vehicles"], "clear": clr["map_vehicles"], "retained": _ratio(deg["map_vehicles"], clr["map_vehicles"]),
-                "per_range": rng,
-                "at_score_0.5": {"degraded": {k: op_d[k] for k in ("recall", "precision")},
-                                 "clear": {k: op_c[k] for k in ("recall", "precision")},
-                                 "by_distance_over_visibility": by_visibility(deg_frames, clr_frames, frame, bev)},
-                "per_severity": {s: {"degraded": deg["map_vehicles_per_severity"].get(s),
-                                     "clear": clr["map_vehicles_per_severity"].get(s),
-                                     "retained": _ratio(deg["map_vehicles_per_severity"].get(s),
-                                                        clr["map_vehicles_per_severity"].get(s)),
-                                     "at_score_0.5": {"degraded": op_d["per_severity"].get(s),
-                                                      "clear": op_c["per_severity"].get(s)}} for s in sev}}
+        out_pair = {
+            "degraded": deg["map_vehicles"], "clear": clr["map_vehicles"],
+            "retained": _ratio(deg["map_vehicles"], clr["map_vehicles"]),
+            "per_range": rng,
+            "at_score_0.5": {"degraded": {k: op_d[k] for k in ("recall", "precision")},
+                             "clear": {k: op_c[k] for k in ("recall", "precision")},
+                             "by_distance_over_visibility": by_visibility(deg_frames, clr_frames, frame, bev)},
+            "per_severity": {s: {"degraded": deg["map_vehicles_per_severity"].get(s),
+                                 "clear": clr["map_vehicles_per_severity"].get(s),
+                                 "retained": _ratio(deg["map_vehicles_per_severity"].get(s),
+                                                    clr["map_vehicles_per_severity"].get(s)),
+                                 "at_score_0.5": {"degraded": op_d["per_severity"].get(s),
+                                                  "clear": op_c["per_severity"].get(s)}} for s in sev}}
+        if bootstrap:
+            out_pair["ci95"] = paired_bootstrap(deg_frames, clr_frames, reader, clear_reader, frame, bev, protocol,
+                                                bootstrap, severities=sev, desc=f"bootstrap {name}")
+        return out_pair
 
+    stale = stale_twins(reader, clear_reader, indices)
     out = {"metric": "vehicle-class mAP@0.5 (car, van, truck, bus), each branch in its own frame; retained = "
                      "degraded / clear; at_score_0.5: recall and precision of the detections scoring >= 0.5, and the "
                      "recall binned by object distance / the degraded frame's visibility (MOR), with the "
                      "Koschmieder contrast exp(-ln(20) d / MOR) left at the bin edges",
            "branches": {}}
+    if stale:
+        out["warning"] = (f"{stale} of {len(indices)} twins were made by sensor model version 2 or older: a twin of a "
+                          "fog, rain or snow frame was rendered with direct sun instead of the frame's overcast sky, so "
+                          "its camera differs by the light as well as by the condition; regenerate the dataset")
     for b in names:
-        out["branches"][b] = pair(native(per_frame, b), native(clear_frames, b), frames[b], crop)
+        out["branches"][b] = pair(native(per_frame, b), native(clear_frames, b), frames[b], crop, b)
     if protocol is None or protocol.name != "bev":
         out["fused"] = pair(fused(per_frame, names, frames, method, weights),
-                            fused(clear_frames, names, frames, method, weights), "camera_right", None)
+                            fused(clear_frames, names, frames, method, weights), "camera_right", None, "fused")
     return out
+
+
+def stale_twins(reader, clear_reader, indices) -> int:
+    """How many of these frames have an overcast sky but a twin without the `overcast` record (made
+    before sensor model version 3, when twins of fog, rain and snow frames lost the overcast sky)."""
+    n = 0
+    for i in indices:
+        w = reader.meta(i)["weather"]
+        hydrometeors = w["rain_mm_h"] > 0 or w["snow_mm_h"] > 0 or w["fog_visibility_m"] < OVERCAST_BELOW_MOR_M
+        n += bool(hydrometeors and "overcast" not in clear_reader.meta(i)["weather"])
+    return n
 
 
 def _ratio(a, b):

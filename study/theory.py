@@ -37,7 +37,6 @@ import hashlib
 import json
 import math
 import os
-import sys
 import time
 from dataclasses import asdict, dataclass
 from pathlib import Path
@@ -255,9 +254,8 @@ def _measure_task(task: tuple) -> int:
 
 def collect(config: TheoryConfig, cache_dir: Path, workers: int = 1, progress: bool = True) -> tuple[dict, dict]:
     """Measure (or load) every cell. Returns ({(condition, severity): MeasurementSet}, frame counts)."""
-    from tqdm import tqdm
-
     from fusion.estimation.measurements import MeasurementSet
+    from sim.progress import progress as progress_bar
 
     cells = {}
     for c in config.conditions:
@@ -270,8 +268,7 @@ def collect(config: TheoryConfig, cache_dir: Path, workers: int = 1, progress: b
     todo = [(spec, j) for spec, j in unique.values()
             if load_cached(cache_path(cache_dir, cache_key(spec, j)), cache_key(spec, j)) is None]
     frames_todo = sum(spec.frames for spec, _ in todo)
-    bar = tqdm(total=frames_todo, unit="frame", desc="theory", file=sys.stderr, disable=not progress or None,
-               dynamic_ncols=True)
+    bar = progress_bar(total=frames_todo, unit="frame", desc="theory", enabled=bool(progress))
     if workers <= 1 or len(todo) <= 1:
         for spec, j in todo:
             measure_and_cache(spec, j, cache_dir, on_frame=lambda: bar.update(1))

@@ -7,7 +7,6 @@ from __future__ import annotations
 
 import os
 import platform
-import sys
 import time
 
 
@@ -20,12 +19,11 @@ def bench_sim(frames: int = 200, seed: int = 0) -> dict:
     """Simulate each context for `frames` frames after its setup (severity 3 for conditions, 0 for
     layouts) and report steady-state scene steps per second (one process, one core) and the setup
     time of each context."""
-    from tqdm import tqdm
-
+    from sim.progress import progress
     from sim.scenario import CONTEXT_NAMES, Context, ScenarioSpec, Simulator
 
     per_ctx, setup = {}, {}
-    for c in tqdm(CONTEXT_NAMES, desc="bench sim", file=sys.stderr, disable=None):
+    for c in progress(iterable=CONTEXT_NAMES, desc="bench sim", unit="context"):
         sev = 3 if Context.parse(c).conditions else 0
         t0 = time.perf_counter()
         sim = Simulator(ScenarioSpec(context=c, severity=sev, seed=seed, frames=frames))

@@ -3,6 +3,7 @@ of `study.gates` (--gate, --all-gates), with their text (`format_tables`: HydraF
 
 from __future__ import annotations
 
+import sys
 from pathlib import Path
 
 from sim.errors import UserError
@@ -37,6 +38,10 @@ def add_parser(sub, name, help_text):
                    "rural for clear weather); default: every frame of the split")
     p.add_argument("--twins", action="store_true", help="also run on the clear-weather twins of the same frames "
                    "(a dataset generated with --twins) and report the vehicle mAP each branch keeps, per severity")
+    p.add_argument("--bootstrap", type=int, default=0, metavar="N",
+                   help="with --twins: a 95%% interval for each degraded, clear and retained figure (overall and per "
+                   "severity) from N resamples of whole sequences, each scored on the same frames degraded and "
+                   "clear (default: 0, no intervals; 200 is enough for the table)")
     p.add_argument("--checkpoint", type=checkpoint_arg, default="latest", help="latest, or epoch-NNN")
     p.add_argument("--protocol", default=None, choices=("reference", "visible", "bev"),
                    help="ground truth (README, 'Evaluation protocols'); default: the protocol the run trained on")
@@ -78,8 +83,8 @@ def run_gates(args) -> int:
         raise UserError("--gate and --all-gates exclude each other (--all-gates evaluates every gate)")
     if args.contexts:
         raise UserError("--contexts is for evaluating branches; gated results report map_per_context")
-    if args.twins:
-        raise UserError("--twins is for evaluating branches, not gates")
+    if args.twins or args.bootstrap:
+        raise UserError("--twins and --bootstrap are for evaluating branches, not gates")
     if args.branches not in ("all", "", ("all",)):
         raise UserError("--branches cannot be combined with a gate: the gate chooses among all of the run's branches")
     weights = parse_weights(args.weights)
@@ -114,11 +119,22 @@ def run(args) -> int:
         return run_gates(args)
     if args.k is not None:
         raise UserError("--k needs --gate (the number of branches a gate keeps)")
+    if args.bootstrap < 0:
+        raise UserError(f"--bootstrap must be >= 0 resamples, got {args.bootstrap}")
+    if args.bootstrap and not args.twins:
+        raise UserError("--bootstrap gives intervals for the --twins figures: add --twins")
     contexts = tuple(args.contexts or ())
     branches = args.branches if isinstance(args.branches, str) else ",".join(args.branches)
     result = evaluation.evaluate(Path(args.run_dir), Path(args.data), branches, args.fusion, args.split,
                       parse_weights(args.weights), args.checkpoint, args.batch_size, contexts, args.twins,
-                      args.protocol, setup=resolve_device(args))
+                      args.protocol, setup=resolve_device(args), bootstrap=args.bootstrap)
+
+    if "warning" in result.get("twins", {}):
+        print(f"warning: {result['twins']['warning']}", file=sys.stderr)
+
+    def band(ci) -> str:
+        """ ' [lo, hi]' of a bootstrap interval of the retained figure ('' without one)."""
+        return f" [{ci['retained'][0]}, {ci['retained'][1]}]" if ci and ci["retained"] else ""
 
     def text(r):
         where = "" if r["contexts"] == "all" else f" of {', '.join(r['contexts'])}"
@@ -142,8 +158,11 @@ def run(args) -> int:
             lines.append("  same frames in clear weather (vehicles, own frame: degraded / clear = retained):")
             for b, t in [*r["twins"]["branches"].items(), ("fused", r["twins"]["fused"])]:
                 op = t["at_score_0.5"]
-                lines.append(f"    {b}: {t['degraded']} / {t['clear']} = {t['retained']}; per severity: " + ", ".join(
-                    f"{s} {v['retained']}" for s, v in t["per_severity"].items())
+                ci = t.get("ci95")
+                lines.append(f"    {b}: {t['degraded']} / {t['clear']} = {t['retained']}"
+                             + (band(ci["all"]) if ci else "") + "; per severity: " + ", ".join(
+                    f"{s} {v['retained']}" + (band(ci["per_severity"].get(s)) if ci else "")
+                    for s, v in t["per_severity"].items())
                     + f"; recall at score 0.5: {op['degraded']['recall']} / {op['clear']['recall']}")
                 lines.append("      recall at 0.5 by distance / visibility (degraded / clear, objects): " + ", ".join(
                     f"{k} {v['degraded']} / {v['clear']} ({v['objects']})"

@@ -336,3 +336,34 @@ def test_matched_ground_truth_marks_exactly_the_true_positives_of_evaluate_detec
         for c, tp in r.n_true_positives.items():
             assert tp == sum(int((h & (g["labels"] == c) & ~g["difficult"]).sum()) for h, g in zip(hits, gts))
         assert not any((h & g["difficult"]).any() for h, g in zip(hits, gts))
+
+
+@pytest.mark.parametrize("interpolation", ["all", "11", "101"])
+def test_image_matches_give_evaluate_detections_ap_for_any_draw_of_images(interpolation):
+    """The bootstrap's AP (matching done once per image, pooled per draw) is evaluate_detections'
+    AP on the drawn list of images, bit for bit: repeats, ties across and within images (scores
+    rounded to 0.1), difficult boxes, duplicates, images without ground truth or detections."""
+    from fusion.metrics import ImageMatches
+
+    rng = np.random.default_rng(11)
+    gts, dets = random_scenes(rng, n_images=12)
+    for g, d in zip(gts, dets):
+        g["difficult"] = rng.random(len(g["boxes"])) < 0.2
+        d["scores"] = np.round(d["scores"], 1)  # ties
+    dets[3] = {"boxes": np.zeros((0, 4)), "scores": np.zeros(0), "labels": np.zeros(0, int)}
+    gts[5] = {"boxes": np.zeros((0, 4)), "labels": np.zeros(0, int), "difficult": np.zeros(0, bool)}
+    m = ImageMatches.of(dets, gts, classes=[1, 2, 3], interpolation=interpolation)
+    checked = 0
+    for _ in range(40):
+        picks = rng.integers(0, 12, int(rng.integers(1, 20)))
+        ref = evaluate_detections([dets[i] for i in picks], [gts[i] for i in picks], classes=[1, 2, 3],
+                                  interpolation=interpolation)
+        ours = m.ap(picks)
+        assert set(ours) == set(ref.ap)
+        for c, v in ref.ap.items():
+            assert (np.isnan(v) and np.isnan(ours[c])) or v == ours[c], (c, picks)
+            checked += not np.isnan(v)
+        assert (np.isnan(ref.mean_ap) and np.isnan(m.mean_ap(picks))) or ref.mean_ap == m.mean_ap(picks)
+    assert checked > 60
+    with pytest.raises(ValueError, match="iou_thr"):
+        ImageMatches.of(dets, gts, iou_thr=1.5)

@@ -10,13 +10,21 @@ import pytest
 from fusion.data import FrameDataset
 from fusion.metrics import box_iou
 from fusion.protocol import RANGE_BINS, Protocol, detection_ranges, frame_labels
+from sensors.camera import lighting_for
 from sensors.dataset import DatasetReader
 from sensors.generate import GenerateConfig, generate, plan
 from sensors.labels import OBJECT_FIELDS, REFERENCE_MAX_OUTSIDE
 from sensors.rig import Calibration
 from sim.errors import UserError
 from sim.scenario import Context, stream
-from sim.weather import CLEAR_VISIBILITY_M, DAYLIGHT_LUX, OVERCAST_LUX, sample_weather_and_twin
+from sim.weather import (
+    CLEAR_VISIBILITY_M,
+    DAYLIGHT_LUX,
+    OVERCAST_LUX,
+    WeatherState,
+    light_for,
+    sample_weather_and_twin,
+)
 
 CONFIG = GenerateConfig(contexts=("city", "fog", "night"), frames_per_context=1, sequence_length=1, seed=21,
                         twins=True, severities=(4, 5))
@@ -80,10 +88,12 @@ def test_twins_keep_the_drawn_clear_air_visibility_and_light(data):
         assert CLEAR_VISIBILITY_M[0] <= t["fog_visibility_m"] <= CLEAR_VISIBILITY_M[1]
         assert t["fog_visibility_m"] != 20_000.0  # drawn, not the default
         assert t["illuminance_lux"] == w["illuminance_lux"]  # fog is overcast in both: only the fog differs
+        assert w["overcast"] is True and t["overcast"] is True  # no direct sun in the twin either
         assert OVERCAST_LUX[0] <= w["illuminance_lux"] <= OVERCAST_LUX[1]
     for i in _frames_of(reader, "night"):
         w, t = reader.meta(i)["weather"], clear.meta(i)["weather"]
         assert t["fog_visibility_m"] == w["fog_visibility_m"] != 20_000.0  # drawn clear air, kept
+        assert w["overcast"] is False and t["overcast"] is False
         assert w["illuminance_lux"] < 10 and DAYLIGHT_LUX[0] <= t["illuminance_lux"] <= DAYLIGHT_LUX[1]
         a, b = reader[i], clear[i]
         # night is the light alone: the active sensors are bit-identical to the daylight twin
@@ -101,6 +111,36 @@ def test_twin_weather_comes_from_the_same_draws_as_the_frame():
             assert twin.fog_visibility_m == state.fog_visibility_m
         if spec.context != "night":
             assert twin.illuminance_lux == state.illuminance_lux
+
+
+@pytest.mark.parametrize("context", ["fog", "rain", "snow", "fog+rain"])
+@pytest.mark.parametrize("severity", [1, 3, 5])
+def test_twins_of_fog_rain_and_snow_are_lit_like_their_frame(context, severity):
+    """The light is not what a fog, rain or snow twin studies: the camera gets the same sun and sky
+    for both. (Found on the fog twins: the twin lost the frame's overcast and was rendered with direct
+    sun at the 2-10 deg elevation its overcast illuminance maps to, long shadows and glare that no
+    frame of either kind has.)"""
+    for seed in range(4):
+        rng = stream(100 * seed + severity, "weather")
+        state, twin = sample_weather_and_twin(rng, Context.parse(context).conditions, severity)
+        assert state.sky_overcast and twin.sky_overcast
+        az = 40.0 * seed
+        a = lighting_for(state, light_for(state, az), np.zeros((0, 3)), [])
+        b = lighting_for(twin, light_for(twin, az), np.zeros((0, 3)), [])
+        assert a.sun_normal_lux == b.sun_normal_lux == 0.0
+        assert a.sky_lux == b.sky_lux == state.illuminance_lux
+        assert twin.rain_mm_h == twin.snow_mm_h == 0 and twin.fog_visibility_m >= CLEAR_VISIBILITY_M[0]
+
+
+def test_the_sky_follows_the_hydrometeors_unless_set():
+    assert not WeatherState().sky_overcast
+    assert WeatherState(fog_visibility_m=1500.0).sky_overcast
+    assert not WeatherState(fog_visibility_m=2500.0).sky_overcast
+    assert WeatherState(rain_mm_h=0.5).sky_overcast and WeatherState(snow_mm_h=0.1).sky_overcast
+    assert WeatherState(overcast=True).sky_overcast and not WeatherState(rain_mm_h=2.0, overcast=False).sky_overcast
+    lit = lighting_for(WeatherState(illuminance_lux=20_000.0), light_for(WeatherState(illuminance_lux=20_000.0), 0.0),
+                       np.zeros((0, 3)), [])
+    assert lit.sun_normal_lux > 0  # clear sky: direct sun
 
 
 def test_reference_boxes_are_the_visible_boxes_of_unoccluded_objects(data):

@@ -578,7 +578,15 @@ def test_line_progress_prints_every_interval_and_at_the_end():
     bar.close()
     lines = buf.getvalue().splitlines()
     assert lines[0].startswith("work: 1/4 step (25%), 0 s elapsed, ~0 s left")
-    assert lines[1].startswith("work: 4/4 step (100%)") and lines[1].endswith("loss=1.5") and len(lines) == 3
+    assert lines[1].startswith("work: 4/4 step (100%)") and lines[1].endswith("loss=1.5")
+    assert len(lines) == 2  # the end is not printed twice
+    buf = io.StringIO()
+    bar = LineProgress(total=4, desc="work", unit="step", interval=0.0, stream=buf)
+    bar.update(1)
+    bar.set_postfix(loss="0.5")  # changed since the last line: the end says so
+    bar.close()
+    lines = buf.getvalue().splitlines()
+    assert len(lines) == 2 and lines[0].startswith("work: 1/4 step") and lines[1].endswith("loss=0.5")
 
 
 def test_zz_count_of_cases(capsys):

@@ -230,7 +230,7 @@ def test_warm_start_from_several_runs_takes_each_module_from_the_first_that_has_
     torch.testing.assert_close(state["branches.radar_lidar.merge.weight"], full["branches.radar_lidar.merge.weight"])
 
 
-def test_evaluate_twins_scores_the_same_frames_in_clear_weather(reference_run, data, tmp_path, capsys):
+def test_evaluate_twins_scores_the_same_frames_in_clear_weather(reference_run, data, tmp_path, capsys, monkeypatch):
     """--twins: each branch on the degraded frames and on their clear twins, and the ratio."""
     from sensors.dataset import DatasetReader
     from study.detect import bev_crop_of, load_run, native, run_branches, score
@@ -267,8 +267,45 @@ def test_evaluate_twins_scores_the_same_frames_in_clear_weather(reference_run, d
                                                                         for i in range(4)})
     assert [v["clear"] for v in bins.values()] == [v["recall"] for v in mine.values()]
     assert r["map_vehicles_per_severity"].keys() == set(sev)
+    # --bootstrap: sequences drawn with replacement, each draw scored degraded and clear
+    from study.detect import paired_bootstrap
+
+    crop, clear_reader = bev_crop_of(model, reader), DatasetReader(twins, clear=True)
+    args = (native(deg, "radar"), native(clear, "radar"), reader, clear_reader, "bev", crop)
+    ci = paired_bootstrap(*args, resamples=30, severities=sev)
+    assert ci == paired_bootstrap(*args, resamples=30, severities=sev)  # seeded
+    assert ci["all"]["sequences"] == 2 and ci["unit"] == "sequence"
+    radar = t["branches"]["radar"]
+    for s_, v in ci["per_severity"].items():
+        assert v["sequences"] == 1  # severities 1 and 2, one sequence each (seed 5)
+        # one sequence: every draw is the same frames, so the interval is the figure itself
+        assert v["degraded"] == [radar["per_severity"][s_]["degraded"]] * 2
+        assert v["clear"] == [radar["per_severity"][s_]["clear"]] * 2
+    same = paired_bootstrap(native(deg, "radar"), native(deg, "radar"), reader, reader, "bev", crop, resamples=30)
+    assert same["all"]["retained"] in ([1.0, 1.0], None)  # the same detections on both sides
+    assert list(ci["per_severity"]) == sev and sum(v["sequences"] for v in ci["per_severity"].values()) == 2
+    monkeypatch.setenv("HYDRABENCH_PROGRESS_S", "0")  # a progress line per batch: stderr is not a terminal here
     assert main(["evaluate", str(ref), str(twins), "--twins"]) == 0
-    assert "same frames in clear weather" in capsys.readouterr().out
+    out = capsys.readouterr()
+    assert "same frames in clear weather" in out.out and "warning" not in out.err and "warning" not in t
+    for what in ("detect", "clear twins"):  # one line each (one batch), not silent, not repeated
+        assert out.err.count(f"{what}: 4/4 frame (100%)") == 1, out.err
+    # twins made before the overcast sky was kept (no `overcast` record) are named, not scored silently
+    import shutil
+
+    from study.evaluate import stale_twins
+
+    old = tmp_path / "old_twins"
+    shutil.copytree(twins, old)
+    for f in old.glob("shard-*/clear/frames.json"):
+        doc = json.loads(f.read_text())
+        for fr in doc["frames"]:
+            del fr["meta"]["weather"]["overcast"]
+        f.write_text(json.dumps(doc))
+    assert stale_twins(DatasetReader(old), DatasetReader(old, clear=True), range(4)) == 4
+    assert stale_twins(reader, DatasetReader(twins, clear=True), range(4)) == 0
+    assert main(["evaluate", str(ref), str(old), "--twins"]) == 0
+    assert "4 of 4 twins were made by sensor model version 2 or older" in capsys.readouterr().err
     # a dataset without twins is refused with a clear message
     assert main(["evaluate", str(ref), str(data), "--twins"]) == 2
     assert "has no clear-weather twins" in capsys.readouterr().err
