@@ -282,7 +282,8 @@ def sample_weather_and_twin(
     overcast = bool(active & {"rain", "fog", "snow"})
     lux = _draw(rng, *(OVERCAST_LUX if overcast else DAYLIGHT_LUX), "log")
     lens_u = rng.uniform(0.3, 1.0, size=2)  # per-camera share of the maximum coverage
-    state = dict(fog_visibility_m=vis, illuminance_lux=lux)
+    sky = True if overcast else None  # drawn with the light: the frame and its twin share it
+    state = dict(fog_visibility_m=vis, illuminance_lux=lux, overcast=sky)
     lens = np.zeros(2)
     for c in CONDITIONS:
         if c not in active:
@@ -296,7 +297,7 @@ def sample_weather_and_twin(
             lens = np.maximum(lens, lens_u * LENS_COVERAGE_MAX_PCT[c][severity - 1])
     # overcast=True keeps the fog / rain / snow frame's diffuse sky in its twin (without it the clear
     # twin would get direct sun at the low elevation its overcast illuminance maps to)
-    twin = WeatherState(fog_visibility_m=vis, illuminance_lux=lux, overcast=True if overcast else None)
+    twin = WeatherState(fog_visibility_m=vis, illuminance_lux=lux, overcast=sky)
     return _state(state, (float(lens[0]), float(lens[1]))), twin
 
 
@@ -315,6 +316,7 @@ def _state(values: dict, lens: tuple[float, float]) -> WeatherState:
         water_film_mm=road_film(rain, snow),
         illuminance_lux=values["illuminance_lux"],
         lens_coverage_pct=lens,
+        overcast=values.get("overcast"),
     )
 
 
@@ -335,7 +337,9 @@ def interpolate_weather(clear: WeatherState, target: WeatherState, f: float) -> 
     """Blend two states, f=0 -> clear, f=1 -> target.
 
     Visibility and illuminance blend in log space (perception and extinction are logarithmic),
-    rates, film and lens coverage linearly.
+    rates, film and lens coverage linearly. The sky: where the two ends disagree (a sunlit clear end,
+    an overcast target), the blend's sky follows its hydrometeors (`overcast=None`): the sun goes
+    when rain or snow starts or the fog thickens below 2 km.
     """
     f = float(np.clip(f, 0.0, 1.0))
 
@@ -356,6 +360,7 @@ def interpolate_weather(clear: WeatherState, target: WeatherState, f: float) -> 
             lin(clear.lens_coverage_pct[0], target.lens_coverage_pct[0]),
             lin(clear.lens_coverage_pct[1], target.lens_coverage_pct[1]),
         ),
+        overcast=target.overcast if clear.overcast == target.overcast else None,
     )
 
 

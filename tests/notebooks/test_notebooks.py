@@ -75,6 +75,10 @@ def test_degradation_physics_notebook_measures_each_law_on_twins(monkeypatch, sh
     assert {600.0, 40.0} <= {round(f["mor_m"]) for f in camera.values()}
     for f in camera.values():
         assert f["fit"] == pytest.approx(math.log(20) / f["mor_m"], rel=0.01)
+    # the clear twin shares the fog frame's overcast sky, so it is as good a reference; a sunlit one is not
+    other = fits["camera_beta_other_references"]
+    assert all(abs(v) < 0.01 for k, v in other.items() if k.startswith("the clear twin"))
+    assert other["the same moment sunlit, MOR 600 m"] < -0.1
 
     for key, f in fits["lidar_alpha_per_m"].items():
         alpha = math.log(20) / f["mor_m"]
