@@ -380,6 +380,64 @@ def paired_bootstrap(deg_frames: list, clr_frames: list, reader, clear_reader, f
     return out
 
 
+def context_bootstrap(sources: dict, reader, frame: str = "camera_right", protocol=None, resamples: int = 200,
+                      seed: int = 0, desc: str = "bootstrap contexts") -> dict:
+    """95 % intervals of each source's vehicle mAP, overall and per context, and of the difference
+    between every two sources, from draws of whole sequences with replacement (within each context;
+    overall, from all sequences). `sources`: name -> per-frame detections in `frame`, all on the
+    same frames (e.g. each branch alone and the fused result). Each draw scores every source on the
+    same frames, so a difference's interval is paired: one that excludes 0 says the order of the two
+    would hold on another draw of sequences like these. Percentile intervals; seeded.
+    """
+    from sim.progress import progress as progress_bar
+
+    names = list(sources)
+    if not names:
+        raise ValueError("context_bootstrap: no sources")
+    keys = sorted(meta["dataset_index"] for meta, _ in sources[names[0]])
+    for n in names[1:]:
+        if sorted(meta["dataset_index"] for meta, _ in sources[n]) != keys:
+            raise ValueError(f"context_bootstrap: {n!r} was scored on other frames than {names[0]!r}")
+    vehicles = [CLASSES.index(c) + 1 for c in VEHICLES]
+    meta_of = {meta["dataset_index"]: meta for meta, _ in sources[names[0]]}
+    gts = [ground_truth(reader.labels(k), frame, None, meta_of[k], protocol) for k in keys]
+    matches = {}
+    for n in names:
+        by = {meta["dataset_index"]: d for meta, d in sources[n]}
+        dets = [{"boxes": by[k].boxes, "scores": by[k].scores, "labels": by[k].labels} for k in keys]
+        matches[n] = ImageMatches.of(dets, gts, classes=vehicles)
+    row = {k: j for j, k in enumerate(keys)}
+    groups = {"all": keys}
+    for k in keys:
+        groups.setdefault(meta_of[k]["context"], []).append(k)
+    pairs = [(a, b) for i, a in enumerate(names) for b in names[i + 1:]]
+
+    def pct(v) -> list | None:
+        v = v[np.isfinite(v)]
+        return [_round(np.percentile(v, 2.5)), _round(np.percentile(v, 97.5))] if len(v) else None
+
+    out = {"resamples": int(resamples), "unit": "sequence", "seed": int(seed), "per_context": {}}
+    with progress_bar(total=resamples * len(groups), desc=desc, unit="draw") as bar:
+        for g, ks in groups.items():
+            by_seq = defaultdict(list)
+            for k in ks:
+                by_seq[meta_of[k]["sequence_id"]].append(row[k])
+            seqs = sorted(by_seq)
+            rng = np.random.default_rng(seed)
+            draws = np.empty((resamples, len(names)))
+            for r in range(resamples):
+                picks = [j for s in rng.integers(0, len(seqs), len(seqs)) for j in by_seq[seqs[s]]]
+                draws[r] = [matches[n].mean_ap(picks) for n in names]
+                bar.update(1)
+            out["per_context"][g] = {
+                "sequences": len(seqs),
+                "map_vehicles": {n: pct(draws[:, i]) for i, n in enumerate(names)},
+                "difference": {f"{a} - {b}": pct(draws[:, names.index(a)] - draws[:, names.index(b)])
+                               for a, b in pairs},
+            }
+    return out
+
+
 def _mean_of(res, classes) -> float | None:
     """Mean AP over those of `classes` that have ground truth (None when none has)."""
     aps = [res.ap[c] for c in classes if res.ap.get(c) is not None and not np.isnan(res.ap[c])]

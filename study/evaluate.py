@@ -33,8 +33,9 @@ def evaluate(run_dir, data, branches="all", fusion="soft-nms", split="auto", wei
     """mAP of `branches` of a run fused with `fusion` (see the module doc). `twins`: also run them on
     the clear-weather twins of the same frames and report what each branch keeps ("twins").
     `protocol`: reference | visible | bev (None: the run's own). `setup`: a `study.device.DeviceSetup`
-    (default: --device auto, threads = the cores available). `bootstrap` (with `twins`): a 95 %
-    interval of each degraded / clear / retained figure from that many sequence resamples."""
+    (default: --device auto, threads = the cores available). `bootstrap`: 95 % intervals from that
+    many sequence resamples: with `twins` of each degraded / clear / retained figure, without of
+    each branch's and the fused vehicle mAP per context and of their differences ("ci95")."""
 
     from fusion.protocol import PROTOCOLS, Protocol
     from study.detect import (
@@ -51,6 +52,8 @@ def evaluate(run_dir, data, branches="all", fusion="soft-nms", split="auto", wei
 
     setup = setup or resolve_device()
     method = fusion_method(fusion)
+    if bootstrap < 0:
+        raise UserError(f"--bootstrap must be >= 0 resamples, got {bootstrap}")
     if protocol is not None and protocol not in PROTOCOLS:
         raise UserError(f"--protocol: unknown protocol {protocol!r} (choose from: {', '.join(PROTOCOLS)})")
     model, cfg = load_run(run_dir, checkpoint, device=setup.device)
@@ -81,6 +84,9 @@ def evaluate(run_dir, data, branches="all", fusion="soft-nms", split="auto", wei
         if bad:
             raise UserError(f"--contexts: {bad[0]!r} is not in the {used_split} split (it has: {', '.join(present)})")
         indices = [i for i in indices if reader.meta(i)["context"] in contexts]
+    if bootstrap and not twins and proto.name == "bev":
+        raise UserError("--bootstrap without --twins gives intervals per context in the right camera; "
+                        "--protocol bev has no right-camera result (add --twins, or use --protocol reference)")
     if twins and not reader.manifest["config"].get("twins"):
         raise UserError(f"--twins: {data} has no clear-weather twins (generate it with --twins)")
     opts = {"workers": setup.workers, "amp": setup.amp}
@@ -92,13 +98,20 @@ def evaluate(run_dir, data, branches="all", fusion="soft-nms", split="auto", wei
         # RADIATE's native radar metric: each BEV branch on its own grid; no camera-frame fusion
         result = {"protocol": proto.describe(), "per_branch": native_scores}
     else:
-        result = score(fused(per_frame, names, frames, method, weights), reader, "camera_right", protocol=proto)
-        alone = {b: score(fused(per_frame, [b], frames, method), reader, "camera_right", protocol=proto) for b in names}
+        fused_frames = fused(per_frame, names, frames, method, weights)
+        alone_frames = {b: fused(per_frame, [b], frames, method) for b in names}
+        result = score(fused_frames, reader, "camera_right", protocol=proto)
+        alone = {b: score(alone_frames[b], reader, "camera_right", protocol=proto) for b in names}
         result["map_per_branch_reference"] = {b: alone[b]["map"] for b in names}
         # each branch alone in the fused reference frame, broken down as the fused result is (Table 1)
         keys = ("map_vehicles", "map_vehicles_per_context", "map_vehicles_per_severity", "map_vehicles_per_range",
                 "map_vehicles_per_context_range")
         result["per_branch_reference"] = {b: {k: alone[b][k] for k in keys} for b in names}
+        if bootstrap and not twins:
+            from study.detect import context_bootstrap
+
+            result["ci95"] = context_bootstrap({"fused": fused_frames, **alone_frames}, reader, "camera_right", proto,
+                                               bootstrap)
     if twins:
         result["twins"] = _twins(model, data, indices, names, frames, method, weights, batch_size, per_frame, reader,
                                  proto, opts, bootstrap)

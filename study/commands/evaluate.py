@@ -39,9 +39,10 @@ def add_parser(sub, name, help_text):
     p.add_argument("--twins", action="store_true", help="also run on the clear-weather twins of the same frames "
                    "(a dataset generated with --twins) and report the vehicle mAP each branch keeps, per severity")
     p.add_argument("--bootstrap", type=int, default=0, metavar="N",
-                   help="with --twins: a 95%% interval for each degraded, clear and retained figure (overall and per "
-                   "severity) from N resamples of whole sequences, each scored on the same frames degraded and "
-                   "clear (default: 0, no intervals; 200 is enough for the table)")
+                   help="95%% intervals from N draws of whole sequences with replacement (frames of a sequence "
+                   "share traffic and weather): each branch's and the fused vehicle mAP per context, and every "
+                   "difference between them on the same draws (\"ci95\"); with --twins, each degraded, clear and "
+                   "retained figure instead, overall and per severity (default: 0, none; 1000 for a table)")
     p.add_argument("--checkpoint", type=checkpoint_arg, default="latest", help="latest, or epoch-NNN")
     p.add_argument("--protocol", default=None, choices=("reference", "visible", "bev"),
                    help="ground truth (README, 'Evaluation protocols'); default: the protocol the run trained on")
@@ -119,10 +120,6 @@ def run(args) -> int:
         return run_gates(args)
     if args.k is not None:
         raise UserError("--k needs --gate (the number of branches a gate keeps)")
-    if args.bootstrap < 0:
-        raise UserError(f"--bootstrap must be >= 0 resamples, got {args.bootstrap}")
-    if args.bootstrap and not args.twins:
-        raise UserError("--bootstrap gives intervals for the --twins figures: add --twins")
     contexts = tuple(args.contexts or ())
     branches = args.branches if isinstance(args.branches, str) else ",".join(args.branches)
     result = evaluation.evaluate(Path(args.run_dir), Path(args.data), branches, args.fusion, args.split,
@@ -154,6 +151,15 @@ def run(args) -> int:
                      + ", ".join(f"{k} {v}" for k, v in r["map_vehicles_per_context"].items()))
         lines.append("  each branch alone (own frame / right camera): " + ", ".join(
             f"{b} {r['map_per_branch_native'][b]}/{r['map_per_branch_reference'][b]}" for b in r["branches"]))
+        if "ci95" in r:
+            ci = r["ci95"]
+            lines.append(f"  95% intervals of the vehicle mAP ({ci['resamples']} draws of whole sequences):")
+            for g, v in ci["per_context"].items():
+                lines.append(f"    {g} ({v['sequences']} sequences): " + ", ".join(
+                    f"{n} [{c[0]}, {c[1]}]" for n, c in v["map_vehicles"].items() if c)
+                    + "; fused - each: " + ", ".join(
+                    f"{k.split(' - ')[1]} [{c[0]}, {c[1]}]" for k, c in v["difference"].items()
+                    if c and k.startswith("fused - ")))
         if "twins" in r:
             lines.append("  same frames in clear weather (vehicles, own frame: degraded / clear = retained):")
             for b, t in [*r["twins"]["branches"].items(), ("fused", r["twins"]["fused"])]:

@@ -163,9 +163,30 @@ def test_evaluate_reports_map_per_class_and_context(data, reference_run, capsys)
     assert main(["evaluate", str(ref), str(data), "--branches", "camera_right", "--contexts", "fog", "--json"]) == 0
     fog = json.loads(capsys.readouterr().out)
     assert fog["contexts"] == ["fog"] and set(fog["map_per_context"]) == {"fog"} and 0 < fog["frames"] < r["frames"]
+    # --bootstrap: intervals per context from draws of whole sequences, every source on the same draws
+    assert main(["evaluate", str(ref), str(data), "--branches", "camera_right,radar", "--bootstrap", "40", "--json"]) == 0
+    b = json.loads(capsys.readouterr().out)
+    ci = b["ci95"]["per_context"]
+    assert set(ci) == {"all", *b["map_vehicles_per_context"]} and b["ci95"]["unit"] == "sequence"
+    assert set(ci["all"]["difference"]) == {"fused - camera_right", "fused - radar", "camera_right - radar"}
+    single = [c for c in ci if c != "all" and ci[c]["sequences"] == 1]
+    assert single, "the fixture's test split has one sequence per context"
+    for c in single:  # one sequence: every draw is the same frames, so the interval is the figure itself
+        point = {"fused": b["map_vehicles_per_context"][c],
+                 **{br: b["per_branch_reference"][br]["map_vehicles_per_context"][c] for br in BRANCHES}}
+        for name, value in point.items():
+            assert ci[c]["map_vehicles"][name] == ([value, value] if value is not None else None), (c, name)
+        for pair, v in ci[c]["difference"].items():
+            first, second = pair.split(" - ")
+            if point[first] is not None and point[second] is not None:
+                assert v[0] == v[1] == pytest.approx(point[first] - point[second], abs=2e-4), (c, pair)
+    assert main(["evaluate", str(ref), str(data), "--branches", "camera_right,radar", "--bootstrap", "10"]) == 0
+    assert "95% intervals of the vehicle mAP (10 draws of whole sequences)" in capsys.readouterr().out
     for bad, needle in ((["--branches", "sonar"], "unknown branch 'sonar'"), (["--fusion", "max"], "unknown fusion"),
                         (["--contexts", "moon"], "'moon' is not in the test split"),
-                        (["--weights", "radar=x"], "not name=number")):
+                        (["--weights", "radar=x"], "not name=number"),
+                        (["--bootstrap", "-1"], "--bootstrap must be >= 0"),
+                        (["--protocol", "bev", "--bootstrap", "5"], "--protocol bev has no right-camera result")):
         assert main(["evaluate", str(ref), str(data), *bad]) == 2
         assert needle in capsys.readouterr().err
 
