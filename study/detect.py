@@ -381,8 +381,9 @@ def paired_bootstrap(deg_frames: list, clr_frames: list, reader, clear_reader, f
 
 
 def context_bootstrap(sources: dict, reader, frame: str = "camera_right", protocol=None, resamples: int = 200,
-                      seed: int = 0, desc: str = "bootstrap contexts") -> dict:
-    """95 % intervals of each source's vehicle mAP, overall and per context, and of the difference
+                      seed: int = 0, desc: str = "bootstrap contexts", classes: str = "vehicles") -> dict:
+    """95 % intervals of each source's mAP (`classes`: "vehicles", the four vehicle classes, as
+    `map_vehicles`; "all", every class, as `map`), overall and per context, and of the difference
     between every two sources, from draws of whole sequences with replacement (within each context;
     overall, from all sequences). `sources`: name -> per-frame detections in `frame`, all on the
     same frames (e.g. each branch alone and the fused result). Each draw scores every source on the
@@ -398,14 +399,17 @@ def context_bootstrap(sources: dict, reader, frame: str = "camera_right", protoc
     for n in names[1:]:
         if sorted(meta["dataset_index"] for meta, _ in sources[n]) != keys:
             raise ValueError(f"context_bootstrap: {n!r} was scored on other frames than {names[0]!r}")
-    vehicles = [CLASSES.index(c) + 1 for c in VEHICLES]
+    if classes not in ("vehicles", "all"):
+        raise ValueError(f"context_bootstrap: classes must be 'vehicles' or 'all', got {classes!r}")
+    class_ids = [CLASSES.index(c) + 1 for c in VEHICLES] if classes == "vehicles" else list(range(1, len(CLASSES) + 1))
+    key = "map_vehicles" if classes == "vehicles" else "map"
     meta_of = {meta["dataset_index"]: meta for meta, _ in sources[names[0]]}
     gts = [ground_truth(reader.labels(k), frame, None, meta_of[k], protocol) for k in keys]
     matches = {}
     for n in names:
         by = {meta["dataset_index"]: d for meta, d in sources[n]}
         dets = [{"boxes": by[k].boxes, "scores": by[k].scores, "labels": by[k].labels} for k in keys]
-        matches[n] = ImageMatches.of(dets, gts, classes=vehicles)
+        matches[n] = ImageMatches.of(dets, gts, classes=class_ids)
     row = {k: j for j, k in enumerate(keys)}
     groups = {"all": keys}
     for k in keys:
@@ -431,7 +435,7 @@ def context_bootstrap(sources: dict, reader, frame: str = "camera_right", protoc
                 bar.update(1)
             out["per_context"][g] = {
                 "sequences": len(seqs),
-                "map_vehicles": {n: pct(draws[:, i]) for i, n in enumerate(names)},
+                key: {n: pct(draws[:, i]) for i, n in enumerate(names)},
                 "difference": {f"{a} - {b}": pct(draws[:, names.index(a)] - draws[:, names.index(b)])
                                for a, b in pairs},
             }

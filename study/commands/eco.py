@@ -292,6 +292,10 @@ def add_eco_evaluate(sub, name, help_text):
     p.add_argument("--execute", default="", choices=list(GATE_ORDER), help="also run this gate wired into the network (only the chosen "
                    "branches and their stems run): stem / branch calls per frame, measured latency")
     p.add_argument("--execute-frames", type=nonneg_int, default=0, help="frames for --execute (0 = the test split)")
+    p.add_argument("--bootstrap", type=nonneg_int, default=0, metavar="N",
+                   help="95%% intervals of every mAP and of every paired difference (each gate minus late fusion "
+                   "above all), overall and per context, from N draws of whole sequences, every configuration "
+                   "scored on the same draw (default: 0, none; 1000 for a table)")
     p.set_defaults(run=run_eco_evaluate)
 
 
@@ -304,7 +308,7 @@ def run_eco_evaluate(args) -> int:
         gates.append(args.execute)
     _require_trained(args.run_dir, gates, s)
     ev = EcoEval(Path(args.run_dir), Path(args.data), s, gates)
-    r = evaluate_eco(args.run_dir, args.data, args.lambda_e, args.gamma, s, gates, ev=ev)
+    r = evaluate_eco(args.run_dir, args.data, args.lambda_e, args.gamma, s, gates, ev=ev, bootstrap=args.bootstrap)
     if args.execute:
         r["executed"] = execute_ecofusion(Path(args.run_dir), Path(args.data), args.execute, args.lambda_e, args.gamma,
                                           s, args.execute_frames, ev=ev)
@@ -317,8 +321,10 @@ def run_eco_evaluate(args) -> int:
             lines.append(f"{k:22s} {v['map'] if v['map'] is not None else '-':>7} {v['avg_loss']:8.4f} "
                          f"{v['energy']:8.4f} {v['latency_ms']:10.2f}")
         for g, v in r["against_late"].items():
-            lines.append(f"  {g} vs late: mAP {v['map_minus_late']}, energy x{v['energy_ratio']}, "
-                         f"latency x{v['latency_ratio']}")
+            band = v.get("map_minus_late_ci95")
+            lines.append(f"  {g} vs late: mAP {v['map_minus_late']}"
+                         + (f" [{band[0]}, {band[1]}] (95%, {r['ci95']['resamples']} sequence draws)" if band else "")
+                         + f", energy x{v['energy_ratio']}, latency x{v['latency_ratio']}")
         if "executed" in r:
             x = r["executed"]
             lines.append(f"executed {x['gate']}: stems per frame {x['stem_runs_per_frame']}, branches per frame "

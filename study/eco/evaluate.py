@@ -100,12 +100,10 @@ class EcoEval:
         """mAP, mean actual L_f, energy and latency of per-frame configuration choices; with `gate`,
         the energy and latency include what that gate costs to decide (`gate_overhead`)."""
         from fusion.eco.energy import total_energy
-        from study.detect import fusion_method, score
+        from study.detect import score
 
         members = [self.configs.members[i] for i in choice]
-        fused = fuse_choice(self.dets, self.metas, self.ed.branches, self.model.branch_frames, members,
-                            fusion_method(self.s.fusion), self.memo)
-        sc = score(fused, self.reader, "camera_right", protocol=self.ed.protocol)
+        sc = score(self.fused(choice), self.reader, "camera_right", protocol=self.ed.protocol)
         rows = np.arange(len(choice))
         lf = self.losses[rows, choice]
         extra, read = self.gate_overhead(choice, gate)
@@ -135,6 +133,14 @@ class EcoEval:
             out["energy_all_sensors_on"] = round(float(sensor_off.mean()), 4)
         return out
 
+    def fused(self, choice: np.ndarray) -> list:
+        """[(meta, Detections)]: each frame's chosen configuration fused in the right camera."""
+        from study.detect import fusion_method
+
+        members = [self.configs.members[i] for i in choice]
+        return fuse_choice(self.dets, self.metas, self.ed.branches, self.model.branch_frames, members,
+                           fusion_method(self.s.fusion), self.memo)
+
     def selection_counts(self, choice: np.ndarray, top: int = 5) -> dict:
         names, counts = np.unique(choice, return_counts=True)
         order = np.argsort(-counts)[:top]
@@ -147,9 +153,13 @@ class EcoEval:
 
 
 def evaluate_eco(run_dir, data, lambda_e: float = 0.01, gamma: float = 0.5, s: EcoSettings = EcoSettings(),
-                 gates=None, progress: bool = True, ev: EcoEval | None = None) -> dict:
+                 gates=None, progress: bool = True, ev: EcoEval | None = None, bootstrap: int = 0) -> dict:
     """`hydrabench eco-evaluate`: every gate at one lambda_E and gamma against the fixed baselines
-    and the oracle (regret = gate minus loss-based, in mean joint loss and mean L_f)."""
+    and the oracle (regret = gate minus loss-based, in mean joint loss and mean L_f). `bootstrap`:
+    95 % intervals of every mAP and every paired mAP difference (gate minus late fusion above all)
+    from that many draws of whole sequences (`study.detect.context_bootstrap`), as "ci95"."""
+    if bootstrap < 0:
+        raise UserError(f"--bootstrap must be >= 0 resamples, got {bootstrap}")
     from fusion.eco.optimise import joint_loss
 
     ev = ev or EcoEval(run_dir, data, s, gates, progress=progress)
@@ -176,8 +186,18 @@ def evaluate_eco(run_dir, data, lambda_e: float = 0.01, gamma: float = 0.5, s: E
                          else round(r["map"] - late["map"], 4),
                          "energy_ratio": round(r["energy"] / late["energy"], 4),
                          "latency_ratio": round(r["latency_ms"] / late["latency_ms"], 4)}
+    ci = None
+    if bootstrap:
+        from study.detect import context_bootstrap
+
+        sources = {g: ev.fused(ev.choose(g, lambda_e, gamma)) for g in ev.predicted}
+        sources.update({name: ev.fused(ev.fixed(name)) for name in ev.configs.baselines if name not in sources})
+        ci = context_bootstrap(sources, ev.reader, "camera_right", ev.ed.protocol, bootstrap, classes="all",
+                               desc="bootstrap gates")
+        for g in ratios:
+            ratios[g]["map_minus_late_ci95"] = ci["per_context"]["all"]["difference"].get(f"{g} - late")
     return {"lambda_e": lambda_e, "gamma": gamma, "rule": s.rule, "fp_weight": s.fp_weight, "gates": rows, "baselines": base,
-            "against_late": ratios, "frames": len(ev.test), "configurations": len(ev.configs),
+            "against_late": ratios, **({"ci95": ci} if ci else {}), "frames": len(ev.test), "configurations": len(ev.configs),
             "energy_unit": ev.energy_label(), "latency": "additive model of measured component latencies, "
             "this machine", "metric": METRIC, "run": str(run_dir), "data": str(data)}
 

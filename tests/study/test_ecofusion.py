@@ -151,9 +151,19 @@ def test_eco_evaluate_executes_the_choice_with_only_its_branches_and_stems(eco, 
     assert x["stem_runs_per_frame"].get("camera", 0) >= 0.5 and sum(x["stem_runs_per_frame"].values()) < 4
     # lambda_E = 0, gamma = 0: the oracle's mean loss is the mean of each frame's lowest loss
     assert main(["eco-evaluate", str(eco), str(data), "--lambda-e", "0", "--gamma", "0", "--gates", "loss_based",
-                 "--json"]) == 0
+                 "--bootstrap", "30", "--json"]) == 0
     r0 = _json(capsys)
     assert r0["gates"]["loss_based"]["avg_loss"] <= min(b["avg_loss"] for b in r0["baselines"].values())
+    # --bootstrap: every configuration on the same sequence draws; the oracle's margin over late fusion
+    ci = r0["ci95"]["per_context"]
+    band = r0["against_late"]["loss_based"]["map_minus_late_ci95"]
+    assert band == ci["all"]["difference"]["loss_based - late"] and band[0] <= band[1]
+    one = [c for c in ci if c != "all" and ci[c]["sequences"] == 1]
+    assert one, "one test sequence per context in this fixture"
+    for c in one:  # one sequence: the interval is the context's own mAP
+        for name, row in [*r0["baselines"].items(), ("loss_based", r0["gates"]["loss_based"])]:
+            value = row["per_scene"][c]["map"]
+            assert ci[c]["map"][name] == ([value, value] if value is not None else None), (c, name)
 
 
 def test_eco_sweep_writes_tables_and_figures(eco, data, tmp_path, capsys):
