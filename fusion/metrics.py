@@ -263,6 +263,11 @@ def matched_ground_truth(detections: Sequence, ground_truths: Sequence, *, iou_t
     return hits
 
 
+MAX_BOOTSTRAP = 100_000
+"""Most bootstrap draws a command accepts (`--bootstrap`): 1000 give a table's intervals to two digits;
+beyond this, hours of pooling for no visible change."""
+
+
 @dataclass(frozen=True)
 class ImageMatches:
     """Each image's VOC matching, kept apart so that AP over any multiset of the images (a bootstrap

@@ -15,6 +15,7 @@ import sys
 from collections.abc import Callable
 from pathlib import Path
 
+from fusion.metrics import MAX_BOOTSTRAP
 from sim.errors import UserError
 
 os.environ.setdefault("PYOPENGL_PLATFORM", "egl")
@@ -112,6 +113,7 @@ count_int = int_range(0, MAX_COUNT, "count_int")
 nonneg_int = int_range(0, MAX_SEED, "nonneg_int")
 severity_arg = int_range(0, 5, "severity_arg")
 workers_int = int_range(1, 256, "workers_int")
+bootstrap_int = int_range(0, MAX_BOOTSTRAP, "bootstrap_int")
 
 
 def float_range(lo: float, hi: float, name: str, lo_open: bool = False) -> Callable[[str], float]:

@@ -21,6 +21,7 @@ a-posteriori branch losses from the run's gate dataset (built when missing).
 
 from __future__ import annotations
 
+from fusion.metrics import MAX_BOOTSTRAP
 from sensors.dataset import DatasetReader
 from sim.errors import UserError
 from sim.weather import OVERCAST_BELOW_MOR_M
@@ -52,8 +53,8 @@ def evaluate(run_dir, data, branches="all", fusion="soft-nms", split="auto", wei
 
     setup = setup or resolve_device()
     method = fusion_method(fusion)
-    if bootstrap < 0:
-        raise UserError(f"--bootstrap must be >= 0 resamples, got {bootstrap}")
+    if not 0 <= bootstrap <= MAX_BOOTSTRAP:
+        raise UserError(f"--bootstrap must be 0..{MAX_BOOTSTRAP} draws, got {bootstrap}")
     if protocol is not None and protocol not in PROTOCOLS:
         raise UserError(f"--protocol: unknown protocol {protocol!r} (choose from: {', '.join(PROTOCOLS)})")
     model, cfg = load_run(run_dir, checkpoint, device=setup.device)

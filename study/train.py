@@ -280,6 +280,15 @@ def _rank_share(batch, rank: int, world: int):
     return np.array_split(np.asarray(batch), world)[rank]
 
 
+def check_run_dir(out: Path, main_rank: bool = True) -> None:
+    """Refuse (UserError) an --out that is not empty and holds no training run. Only the main rank
+    judges: it creates the directory and writes config.json (through a temporary file), so another
+    rank looking at the same moment could see a half-made run and fail a good launch (it did under
+    load: rank 1 exited with code 2 while rank 0 wrote)."""
+    if main_rank and out.is_dir() and any(out.iterdir()) and not (out / "config.json").exists():
+        raise UserError(f"{out} is not empty and holds no training run (no config.json); use a new or empty --out")
+
+
 def train(cfg: TrainConfig, out: Path, progress: bool = True) -> dict:
     """Train (or resume) the run in `out`. Launched by torchrun (WORLD_SIZE > 1), each process
     trains on its share of every batch (`DistributedDataParallel`, gloo on the CPU, NCCL on GPUs)
@@ -339,8 +348,7 @@ def train(cfg: TrainConfig, out: Path, progress: bool = True) -> dict:
     missing = [str(s.parent) for s in srcs if not s.exists()]
     if missing:
         raise UserError(f"--init-from {missing[0]}: no checkpoint.pt there")
-    if out.is_dir() and any(out.iterdir()) and not (out / "config.json").exists():
-        raise UserError(f"{out} is not empty and holds no training run (no config.json); use a new or empty --out")
+    check_run_dir(out, main_rank)
     cfg_path = out / "config.json"
     if main_rank:
         out.mkdir(parents=True, exist_ok=True)

@@ -216,6 +216,7 @@ def run_job(argv: list[str], env: dict, label: str, stdout_path: Path, progress:
     UserError with the command's last line. Whatever ends it (its exit, an error, Ctrl-C), no process
     it started is left running."""
     tail: deque[str] = deque(maxlen=30)
+    own: deque[str] = deque(maxlen=5)  # hydrabench's error lines (a rank's, before torchrun's long banner)
     t0 = time.perf_counter()
     with open(stdout_path, "w") as out:
         proc = subprocess.Popen(argv, stdout=out, stderr=subprocess.PIPE, stdin=subprocess.DEVNULL, env=env,
@@ -224,6 +225,8 @@ def run_job(argv: list[str], env: dict, label: str, stdout_path: Path, progress:
         def pump():
             for line in proc.stderr:
                 tail.append(line.rstrip("\n"))
+                if line.startswith("hydrabench") and "error:" in line:
+                    own.append(line.rstrip("\n"))
                 if progress:
                     sys.stderr.write(f"[{label}] {line}")
                     sys.stderr.flush()
@@ -244,15 +247,16 @@ def run_job(argv: list[str], env: dict, label: str, stdout_path: Path, progress:
             reader.join(timeout=5)
     seconds = time.perf_counter() - t0
     if proc.returncode != 0:
-        raise UserError(f"bench scale: {label} exited with code {proc.returncode}: {_culprit(tail)[:300]}")
+        raise UserError(f"bench scale: {label} exited with code {proc.returncode}: {_culprit([*own, *tail])[:300]}")
     return seconds, stdout_path.read_text()
 
 
 def _culprit(lines) -> str:
-    """The line of a failed command's stderr that says what went wrong: hydrabench's own error line,
+    """The line of a failed command's stderr that says what went wrong: hydrabench's own error line
+    (`hydrabench: error:`, or argparse's `hydrabench train: error:`),
     else the last line naming an error (torchrun ends with banners), else the last line with words."""
     lines = [x.strip() for x in lines if x.strip().strip("=-")]
-    for pick in (lambda x: x.startswith("hydrabench: error:"), lambda x: "Error" in x or "error:" in x, bool):
+    for pick in (lambda x: x.startswith("hydrabench") and "error:" in x, lambda x: "Error" in x or "error:" in x, bool):
         found = [x for x in lines if pick(x)]
         if found:
             return found[-1]

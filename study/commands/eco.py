@@ -10,6 +10,7 @@ from sim.errors import UserError
 from study import eco
 from study.cli import (
     Formatter,
+    bootstrap_int,
     checkpoint_arg,
     dataset_dir,
     emit,
@@ -292,7 +293,7 @@ def add_eco_evaluate(sub, name, help_text):
     p.add_argument("--execute", default="", choices=list(GATE_ORDER), help="also run this gate wired into the network (only the chosen "
                    "branches and their stems run): stem / branch calls per frame, measured latency")
     p.add_argument("--execute-frames", type=nonneg_int, default=0, help="frames for --execute (0 = the test split)")
-    p.add_argument("--bootstrap", type=nonneg_int, default=0, metavar="N",
+    p.add_argument("--bootstrap", type=bootstrap_int, default=0, metavar="N",
                    help="95%% intervals of every mAP and of every paired difference (each gate minus late fusion "
                    "above all), overall and per context, from N draws of whole sequences, every configuration "
                    "scored on the same draw (default: 0, none; 1000 for a table)")

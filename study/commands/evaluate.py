@@ -8,7 +8,17 @@ from pathlib import Path
 
 from sim.errors import UserError
 from study import evaluate as evaluation
-from study.cli import Formatter, checkpoint_arg, dataset_dir, emit, name_arg, name_list, pos_int, training_run
+from study.cli import (
+    Formatter,
+    bootstrap_int,
+    checkpoint_arg,
+    dataset_dir,
+    emit,
+    name_arg,
+    name_list,
+    pos_int,
+    training_run,
+)
 from study.commands.device import add_device_args
 from study.device import resolve_device
 
@@ -38,7 +48,7 @@ def add_parser(sub, name, help_text):
                    "rural for clear weather); default: every frame of the split")
     p.add_argument("--twins", action="store_true", help="also run on the clear-weather twins of the same frames "
                    "(a dataset generated with --twins) and report the vehicle mAP each branch keeps, per severity")
-    p.add_argument("--bootstrap", type=int, default=0, metavar="N",
+    p.add_argument("--bootstrap", type=bootstrap_int, default=0, metavar="N",
                    help="95%% intervals from N draws of whole sequences with replacement (frames of a sequence "
                    "share traffic and weather): each branch's and the fused vehicle mAP per context, and every "
                    "difference between them on the same draws (\"ci95\"); with --twins, each degraded, clear and "

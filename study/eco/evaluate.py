@@ -11,6 +11,7 @@ from pathlib import Path
 
 import numpy as np
 
+from fusion.metrics import MAX_BOOTSTRAP
 from sim.errors import UserError
 from study.eco.data import EcoSettings, _setup, _splits, detections_from_array, fuse_choice
 from study.eco.energy import energy_table
@@ -158,8 +159,8 @@ def evaluate_eco(run_dir, data, lambda_e: float = 0.01, gamma: float = 0.5, s: E
     and the oracle (regret = gate minus loss-based, in mean joint loss and mean L_f). `bootstrap`:
     95 % intervals of every mAP and every paired mAP difference (gate minus late fusion above all)
     from that many draws of whole sequences (`study.detect.context_bootstrap`), as "ci95"."""
-    if bootstrap < 0:
-        raise UserError(f"--bootstrap must be >= 0 resamples, got {bootstrap}")
+    if not 0 <= bootstrap <= MAX_BOOTSTRAP:
+        raise UserError(f"--bootstrap must be 0..{MAX_BOOTSTRAP} draws, got {bootstrap}")
     from fusion.eco.optimise import joint_loss
 
     ev = ev or EcoEval(run_dir, data, s, gates, progress=progress)

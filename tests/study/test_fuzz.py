@@ -547,8 +547,8 @@ def test_progress_reaches_a_log_file(world, tmp_path, capsys, monkeypatch):
     out, err = capsys.readouterr()
     assert code == 0 and json.loads(out)["frames"] == 3
     assert [line.split(",")[0] for line in err.splitlines()] == [
-        "scenes junction: 1/3 frame (33%)", "scenes junction: 2/3 frame (67%)", "scenes junction: 3/3 frame (100%)",
-        "scenes junction: 3/3 frame (100%)"]  # the last line again on close
+        "scenes junction: 1/3 frame (33%)", "scenes junction: 2/3 frame (67%)", "scenes junction: 3/3 frame (100%)"]
+    # (closing does not print the last line a second time)
     code = cli(["generate", "--out", str(tmp_path / "d"), "--contexts", "junction", "--frames-per-context", "2",
                  "--sequence-length", "1", "--seed", "3", "--json"])
     out, err = capsys.readouterr()

@@ -185,7 +185,7 @@ def test_evaluate_reports_map_per_class_and_context(data, reference_run, capsys)
     for bad, needle in ((["--branches", "sonar"], "unknown branch 'sonar'"), (["--fusion", "max"], "unknown fusion"),
                         (["--contexts", "moon"], "'moon' is not in the test split"),
                         (["--weights", "radar=x"], "not name=number"),
-                        (["--bootstrap", "-1"], "--bootstrap must be >= 0"),
+                        (["--bootstrap", "-1"], "--bootstrap: must be >= 0"), (["--bootstrap", "100001"], "must be <= 100000"),
                         (["--protocol", "bev", "--bootstrap", "5"], "--protocol bev has no right-camera result")):
         assert main(["evaluate", str(ref), str(data), *bad]) == 2
         assert needle in capsys.readouterr().err
@@ -407,3 +407,20 @@ def test_split_data_test_is_the_datasets_own_test_split(reference_run, data):
     assert frames_for(other, data, "data-test")[0] == frames_for(cfg, data, "test")[0]
     with pytest.raises(Exception, match="needs the run's training dataset"):
         frames_for(other, data, "test")
+
+
+def test_only_the_main_rank_judges_the_run_directory(tmp_path):
+    """Rank 0 creates --out and writes config.json through a temporary file; a rank that looked at that
+    moment used to see "not empty, no config.json" and exit 2, failing a good DDP launch under load."""
+    from sim.errors import UserError
+    from study.train import check_run_dir
+
+    out = tmp_path / "run"
+    out.mkdir()
+    (out / ".config.json.tmp").write_text("{}")  # rank 0, mid-write
+    with pytest.raises(UserError, match="holds no training run"):
+        check_run_dir(out, main_rank=True)
+    check_run_dir(out, main_rank=False)  # the other ranks leave the judgement to rank 0
+    (out / "config.json").write_text("{}")
+    check_run_dir(out, main_rank=True)
+    check_run_dir(tmp_path / "new", main_rank=True)  # a new directory is fine
