@@ -322,6 +322,21 @@ def recall_by_visibility(per_frame: list, reader: DatasetReader, frame: str = "c
             for lo, hi, n, f in zip(edges[:-1], edges[1:], objects, found)}
 
 
+def _sequence_draws(by_seq: dict, resamples: int, seed: int):
+    """Yield `resamples` draws of whole sequences with replacement (a cluster bootstrap): each the
+    concatenated members of as many sequences as there are, drawn from `by_seq` {sequence: [items]}."""
+    seqs = sorted(by_seq)
+    rng = np.random.default_rng(seed)
+    for _ in range(resamples):
+        yield [k for j in rng.integers(0, len(seqs), len(seqs)) for k in by_seq[seqs[j]]]
+
+
+def _interval(values: np.ndarray) -> list | None:
+    """[2.5th, 97.5th percentile] of the finite values (None when none is)."""
+    v = values[np.isfinite(values)]
+    return [_round(np.percentile(v, 2.5)), _round(np.percentile(v, 97.5))] if len(v) else None
+
+
 def paired_bootstrap(deg_frames: list, clr_frames: list, reader, clear_reader, frame: str, bev_crop=None,
                      protocol=None, resamples: int = 200, seed: int = 0, severities=None,
                      desc: str = "bootstrap") -> dict:
@@ -353,24 +368,17 @@ def paired_bootstrap(deg_frames: list, clr_frames: list, reader, clear_reader, f
     def vmap(m: ImageMatches, ks) -> float:
         return m.mean_ap([row[k] for k in ks])
 
-    def interval(keys) -> dict:
+    def interval(subset) -> dict:
         by_seq = defaultdict(list)
-        for k in sorted(keys):
+        for k in sorted(subset):
             by_seq[seq_of[k][0]].append(k)
-        seqs = sorted(by_seq)
-        rng = np.random.default_rng(seed)
         draws = np.empty((resamples, 3))
-        for r in range(resamples):
-            ks = [k for j in rng.integers(0, len(seqs), len(seqs)) for k in by_seq[seqs[j]]]
+        for r, ks in enumerate(_sequence_draws(by_seq, resamples, seed)):
             d, c = vmap(deg, ks), vmap(clr, ks)
             draws[r] = (d, c, d / c if c > 0 else np.nan)
             bar.update(1)
-
-        def pct(col) -> list | None:
-            v = draws[:, col][np.isfinite(draws[:, col])]
-            return [_round(np.percentile(v, 2.5)), _round(np.percentile(v, 97.5))] if len(v) else None
-
-        return {"sequences": len(seqs), "degraded": pct(0), "clear": pct(1), "retained": pct(2)}
+        return {"sequences": len(by_seq), "degraded": _interval(draws[:, 0]), "clear": _interval(draws[:, 1]),
+                "retained": _interval(draws[:, 2])}
 
     present = [s for s in severities or () if any(seq_of[k][1] == s for k in keys)]
     with progress_bar(total=resamples * (1 + len(present)), desc=desc, unit="draw") as bar:
@@ -416,27 +424,20 @@ def context_bootstrap(sources: dict, reader, frame: str = "camera_right", protoc
         groups.setdefault(meta_of[k]["context"], []).append(k)
     pairs = [(a, b) for i, a in enumerate(names) for b in names[i + 1:]]
 
-    def pct(v) -> list | None:
-        v = v[np.isfinite(v)]
-        return [_round(np.percentile(v, 2.5)), _round(np.percentile(v, 97.5))] if len(v) else None
-
     out = {"resamples": int(resamples), "unit": "sequence", "seed": int(seed), "per_context": {}}
     with progress_bar(total=resamples * len(groups), desc=desc, unit="draw") as bar:
         for g, ks in groups.items():
             by_seq = defaultdict(list)
             for k in ks:
                 by_seq[meta_of[k]["sequence_id"]].append(row[k])
-            seqs = sorted(by_seq)
-            rng = np.random.default_rng(seed)
             draws = np.empty((resamples, len(names)))
-            for r in range(resamples):
-                picks = [j for s in rng.integers(0, len(seqs), len(seqs)) for j in by_seq[seqs[s]]]
+            for r, picks in enumerate(_sequence_draws(by_seq, resamples, seed)):
                 draws[r] = [matches[n].mean_ap(picks) for n in names]
                 bar.update(1)
             out["per_context"][g] = {
-                "sequences": len(seqs),
-                key: {n: pct(draws[:, i]) for i, n in enumerate(names)},
-                "difference": {f"{a} - {b}": pct(draws[:, names.index(a)] - draws[:, names.index(b)])
+                "sequences": len(by_seq),
+                key: {n: _interval(draws[:, i]) for i, n in enumerate(names)},
+                "difference": {f"{a} - {b}": _interval(draws[:, names.index(a)] - draws[:, names.index(b)])
                                for a, b in pairs},
             }
     return out
