@@ -133,6 +133,8 @@ class WeatherState:
                 raise UserError(f"{name} must be >= 0, got {getattr(self, name)}")
         if self.illuminance_lux <= 0:
             raise UserError(f"illuminance_lux must be > 0 lx, got {self.illuminance_lux}")
+        if self.overcast is not None and not isinstance(self.overcast, (bool, np.bool_)):
+            raise UserError(f"overcast must be True, False or None (follow the hydrometeors), got {self.overcast!r}")
         if len(self.lens_coverage_pct) != 2 or not all(0 <= c <= 100 for c in self.lens_coverage_pct):
             raise UserError(f"lens_coverage_pct must be two values in 0..100, got {self.lens_coverage_pct}")
 

@@ -138,6 +138,8 @@ def test_the_sky_follows_the_hydrometeors_unless_set():
     assert not WeatherState(fog_visibility_m=2500.0).sky_overcast
     assert WeatherState(rain_mm_h=0.5).sky_overcast and WeatherState(snow_mm_h=0.1).sky_overcast
     assert WeatherState(overcast=True).sky_overcast and not WeatherState(rain_mm_h=2.0, overcast=False).sky_overcast
+    with pytest.raises(UserError, match="overcast must be True, False or None"):
+        WeatherState(overcast="yes")
     lit = lighting_for(WeatherState(illuminance_lux=20_000.0), light_for(WeatherState(illuminance_lux=20_000.0), 0.0),
                        np.zeros((0, 3)), [])
     assert lit.sun_normal_lux > 0  # clear sky: direct sun
