@@ -24,7 +24,7 @@ from __future__ import annotations
 from fusion.metrics import MAX_BOOTSTRAP
 from sensors.dataset import DatasetReader
 from sim.errors import UserError
-from sim.weather import OVERCAST_BELOW_MOR_M
+from sim.weather import WeatherState
 from study.device import resolve_device
 
 
@@ -207,8 +207,9 @@ def stale_twins(reader, clear_reader, indices) -> int:
     n = 0
     for i in indices:
         w = reader.meta(i)["weather"]
-        hydrometeors = w["rain_mm_h"] > 0 or w["snow_mm_h"] > 0 or w["fog_visibility_m"] < OVERCAST_BELOW_MOR_M
-        n += bool(hydrometeors and "overcast" not in clear_reader.meta(i)["weather"])
+        # the sky the old rule gave the frame (WeatherState.sky_overcast with overcast=None)
+        sky = WeatherState(fog_visibility_m=w["fog_visibility_m"], rain_mm_h=w["rain_mm_h"], snow_mm_h=w["snow_mm_h"])
+        n += bool(sky.sky_overcast and "overcast" not in clear_reader.meta(i)["weather"])
     return n
 
 
