@@ -263,6 +263,14 @@ def matched_ground_truth(detections: Sequence, ground_truths: Sequence, *, iou_t
     return hits
 
 
+def _recall_precision(tp: np.ndarray, n_pos: int) -> tuple[np.ndarray, np.ndarray]:
+    """Recall and precision (Eq. 16) down a ranked list of true-positive flags (the rest are false
+    positives: every step is one or the other, so no 0 / 0); recall is NaN without ground truth."""
+    ctp, cfp = np.cumsum(tp), np.cumsum(~tp)
+    prec = ctp / np.maximum(ctp + cfp, 1)
+    return (ctp / n_pos if n_pos else np.full(len(ctp), np.nan)), prec
+
+
 MAX_BOOTSTRAP = 100_000
 """Most bootstrap draws a command accepts (`--bootstrap`): 1000 give a table's intervals to two digits;
 beyond this, hours of pooling for no visible change."""
@@ -315,9 +323,7 @@ class ImageMatches:
             scores = np.concatenate([r[0] for r in rows]) if rows else np.zeros(0)
             tp = np.concatenate([r[1] for r in rows]) if rows else np.zeros(0, bool)
             tp = tp[np.argsort(-scores, kind="stable")]  # ties keep image order, as when pooled
-            ctp, cfp = np.cumsum(tp), np.cumsum(~tp)
-            prec = ctp / np.maximum(ctp + cfp, 1)
-            out[c] = average_precision(ctp / n_pos, prec, self.interpolation)
+            out[c] = average_precision(*_recall_precision(tp, n_pos), self.interpolation)
         return out
 
     def mean_ap(self, images: Sequence[int]) -> float:
@@ -360,10 +366,8 @@ def evaluate_detections(detections: Sequence, ground_truths: Sequence, *, iou_th
 
     ap, n_positives, n_detections, n_tp, precision, recall = {}, {}, {}, {}, {}, {}
     for cls in (int(c) for c in class_ids):
-        tp, fp, n_pos, n_det = _evaluate_class(images, cls, float(iou_thr))
-        ctp, cfp = np.cumsum(tp), np.cumsum(fp)
-        prec = ctp / np.maximum(ctp + cfp, 1)  # Eq. 16; every step is a TP or an FP, so no 0 / 0
-        rec = ctp / n_pos if n_pos else np.full(len(ctp), np.nan)
+        tp, _fp, n_pos, n_det = _evaluate_class(images, cls, float(iou_thr))
+        rec, prec = _recall_precision(tp, n_pos)
         ap[cls] = average_precision(rec, prec, interpolation) if n_pos else float("nan")
         n_positives[cls], n_detections[cls], n_tp[cls] = n_pos, n_det, int(tp.sum())
         precision[cls], recall[cls] = prec, rec
