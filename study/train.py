@@ -23,6 +23,7 @@ from __future__ import annotations
 import csv
 import dataclasses
 import json
+import math
 import os
 import sys
 import time
@@ -59,6 +60,9 @@ class TrainConfig:
         train_fraction, split_seed: the by-sequence split.
         seed: model initialisation and data order.
         checkpoint_steps: also checkpoint every this many steps within an epoch.
+        checkpoint_seconds: also checkpoint when this many seconds passed since the last checkpoint
+            (0 = off): on a loaded machine 100 steps can take hours, and a kill loses at most this.
+            Where a run checkpoints does not change what it computes (resume is exact at any step).
         eval_frames: evaluate on at most this many test frames per epoch (0 = all).
         threads: torch CPU threads (0: the cores available).
         device: auto | cpu | cuda | cuda:N (`study.device`); under torchrun each process takes the
@@ -93,6 +97,7 @@ class TrainConfig:
     split_seed: int = 0
     seed: int = 0
     checkpoint_steps: int = 100
+    checkpoint_seconds: float = 600.0
     eval_frames: int = 0
     threads: int = 0
     init_from: str = ""
@@ -233,7 +238,8 @@ def evaluate_epoch(model, cfg: TrainConfig, reader, test_idx, branches, setup=No
 
 
 # settings a resumed run may change: they decide how long and where it runs, not what it learns
-FREE_ON_RESUME = ("epochs", "lr_drop_epoch", "eval_frames", "threads", "checkpoint_steps", "device", "amp", "workers")
+FREE_ON_RESUME = ("epochs", "lr_drop_epoch", "eval_frames", "threads", "checkpoint_steps", "checkpoint_seconds", "device",
+                  "amp", "workers")
 
 
 def run_profile(run_cfg: dict, where) -> ModelProfile:
@@ -329,6 +335,8 @@ def train(cfg: TrainConfig, out: Path, progress: bool = True) -> dict:
     specs = [s for s in specs if s.name in chosen]
     if not 0.0 <= cfg.hflip <= 1.0:
         raise UserError(f"--hflip is a probability in [0, 1], got {cfg.hflip}")
+    if not (cfg.checkpoint_seconds >= 0 and math.isfinite(cfg.checkpoint_seconds)):
+        raise UserError(f"--checkpoint-seconds must be a finite number >= 0, got {cfg.checkpoint_seconds}")
     stereo = [s.name for s in specs if {"camera_left", "camera_right"} <= set(s.sensors)]
     if cfg.hflip > 0 and stereo:
         raise UserError(f"--hflip mirrors the rig, which swaps the stereo cameras' sides: branch {stereo[0]!r} "
@@ -409,6 +417,7 @@ def train(cfg: TrainConfig, out: Path, progress: bool = True) -> dict:
     steps_per_epoch = (len(dataset) + cfg.batch_size - 1) // cfg.batch_size
     metrics_path = out / "metrics.csv"
     result = {}
+    last_save = time.perf_counter()  # the time-based checkpoints count from here (and each save)
     while epoch < cfg.epochs:
         order = np.random.default_rng([cfg.seed, epoch]).permutation(len(dataset))
         flips = np.random.default_rng([cfg.seed, epoch, 1]).random(len(dataset)) < cfg.hflip
@@ -458,7 +467,10 @@ def train(cfg: TrainConfig, out: Path, progress: bool = True) -> dict:
             sums["total"] = sums.get("total", 0.0) + (float(total.detach()) if ddp.world == 1 else w * float(total.detach()))
             bar.set_postfix(loss=f"{total.item():.3f}", lr=f"{opt.param_groups[0]['lr']:.2e}")
             bar.update(1)
-            if (k + 1) % cfg.checkpoint_steps == 0 and k + 1 < len(batches) and main_rank:
+            due = (k + 1) % cfg.checkpoint_steps == 0 or (
+                cfg.checkpoint_seconds > 0 and time.perf_counter() - last_save >= cfg.checkpoint_seconds)
+            if due and k + 1 < len(batches) and main_rank:
+                last_save = time.perf_counter()
                 _atomic_save({"model": model.state_dict(), "optimizer": opt.state_dict(), "epoch": epoch,
                               "step_in_epoch": k + 1, "global_step": global_step,
                               "torch_rng": torch.get_rng_state(),
@@ -480,6 +492,7 @@ def train(cfg: TrainConfig, out: Path, progress: bool = True) -> dict:
             _atomic_save({"model": model.state_dict(), "optimizer": opt.state_dict(), "epoch": epoch,
                           "step_in_epoch": 0, "global_step": global_step, "torch_rng": torch.get_rng_state()},
                          ckpt_path)
+            last_save = time.perf_counter()
             if progress:
                 sys.stderr.write(json.dumps(row) + "\n")
             result = row

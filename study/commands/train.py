@@ -52,6 +52,9 @@ def add_parser(sub, name, help_text):
     p.add_argument("--seed", type=nonneg_int, default=0, help="initialisation and data order")
     p.add_argument("--eval-frames", type=count_int, default=0, help="test frames evaluated per epoch (0 = all)")
     p.add_argument("--checkpoint-steps", type=pos_int, default=100, help="also checkpoint every N steps within an epoch")
+    p.add_argument("--checkpoint-seconds", type=nonneg_float, default=600.0,
+                   help="also checkpoint when this many seconds passed since the last one (0: off); a kill loses at "
+                   "most this much work")
     p.add_argument("--init-from", type=name_list, default=None, help="initialise from trained runs, comma-separated in priority "
                    "order: each branch / stem from the first run that has it or its origin (other camera-view "
                    "branches from camera_right, BEV ones from radar)")
@@ -80,7 +83,8 @@ def run(args) -> int:
         branches=tuple(args.branches or ()), epochs=args.epochs,
         batch_size=args.batch_size, lr=args.lr, warmup_steps=args.warmup_steps, lr_drop_epoch=args.lr_drop_epoch,
         clip_grad=args.clip_grad, seed=args.seed, eval_frames=args.eval_frames, threads=args.threads,
-        checkpoint_steps=args.checkpoint_steps, init_from=",".join(str(Path(r).resolve()) for r in args.init_from or ()),
+        checkpoint_steps=args.checkpoint_steps,
+        checkpoint_seconds=args.checkpoint_seconds, init_from=",".join(str(Path(r).resolve()) for r in args.init_from or ()),
         hflip=args.hflip, protocol=args.protocol, device=args.device, amp=args.amp, workers=args.workers,
         sampling=_resolve_sampling(args.sampling, Path(args.out)),
     )

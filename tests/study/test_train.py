@@ -13,6 +13,7 @@ import pytest
 import torch
 
 from sensors.generate import GenerateConfig, generate
+from sim.errors import UserError
 from study.cli import main
 from study.train import TrainConfig, train
 
@@ -134,6 +135,37 @@ def test_a_resumed_epoch_reports_the_mean_loss_of_the_whole_epoch(data, referenc
     assert len(losses) == 3  # two branches and the total
     for a, b in zip(ref_rows, rows, strict=True):
         assert {k: a[k] for k in losses} == {k: b[k] for k in losses}
+
+
+@pytest.mark.parametrize("seconds, mid_epoch", [(1e-9, True), (0.0, False)])
+def test_time_based_checkpoints_land_mid_epoch_and_do_not_change_the_weights(data, reference_run, tmp_path,
+                                                                            monkeypatch, seconds, mid_epoch):
+    """On a loaded machine 100 steps can take hours: `checkpoint_seconds` also checkpoints when that
+    much time passed since the last save (0 = off), and where a run checkpoints changes nothing."""
+    import study.train as st
+
+    ref, _ = reference_run
+    real, saves = st._atomic_save, []
+
+    def record(obj, path):
+        if "step_in_epoch" in obj:
+            saves.append((obj["epoch"], obj["step_in_epoch"]))
+        real(obj, path)
+
+    monkeypatch.setattr(st, "_atomic_save", record)
+    train(_cfg(data, checkpoint_steps=1000, checkpoint_seconds=seconds), tmp_path / "run", progress=False)
+    # 4 training frames in batches of 2: two steps per epoch, a mid-epoch save after the first
+    assert saves == ([(0, 1), (1, 0), (1, 1), (2, 0)] if mid_epoch else [(1, 0), (2, 0)])
+    a = torch.load(ref / "checkpoint.pt", weights_only=False)["model"]
+    b = torch.load(tmp_path / "run" / "checkpoint.pt", weights_only=False)["model"]
+    assert all(torch.equal(a[k], b[k]) for k in a)
+
+
+def test_checkpoint_seconds_must_be_finite_and_not_negative(data, tmp_path, capsys):
+    with pytest.raises(UserError, match="checkpoint-seconds"):
+        train(_cfg(data, checkpoint_seconds=float("nan")), tmp_path / "nan", progress=False)
+    code = main(["train", str(data), "--out", str(tmp_path / "neg"), "--checkpoint-seconds", "-1"])
+    assert code == 2 and "checkpoint-seconds" in capsys.readouterr().err
 
 
 def test_more_epochs_extend_a_finished_run_and_other_configs_are_refused(data, reference_run, tmp_path, capsys):
