@@ -185,6 +185,9 @@ class EvaluateSection:
         power: P of Eq. 6 where no counter exists: "px2" (45.4 W) or watts as a string.
         energy_scale: px2 | late | joules (`fusion.eco.optimise.normalise_energy`).
         twins: score the clear-weather twins of the test frames too (severity sweeps).
+        bootstrap: draws of whole test sequences for 95 % intervals of every method's mAP, overall
+            and per context, and of every paired difference (`study.detect.context_bootstrap`;
+            0 = none).
     """
 
     k: int = 3
@@ -196,9 +199,14 @@ class EvaluateSection:
     power: str = "px2"
     energy_scale: str = "px2"
     twins: bool = True
+    bootstrap: int = 0
 
     def __post_init__(self) -> None:
         _positive("evaluate.k", self.k)
+        from fusion.metrics import MAX_BOOTSTRAP
+
+        if isinstance(self.bootstrap, bool) or not isinstance(self.bootstrap, int) or not 0 <= self.bootstrap <= MAX_BOOTSTRAP:
+            raise UserError(f"evaluate.bootstrap must be an integer in [0, {MAX_BOOTSTRAP}], got {self.bootstrap!r}")
         for name in ("hydra_gate", "eco_gate"):
             if getattr(self, name) not in ("knowledge", "deep", "attention"):
                 raise UserError(f"evaluate.{name} must be knowledge, deep or attention, got {getattr(self, name)!r}")

@@ -174,6 +174,18 @@ def evaluate_study(run, run_early, data, cfg, s, work: Path, setup=None, progres
             early[b] = sc
             scores[f"early:{b}"], kinds[f"early:{b}"] = sc, f"early fusion model ({'+'.join(early_model.branch_sensors[b])})"
 
+    # 95 % intervals: whole test sequences drawn with replacement, every method on each draw ------
+    intervals = None
+    if e.bootstrap:
+        from study.detect import context_bootstrap
+        from study.detect import fused as fuse_frames
+
+        sources = {name: M.fused(ch) for name, ch in choices.items()}
+        for b in early:
+            sources[f"early:{b}"] = fuse_frames(early_per_frame, [b], early_model.branch_frames, method)
+        intervals = context_bootstrap(sources, ev.reader, "camera_right", protocol=ev.ed.protocol,
+                                      resamples=e.bootstrap, classes="all", desc="bootstrap the methods")
+
     # HydraFusion Table 2 --------------------------------------------------------------------
     table2 = {"single_sensors": {b: scores[f"single:{b}"]["map"] for b in singles},
               "early_fusion": {b: sc["map"] for b, sc in early.items()},
@@ -351,6 +363,7 @@ def evaluate_study(run, run_early, data, cfg, s, work: Path, setup=None, progres
         "k": min(e.k, len(branches)), "lambda_e": e.lambda_e, "gamma": e.gamma, "rule": e.rule,
         "hydra_gate": e.hydra_gate, "eco_gate": e.eco_gate,
         "methods": {name: {"what": kinds[name], **_summary(sc)} for name, sc in scores.items()},
+        "intervals": intervals,
         "hydra_table2": table2, "hydra_table3": hydra_tables["table3"], "hydra_table4": table4,
         "hydra_table5": table5, "hydra_table6": hydra_tables["map_table"], "hydra_table7": hydra_tables["selection_rate"],
         "hydra_selection_per_context": hydra_tables["selection_rate_per_context"],

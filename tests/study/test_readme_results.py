@@ -48,6 +48,22 @@ def test_block_carries_the_reports_numbers_and_ratios():
     assert rr.results_block({**REPORT, "meaningless": True}).startswith("**These numbers mean nothing**")
 
 
+def test_block_carries_the_intervals_and_turns_stored_differences_round():
+    ci = {"resamples": 500, "unit": "sequence", "seed": 0, "per_context": {"all": {
+        "sequences": 20, "map": {"single:radar": [0.15, 0.25], "late": [0.35, 0.45], "hydrafusion:attention": [0.4, 0.5]},
+        # pairs are stored one way round: late - single:radar, and hydrafusion:attention - late
+        "difference": {"late - single:radar": [0.12, 0.28], "hydrafusion:attention - late": [-0.01, 0.11]}}}}
+    report = {**REPORT, "results": {**REPORT["results"], "intervals": ci}}
+    block = rr.results_block(report)
+    assert "| method | mAP@0.5 | 95 % interval | minus late: 95 % interval | city | fog |" in block
+    assert "| single:radar | 0.200 | [0.150, 0.250] | [-0.280, -0.120] | 0.100 | 0.300 |" in block
+    assert "| hydrafusion:attention | 0.450 | [0.400, 0.500] | [-0.010, +0.110] | 0.500 | 0.400 |" in block
+    assert "| late | 0.400 | [0.350, 0.450] | - | 0.500 | 0.300 |" in block
+    assert "500 draws of the 20 test sequences" in block
+    # a method the bootstrap did not score has no interval, not a wrong one
+    assert "| all_branches | 0.410 | - | - | 0.500 | 0.320 |" in block
+
+
 def test_replacing_keeps_the_rest_and_is_idempotent(tmp_path):
     readme = f"# title\n\nbefore\n{rr.BEGIN}\nold numbers\n{rr.END}\nafter\n"
     new = rr.replace_block(readme, rr.results_block(REPORT))

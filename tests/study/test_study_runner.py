@@ -122,6 +122,21 @@ def test_report_numbers_follow_their_definitions(tiny):
     fog = r["severity"]["fog"]
     assert set(fog["late"]) == {"4"} and fog["late"]["4"]["frames"] == 1
     assert "clear" in fog["single:radar"]["4"] and r["severity_clear_twins"]
+    # intervals: with one test sequence per context every draw is that sequence, so a context's
+    # interval is its point estimate; each difference is stored once, for every pair of methods
+    ci = r["intervals"]
+    assert ci["resamples"] == 20 and ci["unit"] == "sequence" and set(ci["per_context"]) == {"all", "city", "fog"}
+    names = list(m)
+    for ctx in ("city", "fog"):
+        g = ci["per_context"][ctx]
+        assert g["sequences"] == 1 and set(g["map"]) == set(names)
+        for name in names:
+            v = m[name]["map_per_context"][ctx]
+            assert g["map"][name] == (None if v is None else [v, v]), (ctx, name)
+        assert len(g["difference"]) == len(names) * (len(names) - 1) // 2
+    assert ci["per_context"]["all"]["sequences"] == 2
+    md = (tiny["out"] / "report.md").read_text()
+    assert "95 % interval per context" in md and "minus late fusion's" in md
     # range bins per context come from the same scoring as the methods table
     assert r["range_per_context"]["late"] == m["late"]["map_vehicles_per_context_range"]
 
