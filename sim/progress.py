@@ -33,6 +33,7 @@ class LineProgress:
         if total is None and iterable is not None and hasattr(iterable, "__len__"):
             total = len(iterable)  # type: ignore[arg-type]
         self.total, self.desc, self.unit, self.n = total, desc, unit, initial
+        self.initial = initial  # done before this bar started (a resumed run): not in its rate
         self.interval = _interval() if interval is None else interval
         self.stream = stream or sys.stderr
         self.enabled = enabled
@@ -50,8 +51,9 @@ class LineProgress:
         else:
             text = f"{self.desc}: {self.n} {self.unit}"
         text += f", {elapsed:.0f} s elapsed"
-        if self.total and self.n and self.n < self.total:
-            text += f", ~{elapsed / self.n * (self.total - self.n):.0f} s left"
+        done = self.n - self.initial
+        if self.total and done > 0 and self.n < self.total:
+            text += f", ~{elapsed / done * (self.total - self.n):.0f} s left"
         return text + (f", {self.postfix}" if self.postfix else "")
 
     def _emit(self) -> None:

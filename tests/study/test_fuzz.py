@@ -589,6 +589,25 @@ def test_line_progress_prints_every_interval_and_at_the_end():
     assert len(lines) == 2 and lines[0].startswith("work: 1/4 step") and lines[1].endswith("loss=0.5")
 
 
+def test_line_progress_of_a_resumed_job_times_only_its_own_steps(monkeypatch):
+    """A run resumed at step 100 of 140 that takes 10 s per step has ~390 s left after its first
+    step, not the ~4 s that counting the resumed steps as done in this bar's time would say."""
+    import io
+
+    import sim.progress as sp
+
+    clock = [1000.0]
+    monkeypatch.setattr(sp.time, "monotonic", lambda: clock[0])
+    buf = io.StringIO()
+    bar = sp.LineProgress(total=140, desc="epoch 1/3", unit="step", initial=100, interval=0.0, stream=buf)
+    clock[0] += 10.0
+    bar.update(1)
+    assert buf.getvalue().splitlines()[-1] == "epoch 1/3: 101/140 step (72%), 10 s elapsed, ~390 s left"
+    bar = sp.LineProgress(total=140, desc="e", unit="step", initial=100, interval=0.0, stream=buf)
+    bar._emit()  # nothing done yet in this bar: no estimate rather than a wrong one
+    assert buf.getvalue().splitlines()[-1] == "e: 100/140 step (71%), 0 s elapsed"
+
+
 def test_zz_count_of_cases(capsys):
     """Runs last in this file: the number of cases the suite tried (see the README)."""
     with capsys.disabled():
