@@ -215,6 +215,8 @@ def test_bad_configs_are_one_line_errors(tmp_path, capsys):
                          ("train:\n  epochs: 0\n", "train.epochs must be >= 1"),
                          ("train:\n  branches: [sonar]\n", "unknown branch 'sonar'"),
                          ("evaluate:\n  lambda_e: 2\n", "evaluate.lambda_e"),
+                         ("evaluate:\n  bootstrap: -1\n", "evaluate.bootstrap"),
+                         ("evaluate:\n  bootstrap: 1000000\n", "evaluate.bootstrap"),
                          ("data:\n  contexts: [mars]\n", "mars"),
                          ("gates:\n  gates: [optimal]\n", "not a learned gate"),
                          ("data: [1, 2]\n", "data")):
@@ -231,3 +233,23 @@ def test_bad_configs_are_one_line_errors(tmp_path, capsys):
     (foreign / "notes.txt").write_text("mine")
     assert main(["study", "tiny", "--out", str(foreign)]) == 2
     assert "holds no study" in capsys.readouterr().err and os.listdir(foreign) == ["notes.txt"]
+
+
+def test_every_preset_loads_and_the_help_names_it(capsys):
+    from study.cli import main
+    from study.runner import PRESETS_DIR
+
+    names = sorted(p.stem for p in PRESETS_DIR.glob("*.yaml"))
+    assert {"tiny", "smoke", "cpu", "cpu-long", "paper"} <= set(names)
+    for n in names:
+        cfg = load_study_config(n)
+        assert cfg.scale == n, n  # every table carries the preset's name
+    with pytest.raises(SystemExit):
+        main(["study", "--help"])
+    help_text = " ".join(capsys.readouterr().out.split())
+    for n in names:
+        assert n in help_text.split("presets:")[1], n
+    # the README's study is sized for 2 cores and reports intervals; cpu-long is it at full size
+    cpu, long_ = load_study_config("cpu"), load_study_config("cpu-long")
+    assert cpu.evaluate.bootstrap > 0 and long_.evaluate.bootstrap > 0
+    assert cpu.data.frames_per_context < long_.data.frames_per_context and cpu.train.epochs < long_.train.epochs
