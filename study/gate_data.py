@@ -20,7 +20,6 @@ from __future__ import annotations
 import hashlib
 import json
 import os
-import sys
 from collections import defaultdict
 from pathlib import Path
 
@@ -75,11 +74,11 @@ def _atomic_text(path: Path, text: str) -> None:
 
 
 def _bar(total: int, desc: str, progress: bool):
-    from tqdm import tqdm
+    """tqdm on a terminal; a whole line every few seconds when stderr is a file or pipe (a tqdm bar
+    there writes carriage returns that a log shows as one line)."""
+    from sim.progress import progress as progress_bar
 
-    tty = sys.stderr.isatty()
-    return tqdm(total=total, desc=desc, file=sys.stderr, disable=not progress, dynamic_ncols=tty,
-                mininterval=0.1 if tty else 30.0, leave=False)
+    return progress_bar(total=total, desc=desc, enabled=progress)
 
 
 # ----- the gate dataset -----------------------------------------------------------------------

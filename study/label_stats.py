@@ -9,7 +9,6 @@ behind "a metric that only credits what the camera sees cannot credit radar or l
 
 from __future__ import annotations
 
-import sys
 from collections import defaultdict
 
 import numpy as np
@@ -22,10 +21,9 @@ VEHICLE_IDS = (1, 2, 3, 4)  # car, van, truck, bus
 def label_statistics(data, protocols=("visible", "reference"), progress: bool = True) -> dict:
     """{"frames", "protocols": {name: {frame: {"vehicles": {bin: {"to_find", "ignored"}}, ...}}},
     "observed_by": {...}} for the dataset at `data` (see the module docstring)."""
-    from tqdm import tqdm
-
     from fusion.protocol import RANGE_BINS, Protocol, frame_labels, range_bin_names
     from sensors.dataset import DatasetReader
+    from sim.progress import progress as progress_bar
 
     reader = DatasetReader(data)
     if "objects" not in reader.labels(0):
@@ -37,9 +35,7 @@ def label_statistics(data, protocols=("visible", "reference"), progress: bool = 
     per_context = {p: defaultdict(lambda: [0, 0]) for p in protocols}
     sensors = defaultdict(int)
     n_objects = 0
-    tty = sys.stderr.isatty()
-    for i in tqdm(range(len(reader)), desc="labels", file=sys.stderr, disable=not progress,
-                  mininterval=0.1 if tty else 10.0):
+    for i in progress_bar(iterable=range(len(reader)), desc="labels", unit="frame", enabled=progress):
         meta, labels = reader.meta(i), reader.labels(i)
         for p in protocols:
             gt = frame_labels(labels, meta, Protocol(p))

@@ -23,7 +23,6 @@ table.
 
 from __future__ import annotations
 
-import sys
 import time
 
 import numpy as np
@@ -93,13 +92,13 @@ def lidar_fog_comparison(visibilities=VISIBILITIES_M, layouts=LAYOUTS, frames_pe
     """The comparison table (module docstring). Figures are fractions of the clean returns in
     each (visibility, range bin, subset); `differences` lists where ours and hahner differ by
     more than DIFFERENCE_LIMIT in a bin with >= MIN_OBJECT_RETURNS actor returns."""
-    from tqdm import tqdm
+    from sensors.degrade.lidar import SPEED_OF_LIGHT_M_S
+    from sim.progress import HahnerFog, replace_by_fog
+    from sim.progress import progress as progress_bar
 
-    from sensors.degrade.lidar import SPEED_OF_LIGHT_M_S, HahnerFog, replace_by_fog
-
-    tty = sys.stderr.isatty()  # a line every few seconds also when stderr is a file or pipe
-    bar = tqdm(total=len(layouts) * frames_per_layout * (1 + len(visibilities)), desc="bench lidar-fog",
-               file=sys.stderr, disable=not progress, dynamic_ncols=tty, mininterval=0.5 if tty else 5.0)
+    # tqdm on a terminal, a line every few seconds when stderr is a file or pipe
+    bar = progress_bar(total=len(layouts) * frames_per_layout * (1 + len(visibilities)), desc="bench lidar-fog",
+                       unit="frame", enabled=progress)
     frames = clean_lidar_frames(layouts, frames_per_layout, seed, progress=lambda: bar.update(1))
     n_bins = len(RANGE_BINS_M)
     keys = (*MODELS, "hahner_as_written", "hahner_unrounded", "hahner_consistent_beta0")

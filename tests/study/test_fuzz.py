@@ -608,6 +608,22 @@ def test_line_progress_of_a_resumed_job_times_only_its_own_steps(monkeypatch):
     assert buf.getvalue().splitlines()[-1] == "e: 100/140 step (71%), 0 s elapsed"
 
 
+def test_gate_data_label_and_lidar_fog_bars_print_whole_lines_into_a_log(capsys, monkeypatch):
+    """In a log file a tqdm bar is carriage returns on one line; these bars print whole lines."""
+    from sim.progress import LineProgress
+    from study.gate_data import _bar
+
+    monkeypatch.setenv("HYDRABENCH_PROGRESS_S", "0")  # a line at every update
+    bar = _bar(3, "gate data", True)
+    assert isinstance(bar, LineProgress)
+    bar.update(2)
+    bar.close()
+    err = capsys.readouterr().err
+    assert "\r" not in err and err.splitlines()[0].startswith("gate data: 2/3 it (67%)")
+    for path in ("study/label_stats.py", "study/bench/lidar_fog.py", "study/gate_data.py"):
+        assert "from tqdm import" not in (Path(__file__).resolve().parents[2] / path).read_text(), path
+
+
 def test_zz_count_of_cases(capsys):
     """Runs last in this file: the number of cases the suite tried (see the README)."""
     with capsys.disabled():
