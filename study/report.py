@@ -97,6 +97,7 @@ def _severity_figure(results: dict, path: Path) -> bool:
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
+    from matplotlib.ticker import MaxNLocator
 
     from study.outputs import savefig_atomic
 
@@ -114,6 +115,7 @@ def _severity_figure(results: dict, path: Path) -> bool:
                 ax.plot(xc, [rows[str(s)]["clear"] for s in xc], ":", color=line.get_color(), lw=1)
         ax.set_title(cond)
         ax.set_xlabel("severity")
+        ax.xaxis.set_major_locator(MaxNLocator(integer=True))  # severities are levels 1-5
         ax.grid(alpha=0.3)
     axes[0][0].set_ylabel("vehicle mAP@0.5 (dotted: clear twins)")
     axes[0][-1].legend(fontsize=6, loc="best")

@@ -223,11 +223,12 @@ def evaluate_study(run, run_early, data, cfg, s, work: Path, setup=None, progres
 
         clear_reader = DatasetReader(data, clear=True)
         clear_frames = run_branches(ev.model, data, ev.test, branches, batch_size=cfg.train.batch_size,
-                                    progress="clear twins")
+                                    progress="clear twins", clear=True)
         twins = {"paper": (clear_frames, ev.model.branch_frames)}
         if early_per_frame is not None:
             twins["early"] = (run_branches(early_model, data, ev.test, list(early_model.branches),
-                                           batch_size=cfg.train.batch_size, progress="clear twins (early)"),
+                                           batch_size=cfg.train.batch_size, progress="clear twins (early)",
+                                           clear=True),
                               early_model.branch_frames)
     conditions = sorted({c for c, sv in zip(contexts, severities) if sv > 0})
     sweep_rows: dict = {}

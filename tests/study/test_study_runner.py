@@ -253,3 +253,28 @@ def test_every_preset_loads_and_the_help_names_it(capsys):
     cpu, long_ = load_study_config("cpu"), load_study_config("cpu-long")
     assert cpu.evaluate.bootstrap > 0 and long_.evaluate.bootstrap > 0
     assert cpu.data.frames_per_context < long_.data.frames_per_context and cpu.train.epochs < long_.train.epochs
+
+
+def test_the_twin_columns_are_scored_on_the_clear_twins(tiny, tmp_path, monkeypatch):
+    """The severity sweep's "clear" column runs the branches on the clear-weather arrays (a study once
+    ran them on the degraded frames again, so every twin equalled its frame, lidar in dense fog too)."""
+    import study.detect as detect
+    from study.runner import _device_setup, eco_settings, link_farm
+    from study.study_eval import evaluate_study
+
+    stages = {n: Path(s["dir"]) for n, s in tiny["first"]["stages"].items()}
+    real, calls = detect.run_branches, []
+
+    def spy(*args, **kw):
+        calls.append((kw.get("progress"), kw.get("clear", False)))
+        return real(*args, **kw)
+
+    monkeypatch.setattr(detect, "run_branches", spy)
+    run = tmp_path / "run"
+    link_farm(stages["gates"] / "run", run)
+    cfg = tiny["cfg"]
+    evaluate_study(run, stages["train"] / "early", stages["generate"] / "data", cfg, eco_settings(cfg), tmp_path,
+                   setup=_device_setup(cfg), progress=False)
+    twins = [c for c in calls if c[0] and "clear twins" in c[0]]
+    assert len(twins) == 2 and all(clear for _, clear in twins), calls  # the paper run and the early model
+    assert all(not clear for p, clear in calls if not (p and "clear twins" in p)), calls
