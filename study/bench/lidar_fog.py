@@ -92,8 +92,7 @@ def lidar_fog_comparison(visibilities=VISIBILITIES_M, layouts=LAYOUTS, frames_pe
     """The comparison table (module docstring). Figures are fractions of the clean returns in
     each (visibility, range bin, subset); `differences` lists where ours and hahner differ by
     more than DIFFERENCE_LIMIT in a bin with >= MIN_OBJECT_RETURNS actor returns."""
-    from sensors.degrade.lidar import SPEED_OF_LIGHT_M_S
-    from sim.progress import HahnerFog, replace_by_fog
+    from sensors.degrade.lidar import SPEED_OF_LIGHT_M_S, HahnerFog, replace_by_fog
     from sim.progress import progress as progress_bar
 
     # tqdm on a terminal, a line every few seconds when stderr is a file or pipe
