@@ -15,6 +15,8 @@ import json
 import sys
 from pathlib import Path
 
+from study.detect import difference_interval
+
 BEGIN = "<!-- study-results:begin (scripts/readme_results.py writes this block; do not edit by hand) -->"
 END = "<!-- study-results:end -->"
 
@@ -27,15 +29,6 @@ def _interval(lo_hi, signed: bool = False) -> str:
     if not lo_hi:
         return "-"
     return f"[{lo_hi[0]:+.3f}, {lo_hi[1]:+.3f}]" if signed else f"[{lo_hi[0]:.3f}, {lo_hi[1]:.3f}]"
-
-
-def _minus(ci: dict, name: str, ref: str):
-    """The interval of `name` minus `ref` from a bootstrap group (its pairs are stored one way round)."""
-    d = ci["difference"]
-    if f"{name} - {ref}" in d:
-        return d[f"{name} - {ref}"]
-    iv = d.get(f"{ref} - {name}")
-    return None if iv is None else [-iv[1], -iv[0]]
 
 
 def results_block(report: dict) -> str:
@@ -61,7 +54,7 @@ def results_block(report: dict) -> str:
         if name not in r["methods"]:
             continue
         row = r["methods"][name]
-        cells = [_interval(ci["map"].get(name)), "-" if name == "late" else _interval(_minus(ci, name, "late"), signed=True)] if ci else []
+        cells = [_interval(ci["map"].get(name)), "-" if name == "late" else _interval(difference_interval(ci, name, "late"), signed=True)] if ci else []
         cells += [_f(row["map_per_context"].get(c)) for c in ds["contexts"]]
         lines.append(f"| {name} | {_f(row['map'])} | " + " | ".join(cells) + " |")
     lines.append("")

@@ -445,6 +445,16 @@ def context_bootstrap(sources: dict, reader, frame: str = "camera_right", protoc
     return out
 
 
+def difference_interval(group: dict, name: str, ref: str) -> list | None:
+    """The interval of `name` minus `ref` from one group of `context_bootstrap` (each pair is stored
+    once, as "a - b" in the order the sources were given; the other order is its negation)."""
+    d = group["difference"]
+    if f"{name} - {ref}" in d:
+        return d[f"{name} - {ref}"]
+    iv = d.get(f"{ref} - {name}")
+    return None if iv is None else [-iv[1], -iv[0]]
+
+
 def _mean_of(res, classes) -> float | None:
     """Mean AP over those of `classes` that have ground truth (None when none has)."""
     aps = [res.ap[c] for c in classes if res.ap.get(c) is not None and not np.isnan(res.ap[c])]

@@ -162,6 +162,8 @@ def build(results: dict, context: dict, work: Path, eval_dir: Path) -> tuple[Doc
     doc.table(f"mAP@0.5 per context, every method ({tag})", ["method", "what", "all", *ctxs], rows)
     ci = r.get("intervals")
     if ci:
+        from study.detect import difference_interval
+
         doc.h(2, "How sure: 95 % intervals of every method's mAP and of its difference from late fusion")
         doc.p(f"{ci['resamples']} draws of whole test sequences with replacement (frames of a sequence share traffic "
               "and weather), overall from all sequences and per context from the context's own; every method is "
@@ -174,19 +176,12 @@ def build(results: dict, context: dict, work: Path, eval_dir: Path) -> tuple[Doc
         def cell(lo_hi) -> str:
             return "-" if not lo_hi else f"[{_fmt(lo_hi[0])}, {_fmt(lo_hi[1])}]"
 
-        def diff(g, name, ref) -> list | None:
-            d = per[g]["difference"]
-            if f"{name} - {ref}" in d:
-                return d[f"{name} - {ref}"]
-            iv = d.get(f"{ref} - {name}")
-            return None if iv is None else [-iv[1], -iv[0]]
-
         doc.table(f"mAP@0.5: 95 % interval per context ({tag})", ["method", *[f"{g} ({per[g]['sequences']} seq)" for g in groups]],
                   [[n, *[cell(per[g]["map"].get(n)) for g in groups]] for n in r["methods"]])
         if "late" in r["methods"]:
             doc.table(f"mAP@0.5 minus late fusion's: 95 % interval of the paired difference per context ({tag})",
                       ["method", *groups],
-                      [[n, *[cell(diff(g, n, "late")) for g in groups]] for n in r["methods"] if n != "late"])
+                      [[n, *[cell(difference_interval(per[g], n, "late")) for g in groups]] for n in r["methods"] if n != "late"])
 
     # Table 3
     doc.h(2, "HydraFusion Table 3 analogue: best fusion per gate and k")
