@@ -159,7 +159,7 @@ def evaluate_study(run, run_early, data, cfg, s, work: Path, setup=None, progres
     bar.close()
 
     # the early-fusion run (Table 2 (ii)) ----------------------------------------------------
-    early, early_per_frame, early_model = {}, None, None
+    early, early_fused, early_model = {}, {}, None  # early_fused: each early model's detections, fused once
     if run_early is not None:
         from study.detect import fused as fuse_frames
         from study.detect import load_run, run_branches, score
@@ -169,8 +169,8 @@ def evaluate_study(run, run_early, data, cfg, s, work: Path, setup=None, progres
         early_per_frame = run_branches(early_model, data, ev.test, enames, batch_size=cfg.train.batch_size,
                                        progress="early fusion")
         for b in enames:
-            sc = score(fuse_frames(early_per_frame, [b], early_model.branch_frames, method), ev.reader,
-                       "camera_right", protocol=ev.ed.protocol)
+            early_fused[b] = fuse_frames(early_per_frame, [b], early_model.branch_frames, method)
+            sc = score(early_fused[b], ev.reader, "camera_right", protocol=ev.ed.protocol)
             early[b] = sc
             scores[f"early:{b}"], kinds[f"early:{b}"] = sc, f"early fusion model ({'+'.join(early_model.branch_sensors[b])})"
 
@@ -178,11 +178,9 @@ def evaluate_study(run, run_early, data, cfg, s, work: Path, setup=None, progres
     intervals = None
     if e.bootstrap:
         from study.detect import context_bootstrap
-        from study.detect import fused as fuse_frames
 
         sources = {name: M.fused(ch) for name, ch in choices.items()}
-        for b in early:
-            sources[f"early:{b}"] = fuse_frames(early_per_frame, [b], early_model.branch_frames, method)
+        sources.update({f"early:{b}": per for b, per in early_fused.items()})
         intervals = context_bootstrap(sources, ev.reader, "camera_right", protocol=ev.ed.protocol,
                                       resamples=e.bootstrap, classes="all", desc="bootstrap the methods")
 
@@ -225,7 +223,7 @@ def evaluate_study(run, run_early, data, cfg, s, work: Path, setup=None, progres
         clear_frames = run_branches(ev.model, data, ev.test, branches, batch_size=cfg.train.batch_size,
                                     progress="clear twins", clear=True)
         twins = {"paper": (clear_frames, ev.model.branch_frames)}
-        if early_per_frame is not None:
+        if early_model is not None:
             twins["early"] = (run_branches(early_model, data, ev.test, list(early_model.branches),
                                            batch_size=cfg.train.batch_size, progress="clear twins (early)",
                                            clear=True),
@@ -241,11 +239,9 @@ def evaluate_study(run, run_early, data, cfg, s, work: Path, setup=None, progres
         sweep_rows[cond] = {}
         for name in swept:
             if name.startswith("early:"):
-                from study.detect import fused as fuse_frames
                 from study.detect import score
 
-                b = name.split(":", 1)[1]
-                per = [p for p, k in zip(fuse_frames(early_per_frame, [b], early_model.branch_frames, method), keep) if k]
+                per = [p for p, k in zip(early_fused[name.split(":", 1)[1]], keep) if k]
                 deg = score(per, ev.reader, "camera_right", protocol=ev.ed.protocol)
             else:
                 deg = M.score(choices[name], keep=keep)
