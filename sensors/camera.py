@@ -50,6 +50,7 @@ LAMP_COLOUR = np.array([1.0, 0.86, 0.62], np.float32)  # warm-white / high-press
 HEADLIGHT_COLOUR = np.array([1.0, 1.0, 0.95], np.float32)
 LAMP_INTENSITY_CD = 2500.0  # peak luminous intensity of an ~8 klm urban street lantern [cd]
 HEADLIGHT_INTENSITY_CD = 20000.0  # peak of a dipped (low) beam [cd] (UN R112 ~ 10-30 kcd)
+HEADLIGHT_H_WIDTH_DEG, HEADLIGHT_V_WIDTH_DEG = 12.0, 5.0  # Gaussian widths of that beam [deg]
 GROUND_ALBEDO = 0.12  # for the light reflected up from the ground
 LIGHT_RANGE_M = 70.0  # lights farther than this from the camera are ignored
 EXPOSURE_KEY = 0.18  # mid-grey target of the auto-exposure (Reinhard's key)
@@ -112,6 +113,45 @@ def _pyrender_mesh(soup: MeshSoup) -> pyrender.Mesh:
     return pyrender.Mesh([prim])
 
 
+def _single_sample(renderer: pyrender.OffscreenRenderer) -> None:
+    """Draw the code pass straight into pyrender's single-sample framebuffer and read it back there.
+
+    pyrender draws into a 4-sample framebuffer and resolves it into a single-sample one with two
+    blits before reading. With multisampling off (`_no_multisample`) all four samples of a pixel
+    hold the same colour and depth, so the resolve only copies; on llvmpipe the blits and the
+    four-fold clear and fill took ~5 ms of the ~12 ms per eye. The codes and the depth are the
+    same bits (tests/sensors/test_camera.py renders both ways)."""
+    inner = renderer._renderer
+    cls = type(inner)
+
+    def configure() -> None:
+        cls._configure_main_framebuffer(inner)
+        inner._main_fb_ms = inner._main_fb  # the forward pass binds this one for drawing
+
+    def read(scene, flags):
+        width, height = inner._main_fb_dims
+        GL.glBindFramebuffer(GL.GL_READ_FRAMEBUFFER, inner._main_fb)
+        depth = np.frombuffer(GL.glReadPixels(0, 0, width, height, GL.GL_DEPTH_COMPONENT, GL.GL_FLOAT),
+                              np.float32).reshape(height, width)[::-1]
+        colour = np.frombuffer(GL.glReadPixels(0, 0, width, height, GL.GL_RGBA, GL.GL_UNSIGNED_BYTE),
+                               np.uint8).reshape(height, width, 4)[::-1]
+        return colour, linear_depth(depth, scene.main_camera_node.camera.znear, scene.main_camera_node.camera.zfar)
+
+    inner._configure_main_framebuffer = configure
+    inner._read_main_framebuffer = read
+
+
+def linear_depth(buffer: np.ndarray, znear: float, zfar: float) -> np.ndarray:
+    """Metric depth [m] from OpenGL depth-buffer values (0..1, 1 = nothing drawn -> 0), in float32
+    as pyrender computes it: z_ndc = 2 d - 1, depth = 2 n f / (f + n - z_ndc (f - n))."""
+    background = buffer == 1.0
+    out = 2.0 * buffer - 1.0  # float32
+    drawn = ~background
+    out[drawn] = (2.0 * znear * zfar) / (zfar + znear - out[drawn] * (zfar - znear))  # stored as float32
+    out[background] = 0.0
+    return out
+
+
 _RENDERERS: dict[tuple[int, int], pyrender.OffscreenRenderer] = {}
 
 
@@ -119,6 +159,7 @@ def _renderer(width: int, height: int) -> pyrender.OffscreenRenderer:
     key = (width, height)
     if key not in _RENDERERS:
         _RENDERERS[key] = pyrender.OffscreenRenderer(width, height)
+        _single_sample(_RENDERERS[key])
     return _RENDERERS[key]
 
 
@@ -220,19 +261,6 @@ def _normals_from_points(P: np.ndarray, depth: np.ndarray) -> np.ndarray:
 _SNAP_MATERIAL = np.isin(np.arange(len(MATERIALS)), [MATERIAL_ID[m] for m in ("asphalt", "lane_paint", "grass", "sidewalk")])
 
 
-def _beam(direction: np.ndarray, axis: np.ndarray, up: np.ndarray, h_width_deg: float, v_width_deg: float,
-          cutoff_up: bool) -> np.ndarray:
-    """Relative intensity of a beam towards `direction` (N, 3) around `axis` (3,)."""
-    cos_axis = direction @ axis
-    side = np.cross(axis, up)
-    h = np.degrees(np.arctan2(direction @ side, cos_axis))
-    v = np.degrees(np.arctan2(direction @ up, cos_axis))
-    w = np.exp(-((h / h_width_deg) ** 2) - ((v / v_width_deg) ** 2))
-    if cutoff_up:  # dipped beam: sharp cut-off above the horizon
-        w = w * np.where(v > 0.5, 0.03, 1.0)
-    return np.where(cos_axis > 0, w, 0.0)
-
-
 @dataclass
 class Lighting:
     """Illumination of a frame in photometric units.
@@ -330,34 +358,20 @@ def shade(
             lit &= ~shadow
     E = kernels.sky_and_sun(n[..., 2], lighting.sky_lux, GROUND_ALBEDO, SKY_COLOUR, lit, cos_s,
                             lighting.sun_normal_lux, SUN_COLOUR, with_sun)
-    up = np.array([0.0, 0.0, 1.0])
     artificial = (lighting.lamps_on and len(lighting.lamps)) or lighting.headlights_on
     if artificial:
+        lamps = np.zeros((0, 3))
+        if lighting.lamps_on and len(lighting.lamps):
+            lamps = lighting.lamps[np.linalg.norm(lighting.lamps - cam_pos, axis=1) < LIGHT_RANGE_M]
+        heads = [(pos, axis) for pos, axis in (lighting.headlights if lighting.headlights_on else [])
+                 if np.linalg.norm(pos - cam_pos) <= LIGHT_RANGE_M]
         pix = geo.reshape(-1)
-        Pf, nf = P.reshape(-1, 3)[pix], n.reshape(-1, 3)[pix]
-        Ef = np.zeros((pix.sum(), 3), np.float32)
-
-    def add_light(pos, intensity_fn, colour):
-        d = pos - Pf
-        dist2 = np.einsum("ij,ij->i", d, d)
-        dist = np.sqrt(dist2)
-        to_light = d / np.maximum(dist, 1e-6)[:, None]
-        cos_i = np.einsum("ij,ij->i", nf, to_light)
-        e = np.where(cos_i > 0, intensity_fn(-to_light) * cos_i / np.maximum(dist2, 0.25), 0.0)
-        Ef[:] += e[:, None].astype(np.float32) * colour
-
-    if lighting.lamps_on and len(lighting.lamps):
-        near = np.linalg.norm(lighting.lamps - cam_pos, axis=1) < LIGHT_RANGE_M
-        for pos in lighting.lamps[near]:
-            # a cut-off luminaire: strongest straight down, nothing above the horizontal
-            add_light(pos, lambda dirs: LAMP_INTENSITY_CD * np.clip(-dirs[:, 2], 0, 1) ** 1.5, LAMP_COLOUR)
-    if lighting.headlights_on:
-        for pos, axis in lighting.headlights:
-            if np.linalg.norm(pos - cam_pos) > LIGHT_RANGE_M:
-                continue
-            add_light(pos, lambda dirs, a=axis: HEADLIGHT_INTENSITY_CD * _beam(dirs, a, up, 12.0, 5.0, True),
-                      HEADLIGHT_COLOUR)
-    if artificial:
+        Ef = kernels.artificial_light(
+            np.ascontiguousarray(P.reshape(-1, 3)[pix]), np.ascontiguousarray(n.reshape(-1, 3)[pix]),
+            np.ascontiguousarray(lamps, np.float64), LAMP_INTENSITY_CD, LAMP_COLOUR,
+            np.array([p for p, _ in heads], np.float64).reshape(-1, 3),
+            np.array([a for _, a in heads], np.float64).reshape(-1, 3), HEADLIGHT_INTENSITY_CD,
+            HEADLIGHT_COLOUR, HEADLIGHT_H_WIDTH_DEG, HEADLIGHT_V_WIDTH_DEG)
         E.reshape(-1, 3)[pix] += Ef
 
     # emissive surfaces that are switched on

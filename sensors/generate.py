@@ -218,6 +218,31 @@ def generate_shard(config_dict: dict, spec_dict: dict, out: str) -> dict:
             "seconds": time.perf_counter() - t0, "timings": timings}
 
 
+def worker_start_method() -> str:
+    """How the local pool starts its workers: "fork" when this process holds no OpenGL context, else
+    "spawn".
+
+    A forked worker starts with this process's imports (highway-env, numpy, scipy: ~1 s of a fresh
+    interpreter's start-up per worker, inside the timed run); it creates its own EGL context on its
+    first render. A process that has rendered (sensors.camera keeps its offscreen renderers) must
+    not fork: the child would share the parent's EGL display state. Set HYDRABENCH_START_METHOD to
+    "spawn" or "fork" to choose. The arrays are the same bytes either way (each shard draws from
+    its own seeded streams)."""
+    import multiprocessing as mp
+    import sys
+
+    wanted = os.environ.get("HYDRABENCH_START_METHOD", "").strip()
+    if wanted:
+        if wanted not in ("fork", "spawn", "forkserver") or wanted not in mp.get_all_start_methods():
+            raise UserError(f"HYDRABENCH_START_METHOD={wanted!r}: choose from "
+                            f"{', '.join(m for m in ('fork', 'spawn', 'forkserver') if m in mp.get_all_start_methods())}")
+        return wanted
+    camera = sys.modules.get("sensors.camera")
+    if camera is not None and getattr(camera, "_RENDERERS", None):
+        return "spawn"
+    return "fork" if "fork" in mp.get_all_start_methods() else "spawn"
+
+
 def _init_worker(threads: int) -> None:
     os.environ["LP_NUM_THREADS"] = str(threads)
     os.environ["OMP_NUM_THREADS"] = str(threads)
@@ -257,17 +282,21 @@ def existing_record(root: Path, spec: ShardSpec, config: GenerateConfig, digest:
 
 
 def generate(config: GenerateConfig, out: str | Path, workers: int = 1, progress: bool = True,
-             backend: str = "local", address: str | None = None) -> dict:
+             backend: str = "local", address: str | None = None, start_method: str | None = None) -> dict:
     """Generate (or complete) the dataset in `out`. Returns a summary with timings.
 
     `backend`: "local" (this process, or a pool of `workers` processes) or "ray" (one Ray task per
     shard, `sensors.ray_backend`; `address` joins a running cluster, None starts a local instance
-    with `workers` CPUs). The arrays are the same bytes whichever runs them."""
+    with `workers` CPUs). The arrays are the same bytes whichever runs them. `start_method`: how the
+    local pool starts its processes ("fork", "spawn"; None = `worker_start_method()`)."""
     if backend not in ("local", "ray"):
         raise UserError(f"unknown backend {backend!r} (choose from: local, ray)")
     if address and backend != "ray":
         raise UserError("--address is the Ray cluster to join: it needs --backend ray")
     import multiprocessing as mp
+
+    if start_method is not None and start_method not in mp.get_all_start_methods():
+        raise UserError(f"unknown start method {start_method!r} (choose from: {', '.join(mp.get_all_start_methods())})")
 
     from sensors.dataset import FORMAT_VERSION, clean_partial, foreign_entries, write_manifest
     from sim.progress import progress as progress_bar
@@ -304,6 +333,7 @@ def generate(config: GenerateConfig, out: str | Path, workers: int = 1, progress
 
     cfg = config.to_dict()
     ray_info = None
+    method = None  # the local pool's start method, when a pool ran
     if backend == "ray":
         from sensors.ray_backend import run_shards
 
@@ -313,7 +343,8 @@ def generate(config: GenerateConfig, out: str | Path, workers: int = 1, progress
         for s in todo:
             collect(generate_shard(cfg, asdict(s), str(root)))
     else:
-        ctx = mp.get_context("spawn")
+        method = start_method or worker_start_method()
+        ctx = mp.get_context(method)
         threads = max(1, (os.cpu_count() or 1) // workers)
         with ctx.Pool(workers, initializer=_init_worker, initargs=(threads,), maxtasksperchild=None) as pool:
             results = [pool.apply_async(generate_shard, (cfg, asdict(s), str(root))) for s in todo]
@@ -345,6 +376,7 @@ def generate(config: GenerateConfig, out: str | Path, workers: int = 1, progress
         "profile": config.profile,
         "workers": workers,
         "backend": backend,
+        **({"start_method": method} if method else {}),
         **({"ray": ray_info} if ray_info else {}),
         "ms_per_frame": {k: round(1000 * v / max(rendered, 1), 2) for k, v in sorted(timings.items())},
         "out": str(root),

@@ -296,3 +296,80 @@ def decode_codes(colour, depth):
             else:
                 out[h, w] = np.inf
     return index, material, out
+
+
+# --- artificial light ----------------------------------------------------------------------------
+
+
+@njit(cache=True, error_model="numpy")
+def artificial_light(P, n, lamps, lamp_cd, lamp_colour, heads, axes, head_cd, head_colour,
+                     h_width_deg, v_width_deg):
+    """Illuminance [lx, RGB] at surface points from street lamps and dipped headlights.
+
+    Per light, as the numpy formulation in tests/sensors/test_kernels.py (`reference_lights`):
+    inverse square law with the distance floored at 0.5 m, Lambert's cosine, and the source's beam
+    pattern towards the point. Lamps: a cut-off luminaire, I = lamp_cd * cos^1.5 of the angle from
+    straight down, nothing above the horizontal. Headlights: a Gaussian beam around `axes`
+    (h_width_deg across, v_width_deg up-down) cut to 3 % above 0.5 deg up. Unlike the other kernels
+    of this module exp, pow and atan2 come from libm here, so values can differ from numpy's in the
+    last bit (the sensor model version says so).
+
+    Args:
+        P, n: (N, 3) float32 surface points and unit normals (world).
+        lamps: (L, 3) float64 lamp heads; heads, axes: (K, 3) float64 headlight positions, unit axes.
+        lamp_colour, head_colour: (3,) float32.
+    Returns:
+        (N, 3) float32, the lights' sum in the order lamps then headlights.
+    """
+    N = P.shape[0]
+    E = np.zeros((N, 3), np.float32)
+    deg = 180.0 / np.pi
+    for i in range(N):
+        px = np.float64(P[i, 0])
+        py = np.float64(P[i, 1])
+        pz = np.float64(P[i, 2])
+        nx = np.float64(n[i, 0])
+        ny = np.float64(n[i, 1])
+        nz = np.float64(n[i, 2])
+        for k in range(lamps.shape[0] + heads.shape[0]):
+            lamp = k < lamps.shape[0]
+            if lamp:
+                dx = lamps[k, 0] - px
+                dy = lamps[k, 1] - py
+                dz = lamps[k, 2] - pz
+            else:
+                j = k - lamps.shape[0]
+                dx = heads[j, 0] - px
+                dy = heads[j, 1] - py
+                dz = heads[j, 2] - pz
+            dist2 = (dx * dx + dz * dz) + dy * dy
+            dist = np.sqrt(dist2)
+            inv = max(dist, 1e-6)
+            tx = dx / inv
+            ty = dy / inv
+            tz = dz / inv
+            cos_i = (nx * tx + nz * tz) + ny * ty
+            if not cos_i > 0:
+                continue
+            if lamp:
+                intensity = lamp_cd * min(max(tz, 0.0), 1.0) ** 1.5
+                colour = lamp_colour
+            else:
+                # the beam towards the point: direction = -to_light
+                ax, ay, az = axes[j, 0], axes[j, 1], axes[j, 2]
+                cos_axis = (-tx) * ax + (-ty) * ay + (-tz) * az
+                if not cos_axis > 0:
+                    continue
+                side = (-tx) * ay + (-ty) * (-ax)  # direction . (axis x up), up = +z
+                h = np.arctan2(side, cos_axis) * deg
+                v = np.arctan2(-tz, cos_axis) * deg
+                w = np.exp(-((h / h_width_deg) ** 2) - ((v / v_width_deg) ** 2))
+                if v > 0.5:
+                    w = w * 0.03
+                intensity = head_cd * w
+                colour = head_colour
+            e = np.float32(intensity * cos_i / max(dist2, 0.25))
+            E[i, 0] += e * colour[0]
+            E[i, 1] += e * colour[1]
+            E[i, 2] += e * colour[2]
+    return E

@@ -122,9 +122,19 @@ class Structures:
 
 
 def _sample_lane(lane, step: float, lateral: float = 0.0) -> np.ndarray:
+    """Points every <= `step` m along a lane at offset `lateral` (world frame).
+
+    A straight lane's points are computed in one array expression: the same float64 products and
+    sums as `StraightLane.position`, element by element, so the same bits (tests/sim/test_world.py).
+    Other lanes (arcs, polylines) go point by point through their own `position`."""
+    from highway_env.road.lane import StraightLane
+
     n = max(2, int(np.ceil(lane.length / step)) + 1)
     s = np.linspace(0.0, lane.length, n)
-    pts = np.array([lane.position(si, lateral) for si in s])
+    if type(lane) is StraightLane:
+        pts = lane.start + s[:, None] * lane.direction + lateral * lane.direction_lateral
+    else:
+        pts = np.array([lane.position(si, lateral) for si in s])
     return hw_to_world(pts)
 
 

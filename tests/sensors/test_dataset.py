@@ -15,6 +15,7 @@ import pytest
 
 from sensors.dataset import ARRAYS, DatasetReader, verify
 from sensors.generate import GenerateConfig, generate, plan
+from sim.errors import UserError
 from study.cli import main
 
 CONFIG = GenerateConfig(contexts=("junction", "fog"), frames_per_context=2, sequence_length=1, seed=5, twins=True)
@@ -42,6 +43,38 @@ def test_same_bytes_whatever_the_number_of_workers(reference, tmp_path):
         for name in ARRAYS + ("lidar_points",):
             a, b = np.load(ref / shard / f"{name}.npy"), np.load(one / shard / f"{name}.npy")
             assert a.dtype == b.dtype and np.array_equal(a, b), (shard, name)
+
+
+@pytest.mark.parametrize("method", ["fork", "spawn"])
+def test_same_bytes_whichever_way_the_workers_start(reference, tmp_path, method):
+    """Forked from a process that has not rendered (a fresh one, as `hydrabench generate` is), and
+    spawned."""
+    ref, _ = reference
+    code = (f"import json, sys\nfrom sensors.generate import GenerateConfig, generate\n"
+            f"s = generate(GenerateConfig.from_mapping(json.loads({json.dumps(json.dumps(CONFIG.to_dict()))})), sys.argv[1], workers=2, "
+            f"progress=False, start_method={method!r})\nprint(json.dumps(s))")
+    run = subprocess.run([sys.executable, "-c", code, str(tmp_path)], capture_output=True, text=True, timeout=600,
+                         cwd=Path(__file__).resolve().parents[2])
+    assert run.returncode == 0, run.stderr[-2000:]
+    assert json.loads(run.stdout)["start_method"] == method
+    assert _digests(tmp_path) == _digests(ref)
+
+
+def test_a_process_that_has_rendered_spawns_its_workers(monkeypatch, city):
+    from sensors import camera
+    from sensors.generate import worker_start_method
+
+    assert camera._RENDERERS  # the city fixture rendered in this process
+    assert worker_start_method() == "spawn"
+    monkeypatch.setattr(camera, "_RENDERERS", {})
+    assert worker_start_method() == "fork"
+    monkeypatch.setenv("HYDRABENCH_START_METHOD", "spawn")
+    assert worker_start_method() == "spawn"
+    monkeypatch.setenv("HYDRABENCH_START_METHOD", "threads")
+    with pytest.raises(UserError, match="HYDRABENCH_START_METHOD='threads'"):
+        worker_start_method()
+    with pytest.raises(UserError, match="unknown start method"):
+        generate(CONFIG, "/nonexistent-never-created", workers=2, start_method="vfork")
 
 
 def test_kill_9_then_rerun_completes_identically(reference, tmp_path):
