@@ -42,27 +42,50 @@ def bench_sim(frames: int = 200, seed: int = 0) -> dict:
 
 
 def bench_generate(profiles=("cpu", "paper"), workers=(1, 2), frames_per_context: int = 10,
-                   sequence_length: int = 10, seed: int = 0) -> dict:
-    """Generate a temporary dataset over every context for each profile and worker count: frames
-    per second, and (at the first worker count) milliseconds per pipeline component and per
-    degradation model, summed over workers, per rendered frame."""
+                   sequence_length: int = 10, seed: int = 0, start_methods=(None,), rounds: int = 1) -> dict:
+    """Generate a temporary dataset over every context for each profile, worker count and start
+    method of the worker pool (None: `sensors.generate.worker_start_method()`, "fork", "spawn"):
+    frames per second, and (at the first worker count and method, first round) milliseconds per
+    pipeline component and per degradation model, summed over workers, per rendered frame.
+
+    `rounds` > 1 repeats every combination in turn (A B A B ...), so that a machine whose speed
+    drifts slows each alike; `ratios` gives, per profile and worker count, each method's median
+    frames/s over the first method's."""
+    import statistics
     import tempfile
 
     from sensors.generate import GenerateConfig, generate
 
-    profiles, workers = list(profiles), list(workers)
+    profiles, workers, start_methods = list(profiles), list(workers), list(start_methods)
+    if rounds < 1:
+        raise ValueError(f"rounds must be >= 1, got {rounds}")
     configs = {profile: GenerateConfig(frames_per_context=frames_per_context, sequence_length=sequence_length,
                                        seed=seed, profile=profile) for profile in profiles}  # all valid first
     runs, components = [], {}
-    for profile in profiles:
-        for w in workers:
-            config = configs[profile]
-            with tempfile.TemporaryDirectory(prefix="hydrabench-bench-") as tmp:
-                r = generate(config, tmp, workers=w, progress=True)
-            runs.append({"profile": profile, "workers": w, "frames": r["frames"], "seconds": r["seconds"],
-                         "frames_per_second": r["frames_per_second"]})
-            if w == workers[0]:
-                components[profile] = r["ms_per_frame"]
+    for round_ in range(rounds):
+        for profile in profiles:
+            for w in workers:
+                for method in start_methods:
+                    config = configs[profile]
+                    with tempfile.TemporaryDirectory(prefix="hydrabench-bench-") as tmp:
+                        r = generate(config, tmp, workers=w, progress=True, start_method=method)
+                    runs.append({"round": round_, "profile": profile, "workers": w, "requested": method or "auto",
+                                 "start_method": r.get("start_method", "none (one process)"),
+                                 "frames": r["frames"], "seconds": r["seconds"],
+                                 "frames_per_second": r["frames_per_second"]})
+                    if round_ == 0 and w == workers[0] and method == start_methods[0]:
+                        components[profile] = r["ms_per_frame"]
+    ratios = {}
+    if len(start_methods) > 1:
+        for profile in profiles:
+            for w in workers:
+                med = {}
+                for method in start_methods:
+                    got = [x for x in runs if x["profile"] == profile and x["workers"] == w
+                           and x["requested"] == (method or "auto")]
+                    med[method or "auto"] = statistics.median(x["frames_per_second"] for x in got) if got else None
+                first = med[start_methods[0] or "auto"]
+                ratios[f"{profile}/{w}"] = {m: (round(v / first, 3) if v and first else None) for m, v in med.items()}
     degradation = {}
     for profile, ms in components.items():
         total = sum(v for k, v in ms.items() if not k.startswith("degrade/") and k != "degradation")
@@ -72,5 +95,6 @@ def bench_generate(profiles=("cpu", "paper"), workers=(1, 2), frames_per_context
             "ms_total": ms.get("degradation", 0.0),
             "share_of_frame": round(ms.get("degradation", 0.0) / total, 3) if total else None,
         }
-    return {"runs": runs, "ms_per_component": components, "degradation": degradation,
-            "frames_per_context": frames_per_context, "sequence_length": sequence_length, **machine()}
+    return {"runs": runs, "ratios": ratios, "ms_per_component": components, "degradation": degradation,
+            "frames_per_context": frames_per_context, "sequence_length": sequence_length, "rounds": rounds,
+            **machine()}

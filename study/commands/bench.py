@@ -36,6 +36,21 @@ def parts_arg(text: str) -> tuple[str, ...]:
 parts_arg.kind = "names"
 
 
+def start_methods_arg(text: str) -> tuple:
+    """An argparse type: comma-separated pool start methods (auto, fork, spawn), each once; auto -> None."""
+    import multiprocessing as mp
+
+    items = name_list(text)
+    known = ["auto", *(m for m in ("fork", "spawn") if m in mp.get_all_start_methods())]
+    bad = [m for m in items if m not in known]
+    if bad:
+        raise argparse.ArgumentTypeError(f"unknown start method {bad[0]!r} (choose from: {', '.join(known)})")
+    return tuple(None if m == "auto" else m for m in items)
+
+
+start_methods_arg.kind = "names"
+
+
 def add_parser(sub, name, help_text):
     p = sub.add_parser(name, help=help_text, description=help_text, formatter_class=Formatter)
     what = p.add_subparsers(dest="what", metavar="<what>", parser_class=type(p))
@@ -58,6 +73,13 @@ def add_parser(sub, name, help_text):
     g.add_argument("--frames-per-context", type=pos_int, default=10, help="frames per context per run")
     g.add_argument("--sequence-length", type=pos_int, default=10, help="frames per sequence (setup is amortised over it)")
     g.add_argument("--seed", type=nonneg_int, default=0, help="root random seed")
+    g.add_argument("--start-methods", type=start_methods_arg, default="auto",
+                   help="comma-separated ways the worker pool starts its processes, each once: auto (fork "
+                   "unless this process has rendered), fork, spawn; with two or more, ratios of frames/s "
+                   "against the first are reported")
+    g.add_argument("--rounds", type=int_range(1, 100, "rounds"), default=1,
+                   help="repeat every combination this many times, in turn (A B A B), so that drifting "
+                   "machine speed slows each alike")
     g.add_argument("--json", action="store_true", help="print one JSON object on stdout")
     g.set_defaults(run=run_generate)
     b = what.add_parser("boxes", help="our NMS / Soft-NMS / WBF against ensemble-boxes (ms, speed-up, equal output)",
@@ -154,11 +176,15 @@ def run_generate(args) -> int:
     from study.bench.pipeline import bench_generate
 
     result = bench_generate(profiles=args.profiles, workers=args.workers, frames_per_context=args.frames_per_context,
-                            sequence_length=args.sequence_length, seed=args.seed)
+                            sequence_length=args.sequence_length, seed=args.seed, start_methods=args.start_methods,
+                            rounds=args.rounds)
 
     def text(r):
-        lines = [f"{x['profile']:6s} workers {x['workers']}: {x['frames_per_second']} frames/s "
-                 f"({x['frames']} frames in {x['seconds']} s)" for x in r["runs"]]
+        lines = [f"{x['profile']:6s} workers {x['workers']} ({x['start_method']}, round {x['round'] + 1}): "
+                 f"{x['frames_per_second']} frames/s ({x['frames']} frames in {x['seconds']} s)" for x in r["runs"]]
+        for key, ratio in r["ratios"].items():
+            lines.append(f"{key} frames/s relative to {next(iter(ratio))}: "
+                         + ", ".join(f"{m} {v}" for m, v in ratio.items()))
         for p, ms in r["ms_per_component"].items():
             lines.append(f"{p} ms per frame: " + ", ".join(f"{k} {v}" for k, v in ms.items() if not k.startswith("degrade/")))
             d = r["degradation"][p]

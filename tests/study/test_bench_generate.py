@@ -1,0 +1,50 @@
+"""`hydrabench bench generate`: every profile x worker count x start method x round is a run, in turn,
+and the ratios are the quotients of the median rates measured. Run in a fresh process, as a user runs
+it: this test process has rendered, and a pool must not fork from it."""
+
+import json
+import os
+import statistics
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+from study.bench.pipeline import bench_generate
+from study.cli import main
+
+ROOT = Path(__file__).resolve().parents[2]
+
+
+def test_bench_generate_alternates_start_methods_and_reports_their_ratio():
+    cmd = [sys.executable, "-m", "study.cli", "bench", "generate", "--profiles", "cpu", "--workers", "2",
+           "--frames-per-context", "1", "--sequence-length", "1", "--start-methods", "spawn,fork", "--rounds", "2",
+           "--json"]
+    env = {**os.environ, "HYDRABENCH_PROGRESS_S": "0"}
+    run = subprocess.run(cmd, capture_output=True, text=True, timeout=900, cwd=ROOT, env=env)
+    assert run.returncode == 0, run.stderr[-2000:]
+    r = json.loads(run.stdout)
+    assert [(x["round"], x["start_method"]) for x in r["runs"]] == [(0, "spawn"), (0, "fork"), (1, "spawn"), (1, "fork")]
+    assert all(x["frames"] == 8 and x["frames_per_second"] > 0 for x in r["runs"])
+    med = {m: statistics.median(x["frames_per_second"] for x in r["runs"] if x["start_method"] == m)
+           for m in ("spawn", "fork")}
+    assert r["ratios"]["cpu/2"] == {"spawn": 1.0, "fork": round(med["fork"] / med["spawn"], 3)}
+    assert set(r["ms_per_component"]["cpu"]) >= {"simulation", "camera_raster", "camera_shading", "write"}
+    assert "generate: 8/8 frame" in run.stderr  # progress lines in a log
+
+
+@pytest.mark.parametrize("argv, needle", [
+    (["--start-methods", "threads"], "unknown start method 'threads'"),
+    (["--start-methods", "fork,fork"], "named twice"),
+    (["--rounds", "0"], "--rounds: must be >= 1"),
+])
+def test_bench_generate_bad_input_is_one_line_exit_2(argv, needle, capsys):
+    assert main(["bench", "generate", *argv]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and needle in err[0]
+
+
+def test_bench_generate_refuses_zero_rounds():
+    with pytest.raises(ValueError, match="rounds"):
+        bench_generate(profiles=("cpu",), workers=(1,), rounds=0)
