@@ -117,10 +117,11 @@ def _single_sample(renderer: pyrender.OffscreenRenderer) -> None:
     """Draw the code pass straight into pyrender's single-sample framebuffer and read it back there.
 
     pyrender draws into a 4-sample framebuffer and resolves it into a single-sample one with two
-    blits before reading. With multisampling off (`_no_multisample`) all four samples of a pixel
-    hold the same colour and depth, so the resolve only copies; on llvmpipe the blits and the
-    four-fold clear and fill took ~5 ms of the ~12 ms per eye. The codes and the depth are the
-    same bits (tests/sensors/test_camera.py renders both ways)."""
+    blits before reading. With multisampling off (`_no_multisample`) every sample of a pixel is
+    covered alike, so the resolve only copies; on llvmpipe the blits and the four-fold clear and
+    fill were about a third of the pass. The codes are the same; the depth differs by the depth
+    buffer's rounding (< 2e-4 relative): tests/sensors/test_camera_pass.py renders both ways.
+    Sensor model 4 and later use this pass."""
     inner = renderer._renderer
     cls = type(inner)
 

@@ -1,7 +1,6 @@
 """The camera's code pass drawn single-sampled (sensors.camera._single_sample) gives the codes of
 pyrender's own multisample-and-resolve path exactly, and its depth to the depth buffer's rounding."""
 
-import json
 import subprocess
 import sys
 from pathlib import Path
