@@ -119,7 +119,8 @@ def run_generate(args) -> int:
     result = generate(config, out, workers=args.workers, progress=True, backend=args.backend, address=args.address)
     emit(result, args.json, lambda r: (
         f"{r['frames']} frames in {r['out']} ({r['frames_rendered']} rendered in {r['seconds']} s, "
-        f"{r['frames_per_second']} frames/s, profile {r['profile']}, {r['workers']} workers, {r['backend']} backend)"))
+        f"{r['frames_per_second']} frames/s, profile {r['profile']}, {r['workers']} workers"
+        + (f" ({r['start_method']})" if r.get("start_method") else "") + f", {r['backend']} backend)"))
     return 0
 
 
