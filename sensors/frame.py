@@ -104,6 +104,7 @@ class SequenceRenderer:
         self.frames_done = 0
         self.timings["setup"] += time.perf_counter() - t0
         self._actors_key = None
+        self._geometry_key, self._geometry = None, None
 
     def _tick(self, name: str, t0: float) -> float:
         t = time.perf_counter()
@@ -138,19 +139,30 @@ class SequenceRenderer:
         lighting = cam_mod.lighting_for(
             weather, light, self.lamps, cam_mod.headlights_of(scene.actors, scene.ego.pose, scene.ego.size)
         )
+        key = (scene.sequence_id, scene.frame_index)
+        if self._geometry_key != key:
+            # what the weather does not touch: the cameras' code pass, the lidar sweep and the radar
+            # scan (its speckle is drawn from the frame's own stream); a second observation of the
+            # same moment (the clear twin) reuses them. Nothing downstream writes into them (the
+            # degradations return new observations; tests/sensors/test_dataset.py checks twins)
+            codes = {}
+            for name in ("camera_left", "camera_right"):
+                codes[name] = self.stereo.codes(self.calib.camera(name), scene.ego.pose)
+                t = self._tick("camera_raster", t)
+            lid = lidar_mod.scan(self.caster, self.calib, scene.ego.pose, ids, self.lidar_dirs)
+            t = self._tick("lidar", t)
+            rng = stream(self.seed, "radar", scene.frame_index)
+            rad = radar_mod.scan(self.caster, self.calib, scene.ego.pose, ids, rng)
+            t = self._tick("radar", t)
+            self._geometry_key, self._geometry = key, (codes, lid, rad)
+        codes, lid, rad = self._geometry
         cams = {}
         for name in ("camera_left", "camera_right"):
-            c = self.calib.camera(name)
-            index, material, depth = self.stereo.codes(c, scene.ego.pose)
-            t = self._tick("camera_raster", t)
-            cams[name] = cam_mod.shade(index, material, depth, c, scene.ego.pose, ids, lighting, self.caster)
+            index, material, depth = (a.copy() for a in codes[name])  # the observation owns its arrays
+            cams[name] = cam_mod.shade(index, material, depth, self.calib.camera(name), scene.ego.pose, ids, lighting,
+                                       self.caster)
             t = self._tick("camera_shading", t)
-        lid = lidar_mod.scan(self.caster, self.calib, scene.ego.pose, ids, self.lidar_dirs)
-        t = self._tick("lidar", t)
-        rng = stream(self.seed, "radar", scene.frame_index)
-        rad = radar_mod.scan(self.caster, self.calib, scene.ego.pose, ids, rng)
-        self._tick("radar", t)
-        return Observations(cams["camera_left"], cams["camera_right"], lid, rad, weather, ids)
+        return Observations(cams["camera_left"], cams["camera_right"], lid.copy(), rad.copy(), weather, ids)
 
     def finalize(self, scene: Scene, obs: Observations, degradation: dict | None = None,
                  keep_observations: bool = False, clean: Observations | None = None) -> Frame:

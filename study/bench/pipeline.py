@@ -42,7 +42,8 @@ def bench_sim(frames: int = 200, seed: int = 0) -> dict:
 
 
 def bench_generate(profiles=("cpu", "paper"), workers=(1, 2), frames_per_context: int = 10,
-                   sequence_length: int = 10, seed: int = 0, start_methods=(None,), rounds: int = 1) -> dict:
+                   sequence_length: int = 10, seed: int = 0, start_methods=(None,), rounds: int = 1,
+                   twins: bool = False) -> dict:
     """Generate a temporary dataset over every context for each profile, worker count and start
     method of the worker pool (None: `sensors.generate.worker_start_method()`, "fork", "spawn"):
     frames per second, and (at the first worker count and method, first round) milliseconds per
@@ -50,7 +51,8 @@ def bench_generate(profiles=("cpu", "paper"), workers=(1, 2), frames_per_context
 
     `rounds` > 1 repeats every combination in turn (A B A B ...), so that a machine whose speed
     drifts slows each alike; `ratios` gives, per profile and worker count, each method's median
-    frames/s over the first method's."""
+    frames/s over the first method's. `twins`: also render every frame's clear twin (as the study
+    presets do); frames/s then counts each frame once, its twin included."""
     import statistics
     import tempfile
 
@@ -60,7 +62,8 @@ def bench_generate(profiles=("cpu", "paper"), workers=(1, 2), frames_per_context
     if rounds < 1:
         raise ValueError(f"rounds must be >= 1, got {rounds}")
     configs = {profile: GenerateConfig(frames_per_context=frames_per_context, sequence_length=sequence_length,
-                                       seed=seed, profile=profile) for profile in profiles}  # all valid first
+                                       seed=seed, profile=profile, twins=twins)
+               for profile in profiles}  # all valid first
     runs, components = [], {}
     for round_ in range(rounds):
         for profile in profiles:
@@ -97,4 +100,5 @@ def bench_generate(profiles=("cpu", "paper"), workers=(1, 2), frames_per_context
         }
     return {"runs": runs, "ratios": ratios, "ms_per_component": components, "degradation": degradation,
             "frames_per_context": frames_per_context, "sequence_length": sequence_length, "rounds": rounds,
+            "twins": twins,
             **machine()}

@@ -80,6 +80,9 @@ def add_parser(sub, name, help_text):
     g.add_argument("--rounds", type=int_range(1, 100, "rounds"), default=1,
                    help="repeat every combination this many times, in turn (A B A B), so that drifting "
                    "machine speed slows each alike")
+    g.add_argument("--twins", action="store_true",
+                   help="also render each frame's clear-weather twin, as the study presets do (frames/s counts a "
+                   "frame and its twin once)")
     g.add_argument("--json", action="store_true", help="print one JSON object on stdout")
     g.set_defaults(run=run_generate)
     b = what.add_parser("boxes", help="our NMS / Soft-NMS / WBF against ensemble-boxes (ms, speed-up, equal output)",
@@ -177,7 +180,7 @@ def run_generate(args) -> int:
 
     result = bench_generate(profiles=args.profiles, workers=args.workers, frames_per_context=args.frames_per_context,
                             sequence_length=args.sequence_length, seed=args.seed, start_methods=args.start_methods,
-                            rounds=args.rounds)
+                            rounds=args.rounds, twins=args.twins)
 
     def text(r):
         lines = [f"{x['profile']:6s} workers {x['workers']} ({x['start_method']}, round {x['round'] + 1}): "

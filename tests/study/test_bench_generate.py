@@ -20,7 +20,7 @@ ROOT = Path(__file__).resolve().parents[2]
 def test_bench_generate_alternates_start_methods_and_reports_their_ratio():
     cmd = [sys.executable, "-m", "study.cli", "bench", "generate", "--profiles", "cpu", "--workers", "2",
            "--frames-per-context", "1", "--sequence-length", "1", "--start-methods", "spawn,fork", "--rounds", "2",
-           "--json"]
+           "--twins", "--json"]
     env = {**os.environ, "HYDRABENCH_PROGRESS_S": "0"}
     run = subprocess.run(cmd, capture_output=True, text=True, timeout=900, cwd=ROOT, env=env)
     assert run.returncode == 0, run.stderr[-2000:]
@@ -31,6 +31,7 @@ def test_bench_generate_alternates_start_methods_and_reports_their_ratio():
            for m in ("spawn", "fork")}
     assert r["ratios"]["cpu/2"] == {"spawn": 1.0, "fork": round(med["fork"] / med["spawn"], 3)}
     assert set(r["ms_per_component"]["cpu"]) >= {"simulation", "camera_raster", "camera_shading", "write"}
+    assert r["twins"] is True
     assert "generate: 8/8 frame" in run.stderr  # progress lines in a log
 
 
