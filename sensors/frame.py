@@ -142,9 +142,9 @@ class SequenceRenderer:
         key = (scene.sequence_id, scene.frame_index)
         if self._geometry_key != key:
             # what the weather does not touch: the cameras' code pass, the lidar sweep and the radar
-            # scan (its speckle is drawn from the frame's own stream); a second observation of the
-            # same moment (the clear twin) reuses them. Nothing downstream writes into them (the
-            # degradations return new observations; tests/sensors/test_dataset.py checks twins)
+            # scan (its speckle is drawn from the frame's own stream); another observation of the
+            # same moment (the clear twin, the gallery's rows) reuses them, and every observation
+            # gets its own copies (tests/sensors/test_observe.py)
             codes = {}
             for name in ("camera_left", "camera_right"):
                 codes[name] = self.stereo.codes(self.calib.camera(name), scene.ego.pose)
