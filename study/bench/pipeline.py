@@ -41,6 +41,44 @@ def bench_sim(frames: int = 200, seed: int = 0) -> dict:
     }
 
 
+def _in_fresh_child(fn, *args, **kwargs):
+    """`fn(*args, **kwargs)` in a forked child of this process, its result sent back.
+
+    A process that has rendered spawns its generation workers instead of forking them
+    (`sensors.generate.worker_start_method`), and a one-worker run renders in the calling process;
+    so each run of a bench goes to its own child, forked from this process before it has rendered,
+    and every run measures what `hydrabench generate` would. Where fork is unavailable or this
+    process has rendered already, the call runs here."""
+    import multiprocessing as mp
+    import traceback
+
+    from sensors.generate import worker_start_method
+
+    if worker_start_method() != "fork":
+        return fn(*args, **kwargs)
+    ctx = mp.get_context("fork")
+    receive, send = ctx.Pipe(duplex=False)
+
+    def target():
+        try:
+            send.send(("ok", fn(*args, **kwargs)))
+        except BaseException as e:  # noqa: BLE001 - reported in the parent
+            send.send(("error", f"{type(e).__name__}: {e}\n{traceback.format_exc()}"))
+
+    child = ctx.Process(target=target, daemon=False)
+    child.start()
+    send.close()
+    try:
+        status, value = receive.recv()
+    except EOFError:
+        child.join()
+        raise RuntimeError(f"the bench's child process died (exit code {child.exitcode})") from None
+    child.join()
+    if status != "ok":
+        raise RuntimeError(f"the bench's child process failed: {value}")
+    return value
+
+
 def bench_generate(profiles=("cpu", "paper"), workers=(1, 2), frames_per_context: int = 10,
                    sequence_length: int = 10, seed: int = 0, start_methods=(None,), rounds: int = 1,
                    twins: bool = False) -> dict:
@@ -71,7 +109,7 @@ def bench_generate(profiles=("cpu", "paper"), workers=(1, 2), frames_per_context
                 for method in start_methods:
                     config = configs[profile]
                     with tempfile.TemporaryDirectory(prefix="hydrabench-bench-") as tmp:
-                        r = generate(config, tmp, workers=w, progress=True, start_method=method)
+                        r = _in_fresh_child(generate, config, tmp, workers=w, progress=True, start_method=method)
                     runs.append({"round": round_, "profile": profile, "workers": w, "requested": method or "auto",
                                  "start_method": r.get("start_method", "none (one process)"),
                                  "frames": r["frames"], "seconds": r["seconds"],

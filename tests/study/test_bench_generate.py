@@ -49,3 +49,22 @@ def test_bench_generate_bad_input_is_one_line_exit_2(argv, needle, capsys):
 def test_bench_generate_refuses_zero_rounds():
     with pytest.raises(ValueError, match="rounds"):
         bench_generate(profiles=("cpu",), workers=(1,), rounds=0)
+
+
+def test_each_run_goes_to_a_fresh_child_of_a_process_that_has_not_rendered(monkeypatch):
+    import os
+
+    import sensors.generate as gen
+    from study.bench.pipeline import _in_fresh_child
+
+    monkeypatch.setattr(gen, "worker_start_method", lambda: "fork")
+    child = _in_fresh_child(os.getpid)
+    assert child != os.getpid()
+    assert _in_fresh_child(lambda a, b=0: a + b, 2, b=3) == 5
+    with pytest.raises(RuntimeError, match="ZeroDivisionError"):
+        _in_fresh_child(lambda: 1 / 0)
+    with pytest.raises(RuntimeError, match="died"):
+        _in_fresh_child(os._exit, 3)
+    # a process that has rendered (or cannot fork) runs the call itself
+    monkeypatch.setattr(gen, "worker_start_method", lambda: "spawn")
+    assert _in_fresh_child(os.getpid) == os.getpid()
