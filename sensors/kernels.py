@@ -11,8 +11,10 @@ compares them on real frames and random inputs). What that takes:
   ``((x0 + x2) + x1)`` (numpy's baseline SSE2 loop keeps two lanes: x0 and x2 share one).
 - no fused multiply-add: numba does not contract ``a * b + c`` without fastmath, nor does numpy's
   elementwise code.
-- no transcendental functions: numpy's SIMD exp / log / pow differ from libm by an ulp on some
-  CPUs, so those stay in numpy (the lamp and headlight beam patterns in `sensors.camera.shade`).
+- no transcendental functions, except in `artificial_light`: numpy's SIMD exp / log / pow differ
+  from libm by an ulp on some CPUs. On the reference machine (AVX2, numpy 2.4) the lights' exp,
+  pow and atan2 gave numpy's bits too (the 160-frame dataset, tests/sensors/test_kernels.py);
+  elsewhere they may differ in the last bit, which the test tolerates.
 - matrix products with BLAS (``P_cam @ R.T``) stay in numpy: OpenBLAS's kernels use FMA in a
   CPU-dependent order.
 
@@ -311,8 +313,8 @@ def artificial_light(P, n, lamps, lamp_cd, lamp_colour, heads, axes, head_cd, he
     pattern towards the point. Lamps: a cut-off luminaire, I = lamp_cd * cos^1.5 of the angle from
     straight down, nothing above the horizontal. Headlights: a Gaussian beam around `axes`
     (h_width_deg across, v_width_deg up-down) cut to 3 % above 0.5 deg up. Unlike the other kernels
-    of this module exp, pow and atan2 come from libm here, so values can differ from numpy's in the
-    last bit (the sensor model version says so).
+    of this module, exp, pow and atan2 come from libm here: the same bits as numpy's on the
+    reference machine, possibly one ulp apart on another (module docstring).
 
     Args:
         P, n: (N, 3) float32 surface points and unit normals (world).
