@@ -297,6 +297,8 @@ def generate(config: GenerateConfig, out: str | Path, workers: int = 1, progress
 
     if start_method is not None and start_method not in mp.get_all_start_methods():
         raise UserError(f"unknown start method {start_method!r} (choose from: {', '.join(mp.get_all_start_methods())})")
+    # chosen (and HYDRABENCH_START_METHOD checked) before anything is touched; used if a pool runs
+    pool_method = (start_method or worker_start_method()) if backend == "local" and workers > 1 else None
 
     from sensors.dataset import FORMAT_VERSION, clean_partial, foreign_entries, write_manifest
     from sim.progress import progress as progress_bar
@@ -343,7 +345,7 @@ def generate(config: GenerateConfig, out: str | Path, workers: int = 1, progress
         for s in todo:
             collect(generate_shard(cfg, asdict(s), str(root)))
     else:
-        method = start_method or worker_start_method()
+        method = pool_method
         ctx = mp.get_context(method)
         threads = max(1, (os.cpu_count() or 1) // workers)
         with ctx.Pool(workers, initializer=_init_worker, initargs=(threads,), maxtasksperchild=None) as pool:

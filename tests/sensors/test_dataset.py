@@ -60,7 +60,7 @@ def test_same_bytes_whichever_way_the_workers_start(reference, tmp_path, method)
     assert _digests(tmp_path) == _digests(ref)
 
 
-def test_a_process_that_has_rendered_spawns_its_workers(monkeypatch, city):
+def test_a_process_that_has_rendered_spawns_its_workers(monkeypatch, city, tmp_path):
     from sensors import camera
     from sensors.generate import worker_start_method
 
@@ -73,6 +73,9 @@ def test_a_process_that_has_rendered_spawns_its_workers(monkeypatch, city):
     monkeypatch.setenv("HYDRABENCH_START_METHOD", "threads")
     with pytest.raises(UserError, match="HYDRABENCH_START_METHOD='threads'"):
         worker_start_method()
+    with pytest.raises(UserError, match="HYDRABENCH_START_METHOD='threads'"):  # before anything is written
+        generate(CONFIG, tmp_path / "never", workers=2, progress=False)
+    assert not (tmp_path / "never").exists()
     with pytest.raises(UserError, match="unknown start method"):
         generate(CONFIG, "/nonexistent-never-created", workers=2, start_method="vfork")
 
