@@ -231,16 +231,16 @@ def worker_start_method() -> str:
     import multiprocessing as mp
     import sys
 
+    available = mp.get_all_start_methods()
     wanted = os.environ.get("HYDRABENCH_START_METHOD", "").strip()
     if wanted:
-        if wanted not in ("fork", "spawn", "forkserver") or wanted not in mp.get_all_start_methods():
-            raise UserError(f"HYDRABENCH_START_METHOD={wanted!r}: choose from "
-                            f"{', '.join(m for m in ('fork', 'spawn', 'forkserver') if m in mp.get_all_start_methods())}")
+        if wanted not in available:
+            raise UserError(f"HYDRABENCH_START_METHOD={wanted!r}: choose from {', '.join(available)}")
         return wanted
     camera = sys.modules.get("sensors.camera")
     if camera is not None and getattr(camera, "_RENDERERS", None):
         return "spawn"
-    return "fork" if "fork" in mp.get_all_start_methods() else "spawn"
+    return "fork" if "fork" in available else "spawn"
 
 
 def _init_worker(threads: int) -> None:
