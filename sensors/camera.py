@@ -34,7 +34,6 @@ import numpy as np  # noqa: E402
 import pyrender  # noqa: E402
 import pyrender.renderer as _pr  # noqa: E402
 from OpenGL import GL  # noqa: E402
-from scipy.ndimage import gaussian_filter  # noqa: E402
 
 from sensors.materials import ALBEDO, EMISSIVE, MATERIAL_ID, MATERIALS, PER_INSTANCE, instance_colour  # noqa: E402
 from sensors.rig import CameraCalibration, transform_points  # noqa: E402
@@ -402,6 +401,26 @@ def shade(
 # camera model
 
 
+def _gaussian_weights(sigma: float, truncate: float = 4.0) -> np.ndarray:
+    """The 1-D kernel of scipy.ndimage.gaussian_filter (radius round(truncate sigma), normalised)."""
+    radius = int(truncate * sigma + 0.5)
+    x = np.arange(-radius, radius + 1)
+    phi = np.exp(-0.5 / (sigma * sigma) * x ** 2)
+    return phi / phi.sum()
+
+
+_PSF_WEIGHTS = _gaussian_weights(PSF_SIGMA_PX)
+assert len(_PSF_WEIGHTS) == 5  # sensors.kernels.gaussian_blur5_hw
+
+
+def lens_blur(radiance: np.ndarray) -> np.ndarray:
+    """The lens PSF: scipy.ndimage.gaussian_filter(radiance, sigma=(PSF_SIGMA_PX, PSF_SIGMA_PX, 0)),
+    same bits, in one compiled pass (sensors.kernels.gaussian_blur5_hw)."""
+    from sensors.kernels import gaussian_blur5_hw
+
+    return gaussian_blur5_hw(radiance, _PSF_WEIGHTS)
+
+
 def wanted_exposure(radiance: np.ndarray) -> float:
     """Exposure k that maps the log-average luminance to mid-grey (Reinhard's key) [1/(cd/m^2)]."""
     lum = radiance @ np.array([0.2126, 0.7152, 0.0722], np.float32)
@@ -460,7 +479,7 @@ def expose(obs: CameraObservation, exposure: float | None = None) -> np.ndarray:
     else:
         k = exposure
     obs.exposure = k
-    blurred = gaussian_filter(obs.radiance, sigma=(PSF_SIGMA_PX, PSF_SIGMA_PX, 0))
+    blurred = lens_blur(obs.radiance)
     signal = blurred * k  # fraction of the full well
     p = obs.sensor_noise
     if p:

@@ -212,6 +212,61 @@ def cell_max(cells, values, n):
 # --- camera model ------------------------------------------------------------------------------
 
 
+@njit(cache=True)
+def _reflect(i, n):
+    """Index i of a line of length n extended as scipy.ndimage's mode 'reflect' (d c b a | a b c d | d c b a)."""
+    i = i % (2 * n)
+    return i if i < n else 2 * n - 1 - i
+
+
+@njit(cache=True, error_model="numpy")
+def _taps5(out, c, l2, l1, r1, r2, w0, w1, w2):
+    """out[k] = (c w2 + (l2 + r2) w0) + (l1 + r1) w1 in float64, rounded to out's dtype once."""
+    for k in range(out.shape[0]):
+        out[k] = (np.float64(c[k]) * w2 + (np.float64(l2[k]) + np.float64(r2[k])) * w0) + \
+            (np.float64(l1[k]) + np.float64(r1[k])) * w1
+
+
+@njit(cache=True, error_model="numpy")
+def gaussian_blur5_hw(x, weights):
+    """`scipy.ndimage.gaussian_filter(x, sigma=(s, s, 0))` of an (H, W, C) array with a 5-tap kernel
+    (radius 2: sigma 0.5 with scipy's truncate 4), mode 'reflect'.
+
+    As scipy's `correlate1d` computes a symmetric kernel: one pass along H, then one along W, the
+    first rounded to x's dtype in between; each output in float64 as
+    (x[i] w[2] + (x[i - 2] + x[i + 2]) w[0]) + (x[i - 1] + x[i + 1]) w[1], rounded once.
+
+    Args:
+        x: (H, W, C) float32 or float64. weights: (5,) float64 symmetric kernel
+        (`sensors.camera._PSF_WEIGHTS`).
+    Returns:
+        (H, W, C) array of x's dtype.
+    """
+    H, W, C = x.shape
+    w0, w1, w2 = weights[0], weights[1], weights[2]
+    src = np.ascontiguousarray(x).reshape(H, W * C)
+    tmp = np.empty((H, W * C), x.dtype)
+    out = np.empty((H, W * C), x.dtype)
+    for h in range(H):  # along H: whole rows
+        _taps5(tmp[h], src[h], src[_reflect(h - 2, H)], src[_reflect(h - 1, H)], src[_reflect(h + 1, H)],
+               src[_reflect(h + 2, H)], w0, w1, w2)
+    n = W * C
+    for h in range(H):  # along W: the row shifted by C elements; the two columns at each end reflected
+        line, res = tmp[h], out[h]
+        if W > 4:
+            _taps5(res[2 * C:n - 2 * C], line[2 * C:n - 2 * C], line[:n - 4 * C], line[C:n - 3 * C],
+                   line[3 * C:n - C], line[4 * C:], w0, w1, w2)
+        for w in range(W):
+            if 2 <= w < W - 2:
+                continue
+            a, b = _reflect(w - 2, W) * C, _reflect(w - 1, W) * C
+            d, e = _reflect(w + 1, W) * C, _reflect(w + 2, W) * C
+            k = w * C
+            _taps5(res[k:k + C], line[k:k + C], line[a:a + C], line[b:b + C], line[d:d + C], line[e:e + C],
+                   w0, w1, w2)
+    return out.reshape(H, W, C)
+
+
 @njit(cache=True, error_model="numpy")
 def shot_and_read_noise_apply(electrons, low, poisson_draws, normal_hi, normal_read, read_noise_e):
     """Combine the draws of `sensors.camera.shot_and_read_noise` (float32 arithmetic as numpy's):

@@ -153,6 +153,22 @@ def test_camera_model_kernels_equal_numpy():
         assert _bits_equal(kernels.to_uint8(y), np.round(np.clip(y, 0, 1) * 255).astype(np.uint8))
 
 
+def test_lens_blur_equals_scipys_gaussian_filter():
+    from scipy.ndimage import gaussian_filter
+
+    rng = np.random.default_rng(11)
+    shapes = [(188, 336, 3), (1, 1, 3), (2, 3, 3), (1, 5, 1), (3, 1, 2), (4, 4, 3), (5, 6, 3), (7, 9, 2)]
+    for shape in shapes:
+        for x in (rng.gamma(0.5, 300.0, shape).astype(np.float32), rng.random(shape)):
+            assert _bits_equal(cam_mod.lens_blur(x), gaussian_filter(x, sigma=(cam_mod.PSF_SIGMA_PX,) * 2 + (0,))), shape
+    x = rng.random((6, 8, 3)).astype(np.float32)
+    x[2, 3, 1], x[4, 0, 2] = np.inf, np.nan
+    ref = gaussian_filter(x, sigma=(cam_mod.PSF_SIGMA_PX,) * 2 + (0,))
+    assert _bits_equal(cam_mod.lens_blur(x), ref) and np.isnan(ref).any() and np.isinf(ref).any()
+    y = rng.random((9, 7, 3)).astype(np.float32)[::-1, ::2]  # a strided view
+    assert _bits_equal(cam_mod.lens_blur(y), gaussian_filter(y, sigma=(cam_mod.PSF_SIGMA_PX,) * 2 + (0,)))
+
+
 @pytest.mark.parametrize("scale", [3.0, 1100.0])  # night (Poisson counts) and day (normal approximation)
 def test_sensor_noise_draws_and_arithmetic_equal_numpy(scale):
     def reference(rng, electrons, read_noise_e):  # sensors.camera.shot_and_read_noise before the kernel
