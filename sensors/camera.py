@@ -237,6 +237,18 @@ def _rays(cam: CameraCalibration) -> np.ndarray:
     return _RAYS[key]
 
 
+_RAYS_PER_Z: dict = {}
+
+
+def _rays_per_z(cam: CameraCalibration) -> np.ndarray:
+    """The unit rays scaled to z = 1 (float32, as `rays / rays[..., 2:3]`): the point at depth z is z times this."""
+    key = (cam.width, cam.height, cam.K.tobytes())
+    if key not in _RAYS_PER_Z:
+        rays = _rays(cam)
+        _RAYS_PER_Z[key] = rays / rays[..., 2:3]
+    return _RAYS_PER_Z[key]
+
+
 def _normals_from_points(P: np.ndarray, depth: np.ndarray) -> np.ndarray:
     """Per-pixel surface normals (H, W, 3) from a point map, using the neighbour on the side with
     the smaller depth jump so object edges do not bleed."""
@@ -277,6 +289,9 @@ class Lighting:
     headlights: list
     lamps_on: bool
     headlights_on: bool
+
+
+_NO_COLOURS = np.zeros((1, len(ALBEDO), 3), np.float32)  # no pixel needs a per-actor colour
 
 
 @lru_cache(maxsize=32)
@@ -323,7 +338,7 @@ def shade(
     geo = np.isfinite(depth)
     rays = _rays(cam)  # unit, optical frame
     z = np.where(geo, depth, 0.0)[..., None]
-    P_cam = rays / rays[..., 2:3] * z
+    P_cam = _rays_per_z(cam) * z
     world_from_cam = (world_from_ego @ cam.ego_from_camera).astype(np.float32)
     P = P_cam @ world_from_cam[:3, :3].T + world_from_cam[:3, 3]
     cam_pos = world_from_cam[:3, 3]
@@ -331,12 +346,10 @@ def shade(
     n = kernels.surface_normals(P, np.where(geo, depth, np.float32(1e6)), np.ascontiguousarray(cam_pos),
                                 _SNAP_MATERIAL, material)
 
-    # albedo, with per-actor paint / clothing colours
-    albedo = ALBEDO[material].copy()
-    per_inst = PER_INSTANCE[material] & (index > 0)
-    if per_inst.any():
+    # albedo: per-actor paint / clothing colours where the material has them (in `kernels.radiance`)
+    table = _NO_COLOURS
+    if np.any(PER_INSTANCE[material] & (index > 0)):
         table = _colour_table(tuple(int(i) for i in actor_ids))
-        albedo[per_inst] = table[index[per_inst], material[per_inst]]
 
     # sky hemisphere seen by the surface + light bounced off the ground, both sky-coloured; the sun
     with_sun = lighting.sun_normal_lux > 0
@@ -365,14 +378,11 @@ def shade(
             lamps = lighting.lamps[np.linalg.norm(lighting.lamps - cam_pos, axis=1) < LIGHT_RANGE_M]
         heads = [(pos, axis) for pos, axis in (lighting.headlights if lighting.headlights_on else [])
                  if np.linalg.norm(pos - cam_pos) <= LIGHT_RANGE_M]
-        pix = geo.reshape(-1)
-        Ef = kernels.artificial_light(
-            np.ascontiguousarray(P.reshape(-1, 3)[pix]), np.ascontiguousarray(n.reshape(-1, 3)[pix]),
-            np.ascontiguousarray(lamps, np.float64), LAMP_INTENSITY_CD, LAMP_COLOUR,
+        kernels.artificial_light(
+            P, n, geo, E, np.ascontiguousarray(lamps, np.float64), LAMP_INTENSITY_CD, LAMP_COLOUR,
             np.array([p for p, _ in heads], np.float64).reshape(-1, 3),
             np.array([a for _, a in heads], np.float64).reshape(-1, 3), HEADLIGHT_INTENSITY_CD,
-            HEADLIGHT_COLOUR, HEADLIGHT_H_WIDTH_DEG, HEADLIGHT_V_WIDTH_DEG)
-        E.reshape(-1, 3)[pix] += Ef
+            HEADLIGHT_COLOUR, HEADLIGHT_H_WIDTH_DEG, HEADLIGHT_V_WIDTH_DEG)  # E += the lights
 
     # emissive surfaces that are switched on
     emissive_on = np.zeros(len(MATERIALS), bool)
@@ -390,11 +400,10 @@ def shade(
     else:
         elev = np.zeros(0, np.float32)
     # a numpy float64 sky_h keeps the gradient in float64, a Python float does not (NEP 50)
-    L = kernels.radiance(albedo, E, material, emissive_on, EMISSIVE, geo, elev, float(sky_h),
-                         isinstance(sky_h, np.floating), SKY_COLOUR)
-    L = L.astype(np.float32, copy=False)
-    instance = np.where(index > 0, np.concatenate([[0], actor_ids])[np.clip(index, 0, len(actor_ids))], 0)
-    return CameraObservation(L, depth, instance.astype(np.int64), material, (sky_h * SKY_COLOUR).astype(np.float32))
+    L = kernels.radiance(index, material, ALBEDO, PER_INSTANCE, table, E, emissive_on, EMISSIVE, geo, elev,
+                         float(sky_h), isinstance(sky_h, np.floating), SKY_COLOUR)
+    instance = kernels.instance_ids(index, np.asarray(actor_ids, np.int64))
+    return CameraObservation(L, depth, instance, material, (sky_h * SKY_COLOUR).astype(np.float32))
 
 
 # ---------------------------------------------------------------------------------------------

@@ -148,14 +148,18 @@ def sky_and_sun(nz, sky_lux, ground_albedo, sky_colour, lit, cos_s, sun_lux, sun
 
 
 @njit(cache=True, error_model="numpy")
-def radiance(albedo, E, material, emissive_on, emissive, geo, sky_elev, sky_h, sky_h_strong, sky_colour):
+def radiance(index, material, albedo, per_instance, colour_table, E, emissive_on, emissive, geo, sky_elev, sky_h,
+             sky_h_strong, sky_colour):
     """(H, W, 3) float32 radiance L = albedo * E / pi + emission; sky pixels get the sky gradient.
 
     Args:
-        albedo, E: (H, W, 3) float32. material: (H, W) uint8. emissive_on: (M,) bool, materials
-        glowing in this frame; emissive: (M, 3) float32. geo: (H, W) bool, pixel sees a surface.
-        sky_elev: (K,) float32 clipped elevation (z of the world ray) of the K sky pixels in
-        row-major order; sky_h: horizon sky radiance [cd/m^2]; sky_colour: (3,) float32.
+        index: (H, W) int64 instance index. material: (H, W) uint8. albedo: (M, 3) float32 albedo of
+        the materials; per_instance: (M,) bool, materials whose albedo comes from
+        colour_table[index, material] (float32) where index > 0. E: (H, W, 3) float32.
+        emissive_on: (M,) bool, materials glowing in this frame; emissive: (M, 3) float32.
+        geo: (H, W) bool, pixel sees a surface. sky_elev: (K,) float32 clipped elevation (z of the
+        world ray) of the K sky pixels in row-major order; sky_h: horizon sky radiance [cd/m^2];
+        sky_colour: (3,) float32.
         sky_h_strong: sky_h was a numpy float64 scalar, which numpy does not demote to float32
         (NEP 50), so the sky gradient is computed in float64 and rounded once; a Python float is
         applied in float32.
@@ -171,8 +175,10 @@ def radiance(albedo, E, material, emissive_on, emissive, geo, sky_elev, sky_h, s
         for w in range(W):
             if geo[h, w]:
                 m = material[h, w]
+                i = index[h, w]
                 for c in range(3):
-                    v = albedo[h, w, c] * E[h, w, c] / pi
+                    a = colour_table[i, m, c] if per_instance[m] and i > 0 else albedo[m, c]
+                    v = a * E[h, w, c] / pi
                     if emissive_on[m]:
                         v = v + emissive[m, c]
                     L[h, w, c] = v
@@ -188,6 +194,21 @@ def radiance(albedo, E, material, emissive_on, emissive, geo, sky_elev, sky_h, s
                     for c in range(3):
                         L[h, w, c] = g32 * sky_colour[c]
     return L
+
+
+@njit(cache=True)
+def instance_ids(index, actor_ids):
+    """(H, W) int64 simulator actor id per pixel: actor_ids[index - 1] where index > 0, else 0, as
+    np.where(index > 0, concatenate([[0], actor_ids])[clip(index, 0, len(actor_ids))], 0)."""
+    H, W = index.shape
+    n = actor_ids.shape[0]
+    out = np.zeros((H, W), np.int64)
+    for h in range(H):
+        for w in range(W):
+            i = min(index[h, w], n)
+            if index[h, w] > 0 and i > 0:
+                out[h, w] = actor_ids[i - 1]
+    return out
 
 
 @njit(cache=True, error_model="numpy")
@@ -359,74 +380,98 @@ def decode_codes(colour, depth):
 
 
 @njit(cache=True, error_model="numpy")
-def artificial_light(P, n, lamps, lamp_cd, lamp_colour, heads, axes, head_cd, head_colour,
+def _lamp_illuminance(tz, cos_i, dist2, lamp_cd):
+    """np.float32(lamp_cd * min(max(tz, 0), 1) ** 1.5 * cos_i / max(dist2, 0.25)) (float64, libm pow).
+
+    pow costs most of the lamps' time; c * sqrt(c) is within a few float64 ulps of c ** 1.5, and so
+    is the illuminance computed from it (relative error < 2e-15). Where every value within 2^-40
+    (relative) of it rounds to the same float32, so does the one computed with pow (rounding is
+    monotonic); otherwise (about one in 10^5) pow decides.
+    """
+    c = min(max(tz, 0.0), 1.0)
+    dmax = max(dist2, 0.25)
+    e = lamp_cd * (c * np.sqrt(c)) * cos_i / dmax
+    band = 9.094947017729282e-13  # 2^-40
+    if np.float32(e * (1.0 - band)) == np.float32(e * (1.0 + band)):
+        return np.float32(e)
+    return np.float32(lamp_cd * c ** 1.5 * cos_i / dmax)
+
+
+@njit(cache=True, error_model="numpy")
+def artificial_light(P, n, geo, E, lamps, lamp_cd, lamp_colour, heads, axes, head_cd, head_colour,
                      h_width_deg, v_width_deg):
-    """Illuminance [lx, RGB] at surface points from street lamps and dipped headlights.
+    """Add the illuminance [lx, RGB] of street lamps and dipped headlights to E at the surface pixels.
 
     Per light, as the numpy formulation in tests/sensors/test_kernels.py (`reference_lights`):
     inverse square law with the distance floored at 0.5 m, Lambert's cosine, and the source's beam
     pattern towards the point. Lamps: a cut-off luminaire, I = lamp_cd * cos^1.5 of the angle from
-    straight down, nothing above the horizontal. Headlights: a Gaussian beam around `axes`
-    (h_width_deg across, v_width_deg up-down) cut to 3 % above 0.5 deg up. Unlike the other kernels
-    of this module, exp, pow and atan2 come from libm here: the same bits as numpy's on the
-    reference machine, possibly one ulp apart on another (module docstring).
+    straight down, nothing above the horizontal (`_lamp_illuminance`). Headlights: a Gaussian beam
+    around `axes` (h_width_deg across, v_width_deg up-down) cut to 3 % above 0.5 deg up. Unlike the
+    other kernels of this module, exp, pow and atan2 come from libm here: the same bits as numpy's
+    on the reference machine, possibly one ulp apart on another (module docstring).
 
     Args:
-        P, n: (N, 3) float32 surface points and unit normals (world).
+        P, n: (H, W, 3) float32 surface points and unit normals (world). geo: (H, W) bool, the
+        pixels with a surface. E: (H, W, 3) float32, updated in place: E += the lights' sum (in
+        float32, in the order lamps then headlights, from 0), as numpy's E[geo] += Ef.
         lamps: (L, 3) float64 lamp heads; heads, axes: (K, 3) float64 headlight positions, unit axes.
         lamp_colour, head_colour: (3,) float32.
-    Returns:
-        (N, 3) float32, the lights' sum in the order lamps then headlights.
     """
-    N = P.shape[0]
-    E = np.zeros((N, 3), np.float32)
+    H, W = geo.shape
     deg = 180.0 / np.pi
-    for i in range(N):
-        px = np.float64(P[i, 0])
-        py = np.float64(P[i, 1])
-        pz = np.float64(P[i, 2])
-        nx = np.float64(n[i, 0])
-        ny = np.float64(n[i, 1])
-        nz = np.float64(n[i, 2])
-        for k in range(lamps.shape[0] + heads.shape[0]):
-            lamp = k < lamps.shape[0]
-            if lamp:
-                dx = lamps[k, 0] - px
-                dy = lamps[k, 1] - py
-                dz = lamps[k, 2] - pz
-            else:
-                j = k - lamps.shape[0]
-                dx = heads[j, 0] - px
-                dy = heads[j, 1] - py
-                dz = heads[j, 2] - pz
-            dist2 = (dx * dx + dz * dz) + dy * dy
-            dist = np.sqrt(dist2)
-            inv = max(dist, 1e-6)
-            tx = dx / inv
-            ty = dy / inv
-            tz = dz / inv
-            cos_i = (nx * tx + nz * tz) + ny * ty
-            if not cos_i > 0:
+    for hh in range(H):
+        for ww in range(W):
+            if not geo[hh, ww]:
                 continue
-            if lamp:
-                intensity = lamp_cd * min(max(tz, 0.0), 1.0) ** 1.5
-                colour = lamp_colour
-            else:
-                # the beam towards the point: direction = -to_light
-                ax, ay, az = axes[j, 0], axes[j, 1], axes[j, 2]
-                cos_axis = (-tx) * ax + (-ty) * ay + (-tz) * az
-                if not cos_axis > 0:
+            px = np.float64(P[hh, ww, 0])
+            py = np.float64(P[hh, ww, 1])
+            pz = np.float64(P[hh, ww, 2])
+            nx = np.float64(n[hh, ww, 0])
+            ny = np.float64(n[hh, ww, 1])
+            nz = np.float64(n[hh, ww, 2])
+            e0 = _F32(0.0)
+            e1 = _F32(0.0)
+            e2 = _F32(0.0)
+            for k in range(lamps.shape[0] + heads.shape[0]):
+                lamp = k < lamps.shape[0]
+                if lamp:
+                    dx = lamps[k, 0] - px
+                    dy = lamps[k, 1] - py
+                    dz = lamps[k, 2] - pz
+                else:
+                    j = k - lamps.shape[0]
+                    dx = heads[j, 0] - px
+                    dy = heads[j, 1] - py
+                    dz = heads[j, 2] - pz
+                dist2 = (dx * dx + dz * dz) + dy * dy
+                dist = np.sqrt(dist2)
+                inv = max(dist, 1e-6)
+                tx = dx / inv
+                ty = dy / inv
+                tz = dz / inv
+                cos_i = (nx * tx + nz * tz) + ny * ty
+                if not cos_i > 0:
                     continue
-                side = (-tx) * ay + (-ty) * (-ax)  # direction . (axis x up), up = +z
-                h = np.arctan2(side, cos_axis) * deg
-                v = np.arctan2(-tz, cos_axis) * deg
-                w = np.exp(-((h / h_width_deg) ** 2) - ((v / v_width_deg) ** 2))
-                if v > 0.5:
-                    w = w * 0.03
-                intensity = head_cd * w
-                colour = head_colour
-            e = np.float32(intensity * cos_i / max(dist2, 0.25))
-            E[i, 0] += e * colour[0]
-            E[i, 1] += e * colour[1]
-            E[i, 2] += e * colour[2]
-    return E
+                if lamp:
+                    e = _lamp_illuminance(tz, cos_i, dist2, lamp_cd)
+                    colour = lamp_colour
+                else:
+                    # the beam towards the point: direction = -to_light
+                    ax, ay, az = axes[j, 0], axes[j, 1], axes[j, 2]
+                    cos_axis = (-tx) * ax + (-ty) * ay + (-tz) * az
+                    if not cos_axis > 0:
+                        continue
+                    side = (-tx) * ay + (-ty) * (-ax)  # direction . (axis x up), up = +z
+                    h = np.arctan2(side, cos_axis) * deg
+                    v = np.arctan2(-tz, cos_axis) * deg
+                    w = np.exp(-((h / h_width_deg) ** 2) - ((v / v_width_deg) ** 2))
+                    if v > 0.5:
+                        w = w * 0.03
+                    e = np.float32(head_cd * w * cos_i / max(dist2, 0.25))
+                    colour = head_colour
+                e0 += e * colour[0]
+                e1 += e * colour[1]
+                e2 += e * colour[2]
+            E[hh, ww, 0] += e0
+            E[hh, ww, 1] += e1
+            E[hh, ww, 2] += e2

@@ -6,6 +6,7 @@ import hashlib
 
 import numpy as np
 import pytest
+from numba import njit
 
 from sensors import camera as cam_mod
 from sensors import kernels
@@ -274,12 +275,16 @@ def reference_lights(Pf, nf, lamps, heads):
     return Ef
 
 
-def _kernel_lights(Pf, nf, lamps, heads):
-    return kernels.artificial_light(
-        Pf, nf, np.asarray(lamps, np.float64).reshape(-1, 3), cam_mod.LAMP_INTENSITY_CD, cam_mod.LAMP_COLOUR,
+def _kernel_lights(Pf, nf, lamps, heads, E=None):
+    """The kernel's E += lights on points as a (N, 1) image, all pixels surfaces; E defaults to zeros."""
+    E = np.zeros((len(Pf), 1, 3), np.float32) if E is None else E.reshape(-1, 1, 3).copy()
+    kernels.artificial_light(
+        Pf.reshape(-1, 1, 3), nf.reshape(-1, 1, 3), np.ones((len(Pf), 1), bool), E,
+        np.asarray(lamps, np.float64).reshape(-1, 3), cam_mod.LAMP_INTENSITY_CD, cam_mod.LAMP_COLOUR,
         np.array([p for p, _ in heads], np.float64).reshape(-1, 3),
         np.array([a for _, a in heads], np.float64).reshape(-1, 3), cam_mod.HEADLIGHT_INTENSITY_CD,
         cam_mod.HEADLIGHT_COLOUR, cam_mod.HEADLIGHT_H_WIDTH_DEG, cam_mod.HEADLIGHT_V_WIDTH_DEG)
+    return E.reshape(-1, 3)
 
 
 @pytest.mark.parametrize("seed", [0, 1, 2])
@@ -316,6 +321,66 @@ def test_artificial_light_equals_the_numpy_formulation(seed):
     above = _kernel_lights(np.array([[0, 0, 12]], np.float32), np.array([[0, 0, -1]], np.float32),
                            np.array([[0.0, 0.0, 8.0]]), [])
     assert not behind.any() and not above.any()
+
+
+def test_lights_add_to_E_only_on_surface_pixels():
+    rng = np.random.default_rng(12)
+    P = rng.uniform(-20, 20, size=(6, 7, 3)).astype(np.float32)
+    n = np.broadcast_to(np.array([0, 0, 1], np.float32), P.shape).copy()
+    geo = rng.random((6, 7)) < 0.6
+    E = rng.random((6, 7, 3)).astype(np.float32)
+    E[0, 0] = -0.0
+    lamps = np.array([[0.0, 0.0, 8.0], [5.0, -3.0, 9.0]])
+    ours = E.copy()
+    kernels.artificial_light(P, n, geo, ours, lamps, cam_mod.LAMP_INTENSITY_CD, cam_mod.LAMP_COLOUR, np.zeros((0, 3)),
+                             np.zeros((0, 3)), cam_mod.HEADLIGHT_INTENSITY_CD, cam_mod.HEADLIGHT_COLOUR,
+                             cam_mod.HEADLIGHT_H_WIDTH_DEG, cam_mod.HEADLIGHT_V_WIDTH_DEG)
+    ref = E.copy()
+    ref.reshape(-1, 3)[geo.reshape(-1)] += _kernel_lights(P[geo], n[geo], lamps, [])  # as shade did up to now
+    assert _bits_equal(ours, ref) and not np.array_equal(ours[geo], E[geo]) and _bits_equal(ours[~geo], E[~geo])
+
+
+@njit(cache=True)
+def _lamp_with_pow(tz, cos_i, dist2, lamp_cd):  # the lamp term as the kernel computed it up to now
+    return np.float32(lamp_cd * min(max(tz, 0.0), 1.0) ** 1.5 * cos_i / max(dist2, 0.25))
+
+
+@njit(cache=True)
+def _lamp_terms(f, tz, cos_i, dist2, lamp_cd):
+    out = np.empty(len(tz), np.float32)
+    for i in range(len(tz)):
+        out[i] = f(tz[i], cos_i[i], dist2[i], lamp_cd)
+    return out
+
+
+def test_lamp_term_without_pow_equals_the_pow_formulation():
+    rng = np.random.default_rng(13)
+    N = 200_000
+    tz = np.concatenate([rng.uniform(-0.2, 1.2, N), [0.0, 1.0, -0.0, 5e-324, 1e-300]])
+    cos_i = np.concatenate([rng.uniform(0, 1, N), [0.5, 1.0, 0.5, 1.0, 1.0]])
+    dist2 = np.concatenate([rng.uniform(0.0, 2e4, N), [1.0, 0.1, 4.0, 1.0, 1.0]])
+    lamp_cd = cam_mod.LAMP_INTENSITY_CD
+    # and illuminances right at a float32 rounding midpoint, where pow has to decide
+    c = rng.uniform(0.05, 1.0, 2000)
+    ci = rng.uniform(0.05, 1.0, 2000)
+    num = lamp_cd * c ** 1.5 * ci
+    f = (num / rng.uniform(1.0, 5000.0, 2000)).astype(np.float32)
+    mid = (f.astype(np.float64) + np.nextafter(f, np.float32(np.inf)).astype(np.float64)) / 2
+    tz, cos_i, dist2 = np.concatenate([tz, c]), np.concatenate([cos_i, ci]), np.concatenate([dist2, num / mid])
+    e = lamp_cd * c * np.sqrt(c) * ci / (num / mid)
+    band = 2.0 ** -40
+    assert ((e * (1 - band)).astype(np.float32) != (e * (1 + band)).astype(np.float32)).mean() > 0.5  # pow decides
+    ours = _lamp_terms(kernels._lamp_illuminance, tz, cos_i, dist2, lamp_cd)
+    assert _bits_equal(ours, _lamp_terms(_lamp_with_pow, tz, cos_i, dist2, lamp_cd))
+
+
+@pytest.mark.parametrize("n_ids", [0, 3])
+def test_instance_ids_equal_numpy(n_ids):
+    rng = np.random.default_rng(14)
+    index = rng.integers(-1, 6, size=(9, 11))
+    actor_ids = rng.integers(100, 10**9, n_ids).astype(np.int64)
+    ref = np.where(index > 0, np.concatenate([[0], actor_ids])[np.clip(index, 0, len(actor_ids))], 0).astype(np.int64)
+    assert _bits_equal(kernels.instance_ids(index, actor_ids), ref)
 
 
 def test_lights_of_a_rendered_night_frame_equal_the_numpy_formulation(frames):
