@@ -143,13 +143,11 @@ def _single_sample(renderer: pyrender.OffscreenRenderer) -> None:
 
 def linear_depth(buffer: np.ndarray, znear: float, zfar: float) -> np.ndarray:
     """Metric depth [m] from OpenGL depth-buffer values (0..1, 1 = nothing drawn -> 0), in float32
-    as pyrender computes it: z_ndc = 2 d - 1, depth = 2 n f / (f + n - z_ndc (f - n))."""
-    background = buffer == 1.0
-    out = 2.0 * buffer - 1.0  # float32
-    drawn = ~background
-    out[drawn] = (2.0 * znear * zfar) / (zfar + znear - out[drawn] * (zfar - znear))  # stored as float32
-    out[background] = 0.0
-    return out
+    as pyrender computes it: z_ndc = 2 d - 1, depth = 2 n f / (f + n - z_ndc (f - n))
+    (`sensors.kernels.linear_depth`, the same bits as pyrender's numpy)."""
+    from sensors.kernels import linear_depth as kernel
+
+    return kernel(buffer, float(znear), float(zfar))
 
 
 _RENDERERS: dict[tuple[int, int], pyrender.OffscreenRenderer] = {}
@@ -489,16 +487,22 @@ def expose(obs: CameraObservation, exposure: float | None = None) -> np.ndarray:
         k = exposure
     obs.exposure = k
     blurred = lens_blur(obs.radiance)
-    signal = blurred * k  # fraction of the full well
     p = obs.sensor_noise
-    if p:
-        wanted = wanted_exposure(obs.radiance) if wanted is None else wanted
-        gain = float(np.clip(wanted / k, 1.0, p["max_gain"]))
-        obs.gain = gain
-        rng = np.random.default_rng(p["seed"])
-        electrons = np.clip(signal, 0, 1) * p["full_well_e"]
-        signal = shot_and_read_noise(rng, electrons, p["read_noise_e"]) / p["full_well_e"] * gain
-    return srgb_encode_fast(signal)
+    if not p:
+        return srgb_encode_fast(blurred * k)  # k: fraction of the full well per cd/m^2
+    wanted = wanted_exposure(obs.radiance) if wanted is None else wanted
+    gain = float(np.clip(wanted / k, 1.0, p["max_gain"]))
+    obs.gain = gain
+    rng = np.random.default_rng(p["seed"])
+    full_well = p["full_well_e"]
+    if blurred.dtype == np.float32 and type(k) is float and type(full_well) is float:
+        # the arithmetic below in float32, fused (sensors.kernels, the same bits)
+        from sensors import kernels
+
+        noisy = shot_and_read_noise(rng, kernels.exposed_electrons(blurred, k, full_well), p["read_noise_e"])
+        return kernels.noisy_srgb(noisy, full_well, gain, _SRGB_LUT)
+    electrons = np.clip(blurred * k, 0, 1) * full_well
+    return srgb_encode_fast(shot_and_read_noise(rng, electrons, p["read_noise_e"]) / full_well * gain)
 
 
 def to_uint8(img01: np.ndarray) -> np.ndarray:

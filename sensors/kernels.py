@@ -315,6 +315,46 @@ def shot_and_read_noise_apply(electrons, low, poisson_draws, normal_hi, normal_r
 
 
 @njit(cache=True, error_model="numpy")
+def exposed_electrons(blurred, k, full_well):
+    """`np.clip(blurred * k, 0, 1) * full_well` of float32 `blurred` with Python-float k and
+    full_well (applied in float32, NEP 50): the signal in electrons, float32, same shape."""
+    flat = blurred.reshape(-1)
+    out = np.empty(flat.shape[0], np.float32)
+    k32 = _F32(k)
+    fw = _F32(full_well)
+    zero = _F32(0.0)
+    one = _F32(1.0)
+    for i in range(flat.shape[0]):
+        v = flat[i] * k32
+        if v < zero:
+            v = zero
+        elif v > one:
+            v = one
+        out[i] = v * fw
+    return out.reshape(blurred.shape)
+
+
+@njit(cache=True, error_model="numpy")
+def noisy_srgb(noisy, full_well, gain, lut):
+    """`srgb_lookup(noisy / full_well * gain, lut)` of float32 `noisy` [e-] with Python-float
+    full_well and gain (applied in float32, NEP 50)."""
+    flat = noisy.reshape(-1)
+    out = np.empty(flat.shape[0], np.float32)
+    fw = _F32(full_well)
+    g = _F32(gain)
+    zero = _F32(0.0)
+    one = _F32(1.0)
+    scale = _F32(65535.0)
+    half = _F32(0.5)
+    for i in range(flat.shape[0]):
+        v = flat[i] / fw * g
+        v = max(v, zero)
+        v = min(v, one)
+        out[i] = lut[np.int32(v * scale + half)]
+    return out.reshape(noisy.shape)
+
+
+@njit(cache=True, error_model="numpy")
 def srgb_lookup(x, lut):
     """`sensors.camera.srgb_encode_fast` of float32 `x` (any shape, flattened): lut[int(clip(x) * 65535 + 0.5)]."""
     flat = x.reshape(-1)
@@ -348,6 +388,30 @@ def to_uint8(x):
 
 
 # --- visibility pass ---------------------------------------------------------------------------
+
+
+@njit(cache=True, error_model="numpy")
+def linear_depth(buffer, znear, zfar):
+    """`sensors.camera.linear_depth` in float32 as numpy computes it with Python-float near and far:
+    1 (nothing drawn) -> 0, else z_ndc = 2 d - 1, depth = f32(2 n f) / (f32(f + n) - z_ndc f32(f - n)).
+
+    Args:
+        buffer: (H, W) float32 depth-buffer values in 0..1 (any strides).
+    Returns:
+        (H, W) float32 [m].
+    """
+    H, W = buffer.shape
+    out = np.empty((H, W), np.float32)
+    two = _F32(2.0)
+    one = _F32(1.0)
+    num = _F32(2.0 * znear * zfar)
+    fpn = _F32(zfar + znear)
+    fmn = _F32(zfar - znear)
+    for h in range(H):
+        for w in range(W):
+            d = buffer[h, w]
+            out[h, w] = _F32(0.0) if d == one else num / (fpn - (two * d - one) * fmn)
+    return out
 
 
 @njit(cache=True)

@@ -64,3 +64,23 @@ def test_linear_depth_inverts_the_perspective_depth_buffer():
     d = np.float32(buffer[3])
     zn = np.float32(2.0) * d - np.float32(1.0)
     assert got[0, 3] == np.float32((2.0 * near * far) / (np.float32(far + near) - zn * np.float32(far - near)))
+
+
+def test_linear_depth_equals_pyrenders_numpy():
+    def pyrenders(buffer, znear, zfar):  # pyrender's Renderer._read_main_framebuffer (and linear_depth up to now)
+        background = buffer == 1.0
+        out = 2.0 * buffer - 1.0
+        drawn = ~background
+        out[drawn] = (2.0 * znear * zfar) / (zfar + znear - out[drawn] * (zfar - znear))
+        out[background] = 0.0
+        return out
+
+    rng = np.random.default_rng(0)
+    buffer = rng.random((50, 60)).astype(np.float32)
+    buffer[rng.random((50, 60)) < 0.2] = 1.0
+    buffer[0, :4] = [0.0, np.nextafter(np.float32(1), np.float32(0)), 0.5, 1e-30]
+    for near, far in ((0.3, 400.0), (0.1, 500.0)):
+        for b in (buffer, buffer[::-1]):  # the camera passes the flipped read-back
+            ref = pyrenders(b.copy(), near, far)
+            got = linear_depth(b, near, far)
+            assert got.dtype == ref.dtype and got.tobytes() == ref.tobytes()

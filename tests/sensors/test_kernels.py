@@ -170,6 +170,37 @@ def test_lens_blur_equals_scipys_gaussian_filter():
     assert _bits_equal(cam_mod.lens_blur(y), gaussian_filter(y, sigma=(cam_mod.PSF_SIGMA_PX,) * 2 + (0,)))
 
 
+def test_exposure_kernels_equal_numpy():
+    rng = np.random.default_rng(15)
+    blurred = rng.gamma(0.5, 40.0, size=(30, 40, 3)).astype(np.float32)
+    blurred[0, :3] = [0.0, np.inf, 1e-30]
+    k, full_well, gain = 0.0123, 6000.0, 2.7
+    ref = np.clip(blurred * k, 0, 1) * full_well
+    assert _bits_equal(kernels.exposed_electrons(blurred, k, full_well), ref)
+    noisy = (ref + rng.normal(0, 40, ref.shape)).astype(np.float32)  # beyond 0..full_well on both sides
+    assert _bits_equal(kernels.noisy_srgb(noisy, full_well, gain, cam_mod._SRGB_LUT),
+                       cam_mod.srgb_encode_fast(noisy / full_well * gain))
+
+
+def test_expose_fast_path_equals_the_general_one():
+    rng = np.random.default_rng(16)
+    radiance = rng.gamma(0.5, 2.0, size=(24, 32, 3)).astype(np.float32)
+    noise = {"full_well_e": 6000.0, "read_noise_e": 4.0, "max_gain": 4.0, "seed": 5}
+    fast = cam_mod.expose(cam_mod.CameraObservation(radiance, None, None, None, None, sensor_noise=noise), 0.004)
+    # a numpy float64 exposure is not weak (NEP 50): the general numpy path, float64 arithmetic
+    general = cam_mod.expose(cam_mod.CameraObservation(radiance, None, None, None, None, sensor_noise=noise),
+                             np.float64(0.004))
+    assert general.dtype == np.float32 and fast.dtype == np.float32
+    signal = np.clip(cam_mod.lens_blur(radiance) * 0.004, 0, 1) * 6000.0
+    noisy = cam_mod.shot_and_read_noise(np.random.default_rng(5), signal, 4.0)
+    gain = float(np.clip(cam_mod.wanted_exposure(radiance) / 0.004, 1.0, 4.0))
+    assert _bits_equal(fast, cam_mod.srgb_encode_fast(noisy / 6000.0 * gain))
+    signal64 = np.clip(cam_mod.lens_blur(radiance) * np.float64(0.004), 0, 1) * 6000.0
+    assert signal64.dtype == np.float64
+    noisy64 = cam_mod.shot_and_read_noise(np.random.default_rng(5), signal64, 4.0)
+    assert _bits_equal(general, cam_mod.srgb_encode_fast(noisy64 / 6000.0 * gain))
+
+
 @pytest.mark.parametrize("scale", [3.0, 1100.0])  # night (Poisson counts) and day (normal approximation)
 def test_sensor_noise_draws_and_arithmetic_equal_numpy(scale):
     def reference(rng, electrons, read_noise_e):  # sensors.camera.shot_and_read_noise before the kernel
