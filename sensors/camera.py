@@ -422,7 +422,7 @@ assert len(_PSF_WEIGHTS) == 5  # sensors.kernels.gaussian_blur5_hw
 
 def lens_blur(radiance: np.ndarray) -> np.ndarray:
     """The lens PSF: scipy.ndimage.gaussian_filter(radiance, sigma=(PSF_SIGMA_PX, PSF_SIGMA_PX, 0)),
-    same bits, in one compiled pass (sensors.kernels.gaussian_blur5_hw)."""
+    same bits, in one compiled kernel (sensors.kernels.gaussian_blur5_hw)."""
     from sensors.kernels import gaussian_blur5_hw
 
     return gaussian_blur5_hw(radiance, _PSF_WEIGHTS)
