@@ -121,7 +121,7 @@ class LaneBoxes:
         n = len(self.lanes)
         self.lo = np.array(lo, float).reshape(n, 2)
         self.hi = np.array(hi, float).reshape(n, 2)
-        self.row = {id(lane): k for k, lane in enumerate(self.lanes)}
+        self.row = {index: k for k, index in enumerate(self.indexes)}
 
         # on_lane(margin=1): |lateral| <= width / 2 + 1 and -5 <= longitudinal < length + 5 (the
         # lane's VEHICLE_LENGTH), so the centre line is at most width / 2 + 1 + 5 away
@@ -191,24 +191,29 @@ class HydraRoad(Road):
         s_front = s_rear = None
         v_front = v_rear = None
 
+        _from, _to, _id = lane_index
         lanes_offsets = [(lane, 0)]
+        keys = [(_from, _to, 0 if _id is None else _id)]  # the lanes' (from, to, id), for their rows
         if self.neighbour_vehicles_connected_lanes:
-            _from, _to, _id = lane_index
-            for next_lanes in self.network.graph.get(_to, {}).values():
+            for next_to, next_lanes in self.network.graph.get(_to, {}).items():
                 if _id < len(next_lanes):
                     lanes_offsets.append((next_lanes[_id], lane.length))
+                    keys.append((_to, next_to, _id))
                 elif next_lanes:
                     lanes_offsets.append((next_lanes[0], lane.length))
-            for to_dict in self.network.graph.values():
+                    keys.append((_to, next_to, 0))
+            for prev_from, to_dict in self.network.graph.items():
                 if _from in to_dict:
                     prev_lanes = to_dict[_from]
                     if _id < len(prev_lanes):
-                        prev_lane = prev_lanes[_id]
+                        prev_id = _id
                     elif prev_lanes:
-                        prev_lane = prev_lanes[0]
+                        prev_id = 0
                     else:
                         continue
+                    prev_lane = prev_lanes[prev_id]
                     lanes_offsets.append((prev_lane, -prev_lane.length))
+                    keys.append((prev_from, _from, prev_id))
 
         boxes = self.network.boxes()
         if self._snapshot is None:
@@ -216,7 +221,7 @@ class HydraRoad(Road):
             maybe = boxes.maybe_on_lane(_positions(entities))
         else:
             entities, maybe = self._snapshot
-        rows = [boxes.row[id(search_lane)] for search_lane, _ in lanes_offsets]
+        rows = [boxes.row[key] for key in keys]
         near = maybe[rows[0]] if len(rows) == 1 else maybe[rows].any(axis=0)
 
         for j in np.flatnonzero(near).tolist():
