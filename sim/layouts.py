@@ -543,8 +543,17 @@ class Rural(Layout):
             height=(5.0, 8.0), gap=(60.0, 250.0),
         )
         taken = [shapely.Point(r[1], r[2]).buffer(max(r[3], r[4])) for r in houses]
-        rows = [r for r in rows if not any(t.contains(shapely.Point(r[1], r[2])) for t in taken)]
-        return rows + houses
+        return _outside(rows, taken) + houses
+
+
+def _outside(rows: list[tuple], shapes: list) -> list[tuple]:
+    """The structure rows whose position (x, y) = row[1:3] no shape contains (shapely's
+    `contains`, all rows at once per shape)."""
+    xy = np.array([r[1:3] for r in rows], float).reshape(len(rows), 2)
+    covered = np.zeros(len(rows), bool)
+    for shape in shapes:
+        covered |= shapely.contains_xy(shape, xy[:, 0], xy[:, 1])
+    return [r for r, c in zip(rows, covered) if not c]
 
 
 def lanes_union_of(geometry) -> shapely.Geometry:

@@ -245,11 +245,39 @@ def _tangents(line: np.ndarray) -> np.ndarray:
     return d / np.maximum(np.linalg.norm(d, axis=1, keepdims=True), 1e-9)
 
 
+def points_along(line: np.ndarray, distances: np.ndarray) -> np.ndarray:
+    """(N, 2) points at `distances` (finite, >= 0, [m]) along the polyline `line` (K >= 2, 2):
+    `shapely.line_interpolate_point(LineString(line), distances)`, bit for bit.
+
+    GEOS (LengthLocationMap) walks the segments adding up their lengths sqrt(dx*dx + dy*dy) one
+    by one, stops at the first segment whose running total exceeds the distance and returns
+    p0 + (p1 - p0) * frac, frac = (distance - total before it) / its length (p0 for frac <= 0, p1
+    for frac >= 1); 0 gives the first vertex, the length or more the last. The same float
+    operations here, for all distances at once (np.cumsum adds in GEOS's order).
+    """
+    xy = np.asarray(line, float)
+    p0, p1 = xy[:-1], xy[1:]
+    d = p1 - p0
+    seg = np.sqrt(d[:, 0] * d[:, 0] + d[:, 1] * d[:, 1])
+    total = np.cumsum(seg)
+    before = np.concatenate([[0.0], total[:-1]])
+    distances = np.asarray(distances, float)
+    i = np.searchsorted(total, distances, side="right")  # first segment with total > distance
+    out = np.empty((len(distances), 2))
+    out[:] = xy[-1]  # at or past the end
+    inside = (i < len(seg)) & (distances > 0)
+    k = i[inside]
+    frac = ((distances[inside] - before[k]) / seg[k])[:, None]
+    out[inside] = np.where(frac <= 0, p0[k], np.where(frac >= 1, p1[k], d[k] * frac + p0[k]))
+    out[distances <= 0] = xy[0]
+    return out
+
+
 def resample(line: np.ndarray, step: float) -> np.ndarray:
     """Points every ~`step` metres along a polyline (end points included)."""
     ls = LineString(line)
     n = max(2, int(ls.length / step) + 1)
-    return shapely.get_coordinates(shapely.line_interpolate_point(ls, np.linspace(0, ls.length, n)))
+    return points_along(line, np.linspace(0, ls.length, n))
 
 
 def ring_lines(geom, offset: float, window: Polygon) -> list[np.ndarray]:

@@ -7,7 +7,7 @@ from shapely.geometry import GeometryCollection, LineString, MultiPolygon, Point
 
 from sim.layouts import LAYOUTS
 from sim.scenario import LAYOUT_NAMES, stream
-from sim.world import distance_to_area, extract_road, outward_normals, ring_lines
+from sim.world import distance_to_area, extract_road, outward_normals, points_along, resample, ring_lines
 
 
 def _reference(area, xy):
@@ -73,3 +73,38 @@ def test_outward_normals_point_away_from_the_area():
         assert np.allclose(np.linalg.norm(n, axis=1), 1.0)
         far = _reference(area, line + 3 * n)
         assert (far > _reference(area, line)).all()
+
+
+def _interpolate_reference(line, distances):
+    return shapely.get_coordinates(shapely.line_interpolate_point(LineString(line), distances))
+
+
+def test_points_along_equals_shapely_line_interpolate_point():
+    rng = np.random.default_rng(2)
+    for k in range(200):
+        m = int(rng.integers(2, 40))
+        line = np.cumsum(rng.normal(0, rng.choice([0.01, 1.0, 100.0]), (m, 2)), axis=0) + rng.uniform(-5e3, 5e3, 2)
+        if k % 4 == 0:
+            line[rng.integers(m)] = line[int(rng.integers(m))]  # repeated vertices, zero-length segments
+        if k % 7 == 0:
+            line = np.repeat(line, 2, axis=0)
+        length = LineString(line).length
+        seg = np.linalg.norm(np.diff(line, axis=0), axis=1)
+        for distances in (
+            np.linspace(0, length, int(rng.integers(2, 400))),
+            rng.uniform(0, 1.2 * length, 60),
+            np.cumsum(seg),  # exactly at the vertices (as GEOS adds the lengths up)
+            np.array([0.0, length, 2 * length, 1e-300]),
+            np.zeros(0),
+        ):
+            got = points_along(line, distances)
+            assert got.shape == (len(distances), 2)
+            np.testing.assert_array_equal(got, _interpolate_reference(line, distances))
+
+
+def test_resample_keeps_both_ends_and_the_spacing():
+    line = np.array([[0.0, 0.0], [10.0, 0.0], [10.0, 7.5]])
+    pts = resample(line, 1.0)
+    assert len(pts) == 18 and (pts[0] == line[0]).all() and (pts[-1] == line[-1]).all()
+    np.testing.assert_allclose([LineString(line).project(Point(p)) for p in pts], np.linspace(0, 17.5, 18))
+    np.testing.assert_array_equal(resample(line[:2], 100.0), line[:2])
