@@ -5,6 +5,7 @@ Everything here is in the world frame of `sim.actors` (x east, y north, z up, me
 
 from __future__ import annotations
 
+import bisect
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -245,39 +246,69 @@ def _tangents(line: np.ndarray) -> np.ndarray:
     return d / np.maximum(np.linalg.norm(d, axis=1, keepdims=True), 1e-9)
 
 
-def points_along(line: np.ndarray, distances: np.ndarray) -> np.ndarray:
-    """(N, 2) points at `distances` (finite, >= 0, [m]) along the polyline `line` (K >= 2, 2):
-    `shapely.line_interpolate_point(LineString(line), distances)`, bit for bit.
+class Polyline:
+    """A polyline (K >= 2, 2) [m] and the running segment lengths GEOS uses to find a point at a
+    distance along it: `points` and `point` equal `shapely.line_interpolate_point(LineString(line),
+    distance)` bit for bit, for finite distances (negative ones count from the end).
 
     GEOS (LengthLocationMap) walks the segments adding up their lengths sqrt(dx*dx + dy*dy) one
     by one, stops at the first segment whose running total exceeds the distance and returns
     p0 + (p1 - p0) * frac, frac = (distance - total before it) / its length (p0 for frac <= 0, p1
-    for frac >= 1); 0 gives the first vertex, the length or more the last. The same float
-    operations here, for all distances at once (np.cumsum adds in GEOS's order).
+    for frac >= 1); 0 or less gives the first vertex, the length or more the last. The same float
+    operations: np.cumsum adds in GEOS's order, and `point` repeats them on Python floats (the
+    same IEEE doubles) for one distance without numpy's per-call overhead.
     """
-    xy = np.asarray(line, float)
-    p0, p1 = xy[:-1], xy[1:]
-    d = p1 - p0
-    seg = np.sqrt(d[:, 0] * d[:, 0] + d[:, 1] * d[:, 1])
-    total = np.cumsum(seg)
-    before = np.concatenate([[0.0], total[:-1]])
-    distances = np.asarray(distances, float)
-    i = np.searchsorted(total, distances, side="right")  # first segment with total > distance
-    out = np.empty((len(distances), 2))
-    out[:] = xy[-1]  # at or past the end
-    inside = (i < len(seg)) & (distances > 0)
-    k = i[inside]
-    frac = ((distances[inside] - before[k]) / seg[k])[:, None]
-    out[inside] = np.where(frac <= 0, p0[k], np.where(frac >= 1, p1[k], d[k] * frac + p0[k]))
-    out[distances <= 0] = xy[0]
-    return out
+
+    def __init__(self, line: np.ndarray) -> None:
+        xy = np.asarray(line, float)
+        self.xy = xy
+        self.p0, self.p1 = xy[:-1], xy[1:]
+        self.d = self.p1 - self.p0
+        self.seg = np.sqrt(self.d[:, 0] * self.d[:, 0] + self.d[:, 1] * self.d[:, 1])
+        self.total = np.cumsum(self.seg)
+        self.before = np.concatenate([[0.0], self.total[:-1]])
+        self._rows = None
+
+    def points(self, distances: np.ndarray) -> np.ndarray:
+        """(N, 2) points at `distances` along the line [m]."""
+        distances = np.asarray(distances, float)
+        distances = np.where(distances < 0, self.total[-1] + distances, distances)  # from the end
+        i = np.searchsorted(self.total, distances, side="right")  # first segment with total > distance
+        out = np.empty((len(distances), 2))
+        out[:] = self.xy[-1]  # at or past the end
+        inside = (i < len(self.seg)) & (distances > 0)
+        k = i[inside]
+        frac = ((distances[inside] - self.before[k]) / self.seg[k])[:, None]
+        out[inside] = np.where(frac <= 0, self.p0[k], np.where(frac >= 1, self.p1[k], self.d[k] * frac + self.p0[k]))
+        out[distances <= 0] = self.xy[0]
+        return out
+
+    def point(self, distance: float) -> np.ndarray:
+        """(2,) point at one `distance` along the line [m] (same bits as `points`)."""
+        if self._rows is None:
+            self._rows = (self.total.tolist(), self.before.tolist(), self.seg.tolist(), self.xy.tolist())
+        total, before, seg, xy = self._rows
+        if distance < 0:  # measured from the end
+            distance = total[-1] + distance
+        if distance <= 0:
+            return np.array(xy[0])
+        i = bisect.bisect_right(total, distance)
+        if i >= len(seg):
+            return np.array(xy[-1])
+        frac = (distance - before[i]) / seg[i]
+        (x0, y0), (x1, y1) = xy[i], xy[i + 1]
+        if frac <= 0:
+            return np.array((x0, y0))
+        if frac >= 1:
+            return np.array((x1, y1))
+        return np.array(((x1 - x0) * frac + x0, (y1 - y0) * frac + y0))
 
 
 def resample(line: np.ndarray, step: float) -> np.ndarray:
     """Points every ~`step` metres along a polyline (end points included)."""
     ls = LineString(line)
     n = max(2, int(ls.length / step) + 1)
-    return points_along(line, np.linspace(0, ls.length, n))
+    return Polyline(line).points(np.linspace(0, ls.length, n))
 
 
 def ring_lines(geom, offset: float, window: Polygon) -> list[np.ndarray]:

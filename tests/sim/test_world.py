@@ -7,7 +7,7 @@ from shapely.geometry import GeometryCollection, LineString, MultiPolygon, Point
 
 from sim.layouts import LAYOUTS
 from sim.scenario import LAYOUT_NAMES, stream
-from sim.world import distance_to_area, extract_road, outward_normals, points_along, resample, ring_lines
+from sim.world import Polyline, distance_to_area, extract_road, outward_normals, resample, ring_lines
 
 
 def _reference(area, xy):
@@ -79,7 +79,7 @@ def _interpolate_reference(line, distances):
     return shapely.get_coordinates(shapely.line_interpolate_point(LineString(line), distances))
 
 
-def test_points_along_equals_shapely_line_interpolate_point():
+def test_polyline_points_equal_shapely_line_interpolate_point():
     rng = np.random.default_rng(2)
     for k in range(200):
         m = int(rng.integers(2, 40))
@@ -90,16 +90,20 @@ def test_points_along_equals_shapely_line_interpolate_point():
             line = np.repeat(line, 2, axis=0)
         length = LineString(line).length
         seg = np.linalg.norm(np.diff(line, axis=0), axis=1)
+        polyline = Polyline(line)
         for distances in (
             np.linspace(0, length, int(rng.integers(2, 400))),
-            rng.uniform(0, 1.2 * length, 60),
+            rng.uniform(-1.2 * length, 1.2 * length, 60),  # negative: from the end
             np.cumsum(seg),  # exactly at the vertices (as GEOS adds the lengths up)
-            np.array([0.0, length, 2 * length, 1e-300]),
+            np.array([0.0, length, 2 * length, -length, -2 * length, 1e-300, -0.0]),
             np.zeros(0),
         ):
-            got = points_along(line, distances)
+            want = _interpolate_reference(line, distances)
+            got = polyline.points(distances)
             assert got.shape == (len(distances), 2)
-            np.testing.assert_array_equal(got, _interpolate_reference(line, distances))
+            np.testing.assert_array_equal(got, want)
+            for d, w in zip(distances[:80], want):
+                np.testing.assert_array_equal(polyline.point(float(d)), w)
 
 
 def test_resample_keeps_both_ends_and_the_spacing():
