@@ -94,6 +94,8 @@ class HydraRoadNetwork(RoadNetwork):
             if gaps[i] > best + SLACK:
                 break
             d = b.lanes[i].distance_with_heading(position, heading)
+            if d != d:  # NaN: highway-env's argmin picks the first NaN
+                return super().get_closest_lane_index(position, heading)
             if d < best or (d == best and i < best_i):
                 best, best_i = d, i
         return b.indexes[best_i]
@@ -172,7 +174,7 @@ class HydraRoad(Road):
 
     def act(self) -> None:
         """Decide every vehicle's action. Positions do not move while vehicles decide, so the
-        neighbour searches of this pass share one array of positions."""
+        neighbour searches of this pass share one `maybe_on_lane` table of all road users."""
         entities = self.vehicles + self.objects
         self._snapshot = (entities, self.network.boxes().maybe_on_lane(_positions(entities)))
         try:

@@ -214,7 +214,7 @@ def test_right_of_way_matches_highway_env(sims):
     assert isinstance(road, HydraRegulatedRoad)
     rng = np.random.default_rng(5)
     yielded = 0
-    for trial in range(4):
+    for _ in range(4):
         r = copy.deepcopy(road)
         for k in range(4):  # one vehicle close to the junction on every approach
             v = new_vehicle(rng, r, (f"o{k}", f"ir{k}", 0), float(rng.uniform(80, 98)), 8.0, "car", 90 + k)
