@@ -19,6 +19,7 @@ template hooks in this order (HighwayEnv style):
 
 from __future__ import annotations
 
+import functools
 import os
 
 os.environ["SDL_VIDEODRIVER"] = "offscreen"
@@ -28,11 +29,12 @@ import highway_env  # noqa: E402, F401  (registers the envs)
 import numpy as np  # noqa: E402
 import shapely  # noqa: E402
 from highway_env.road.lane import CircularLane, LineType, StraightLane  # noqa: E402
-from highway_env.road.road import Road, RoadNetwork  # noqa: E402
+from highway_env.road.road import Road  # noqa: E402
 from shapely.geometry import LineString, Polygon  # noqa: E402
 
 from sim.actors import sample_size  # noqa: E402
 from sim.registry import Registry  # noqa: E402
+from sim.roads import HydraRoad, HydraRoadNetwork, hydra_road  # noqa: E402
 from sim.traffic import HydraVehicle, adopt, new_vehicle, preserve_idm_defaults  # noqa: E402
 from sim.world import (  # noqa: E402
     guardrail_segments,
@@ -66,6 +68,23 @@ def _lamp(height: tuple[float, float]):
     return size
 
 
+@functools.cache
+def _hydra_env_class(cls: type) -> type:
+    """`cls` building its road as a `sim.roads` HydraRoad (same lanes, same traffic, faster)."""
+
+    class HydraEnv(cls):
+        def _make_road(self) -> None:  # intersection-v2, roundabout-v1
+            super()._make_road()
+            self.road = hydra_road(self.road)
+
+        def _create_road(self) -> None:  # highway-v0 and its variants
+            super()._create_road()
+            self.road = hydra_road(self.road)
+
+    HydraEnv.__name__ = HydraEnv.__qualname__ = f"Hydra{cls.__name__}"
+    return HydraEnv
+
+
 def _seeded_env(env_id: str, config: dict, seed: int):
     """highway-env's environment `env_id` (unwrapped), reset once with `seed`.
 
@@ -73,8 +92,9 @@ def _seeded_env(env_id: str, config: dict, seed: int):
     (intersection-v2's includes 3 s of traffic simulation) drawn from a fresh OS-seeded generator
     and thrown away by the seeded reset, which rebuilds everything from the seed. That first reset
     is skipped here; the seeded one is the same call as before, so the roads and vehicles are too.
+    The env's road is a `sim.roads.HydraRoad` from the start (`_hydra_env_class`).
     """
-    cls = gym.envs.registration.load_env_creator(gym.spec(env_id).entry_point)
+    cls = _hydra_env_class(gym.envs.registration.load_env_creator(gym.spec(env_id).entry_point))
     env = cls.__new__(cls)
     env.reset = lambda *args, **kwargs: None  # shadows AbstractEnv.reset during the constructor
     cls.__init__(env, config=config)
@@ -439,7 +459,7 @@ class Rural(Layout):
     SEGMENTS = 14
 
     def make_road(self, rng):
-        net = RoadNetwork()
+        net = HydraRoadNetwork()
         w = self.LANE_WIDTH
         p = np.zeros(2)  # highway-env plane (y down)
         h = 0.0
@@ -477,7 +497,7 @@ class Rural(Layout):
                     p = centre + radius * np.array([np.cos(phi1), np.sin(phi1)])
         del n
         self.n_seg = n_seg
-        road = Road(network=net, np_random=np.random.default_rng(int(rng.integers(2**31 - 1))))
+        road = HydraRoad(network=net, np_random=np.random.default_rng(int(rng.integers(2**31 - 1))))
         # traffic in both directions, spaced by at least 30 m
         for direction in ("f", "b"):
             for k in range(n_seg):
@@ -523,8 +543,17 @@ class Rural(Layout):
             height=(5.0, 8.0), gap=(60.0, 250.0),
         )
         taken = [shapely.Point(r[1], r[2]).buffer(max(r[3], r[4])) for r in houses]
-        rows = [r for r in rows if not any(t.contains(shapely.Point(r[1], r[2])) for t in taken)]
-        return rows + houses
+        return _outside(rows, taken) + houses
+
+
+def _outside(rows: list[tuple], shapes: list) -> list[tuple]:
+    """The structure rows whose position (x, y) = row[1:3] no shape contains (shapely's
+    `contains`, all rows at once per shape)."""
+    xy = np.array([r[1:3] for r in rows], float).reshape(len(rows), 2)
+    covered = np.zeros(len(rows), bool)
+    for shape in shapes:
+        covered |= shapely.contains_xy(shape, xy[:, 0], xy[:, 1])
+    return [r for r, c in zip(rows, covered) if not c]
 
 
 def lanes_union_of(geometry) -> shapely.Geometry:

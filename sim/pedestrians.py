@@ -15,7 +15,7 @@ from highway_env.vehicle.objects import Obstacle
 from shapely.geometry import LineString, Point
 
 from sim.actors import CLASS_ID, sample_size
-from sim.world import RoadGeometry, hw_to_world
+from sim.world import Polyline, RoadGeometry, hw_to_world
 
 WALK_SPEED = (1.0, 1.6)  # [m/s], adult walking speeds
 GROUP_SPEED_FACTOR = 0.8
@@ -62,7 +62,10 @@ class PedestrianModel:
         self.keep_right_m = keep_right_m  # walkers keep right of the path centre [m]
         self.geom = geometry
         self.paths = [LineString(p) for p in geometry.walk_paths]
+        self.lines = [Polyline(shapely.get_coordinates(p)) for p in self.paths]  # point at a distance
+        self.lengths = [p.length for p in self.paths]
         self.crossings = [np.asarray(c, float) for c in geometry.crossing_paths]
+        self.crossing_ends = np.concatenate(self.crossings) if self.crossings else None  # (2C, 2)
         self.walkers: list[Walker] = []
         if not self.paths or count <= 0:
             return
@@ -109,9 +112,9 @@ class PedestrianModel:
             return
         if w.crossing >= 0 and w.waiting:
             return
-        path = self.paths[w.path]
-        p0 = np.asarray(path.interpolate(w.s).coords[0])
-        p1 = np.asarray(path.interpolate(min(max(w.s + w.direction * 0.5, 0), path.length)).coords[0])
+        line = self.lines[w.path]
+        p0 = line.point(w.s)
+        p1 = line.point(min(max(w.s + w.direction * 0.5, 0), self.lengths[w.path]))
         d = p1 - p0
         if np.linalg.norm(d) > 1e-6:
             w.heading = float(np.arctan2(d[1], d[0]))
@@ -155,13 +158,13 @@ class PedestrianModel:
                 self._update_pose(w, 0.0)
                 self._sync_obstacle(w)
                 continue
-            path = self.paths[w.path]
+            length = self.lengths[w.path]
             w.s += w.direction * w.speed * dt
-            if w.s <= 0.0 or w.s >= path.length:
-                w.s = float(np.clip(w.s, 0.0, path.length))
+            if w.s <= 0.0 or w.s >= length:
+                w.s = float(np.clip(w.s, 0.0, length))
                 w.direction *= -1
             self._update_pose(w, 0.0)
-            if w.cooldown <= 0.0:
+            if w.cooldown <= 0.0 and self._near_a_crossing_end(w.xy):
                 for k, seg in enumerate(self.crossings):
                     for end_idx in (0, 1):
                         if np.linalg.norm(w.xy - seg[end_idx]) < NEAR_CROSSING_M:
@@ -173,6 +176,13 @@ class PedestrianModel:
                             break
                     if w.crossing >= 0:
                         break
+
+    def _near_a_crossing_end(self, xy: np.ndarray) -> bool:
+        """False when no crosswalk end can be within NEAR_CROSSING_M of `xy` (each coordinate
+        differs by more; the 1e-9 m absorbs the rounding of the Euclidean distance)."""
+        if self.crossing_ends is None:
+            return False
+        return bool((np.abs(self.crossing_ends - xy).max(axis=1) <= NEAR_CROSSING_M + 1e-9).any())
 
     def _nearest_path(self, xy: np.ndarray) -> tuple[int, float]:
         pt = Point(xy)

@@ -5,6 +5,7 @@ Everything here is in the world frame of `sim.actors` (x east, y north, z up, me
 
 from __future__ import annotations
 
+import bisect
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -245,11 +246,69 @@ def _tangents(line: np.ndarray) -> np.ndarray:
     return d / np.maximum(np.linalg.norm(d, axis=1, keepdims=True), 1e-9)
 
 
+class Polyline:
+    """A polyline (K >= 2, 2) [m] and the running segment lengths GEOS uses to find a point at a
+    distance along it: `points` and `point` equal `shapely.line_interpolate_point(LineString(line),
+    distance)` bit for bit, for finite distances (negative ones count from the end).
+
+    GEOS (LengthLocationMap) walks the segments adding up their lengths sqrt(dx*dx + dy*dy) one
+    by one, stops at the first segment whose running total exceeds the distance and returns
+    p0 + (p1 - p0) * frac, frac = (distance - total before it) / its length (p0 for frac <= 0, p1
+    for frac >= 1); 0 or less gives the first vertex, the length or more the last. The same float
+    operations: np.cumsum adds in GEOS's order, and `point` repeats them on Python floats (the
+    same IEEE doubles) for one distance without numpy's per-call overhead.
+    """
+
+    def __init__(self, line: np.ndarray) -> None:
+        xy = np.asarray(line, float)
+        self.xy = xy
+        self.p0, self.p1 = xy[:-1], xy[1:]
+        self.d = self.p1 - self.p0
+        self.seg = np.sqrt(self.d[:, 0] * self.d[:, 0] + self.d[:, 1] * self.d[:, 1])
+        self.total = np.cumsum(self.seg)
+        self.before = np.concatenate([[0.0], self.total[:-1]])
+        self._rows = None
+
+    def points(self, distances: np.ndarray) -> np.ndarray:
+        """(N, 2) points at `distances` along the line [m]."""
+        distances = np.asarray(distances, float)
+        distances = np.where(distances < 0, self.total[-1] + distances, distances)  # from the end
+        i = np.searchsorted(self.total, distances, side="right")  # first segment with total > distance
+        out = np.empty((len(distances), 2))
+        out[:] = self.xy[-1]  # at or past the end
+        inside = (i < len(self.seg)) & (distances > 0)
+        k = i[inside]
+        frac = ((distances[inside] - self.before[k]) / self.seg[k])[:, None]
+        out[inside] = np.where(frac <= 0, self.p0[k], np.where(frac >= 1, self.p1[k], self.d[k] * frac + self.p0[k]))
+        out[distances <= 0] = self.xy[0]
+        return out
+
+    def point(self, distance: float) -> np.ndarray:
+        """(2,) point at one `distance` along the line [m] (same bits as `points`)."""
+        if self._rows is None:
+            self._rows = (self.total.tolist(), self.before.tolist(), self.seg.tolist(), self.xy.tolist())
+        total, before, seg, xy = self._rows
+        if distance < 0:  # measured from the end
+            distance = total[-1] + distance
+        if distance <= 0:
+            return np.array(xy[0])
+        i = bisect.bisect_right(total, distance)
+        if i >= len(seg):
+            return np.array(xy[-1])
+        frac = (distance - before[i]) / seg[i]
+        (x0, y0), (x1, y1) = xy[i], xy[i + 1]
+        if frac <= 0:
+            return np.array((x0, y0))
+        if frac >= 1:
+            return np.array((x1, y1))
+        return np.array(((x1 - x0) * frac + x0, (y1 - y0) * frac + y0))
+
+
 def resample(line: np.ndarray, step: float) -> np.ndarray:
     """Points every ~`step` metres along a polyline (end points included)."""
     ls = LineString(line)
     n = max(2, int(ls.length / step) + 1)
-    return shapely.get_coordinates(shapely.line_interpolate_point(ls, np.linspace(0, ls.length, n)))
+    return Polyline(line).points(np.linspace(0, ls.length, n))
 
 
 def ring_lines(geom, offset: float, window: Polygon) -> list[np.ndarray]:
@@ -257,13 +316,46 @@ def ring_lines(geom, offset: float, window: Polygon) -> list[np.ndarray]:
     return lines_of(geom.buffer(offset).boundary.intersection(window))
 
 
+def distance_to_area(area, xy: np.ndarray) -> np.ndarray:
+    """(N,) `shapely.distance(area, shapely.points(xy))` for a (Multi)Polygon `area`, bit for bit,
+    without measuring every point against every boundary segment.
+
+    GEOS's point-polygon distance is 0 for a point inside or on the area, else the smallest
+    point-segment distance over all boundary segments. Here each point meets only the segments
+    within an upper bound of that smallest distance (its distance to the nearest vertex of the
+    boundary resampled every 2 m, found with a k-d tree); GEOS measures those few (the same
+    point-segment computation) and the smallest is kept. Other geometry types go to shapely.
+    `area` is prepared (shapely.prepare) for the inside test.
+    """
+    from scipy.spatial import cKDTree
+
+    points = shapely.points(xy)
+    if area.is_empty or not isinstance(area, Polygon | MultiPolygon) or len(xy) == 0:
+        return shapely.distance(area, points)
+    rings = shapely.get_rings(shapely.get_parts(area))
+    coords = [shapely.get_coordinates(r) for r in rings]
+    segments = shapely.linestrings(np.concatenate([np.stack([c[:-1], c[1:]], axis=1) for c in coords]))
+    vertices = shapely.get_coordinates(shapely.segmentize(rings, 2.0))
+    bound, _ = cKDTree(vertices).query(xy)
+    bound = bound * (1 + 1e-9) + 1e-6  # never below the true smallest distance
+    x, y = xy[:, 0], xy[:, 1]
+    point_index, segment_index = shapely.STRtree(segments).query(
+        shapely.box(x - bound, y - bound, x + bound, y + bound)
+    )
+    out = np.full(len(xy), np.inf)
+    np.minimum.at(out, point_index, shapely.distance(points[point_index], segments[segment_index]))
+    shapely.prepare(area)
+    out[shapely.intersects_xy(area, x, y)] = 0.0
+    return out
+
+
 def outward_normals(line: np.ndarray, avoid) -> np.ndarray:
     """Unit normals of a polyline pointing away from geometry `avoid` (e.g. the road)."""
     t = _tangents(line)
     n = np.column_stack([-t[:, 1], t[:, 0]])
     probe = line + n * 1.0
-    dist_plus = shapely.distance(avoid, shapely.points(probe))
-    dist_here = shapely.distance(avoid, shapely.points(line))
+    dist = distance_to_area(avoid, np.vstack([probe, line]))
+    dist_plus, dist_here = dist[: len(line)], dist[len(line):]
     flip = dist_plus < dist_here
     n[flip] *= -1
     return n

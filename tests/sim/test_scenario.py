@@ -174,3 +174,20 @@ def test_pyplot_is_imported_on_first_use_only():
             "fig, ax = plt.subplots(); ax.plot([0, 1]); assert 'matplotlib.font_manager' in sys.modules; print('ok')")
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
     assert out.returncode == 0 and out.stdout.strip() == "ok", out.stderr[-2000:]
+
+
+def test_walkers_near_a_crossing_end_prefilter_never_misses_one():
+    from sim.pedestrians import NEAR_CROSSING_M
+
+    sim = Simulator(ScenarioSpec(context="junction", seed=2, frames=1, warmup_s=0.0))
+    people = sim.people
+    ends = np.concatenate(people.crossings)
+    rng = np.random.default_rng(0)
+    angles = rng.uniform(0, 2 * np.pi, (len(ends), 200))
+    radii = NEAR_CROSSING_M + rng.choice([-1e-12, 0.0, 1e-12, -0.3, 0.3, 5.0], angles.shape)
+    pts = (ends[:, None] + radii[..., None] * np.stack([np.cos(angles), np.sin(angles)], -1)).reshape(-1, 2)
+    pts = np.vstack([pts, rng.uniform(-100, 100, (2000, 2))])
+    for p in pts:
+        near = any(np.linalg.norm(p - e) < NEAR_CROSSING_M for e in ends)
+        assert not near or people._near_a_crossing_end(p)
+    assert not all(people._near_a_crossing_end(p) for p in pts)
