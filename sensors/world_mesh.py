@@ -17,13 +17,12 @@ from functools import cache, lru_cache
 
 import numpy as np
 import shapely
-import shapely.ops
 import trimesh
 from shapely.geometry import MultiPolygon, Polygon, box
 
 from sensors.materials import MATERIAL_ID
 from sim.actors import CLASS_SIZE, CLASSES, box_corners_2d
-from sim.world import STRUCTURE_ID
+from sim.world import STRUCTURE_ID, Polyline
 
 M = MATERIAL_ID
 CURB_HEIGHT = 0.12  # [m] sidewalk above the road
@@ -296,7 +295,12 @@ def _tiles(geom, tile: float = TILE_M) -> list:
 
 def _flat(geom, z: float, material: str) -> MeshSoup:
     """Triangulate a (Multi)Polygon into a horizontal surface at height z (normals up)."""
-    tiles = _tiles(geom)
+    return _flat_tiles(_tiles(geom), z, material)
+
+
+def _flat_tiles(tiles: list, z: float, material: str) -> MeshSoup:
+    """Triangulate polygons (in order) into one horizontal surface at height z: the same soup as
+    `MeshSoup.concat` of `_flat` of each, in one vectorised call."""
     if not tiles:
         return MeshSoup.empty()
     tris = shapely.get_parts(shapely.constrained_delaunay_triangles(np.array(tiles, dtype=object)))
@@ -329,24 +333,44 @@ def _walls(geom, z0: float, z1: float, material: str) -> MeshSoup:
     return MeshSoup(v, np.array(faces), np.full(len(v), M[material], np.uint8), np.zeros(len(v), np.int32))
 
 
+def _dashes(ls: shapely.LineString) -> list[shapely.LineString]:
+    """`shapely.ops.substring(ls, s, min(s + DASH, length))` for s = 0, DASH + GAP, ... < length,
+    with the same coordinates: the end points from `sim.world.Polyline` (GEOS's interpolation, bit
+    for bit) and the vertices in between chosen as substring does, by running distances summed in
+    Python as ((dx) ** 2 + (dy) ** 2) ** 0.5 (one walk per line instead of one per dash)."""
+    length = ls.length
+    starts, s = [], 0.0
+    while s < length:
+        starts.append(s)
+        s += DASH + GAP
+    ends = [min(a + DASH, length) for a in starts]
+    coords = list(ls.coords)
+    running, current = [], 0.0  # distance along the line at vertex i (i < last), as substring sums it
+    for p1, p2 in zip(coords[:-1], coords[1:]):
+        running.append(current)
+        current += ((p2[0] - p1[0]) ** 2 + (p2[1] - p1[1]) ** 2) ** 0.5
+    line = Polyline(np.asarray(coords))
+    first, last = line.points(np.array(starts)).tolist(), line.points(np.array(ends)).tolist()
+    out = []
+    for a, b, p, q in zip(starts, ends, first, last):
+        inner = [coords[i] for i, d in enumerate(running) if a < d < b]
+        out.append(shapely.LineString([tuple(p), *inner, tuple(q)]))
+    return out
+
+
 def _stripes(lines: list[np.ndarray], dashed: np.ndarray, z: float) -> MeshSoup:
-    parts = []
+    """Lane paint: solid lines and DASH / GAP dashes, PAINT_WIDTH wide (flat caps), at height z."""
+    segs = []
     for line, d in zip(lines, dashed):
         ls = shapely.LineString(line)
         if ls.length < 0.5:
             continue
-        if d:
-            segs = []
-            s = 0.0
-            while s < ls.length:
-                segs.append(shapely.ops.substring(ls, s, min(s + DASH, ls.length)))
-                s += DASH + GAP
-        else:
-            segs = [ls]
-        for seg in segs:
-            poly = seg.buffer(PAINT_WIDTH / 2, cap_style="flat")
-            parts.append(_flat(poly, z, "lane_paint"))
-    return MeshSoup.concat(parts)
+        segs += _dashes(ls) if d else [ls]
+    if not segs:
+        return MeshSoup.empty()
+    # BaseGeometry.buffer's defaults (quad_segs=16), which the function form does not share
+    polys = shapely.buffer(np.array(segs, dtype=object), PAINT_WIDTH / 2, quad_segs=16, cap_style="flat")
+    return _flat_tiles([t for poly in polys for t in _tiles(poly)], z, "lane_paint")
 
 
 def _clip_lines(lines, dashed, window):
@@ -365,12 +389,12 @@ def _zebra(rect: np.ndarray, z: float) -> MeshSoup:
     a, b, c, d = rect
     along = b - a  # across the road
     n_stripes = int(np.linalg.norm(along) / 1.0)
-    parts = []
+    tiles = []
     for k in range(n_stripes):
         t0, t1 = k / n_stripes, (k + 0.5) / n_stripes
         q = np.array([a + along * t0, a + along * t1, d + along * t1, d + along * t0])
-        parts.append(_flat(Polygon(q), z, "lane_paint"))
-    return MeshSoup.concat(parts)
+        tiles += _tiles(Polygon(q))
+    return _flat_tiles(tiles, z, "lane_paint")
 
 
 def _building(c, size, yaw, rng) -> MeshSoup:
