@@ -76,7 +76,7 @@ def scan(caster: WorldCaster, calib: Calibration, world_from_ego: np.ndarray,
     d_world = dirs.reshape(-1, 3) @ world_from_lidar[:3, :3].T
     hits = caster.cast(world_from_lidar[:3, 3], d_world, max_range=LIDAR_MAX_RANGE_M)
     rng = hits.range.reshape(shape)
-    cos_i = np.abs(np.einsum("ij,ij->i", hits.normal, d_world)).reshape(shape)
+    cos_i = hits.cos_incidence.reshape(shape)
     rho = NIR[hits.material].reshape(shape)
     with np.errstate(divide="ignore"):
         power = np.where(np.isfinite(rng), rho * cos_i * (R_REF_M / rng) ** 2, 0.0)
