@@ -163,3 +163,45 @@ def radar_coarse_signal(smeared, oversample, speckle):
             for b in range(B):
                 out[a, b] = np.float32(np.float64(out[a, b]) * speckle[a, b])
     return out
+
+
+@njit(cache=True, error_model="numpy")
+def lidar_points(dirs, range_m, power, returned, p_sat):
+    """(N, 5) float32 detected points x, y, z [m], intensity, ring (sensors.lidar.points).
+
+    Reproduces, bit for bit (points in the C order of the (ring, azimuth) grid):
+
+        m = returned
+        xyz = dirs[m] * range_m[m][:, None]                  # float64 (float32 range promoted)
+        inten = np.clip(power[m] / P_SAT, 0, 1)              # P_SAT: a Python float
+        ring = np.broadcast_to(np.arange(n_rings)[:, None], m.shape)[m]
+        np.column_stack([xyz, inten, ring]).astype(np.float32)
+
+    `p_sat` is P_SAT as a scalar of power's dtype (numpy applies a Python float in the array's
+    precision). np.clip replaces x only when x < 0 or x > 1 (NaN and -0.0 stay).
+    """
+    n_rings, n_az = returned.shape
+    n = 0
+    for r in range(n_rings):
+        for a in range(n_az):
+            if returned[r, a]:
+                n += 1
+    pts = np.empty((n, 5), np.float32)
+    zero, one = np.float32(0.0), np.float32(1.0)
+    k = 0
+    for r in range(n_rings):
+        for a in range(n_az):
+            if not returned[r, a]:
+                continue
+            rng = np.float64(range_m[r, a])
+            for c in range(3):
+                pts[k, c] = np.float32(dirs[r, a, c] * rng)
+            q = power[r, a] / p_sat
+            if q < zero:
+                q = zero
+            elif q > one:
+                q = one
+            pts[k, 3] = q
+            pts[k, 4] = np.float32(r)
+            k += 1
+    return pts

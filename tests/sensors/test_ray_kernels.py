@@ -5,6 +5,7 @@ import numpy as np
 import pytest
 import scipy.fft as sfft
 
+from sensors import lidar as lidar_mod
 from sensors import radar as radar_mod
 from sensors import ray_kernels
 from sensors.materials import RADAR_GAMMA, RADAR_SPECULAR
@@ -248,3 +249,33 @@ def test_radar_scan_equals_the_numpy_formulation(city, junction):
             assert (got.instance > 0).any() and (got.signal > 0).mean() > 0.5
             for f in ("signal", "noise", "instance", "clutter"):
                 assert _bits_equal(getattr(got, f), getattr(want, f)), f
+
+
+# --- lidar ---------------------------------------------------------------------------------------
+
+
+def reference_points(dirs, range_m, power, returned):
+    """sensors.lidar.points as it was (without the extra returns)."""
+    m = returned
+    xyz = dirs[m] * range_m[m][:, None]
+    inten = np.clip(power[m] / lidar_mod.P_SAT, 0, 1)
+    ring = np.broadcast_to(np.arange(dirs.shape[0])[:, None], m.shape)[m]
+    return np.column_stack([xyz, inten, ring]).astype(np.float32)
+
+
+@pytest.mark.parametrize("dtype", [np.float32, np.float64])
+def test_lidar_points_equal_numpy(dtype, city):
+    _, renderer, obs = city
+    dirs = lidar_mod.beam_directions(renderer.calib)
+    rng = np.random.default_rng(0)
+    shape = dirs.shape[:2]
+    range_m = rng.uniform(0.0, 120.0, shape).astype(dtype)
+    power = (np.exp(rng.normal(size=shape) * 3) * lidar_mod.P_SAT).astype(dtype)  # some saturate
+    power[:, ::50] = np.nan
+    power[:, 1::50] = -0.0
+    cases = [(range_m, power, rng.random(shape) < 0.6), (range_m, power, np.zeros(shape, bool)),
+             (obs.lidar.range, obs.lidar.power, obs.lidar.returned)]
+    for r, p, m in cases:
+        got = ray_kernels.lidar_points(dirs, r, p, m, p.dtype.type(lidar_mod.P_SAT))
+        assert _bits_equal(got, reference_points(dirs, r, p, m))
+    assert _bits_equal(lidar_mod.points(obs.lidar, renderer.calib), reference_points(dirs, *cases[-1]))
