@@ -24,7 +24,6 @@ from functools import lru_cache
 
 import numpy as np
 import scipy.fft as sfft
-from scipy.ndimage import map_coordinates
 
 from sensors import ray_kernels
 from sensors.materials import RADAR_GAMMA, RADAR_SPECULAR
@@ -189,7 +188,7 @@ def cartesian(polar: np.ndarray, calib: Calibration) -> np.ndarray:
         cols = r / calib.radar_range_resolution_m - 0.5
         _CART_CACHE[key] = (np.vstack([rows, cols]), (S, S), cols > B)
     coords, shape, outside = _CART_CACHE[key]
-    padded = np.vstack([polar, polar[:1]])  # wrap azimuth for interpolation
-    out = map_coordinates(padded.astype(np.float32), coords, order=1, mode="nearest")
-    out[outside] = 0
+    # bilinear, azimuth wrapping, as map_coordinates(order=1, mode="nearest") on the polar image
+    # with its first row repeated after the last (sensors.ray_kernels)
+    out = ray_kernels.polar_to_cartesian(np.asarray(polar, np.float32), coords[0], coords[1], outside)
     return out.reshape(shape)

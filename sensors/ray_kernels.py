@@ -205,3 +205,56 @@ def lidar_points(dirs, range_m, power, returned, p_sat):
             pts[k, 4] = np.float32(r)
             k += 1
     return pts
+
+
+@njit(cache=True, error_model="numpy")
+def _mirror_index(idx, n):
+    """scipy.ndimage's tap index beyond the last sample (ni_interpolation.c, mirrored)."""
+    if n <= 1:
+        return 0
+    s2 = 2 * n - 2
+    if idx >= n:
+        idx -= s2 * (idx // s2)
+        if idx >= n:
+            idx = s2 - idx
+    return idx
+
+
+@njit(cache=True, error_model="numpy")
+def polar_to_cartesian(polar, rows, cols, outside):
+    """Bilinear samples (N,) float32 of the polar image (A, B) float32 with its first row repeated
+    after the last (azimuth wrap) at (rows, cols) (N,) float64; 0 where `outside`.
+
+    Reproduces ``map_coordinates(np.vstack([polar, polar[:1]]), np.vstack([rows, cols]), order=1,
+    mode="nearest")`` followed by ``out[outside] = 0`` bit for bit, as scipy.ndimage computes it
+    (ni_interpolation.c, ni_splines.c): a coordinate beyond the edge is clamped to it; the taps are
+    floor(c) and floor(c) + 1 (mirrored back inside at the last sample); the weights are
+    w0 = 1 - (c - floor(c)) and w1 = 1 - w0; the value is t = 0.0 + (v00 * w0_r) * w0_c +
+    (v01 * w0_r) * w1_c + (v10 * w1_r) * w0_c + (v11 * w1_r) * w1_c in float64, rounded once.
+    """
+    A, B = polar.shape
+    n_rows = A + 1
+    out = np.empty(len(rows), np.float32)
+    for k in range(len(rows)):
+        if outside[k]:
+            out[k] = 0.0
+            continue
+        r = min(max(rows[k], 0.0), n_rows - 1.0)
+        c = min(max(cols[k], 0.0), B - 1.0)
+        r0 = np.int64(np.floor(r))
+        c0 = np.int64(np.floor(c))
+        wr0 = 1.0 - (r - np.floor(r))
+        wr1 = 1.0 - wr0
+        wc0 = 1.0 - (c - np.floor(c))
+        wc1 = 1.0 - wc0
+        r1 = _mirror_index(r0 + 1, n_rows)
+        c1 = _mirror_index(c0 + 1, B)
+        r0 = r0 if r0 < A else 0  # the repeated first row
+        r1 = r1 if r1 < A else 0
+        t = 0.0
+        t += (np.float64(polar[r0, c0]) * wr0) * wc0
+        t += (np.float64(polar[r0, c1]) * wr0) * wc1
+        t += (np.float64(polar[r1, c0]) * wr1) * wc0
+        t += (np.float64(polar[r1, c1]) * wr1) * wc1
+        out[k] = np.float32(t)
+    return out

@@ -4,6 +4,7 @@ code they replaced, on random inputs with edge cases and on a rendered frame."""
 import numpy as np
 import pytest
 import scipy.fft as sfft
+from scipy.ndimage import map_coordinates
 
 from sensors import lidar as lidar_mod
 from sensors import radar as radar_mod
@@ -279,3 +280,32 @@ def test_lidar_points_equal_numpy(dtype, city):
         got = ray_kernels.lidar_points(dirs, r, p, m, p.dtype.type(lidar_mod.P_SAT))
         assert _bits_equal(got, reference_points(dirs, r, p, m))
     assert _bits_equal(lidar_mod.points(obs.lidar, renderer.calib), reference_points(dirs, *cases[-1]))
+
+
+@pytest.mark.parametrize("shape", [(400, 288), (7, 5), (1, 2), (2, 1), (1, 1)])
+def test_polar_to_cartesian_equals_map_coordinates(shape):
+    rng = np.random.default_rng(shape[0] * 10 + shape[1])
+    A, B = shape
+    polar = (rng.random(shape) * 255).astype(np.float32)
+    polar[rng.random(shape) < 0.3] = 100.0  # flat patches, like the counts of an empty scene
+    n = 3000
+    rows = rng.uniform(-1.5, A + 1.5, n)
+    cols = rng.uniform(-1.5, B + 1.5, n)
+    rows[:40] = np.arange(40) % (A + 2)  # exact sample positions, the last row, beyond it
+    cols[40:80] = np.arange(40) % (B + 1) - 0.0
+    cols[80] = -0.0
+    outside = rng.random(n) < 0.2
+    want = map_coordinates(np.vstack([polar, polar[:1]]), np.vstack([rows, cols]), order=1, mode="nearest")
+    want[outside] = 0
+    assert _bits_equal(ray_kernels.polar_to_cartesian(polar, rows, cols, outside), want)
+
+
+def test_radar_cartesian_equals_map_coordinates(city):
+    _, renderer, obs = city
+    polar = radar_mod.to_counts(obs.radar.power).astype(np.float32)
+    got = radar_mod.cartesian(polar, renderer.calib)
+    coords, shape, outside = radar_mod._CART_CACHE[(polar.shape, renderer.calib.bev_size_px, renderer.calib.bev_resolution_m,
+                                                    renderer.calib.radar_range_resolution_m)]
+    want = map_coordinates(np.vstack([polar, polar[:1]]), coords, order=1, mode="nearest")
+    want[outside] = 0
+    assert _bits_equal(got, want.reshape(shape)) and got.max() > 0
