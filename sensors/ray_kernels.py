@@ -1,4 +1,5 @@
-"""Compiled cores of the ray caster and the radar scan (numba, cached on disk).
+"""Compiled cores of the ray caster, the radar scan and BEV image and the lidar point list (numba,
+cached on disk).
 
 Like sensors.kernels, every kernel repeats the numpy code it replaces operation by operation, in the
 same precision and the same order, so its output is bit-identical to the numpy reference
