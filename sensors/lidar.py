@@ -15,9 +15,11 @@ intensity is P / P_sat clipped to 1 (P_sat: a white target at 5 m). Atmospheric 
 from __future__ import annotations
 
 from dataclasses import dataclass
+from functools import lru_cache
 
 import numpy as np
 
+from sensors import ray_kernels
 from sensors.materials import NIR
 from sensors.raycast import WorldCaster
 from sensors.rig import LIDAR_MAX_RANGE_M, LIDAR_MIN_RANGE_M, Calibration, invert, transform_points
@@ -58,9 +60,16 @@ class LidarObservation:
 
 def beam_directions(calib: Calibration) -> np.ndarray:
     """(32, A, 3) unit ray directions in the lidar frame; azimuth a * 360 / A deg ccw from +x."""
-    el = np.radians(calib.lidar_elevations_deg)[:, None]
-    az = 2 * np.pi * np.arange(calib.lidar_azimuth_steps)[None, :] / calib.lidar_azimuth_steps
-    return np.stack([np.cos(el) * np.cos(az), np.cos(el) * np.sin(az), np.sin(el) * np.ones_like(az)], -1)
+    return _beam_directions(tuple(calib.lidar_elevations_deg), calib.lidar_azimuth_steps).copy()
+
+
+@lru_cache(maxsize=8)
+def _beam_directions(elevations_deg: tuple[float, ...], azimuth_steps: int) -> np.ndarray:
+    el = np.radians(np.array(elevations_deg))[:, None]
+    az = 2 * np.pi * np.arange(azimuth_steps)[None, :] / azimuth_steps
+    dirs = np.stack([np.cos(el) * np.cos(az), np.cos(el) * np.sin(az), np.sin(el) * np.ones_like(az)], -1)
+    dirs.flags.writeable = False  # shared by every call
+    return dirs
 
 
 def detect(range_m: np.ndarray, power: np.ndarray) -> np.ndarray:
@@ -76,7 +85,7 @@ def scan(caster: WorldCaster, calib: Calibration, world_from_ego: np.ndarray,
     d_world = dirs.reshape(-1, 3) @ world_from_lidar[:3, :3].T
     hits = caster.cast(world_from_lidar[:3, 3], d_world, max_range=LIDAR_MAX_RANGE_M)
     rng = hits.range.reshape(shape)
-    cos_i = np.abs(np.einsum("ij,ij->i", hits.normal, d_world)).reshape(shape)
+    cos_i = hits.cos_incidence.reshape(shape)
     rho = NIR[hits.material].reshape(shape)
     with np.errstate(divide="ignore"):
         power = np.where(np.isfinite(rng), rho * cos_i * (R_REF_M / rng) ** 2, 0.0)
@@ -95,12 +104,8 @@ def scan(caster: WorldCaster, calib: Calibration, world_from_ego: np.ndarray,
 
 def points(obs: LidarObservation, calib: Calibration) -> np.ndarray:
     """(N, 5) detected points in the lidar frame: x, y, z [m], intensity (0..1), ring (0..31)."""
-    dirs = beam_directions(calib)
-    m = obs.returned
-    xyz = dirs[m] * obs.range[m][:, None]
-    inten = np.clip(obs.power[m] / P_SAT, 0, 1)
-    ring = np.broadcast_to(np.arange(dirs.shape[0])[:, None], m.shape)[m]
-    pts = np.column_stack([xyz, inten, ring]).astype(np.float32)
+    dirs = _beam_directions(tuple(calib.lidar_elevations_deg), calib.lidar_azimuth_steps)
+    pts = ray_kernels.lidar_points(dirs, obs.range, obs.power, obs.returned, obs.power.dtype.type(P_SAT))
     if len(obs.extra_points):
         pts = np.vstack([pts, obs.extra_points.astype(np.float32)])
     return pts

@@ -24,8 +24,8 @@ from functools import lru_cache
 
 import numpy as np
 import scipy.fft as sfft
-from scipy.ndimage import map_coordinates
 
+from sensors import ray_kernels
 from sensors.materials import RADAR_GAMMA, RADAR_SPECULAR
 from sensors.raycast import WorldCaster
 from sensors.rig import RADAR_BEAMWIDTH_DEG, Calibration
@@ -89,12 +89,11 @@ def elevation_weights() -> np.ndarray:
     return _one_way_gain(ELEVATIONS_DEG, ELEVATION_BEAMWIDTH_DEG) ** 2
 
 
-def scan(caster: WorldCaster, calib: Calibration, world_from_ego: np.ndarray, actor_ids: np.ndarray,
-         rng: np.random.Generator, speckle: bool = True) -> RadarObservation:
-    """One scan of the radar at the ego pose (see module docstring). `speckle=False` returns the
-    mean (unspeckled) signal, for tests of the radar equation."""
-    A, B, dr = calib.radar_azimuths, calib.radar_range_bins, calib.radar_range_resolution_m
-    n_fine = A * OVERSAMPLE
+@lru_cache(maxsize=8)
+def _fine_rays(n_fine: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """The scan's rays in the radar frame, elevation-major (ray e * n_fine + a): unit directions
+    (E * n_fine, 3), elevation spacing d_el [rad], elevation weight w_el and coarse azimuth bin per
+    ray. Read-only (shared by every scan)."""
     # fine rays centred on their bin: row a = azimuth a * 360 / A (rig.py convention)
     az = 2 * np.pi * (np.arange(n_fine) - (OVERSAMPLE - 1) / 2) / n_fine
     el = np.radians(ELEVATIONS_DEG)
@@ -102,37 +101,42 @@ def scan(caster: WorldCaster, calib: Calibration, world_from_ego: np.ndarray, ac
         (np.cos(el)[:, None] * np.cos(az)[None, :]),
         (np.cos(el)[:, None] * np.sin(az)[None, :]),
         (np.sin(el)[:, None] * np.ones_like(az)[None, :]),
-    ), -1)  # (E, n_fine, 3)
+    ), -1).reshape(-1, 3)
+    d_el = np.gradient(el).repeat(n_fine)  # elevation spacing per ray [rad]
+    w_el = np.repeat(elevation_weights(), n_fine)
+    coarse = np.tile(np.arange(n_fine), len(el)) // OVERSAMPLE
+    for a in (dirs, d_el, w_el, coarse):
+        a.flags.writeable = False
+    return dirs, d_el, w_el, coarse
+
+
+def scan(caster: WorldCaster, calib: Calibration, world_from_ego: np.ndarray, actor_ids: np.ndarray,
+         rng: np.random.Generator, speckle: bool = True) -> RadarObservation:
+    """One scan of the radar at the ego pose (see module docstring). `speckle=False` returns the
+    mean (unspeckled) signal, for tests of the radar equation."""
+    A, B, dr = calib.radar_azimuths, calib.radar_range_bins, calib.radar_range_resolution_m
+    n_fine = A * OVERSAMPLE
+    dirs, d_el, w_el, coarse = _fine_rays(n_fine)
     world_from_radar = world_from_ego @ calib.ego_from_radar
-    d_world = dirs.reshape(-1, 3) @ world_from_radar[:3, :3].T
+    d_world = dirs @ world_from_radar[:3, :3].T
     max_range = B * dr
     hits = caster.cast(world_from_radar[:3, 3], d_world, max_range=max_range)
     R = hits.range
     ok = np.isfinite(R) & (R > 1.0)
-    cos_i = np.abs(np.einsum("ij,ij->i", hits.normal, d_world))
+    cos_i = hits.cos_incidence
     theta = np.degrees(np.arccos(np.clip(cos_i, 0, 1)))
     m = hits.material
-    d_el = np.gradient(el).repeat(n_fine)  # elevation spacing per ray [rad]
     d_az = 2 * np.pi / n_fine
     area = R**2 * d_az * d_el  # projected footprint [m^2]
     sigma = area * (RADAR_GAMMA[m] + RADAR_SPECULAR[m] * np.exp(-((theta / SPECULAR_WIDTH_DEG) ** 2)))
-    w_el = np.repeat(elevation_weights(), n_fine)
     with np.errstate(divide="ignore", invalid="ignore"):
         p = np.where(ok, RADAR_CONSTANT * w_el * sigma / R**4, 0.0)
     # bin in range (linear split) on the fine azimuth grid
-    fine_az = np.tile(np.arange(n_fine), len(el))
     x = np.where(ok, R / dr - 0.5, 0.0)
-    b0 = np.floor(x).astype(int)
-    frac = x - b0
-    grid = np.zeros(n_fine * B)
-    for b, w in ((b0, 1 - frac), (b0 + 1, frac)):
-        sel = ok & (b >= 0) & (b < B)
-        grid += np.bincount(fine_az[sel] * B + b[sel], weights=p[sel] * w[sel], minlength=n_fine * B)
-    grid = grid.reshape(n_fine, B)
+    grid = ray_kernels.radar_range_grid(p, x, ok, n_fine, B)  # (n_fine, B) float32
     # dominant actor per coarse cell
     ids = np.concatenate([[0], actor_ids])
     act = ok & (hits.instance > 0)
-    coarse = fine_az // OVERSAMPLE
     instance = np.zeros((A, B), np.int64)
     if act.any():
         cell = coarse[act] * B + np.clip(np.round(x[act]).astype(int), 0, B - 1)
@@ -142,13 +146,15 @@ def scan(caster: WorldCaster, calib: Calibration, world_from_ego: np.ndarray, ac
         instance.reshape(-1)[cell[order][last]] = ids[hits.instance[act][order][last]]
     # two-way azimuth pattern (circular convolution), then integrate into the coarse bins
     K = _kernel_spectrum(n_fine)
-    smeared = sfft.irfft(sfft.rfft(grid.astype(np.float32), axis=0) * K[:, None], n=n_fine, axis=0)
-    smeared = np.clip(smeared, 0, None)
-    coarse_signal = smeared.reshape(A, OVERSAMPLE, B).sum(axis=1)
+    spectrum = sfft.rfft(grid, axis=0)
+    spectrum *= K[:, None]
+    smeared = sfft.irfft(spectrum, n=n_fine, axis=0)
     speckle_draw = rng.exponential(1.0, size=(A, B))
     noise = NOISE_POWER * rng.exponential(1.0, size=(A, B))
+    # clip the sidelobe ringing at 0, integrate into the coarse bins, speckle
+    signal = ray_kernels.radar_coarse_signal(smeared, OVERSAMPLE, speckle_draw if speckle else None)
     return RadarObservation(
-        signal=(coarse_signal * (speckle_draw if speckle else 1.0)).astype(np.float32),
+        signal=signal,
         noise=noise.astype(np.float32),
         instance=instance,
         clutter=np.zeros((A, B), np.float32),
@@ -182,7 +188,7 @@ def cartesian(polar: np.ndarray, calib: Calibration) -> np.ndarray:
         cols = r / calib.radar_range_resolution_m - 0.5
         _CART_CACHE[key] = (np.vstack([rows, cols]), (S, S), cols > B)
     coords, shape, outside = _CART_CACHE[key]
-    padded = np.vstack([polar, polar[:1]])  # wrap azimuth for interpolation
-    out = map_coordinates(padded.astype(np.float32), coords, order=1, mode="nearest")
-    out[outside] = 0
+    # bilinear, azimuth wrapping, as map_coordinates(order=1, mode="nearest") on the polar image
+    # with its first row repeated after the last (sensors.ray_kernels)
+    out = ray_kernels.polar_to_cartesian(np.asarray(polar, np.float32), coords[0], coords[1], outside)
     return out.reshape(shape)
