@@ -58,15 +58,24 @@ def _fsync_dir(path: Path) -> None:
         os.close(fd)
 
 
+def _save(path: Path, array: np.ndarray) -> None:
+    """np.save, with a strided array (neither C- nor Fortran-ordered, e.g. a stack of transposed
+    views) copied to C order first: np.save writes such an array in C order under the same header
+    anyway, but element by element."""
+    if not array.flags.f_contiguous:
+        array = np.ascontiguousarray(array)
+    np.save(path, array)
+
+
 def write_frames(directory: Path, frames: list, extra: dict | None = None) -> None:
     """Write frames (sensors.frame.Frame) as one shard's arrays + frames.json into `directory`."""
     directory.mkdir(parents=True, exist_ok=True)
     for name in ARRAYS:
-        np.save(directory / f"{name}.npy", np.stack([getattr(f, name) for f in frames]))
+        _save(directory / f"{name}.npy", np.stack([getattr(f, name) for f in frames]))
     offsets = np.cumsum([0] + [len(f.lidar_points) for f in frames]).astype(np.int64)
-    np.save(directory / "lidar_points.npy", np.concatenate([f.lidar_points for f in frames]).astype(np.float32))
-    np.save(directory / "lidar_instance.npy", np.concatenate([f.lidar_instance for f in frames]).astype(np.int64))
-    np.save(directory / "lidar_offsets.npy", offsets)
+    _save(directory / "lidar_points.npy", np.concatenate([f.lidar_points for f in frames]).astype(np.float32))
+    _save(directory / "lidar_instance.npy", np.concatenate([f.lidar_instance for f in frames]).astype(np.int64))
+    _save(directory / "lidar_offsets.npy", offsets)
     records = [{"meta": f.meta, "labels": f.labels} for f in frames]
     payload = {"format_version": FORMAT_VERSION, "frames": records, **(extra or {})}
     (directory / "frames.json").write_text(json.dumps(payload, separators=(",", ":")))

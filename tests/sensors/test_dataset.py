@@ -13,7 +13,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from sensors.dataset import ARRAYS, DatasetReader, verify
+from sensors.dataset import ARRAYS, DatasetReader, _save, verify
 from sensors.generate import GenerateConfig, generate, plan
 from sim.errors import UserError
 from study.cli import main
@@ -196,3 +196,23 @@ def test_a_directory_from_another_config_is_refused(reference, tmp_path, capsys)
     code = main(["generate", "--out", str(copy), "--contexts", "junction,fog", "--frames-per-context", "2",
                  "--sequence-length", "1", "--seed", "6"])
     assert code == 2 and "different generation config" in capsys.readouterr().err
+
+
+def test_save_writes_np_saves_bytes_for_every_layout(tmp_path):
+    """sensors.dataset._save copies strided arrays to C order (fast write); the file keeps np.save's
+    bytes, Fortran-ordered arrays included (np.save stores those as such)."""
+    rng = np.random.default_rng(0)
+    bev = [rng.integers(0, 255, (3, 16, 16), dtype=np.uint8).transpose(1, 2, 0) for _ in range(4)]
+    cases = {
+        "strided_stack": np.stack(bev),  # like lidar_bev: a stack of transposed views
+        "c_order": rng.uniform(size=(4, 5, 3)).astype(np.float32),
+        "fortran": np.asfortranarray(rng.uniform(size=(4, 5, 3))),
+        "step": np.arange(40, dtype=np.int64)[::3],
+        "empty": np.zeros((0, 5), np.float32),
+        "scalar": np.array(7, np.int64),
+    }
+    assert not cases["strided_stack"].flags.c_contiguous and not cases["strided_stack"].flags.f_contiguous
+    for name, a in cases.items():
+        np.save(tmp_path / f"{name}_ref.npy", a)
+        _save(tmp_path / f"{name}.npy", a)
+        assert (tmp_path / f"{name}.npy").read_bytes() == (tmp_path / f"{name}_ref.npy").read_bytes(), name
