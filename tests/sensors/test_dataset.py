@@ -216,3 +216,46 @@ def test_save_writes_np_saves_bytes_for_every_layout(tmp_path):
         np.save(tmp_path / f"{name}_ref.npy", a)
         _save(tmp_path / f"{name}.npy", a)
         assert (tmp_path / f"{name}.npy").read_bytes() == (tmp_path / f"{name}_ref.npy").read_bytes(), name
+
+
+@pytest.mark.skipif(not Path("/proc/self/fd").is_dir(), reason="names fsynced files through /proc")
+def test_commit_fsyncs_every_file_before_the_rename(tmp_path, monkeypatch):
+    """The durability contract of commit_shard: every file (twins included) fsynced before the atomic
+    rename, the directory after it; an fsync error aborts the commit and leaves no shard."""
+    import sensors.dataset as ds
+
+    tmp = tmp_path / "shard-00000.tmp-1"
+    (tmp / "clear").mkdir(parents=True)
+    files = [tmp / "a.npy", tmp / "frames.json", tmp / "clear" / "a.npy", tmp / "clear" / "frames.json"]
+    for f in files:
+        f.write_bytes(b"x")
+    events = []
+    real_fsync, real_replace = os.fsync, os.replace
+
+    def fsync(fd):
+        events.append(("fsync", os.readlink(f"/proc/self/fd/{fd}")))
+        real_fsync(fd)
+
+    def replace(a, b):
+        events.append(("replace", str(b)))
+        real_replace(a, b)
+
+    monkeypatch.setattr(ds.os, "fsync", fsync)
+    monkeypatch.setattr(ds.os, "replace", replace)
+    final = tmp_path / "shard-00000"
+    ds.commit_shard(tmp, final)
+    k = events.index(("replace", str(final)))
+    assert sorted(p for _, p in events[:k]) == sorted(str(f) for f in files)
+    assert events[k + 1:] == [("fsync", str(tmp_path))]
+    assert final.is_dir() and not tmp.exists()
+
+    def failing(fd):
+        raise OSError(5, "Input/output error")
+
+    tmp2 = tmp_path / "shard-00001.tmp-1"
+    tmp2.mkdir()
+    (tmp2 / "a.npy").write_bytes(b"x")
+    monkeypatch.setattr(ds.os, "fsync", failing)
+    with pytest.raises(OSError):
+        ds.commit_shard(tmp2, tmp_path / "shard-00001")
+    assert tmp2.is_dir() and not (tmp_path / "shard-00001").exists()
