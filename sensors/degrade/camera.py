@@ -17,6 +17,7 @@ from sensors.camera import CameraObservation, _rays
 from sensors.degrade.base import Degradation, obstruction_probability, persistent, register
 from sensors.degrade.kernels import (
     airlight_blend,
+    blend_segments,
     block_mean,
     channel_mean,
     gaussian_blur,
@@ -98,27 +99,11 @@ class Atmosphere(Degradation):
 
 def _segments(L, depth, p0, p1, z, radiance, alpha, samples_per_px=2.0):
     """Alpha-blend line segments (n, 2) -> (n, 2) with per-segment radiance (n, 3) and alpha (n,),
-    behind-geometry parts hidden by the depth buffer."""
-    H, W = depth.shape
+    behind-geometry parts hidden by the depth buffer; each pixel takes its most opaque sample."""
     length = np.maximum(np.linalg.norm(p1 - p0, axis=1), 1.0)
     n_s = np.ceil(length * samples_per_px).astype(int)
-    idx = np.repeat(np.arange(len(p0)), n_s)
-    starts = np.repeat(np.cumsum(n_s) - n_s, n_s)
-    t = (np.arange(len(idx)) - starts) / np.maximum(np.repeat(n_s - 1, n_s), 1)
-    pts = p0[idx] + (p1[idx] - p0[idx]) * t[:, None]
-    u, v = np.floor(pts[:, 0]).astype(int), np.floor(pts[:, 1]).astype(int)
-    ok = (u >= 0) & (u < W) & (v >= 0) & (v < H)
-    u, v, idx = u[ok], v[ok], idx[ok]
-    front = z[idx] < depth[v, u]
-    u, v, idx = u[front], v[front], idx[front]
-    a = (alpha[idx] / np.maximum(n_s[idx] / (length[idx] * samples_per_px) * 1.0, 1.0))[:, None]
-    # blend once per pixel per segment: combine duplicates by keeping the strongest
-    flat = v * W + u
-    order = np.lexsort((-a[:, 0], flat))
-    first = np.r_[True, flat[order][1:] != flat[order][:-1]]
-    sel = order[first]
-    Lf = L.reshape(-1, 3)
-    Lf[flat[sel]] = (1 - a[sel]) * Lf[flat[sel]] + a[sel] * radiance[idx[sel]]
+    a = alpha / np.maximum(n_s / (length * samples_per_px) * 1.0, 1.0)  # per sample
+    blend_segments(L, depth, p0, p1, z, n_s, a, radiance)
 
 
 def _air_particles(rng_seed, n, cam, depth_range, fall_speed, exposure_s, size_m):

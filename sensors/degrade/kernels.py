@@ -329,3 +329,44 @@ def _check_pixels(x: np.ndarray, what: str) -> None:
     if x.dtype != np.float32 or x.ndim != 3 or x.shape[2] < 2 or x.size == 0 or not x.flags.c_contiguous:
         raise ValueError(f"{what} takes a non-empty C-contiguous float32 (H, W, C >= 2) array, "
                          f"got {x.dtype} {x.shape}")
+
+
+@njit(cache=True)
+def blend_segments(L, depth, p0, p1, z, n_samples, alpha, radiance):
+    """Alpha-blend sampled line segments into float32 L (H, W, C), in place.
+
+    Segment i is sampled at n_samples[i] points p0 + (p1 - p0) t, t = k / max(n - 1, 1); a sample
+    lands in pixel (floor u, floor v) when that is inside the image and the segment (depth z[i]) is
+    in front of depth[v, u]. Each pixel is blended once, with the sample of the largest alpha (the
+    earliest of equal ones): L = (1 - a) L + a radiance[i], in float64, stored as float32. This is
+    numpy's lexsort((-a, pixel)) selection of camera._segments, sample for sample."""
+    H, W, C = L.shape
+    best = np.full(H * W, -1, np.int64)  # segment of the chosen sample per pixel
+    best_a = np.zeros(H * W, np.float64)
+    touched = np.empty(H * W, np.int64)
+    n_touched = 0
+    for i in range(len(n_samples)):
+        n = n_samples[i]
+        denom = max(n - 1, 1)
+        for k in range(n):
+            t = k / denom
+            u = np.int64(np.floor(p0[i, 0] + (p1[i, 0] - p0[i, 0]) * t))
+            v = np.int64(np.floor(p0[i, 1] + (p1[i, 1] - p0[i, 1]) * t))
+            if u < 0 or u >= W or v < 0 or v >= H or not z[i] < depth[v, u]:
+                continue
+            pix = v * W + u
+            if best[pix] < 0:
+                touched[n_touched] = pix
+                n_touched += 1
+                best[pix] = i
+                best_a[pix] = alpha[i]
+            elif alpha[i] > best_a[pix]:
+                best[pix] = i
+                best_a[pix] = alpha[i]
+    for j in range(n_touched):
+        pix = touched[j]
+        i = best[pix]
+        a = best_a[pix]
+        h, w = pix // W, pix % W
+        for c in range(C):
+            L[h, w, c] = np.float32((1.0 - a) * np.float64(L[h, w, c]) + a * np.float64(radiance[i, c]))

@@ -220,3 +220,48 @@ def test_cached_lens_layouts_are_read_only():
                    cam_deg._soiling_patches(3, 25.0, 0.5, 40, 60, 1.0)):
         arrays = [a for item in layout for a in (item if isinstance(item, list) else [item])]
         assert arrays and all(not a.flags.writeable for a in arrays)
+
+
+def _segments_reference(L, depth, p0, p1, z, radiance, alpha, samples_per_px=2.0):
+    """camera._segments in numpy: every sample, then per pixel the most opaque (lexsort)."""
+    H, W = depth.shape
+    length = np.maximum(np.linalg.norm(p1 - p0, axis=1), 1.0)
+    n_s = np.ceil(length * samples_per_px).astype(int)
+    idx = np.repeat(np.arange(len(p0)), n_s)
+    starts = np.repeat(np.cumsum(n_s) - n_s, n_s)
+    t = (np.arange(len(idx)) - starts) / np.maximum(np.repeat(n_s - 1, n_s), 1)
+    pts = p0[idx] + (p1[idx] - p0[idx]) * t[:, None]
+    u, v = np.floor(pts[:, 0]).astype(int), np.floor(pts[:, 1]).astype(int)
+    ok = (u >= 0) & (u < W) & (v >= 0) & (v < H)
+    u, v, idx = u[ok], v[ok], idx[ok]
+    front = z[idx] < depth[v, u]
+    u, v, idx = u[front], v[front], idx[front]
+    if len(idx) == 0:
+        return
+    a = (alpha[idx] / np.maximum(n_s[idx] / (length[idx] * samples_per_px) * 1.0, 1.0))[:, None]
+    flat = v * W + u
+    order = np.lexsort((-a[:, 0], flat))
+    first = np.r_[True, flat[order][1:] != flat[order][:-1]]
+    sel = order[first]
+    Lf = L.reshape(-1, 3)
+    Lf[flat[sel]] = (1 - a[sel]) * Lf[flat[sel]] + a[sel] * radiance[idx[sel]]
+
+
+def test_segments_equal_the_lexsort_formulation():
+    H, W = 40, 64
+    depth = RNG.uniform(1, 30, (H, W)).astype(np.float32)
+    depth[:5] = np.inf  # sky
+    for n, spread in ((400, 6.0), (1, 3.0), (2000, 0.0), (300, 40.0)):  # 0: one sample pixel, equal alphas
+        p0 = np.column_stack([RNG.uniform(-5, W + 5, n), RNG.uniform(-5, H + 5, n)])
+        p1 = p0 + RNG.normal(0, spread, (n, 2))
+        z = RNG.uniform(0.5, 25, n)
+        alpha = np.clip(RNG.uniform(0, 0.8, n), 0.15, 0.6)  # clipped: many equal alphas
+        radiance = RNG.uniform(1, 9, (n, 3)).astype(np.float32)
+        base = RNG.uniform(0, 50, (H, W, 3)).astype(np.float32)
+        ref, out = base.copy(), base.copy()
+        _segments_reference(ref, depth, p0, p1, z, radiance, alpha)
+        cam_deg._segments(out, depth, p0, p1, z, radiance, alpha)
+        assert same(ref, out), n
+    hidden = base.copy()  # every sample behind the geometry: nothing changes
+    cam_deg._segments(hidden, np.zeros((H, W), np.float32), p0, p1, z, radiance, alpha)
+    assert same(hidden, base)
