@@ -59,6 +59,11 @@ def _fsync_dir(path: Path) -> None:
         os.close(fd)
 
 
+def _fsync_file(path: Path) -> None:
+    with open(path, "rb") as fh:
+        os.fsync(fh.fileno())
+
+
 def _save(path: Path, array: np.ndarray) -> None:
     """np.save, with a strided array (neither C- nor Fortran-ordered, e.g. a stack of transposed
     views) copied to C order first: np.save writes such an array in C order under the same header
@@ -69,17 +74,30 @@ def _save(path: Path, array: np.ndarray) -> None:
 
 
 def write_frames(directory: Path, frames: list, extra: dict | None = None) -> None:
-    """Write frames (sensors.frame.Frame) as one shard's arrays + frames.json into `directory`."""
+    """Write frames (sensors.frame.Frame) as one shard's arrays + frames.json into `directory`.
+
+    Each file is flushed to disk (fsync, in background threads) while the next ones are written,
+    so that commit_shard, which fsyncs them all again, mostly finds them on disk already."""
     directory.mkdir(parents=True, exist_ok=True)
-    for name in ARRAYS:
-        _save(directory / f"{name}.npy", np.stack([getattr(f, name) for f in frames]))
-    offsets = np.cumsum([0] + [len(f.lidar_points) for f in frames]).astype(np.int64)
-    _save(directory / "lidar_points.npy", np.concatenate([f.lidar_points for f in frames]).astype(np.float32))
-    _save(directory / "lidar_instance.npy", np.concatenate([f.lidar_instance for f in frames]).astype(np.int64))
-    _save(directory / "lidar_offsets.npy", offsets)
-    records = [{"meta": f.meta, "labels": f.labels} for f in frames]
-    payload = {"format_version": FORMAT_VERSION, "frames": records, **(extra or {})}
-    (directory / "frames.json").write_text(json.dumps(payload, separators=(",", ":")))
+    with ThreadPoolExecutor(max_workers=4) as flush:
+        flushed = []
+
+        def save(name: str, array: np.ndarray) -> None:
+            _save(directory / f"{name}.npy", array)
+            flushed.append(flush.submit(_fsync_file, directory / f"{name}.npy"))
+
+        for name in ARRAYS:
+            save(name, np.stack([getattr(f, name) for f in frames]))
+        offsets = np.cumsum([0] + [len(f.lidar_points) for f in frames]).astype(np.int64)
+        save("lidar_points", np.concatenate([f.lidar_points for f in frames]).astype(np.float32))
+        save("lidar_instance", np.concatenate([f.lidar_instance for f in frames]).astype(np.int64))
+        save("lidar_offsets", offsets)
+        records = [{"meta": f.meta, "labels": f.labels} for f in frames]
+        payload = {"format_version": FORMAT_VERSION, "frames": records, **(extra or {})}
+        (directory / "frames.json").write_text(json.dumps(payload, separators=(",", ":")))
+        flushed.append(flush.submit(_fsync_file, directory / "frames.json"))
+        for done in flushed:
+            done.result()  # re-raises a failed fsync
 
 
 def shard_digest(directory: Path) -> str:
@@ -92,11 +110,6 @@ def shard_digest(directory: Path) -> str:
                 for chunk in iter(lambda: fh.read(1 << 20), b""):
                     h.update(chunk)
     return h.hexdigest()
-
-
-def _fsync_file(path: Path) -> None:
-    with open(path, "rb") as fh:
-        os.fsync(fh.fileno())
 
 
 def commit_shard(tmp: Path, final: Path) -> None:

@@ -259,3 +259,38 @@ def test_commit_fsyncs_every_file_before_the_rename(tmp_path, monkeypatch):
     with pytest.raises(OSError):
         ds.commit_shard(tmp2, tmp_path / "shard-00001")
     assert tmp2.is_dir() and not (tmp_path / "shard-00001").exists()
+
+
+@pytest.mark.skipif(not Path("/proc/self/fd").is_dir(), reason="names fsynced files through /proc")
+def test_write_frames_flushes_every_file_it_writes(reference, tmp_path, monkeypatch):
+    """write_frames fsyncs each file as it goes (commit_shard then finds them on disk) and reports
+    a failed fsync; the files keep the bytes of the reference shard."""
+    import sensors.dataset as ds
+    from sensors.generate import render_sequence
+
+    ref, _ = reference
+    spec = plan(CONFIG)[0]
+    frames, _, _ = render_sequence(spec, CONFIG)
+    synced = []
+    real_fsync = os.fsync
+
+    def fsync(fd):
+        synced.append(os.readlink(f"/proc/self/fd/{fd}"))
+        real_fsync(fd)
+
+    monkeypatch.setattr(ds.os, "fsync", fsync)
+    out = tmp_path / "shard"
+    extra = json.loads((ref / spec.name / "frames.json").read_text())
+    extra = {k: v for k, v in extra.items() if k not in ("format_version", "frames")}
+    ds.write_frames(out, frames, extra)
+    written = sorted(str(p) for p in out.iterdir())
+    assert sorted(synced) == written and len(written) == len(ARRAYS) + 4
+    for p in out.iterdir():
+        assert p.read_bytes() == (ref / spec.name / p.name).read_bytes(), p.name
+
+    def failing(fd):
+        raise OSError(5, "Input/output error")
+
+    monkeypatch.setattr(ds.os, "fsync", failing)
+    with pytest.raises(OSError):
+        ds.write_frames(tmp_path / "failing", frames, extra)
