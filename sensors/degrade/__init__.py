@@ -20,6 +20,22 @@ from sim.scenario import Context, stream
 CAMERAS = ("camera_left", "camera_right")
 
 
+class _Stream:
+    """A model's random stream, stream(*keys), derived on the first draw: deriving one costs ~50 us
+    and most models are inactive in most frames (their sample_params returns None without drawing)."""
+
+    __slots__ = ("_keys", "_rng")
+
+    def __init__(self, *keys) -> None:
+        self._keys = keys
+        self._rng = None
+
+    def __getattr__(self, name: str):
+        if self._rng is None:
+            self._rng = stream(*self._keys)
+        return getattr(self._rng, name)
+
+
 class Degrader:
     """Applies the registered models to one sequence's frames.
 
@@ -57,7 +73,7 @@ class Degrader:
                 ctx = DegradeContext(self.calib, self.context, self.sequence,
                                      camera=target if model.sensor == "camera" else "", frame_index=frame_index,
                                      lidar_fog=self.lidar_fog)
-                rng = stream(self.seed, "degrade", frame_index, name, target)
+                rng = _Stream(self.seed, "degrade", frame_index, name, target)
                 p = model.sample_params(rng, weather, ctx)
                 if p is None:
                     continue

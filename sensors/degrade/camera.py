@@ -11,10 +11,21 @@ import dataclasses
 from functools import lru_cache
 
 import numpy as np
-from scipy.ndimage import gaussian_filter, map_coordinates
+from scipy.ndimage import map_coordinates
 
 from sensors.camera import CameraObservation, _rays
 from sensors.degrade.base import Degradation, obstruction_probability, persistent, register
+from sensors.degrade.kernels import (
+    airlight_blend,
+    blend_segments,
+    block_mean,
+    channel_mean,
+    gaussian_blur,
+    masked_mix,
+    snow_cover,
+    soiling_cover,
+    zoom_linear,
+)
 from sensors.materials import MATERIAL_ID
 
 ROAD_MATERIALS = [MATERIAL_ID[m] for m in ("asphalt", "lane_paint")]
@@ -55,13 +66,13 @@ class WetRoad(Degradation):
         cam = ctx.calib.camera(ctx.camera)
         road = np.isin(obs.material, ROAD_MATERIALS)
         w = params["wetness"]
-        L = obs.radiance.copy()
-        H = L.shape[0]
+        H = obs.radiance.shape[0]
         horizon = cam.K[1, 2]
         rows = np.clip(np.round(2 * horizon - np.arange(H) - 1).astype(int), 0, H - 1)
         sc = _scale(ctx)
-        mirror = gaussian_filter(obs.radiance[rows], sigma=(4.0 * sc, 1.5 * sc, 0))
-        L[road] = L[road] * (1 - 0.45 * w) + params["fresnel"] * w * mirror[road]
+        mirror = gaussian_blur(obs.radiance[rows], 4.0 * sc, 1.5 * sc)
+        # on the road: L * (1 - 0.45 w) + fresnel w * mirror, in float32
+        L = masked_mix(obs.radiance, road, np.float32(1 - 0.45 * w), np.float32(params["fresnel"] * w), mirror)
         return _copy(obs, radiance=L)
 
 
@@ -83,34 +94,16 @@ class Atmosphere(Degradation):
     def apply(self, obs, params, ctx):
         d = pixel_range(obs, ctx.calib.camera(ctx.camera))
         t = np.exp(-params["beta_per_m"] * np.where(np.isfinite(d), d, np.inf)).astype(np.float32)
-        A = obs.sky_radiance[None, None, :]
-        L = obs.radiance * t[..., None] + A * (1 - t[..., None])
-        return _copy(obs, radiance=L.astype(np.float32))
+        return _copy(obs, radiance=airlight_blend(obs.radiance, t, obs.sky_radiance))  # L0 t + A (1 - t)
 
 
 def _segments(L, depth, p0, p1, z, radiance, alpha, samples_per_px=2.0):
     """Alpha-blend line segments (n, 2) -> (n, 2) with per-segment radiance (n, 3) and alpha (n,),
-    behind-geometry parts hidden by the depth buffer."""
-    H, W = depth.shape
+    behind-geometry parts hidden by the depth buffer; each pixel takes its most opaque sample."""
     length = np.maximum(np.linalg.norm(p1 - p0, axis=1), 1.0)
     n_s = np.ceil(length * samples_per_px).astype(int)
-    idx = np.repeat(np.arange(len(p0)), n_s)
-    starts = np.repeat(np.cumsum(n_s) - n_s, n_s)
-    t = (np.arange(len(idx)) - starts) / np.maximum(np.repeat(n_s - 1, n_s), 1)
-    pts = p0[idx] + (p1[idx] - p0[idx]) * t[:, None]
-    u, v = np.floor(pts[:, 0]).astype(int), np.floor(pts[:, 1]).astype(int)
-    ok = (u >= 0) & (u < W) & (v >= 0) & (v < H)
-    u, v, idx = u[ok], v[ok], idx[ok]
-    front = z[idx] < depth[v, u]
-    u, v, idx = u[front], v[front], idx[front]
-    a = (alpha[idx] / np.maximum(n_s[idx] / (length[idx] * samples_per_px) * 1.0, 1.0))[:, None]
-    # blend once per pixel per segment: combine duplicates by keeping the strongest
-    flat = v * W + u
-    order = np.lexsort((-a[:, 0], flat))
-    first = np.r_[True, flat[order][1:] != flat[order][:-1]]
-    sel = order[first]
-    Lf = L.reshape(-1, 3)
-    Lf[flat[sel]] = (1 - a[sel]) * Lf[flat[sel]] + a[sel] * radiance[idx[sel]]
+    a = alpha / np.maximum(n_s / (length * samples_per_px) * 1.0, 1.0)  # per sample
+    blend_segments(L, depth, p0, p1, z, n_s, a, radiance)
 
 
 def _air_particles(rng_seed, n, cam, depth_range, fall_speed, exposure_s, size_m):
@@ -220,19 +213,17 @@ class Glare(Degradation):
                 "strength": float(0.015 * (1 + 3 * fog))}
 
     def apply(self, obs, params, ctx):
-        from scipy.ndimage import zoom
-
         bright = np.clip(obs.radiance - params["threshold_cd_m2"], 0, None)
         if not bright.any():
             return obs
         f = 4  # the halo is smooth: blur a 4x smaller image (energy preserved by the mean pooling)
         H, W = bright.shape[:2]
         Hc, Wc = H // f * f, W // f * f
-        small = bright[:Hc, :Wc].reshape(Hc // f, f, Wc // f, f, 3).mean(axis=(1, 3))
+        small = block_mean(bright, f)
         r = params["radius_px"] / f
-        halo_small = gaussian_filter(small, sigma=(r, r, 0))
+        halo_small = gaussian_blur(small, r, r)
         halo = np.zeros_like(bright)
-        halo[:Hc, :Wc] = zoom(halo_small, (f, f, 1), order=1)[:Hc, :Wc]
+        halo[:Hc, :Wc] = zoom_linear(halo_small, (f, f, 1))[:Hc, :Wc]
         return _copy(obs, radiance=(obs.radiance + params["strength"] * halo).astype(np.float32))
 
 
@@ -285,6 +276,56 @@ def _blob_mask(blobs, H, W):
     return which, rad
 
 
+def _frozen(*arrays):
+    """Mark cached arrays read-only (they are shared by every frame of the sequence)."""
+    for a in arrays:
+        a.flags.writeable = False
+    return arrays
+
+
+@lru_cache(maxsize=64)
+def _drop_lenses(seed: int, coverage_pct: float, H: int, W: int, scale: float):
+    """Raindrop layout of a seed -> (inside (H, W), source coordinates [rows, cols] of each inside
+    pixel's view, shade (n, 1)) or None without drops; read-only, computed once per layout."""
+    blobs, which, rad = _blobs_cached(seed, coverage_pct, H, W, (2.0, 10.0), scale)
+    inside = which >= 0
+    if not inside.any():
+        return None
+    centres = np.array([[b[0], b[1]] for b in blobs])
+    yy, xx = np.mgrid[0:H, 0:W] + 0.5
+    cu, cv = centres[which[inside], 0], centres[which[inside], 1]
+    su = cu - (xx[inside] - cu) * 2.5  # inverted, minified view of a wider neighbourhood
+    sv = cv - (yy[inside] - cv) * 2.5
+    shade = (0.55 + 0.45 * (1 - rad[inside] ** 2))[:, None]  # darker towards the rim
+    inside, rows, cols, shade = _frozen(inside, sv - 0.5, su - 0.5, shade)
+    return inside, [rows, cols], shade
+
+
+@lru_cache(maxsize=64)
+def _snow_patches(seed: int, coverage_pct: float, H: int, W: int, scale: float):
+    """Snow patch layout of a seed -> (inside (H, W), soft (H, W) float32 opacity) or None without
+    patches; read-only, computed once per layout."""
+    blobs, which, rad = _blobs_cached(seed, coverage_pct, H, W, (5.0, 16.0), scale, 4)
+    inside = which >= 0
+    if not inside.any():
+        return None
+    soft = 0.85 * np.clip(1 - rad, 0, 1) ** 0.6  # out of focus: soft, never fully opaque
+    return _frozen(inside, soft)
+
+
+@lru_cache(maxsize=64)
+def _soiling_patches(seed: int, coverage_pct: float, opaque_share: float, H: int, W: int, scale: float):
+    """Dirt layout of a seed -> (opaque (H, W), semi-transparent (H, W), soft (H, W) float32
+    opacity); read-only, computed once per layout (the fault persists over the sequence)."""
+    rng = np.random.default_rng(seed)
+    blobs = _coverage_blobs(rng, coverage_pct, H, W, (6.0, 30.0), scale)
+    which, rad = _blob_mask(blobs, H, W)
+    inside = which >= 0
+    opaque = np.array([rng.uniform() < opaque_share for _ in blobs] + [False])
+    soft = np.clip((1 - rad) * 4, 0, 1)
+    return _frozen(inside & opaque[which], inside & ~opaque[which], soft)
+
+
 @register
 class LensDrops(Degradation):
     """Raindrops on the lens: out-of-focus refractive blobs that do not move with the scene.
@@ -306,21 +347,15 @@ class LensDrops(Degradation):
 
     def apply(self, obs, params, ctx):
         H, W = obs.depth.shape
-        blobs, which, rad = _blobs_cached(params["seed"], round(params["coverage_pct"], 1), H, W, (2.0, 10.0),
-                                          _scale(ctx))
-        inside = which >= 0
-        if not inside.any():
+        drops = _drop_lenses(params["seed"], round(params["coverage_pct"], 1), H, W, _scale(ctx))
+        if drops is None:
             return obs
-        centres = np.array([[b[0], b[1]] for b in blobs])
-        yy, xx = np.mgrid[0:H, 0:W] + 0.5
-        cu, cv = centres[which[inside], 0], centres[which[inside], 1]
-        su = cu - (xx[inside] - cu) * 2.5  # inverted, minified view of a wider neighbourhood
-        sv = cv - (yy[inside] - cv) * 2.5
-        blurred = gaussian_filter(obs.radiance, sigma=(2.0 * _scale(ctx), 2.0 * _scale(ctx), 0))
+        inside, source, shade = drops
+        blurred = gaussian_blur(obs.radiance, 2.0 * _scale(ctx), 2.0 * _scale(ctx))
         L = obs.radiance.copy()
         for c in range(3):
-            L[..., c][inside] = map_coordinates(blurred[..., c], [sv - 0.5, su - 0.5], order=1, mode="nearest")
-        L[inside] *= (0.55 + 0.45 * (1 - rad[inside] ** 2))[:, None]
+            L[..., c][inside] = map_coordinates(blurred[..., c], source, order=1, mode="nearest")
+        L[inside] *= shade
         return _copy(obs, radiance=L)
 
 
@@ -340,20 +375,17 @@ class LensSnow(Degradation):
 
     def apply(self, obs, params, ctx):
         H, W = obs.depth.shape
-        blobs, which, rad = _blobs_cached(params["seed"], round(params["coverage_pct"], 1), H, W, (5.0, 16.0),
-                                          _scale(ctx), 4)
-        inside = which >= 0
-        if not inside.any():
+        patches = _snow_patches(params["seed"], round(params["coverage_pct"], 1), H, W, _scale(ctx))
+        if patches is None:
             return obs
-        blurred = gaussian_filter(obs.radiance, sigma=(4.0 * _scale(ctx), 4.0 * _scale(ctx), 0))
+        inside, soft = patches
+        blurred = gaussian_blur(obs.radiance, 4.0 * _scale(ctx), 4.0 * _scale(ctx))
         # snow is white and lit from everywhere: brighter than the average scene
-        ambient = np.maximum(obs.sky_radiance, np.mean(obs.radiance, axis=(0, 1))) * 1.2
-        soft = (0.85 * np.clip(1 - rad, 0, 1) ** 0.6)[..., None]  # out of focus: soft, never fully opaque
+        ambient = np.maximum(obs.sky_radiance, channel_mean(obs.radiance)) * 1.2
         t = params["transmission"]
-        L = obs.radiance.copy()
-        mix = t * blurred + (1 - t) * ambient
-        L = np.where(inside[..., None], (1 - soft) * L + soft * mix, L)
-        return _copy(obs, radiance=L.astype(np.float32))
+        # inside: (1 - soft) L + soft (t blurred + (1 - t) ambient)
+        L = snow_cover(obs.radiance, inside, soft, blurred, np.float32(t), np.float32(1 - t) * ambient)
+        return _copy(obs, radiance=L)
 
 
 @register
@@ -379,20 +411,13 @@ class LensSoiling(Degradation):
 
     def apply(self, obs, params, ctx):
         H, W = obs.depth.shape
-        rng = np.random.default_rng(params["seed"])
-        blobs = _coverage_blobs(rng, params["coverage_pct"], H, W, (6.0, 30.0), _scale(ctx))
-        which, rad = _blob_mask(blobs, H, W)
-        inside = which >= 0
-        opaque = np.array([rng.uniform() < params["opaque_share"] for _ in blobs] + [False])
-        L = obs.radiance.copy()
-        blurred = gaussian_filter(obs.radiance, sigma=(5.0 * _scale(ctx), 5.0 * _scale(ctx), 0))
-        soft = np.clip((1 - rad) * 4, 0, 1)[..., None]
-        is_opaque = inside & opaque[which]
-        semi = inside & ~opaque[which]
+        opaque, semi, soft = _soiling_patches(params["seed"], params["coverage_pct"], params["opaque_share"], H, W,
+                                              _scale(ctx))
+        blurred = gaussian_blur(obs.radiance, 5.0 * _scale(ctx), 5.0 * _scale(ctx))
         mud = np.array([0.02, 0.015, 0.01], np.float32) * np.mean(obs.radiance)
-        L = np.where(is_opaque[..., None], (1 - soft) * L + soft * mud, L)
-        L = np.where(semi[..., None], (1 - soft) * L + soft * 0.5 * blurred, L)
-        return _copy(obs, radiance=L.astype(np.float32))
+        # opaque: (1 - soft) L + soft mud; semi-transparent: (1 - soft) L + soft 0.5 blurred
+        L = soiling_cover(obs.radiance, opaque, semi, soft, mud, blurred)
+        return _copy(obs, radiance=L)
 
 
 @register

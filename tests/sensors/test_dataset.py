@@ -13,7 +13,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from sensors.dataset import ARRAYS, DatasetReader, verify
+from sensors.dataset import ARRAYS, DatasetReader, _save, verify
 from sensors.generate import GenerateConfig, generate, plan
 from sim.errors import UserError
 from study.cli import main
@@ -196,3 +196,101 @@ def test_a_directory_from_another_config_is_refused(reference, tmp_path, capsys)
     code = main(["generate", "--out", str(copy), "--contexts", "junction,fog", "--frames-per-context", "2",
                  "--sequence-length", "1", "--seed", "6"])
     assert code == 2 and "different generation config" in capsys.readouterr().err
+
+
+def test_save_writes_np_saves_bytes_for_every_layout(tmp_path):
+    """sensors.dataset._save copies strided arrays to C order (fast write); the file keeps np.save's
+    bytes, Fortran-ordered arrays included (np.save stores those as such)."""
+    rng = np.random.default_rng(0)
+    bev = [rng.integers(0, 255, (3, 16, 16), dtype=np.uint8).transpose(1, 2, 0) for _ in range(4)]
+    cases = {
+        "strided_stack": np.stack(bev),  # like lidar_bev: a stack of transposed views
+        "c_order": rng.uniform(size=(4, 5, 3)).astype(np.float32),
+        "fortran": np.asfortranarray(rng.uniform(size=(4, 5, 3))),
+        "step": np.arange(40, dtype=np.int64)[::3],
+        "empty": np.zeros((0, 5), np.float32),
+        "scalar": np.array(7, np.int64),
+    }
+    assert not cases["strided_stack"].flags.c_contiguous and not cases["strided_stack"].flags.f_contiguous
+    for name, a in cases.items():
+        np.save(tmp_path / f"{name}_ref.npy", a)
+        _save(tmp_path / f"{name}.npy", a)
+        assert (tmp_path / f"{name}.npy").read_bytes() == (tmp_path / f"{name}_ref.npy").read_bytes(), name
+
+
+@pytest.mark.skipif(not Path("/proc/self/fd").is_dir(), reason="names fsynced files through /proc")
+def test_commit_fsyncs_every_file_before_the_rename(tmp_path, monkeypatch):
+    """The durability contract of commit_shard: every file (twins included) fsynced before the atomic
+    rename, the directory after it; an fsync error aborts the commit and leaves no shard."""
+    import sensors.dataset as ds
+
+    tmp = tmp_path / "shard-00000.tmp-1"
+    (tmp / "clear").mkdir(parents=True)
+    files = [tmp / "a.npy", tmp / "frames.json", tmp / "clear" / "a.npy", tmp / "clear" / "frames.json"]
+    for f in files:
+        f.write_bytes(b"x")
+    events = []
+    real_fsync, real_replace = os.fsync, os.replace
+
+    def fsync(fd):
+        events.append(("fsync", os.readlink(f"/proc/self/fd/{fd}")))
+        real_fsync(fd)
+
+    def replace(a, b):
+        events.append(("replace", str(b)))
+        real_replace(a, b)
+
+    monkeypatch.setattr(ds.os, "fsync", fsync)
+    monkeypatch.setattr(ds.os, "replace", replace)
+    final = tmp_path / "shard-00000"
+    ds.commit_shard(tmp, final)
+    k = events.index(("replace", str(final)))
+    assert sorted(p for _, p in events[:k]) == sorted(str(f) for f in files)
+    assert events[k + 1:] == [("fsync", str(tmp_path))]
+    assert final.is_dir() and not tmp.exists()
+
+    def failing(fd):
+        raise OSError(5, "Input/output error")
+
+    tmp2 = tmp_path / "shard-00001.tmp-1"
+    tmp2.mkdir()
+    (tmp2 / "a.npy").write_bytes(b"x")
+    monkeypatch.setattr(ds.os, "fsync", failing)
+    with pytest.raises(OSError):
+        ds.commit_shard(tmp2, tmp_path / "shard-00001")
+    assert tmp2.is_dir() and not (tmp_path / "shard-00001").exists()
+
+
+@pytest.mark.skipif(not Path("/proc/self/fd").is_dir(), reason="names fsynced files through /proc")
+def test_write_frames_flushes_every_file_it_writes(reference, tmp_path, monkeypatch):
+    """write_frames fsyncs each file as it goes (commit_shard then finds them on disk) and reports
+    a failed fsync; the files keep the bytes of the reference shard."""
+    import sensors.dataset as ds
+    from sensors.generate import render_sequence
+
+    ref, _ = reference
+    spec = plan(CONFIG)[0]
+    frames, _, _ = render_sequence(spec, CONFIG)
+    synced = []
+    real_fsync = os.fsync
+
+    def fsync(fd):
+        synced.append(os.readlink(f"/proc/self/fd/{fd}"))
+        real_fsync(fd)
+
+    monkeypatch.setattr(ds.os, "fsync", fsync)
+    out = tmp_path / "shard"
+    extra = json.loads((ref / spec.name / "frames.json").read_text())
+    extra = {k: v for k, v in extra.items() if k not in ("format_version", "frames")}
+    ds.write_frames(out, frames, extra)
+    written = sorted(str(p) for p in out.iterdir())
+    assert sorted(synced) == written and len(written) == len(ARRAYS) + 4
+    for p in out.iterdir():
+        assert p.read_bytes() == (ref / spec.name / p.name).read_bytes(), p.name
+
+    def failing(fd):
+        raise OSError(5, "Input/output error")
+
+    monkeypatch.setattr(ds.os, "fsync", failing)
+    with pytest.raises(OSError):
+        ds.write_frames(tmp_path / "failing", frames, extra)

@@ -199,3 +199,26 @@ def test_camera_noise_is_poisson_gaussian():
         assert e.var() == pytest.approx(lam + 16.0, rel=0.03)
     x = np.random.default_rng(1).uniform(0, 1, 10_000)
     assert np.max(np.abs(srgb_encode_fast(x) - srgb_encode(x))) < 0.2 / 255
+
+
+def test_model_streams_are_derived_on_first_draw(motorway, monkeypatch):
+    """Degrader derives a model's stream only when sample_params draws from it; draws, params and
+    observations are those of eagerly derived streams."""
+    import sensors.degrade as degrade_pkg
+
+    lazy = degrade_pkg._Stream(5, "degrade", 3, "rain_streaks", "camera_left")
+    assert lazy._rng is None
+    ref = stream(5, "degrade", 3, "rain_streaks", "camera_left")
+    assert lazy.uniform(6, 9) == ref.uniform(6, 9) and lazy.integers(2**31) == ref.integers(2**31)
+
+    scene, renderer, _ = motorway
+    heavy = WeatherState(fog_visibility_m=60.0, rain_mm_h=30.0, snow_mm_h=2.0, water_film_mm=1.0,
+                         illuminance_lux=1.0, lens_coverage_pct=(20.0, 20.0))
+    obs = renderer.observe(scene, heavy)
+    results = []
+    for make in (degrade_pkg._Stream, stream):
+        monkeypatch.setattr(degrade_pkg, "_Stream", make)
+        out, params = Degrader(renderer.calib, "snow", 11).apply(scene, obs, scene.frame_index)
+        results.append((repr(params), out.camera_left.radiance.tobytes(), out.lidar.power.tobytes(),
+                        out.radar.clutter.tobytes()))
+    assert results[0] == results[1]
