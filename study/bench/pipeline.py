@@ -140,3 +140,122 @@ def bench_generate(profiles=("cpu", "paper"), workers=(1, 2), frames_per_context
             "frames_per_context": frames_per_context, "sequence_length": sequence_length, "rounds": rounds,
             "twins": twins,
             **machine()}
+
+
+def checkout_of(path) -> dict:
+    """A source checkout of hydrabench to run `generate` from: {"dir", "commit"} (commit None when
+    the directory is not a git work tree). Raises UserError when it holds no `study/cli.py`."""
+    import subprocess
+    from pathlib import Path
+
+    from sim.errors import UserError
+
+    root = Path(path).expanduser().resolve()
+    if not (root / "study" / "cli.py").is_file():
+        raise UserError(f"{path}: not a hydrabench checkout (no study/cli.py there)")
+    git = subprocess.run(["git", "-C", str(root), "rev-parse", "--short=12", "HEAD"], capture_output=True, text=True)
+    dirty = subprocess.run(["git", "-C", str(root), "status", "--porcelain", "--untracked-files=no"],
+                           capture_output=True, text=True)
+    commit = git.stdout.strip() if git.returncode == 0 else None
+    if commit and dirty.returncode == 0 and dirty.stdout.strip():
+        commit += "+changes"
+    return {"dir": str(root), "commit": commit}
+
+
+def dataset_digest(root) -> str:
+    """sha256 over every file of a dataset (relative path and bytes, in path order): equal digests =
+    byte-identical datasets."""
+    import hashlib
+    from pathlib import Path
+
+    root = Path(root)
+    h = hashlib.sha256()
+    for f in sorted(p for p in root.rglob("*") if p.is_file()):
+        h.update(str(f.relative_to(root)).encode() + b"\0")
+        with open(f, "rb") as fh:
+            for block in iter(lambda: fh.read(1 << 20), b""):
+                h.update(block)
+    return h.hexdigest()
+
+
+def _generate_from(checkout: dict, out: str, profile: str, workers: int, frames_per_context: int,
+                   sequence_length: int, seed: int, twins: bool, timeout_s: float) -> dict:
+    """`python -m study.cli generate ... --json` run from a checkout (its code first on sys.path)."""
+    import json
+    import subprocess
+    import sys
+
+    cmd = [sys.executable, "-m", "study.cli", "generate", "--out", out, "--contexts", "all",
+           "--frames-per-context", str(frames_per_context), "--sequence-length", str(sequence_length),
+           "--seed", str(seed), "--profile", profile, "--workers", str(workers), "--json"]
+    if twins:
+        cmd.append("--twins")
+    env = {k: v for k, v in os.environ.items() if k != "PYTHONPATH"}
+    run = subprocess.run(cmd, cwd=checkout["dir"], env=env, capture_output=True,
+                         text=True, timeout=timeout_s)
+    if run.returncode != 0:
+        raise RuntimeError(f"generate from {checkout['dir']} failed (exit {run.returncode}): {run.stderr.strip()[-1500:]}")
+    lines = [line for line in run.stdout.splitlines() if line.startswith("{")]
+    if not lines:
+        raise RuntimeError(f"generate from {checkout['dir']} printed no JSON result")
+    return json.loads(lines[-1])
+
+
+def bench_generate_against(checkouts, profiles=("cpu",), workers=(2,), frames_per_context: int = 20,
+                           sequence_length: int = 10, seed: int = 0, rounds: int = 3, twins: bool = False,
+                           timeout_s: float = 3600.0, progress=None) -> dict:
+    """This code's `generate` against other checkouts' (e.g. a git worktree of an older commit), in turn.
+
+    Every run is `python -m study.cli generate --out TMP --contexts all ... --json` started from a
+    checkout's directory, so each side pays the same process start-up and each times itself with its
+    own `frames_per_second` (frames / wall seconds inside `generate`). Per round: this code, then each
+    other checkout in the given order (A B C A B C ...), so a machine whose speed drifts slows each
+    alike. `ratios[profile/workers][dir]` = this code's median frames/s over that checkout's; a ratio
+    measured this way holds across machines where absolute frames/s do not. `same_bytes` says whether
+    the checkout's dataset was byte-identical to this code's in every round (sha256 of all files)."""
+    import statistics
+    import tempfile
+    from pathlib import Path
+
+    here = checkout_of(Path(__file__).resolve().parents[2])
+    others = [checkout_of(c) for c in checkouts]
+    if not others:
+        raise ValueError("checkouts must name at least one other checkout")
+    if len({s["dir"] for s in [here, *others]}) != len(others) + 1:
+        from sim.errors import UserError
+
+        raise UserError(f"--against names this checkout ({here['dir']}) or one directory twice")
+    if rounds < 1:
+        raise ValueError(f"rounds must be >= 1, got {rounds}")
+    sides = [here, *others]
+    runs = []
+    for round_ in range(rounds):
+        for profile in profiles:
+            for w in workers:
+                digests = {}
+                for side in sides:
+                    with tempfile.TemporaryDirectory(prefix="hydrabench-against-") as tmp:
+                        out = str(Path(tmp) / "data")
+                        r = _generate_from(side, out, profile, w, frames_per_context, sequence_length, seed, twins,
+                                           timeout_s)
+                        digests[side["dir"]] = dataset_digest(out)
+                    runs.append({"round": round_, "profile": profile, "workers": w, "dir": side["dir"],
+                                 "commit": side["commit"], "frames": r["frames"], "seconds": r["seconds"],
+                                 "frames_per_second": r["frames_per_second"],
+                                 "ms_per_frame_total": round(sum(v for k, v in r.get("ms_per_frame", {}).items()
+                                                                 if "/" not in k), 2),
+                                 "same_bytes": digests[side["dir"]] == digests[here["dir"]]})
+                    if progress:
+                        progress(runs[-1])
+    ratios, same = {}, {}
+    for profile in profiles:
+        for w in workers:
+            med = {s["dir"]: statistics.median(x["frames_per_second"] for x in runs
+                                               if x["profile"] == profile and x["workers"] == w and x["dir"] == s["dir"])
+                   for s in sides}
+            ratios[f"{profile}/{w}"] = {s["dir"]: round(med[here["dir"]] / med[s["dir"]], 3) for s in others}
+    for s in others:
+        same[s["dir"]] = all(x["same_bytes"] for x in runs if x["dir"] == s["dir"])
+    return {"this": here, "against": others, "runs": runs, "ratios": ratios, "same_bytes": same,
+            "frames_per_context": frames_per_context, "sequence_length": sequence_length, "rounds": rounds,
+            "twins": twins, "seed": seed, **machine()}

@@ -51,6 +51,16 @@ def start_methods_arg(text: str) -> tuple:
 start_methods_arg.kind = "names"
 
 
+def checkouts_arg(text: str) -> tuple:
+    """An argparse type: comma-separated directories of other hydrabench checkouts, each once."""
+    items = tuple(t.strip() for t in text.split(","))
+    if not all(items):
+        raise argparse.ArgumentTypeError(f"expected directories separated by commas, got {text!r}")
+    if len(set(items)) != len(items):
+        raise argparse.ArgumentTypeError(f"{text!r} names a directory twice")
+    return items
+
+
 def add_parser(sub, name, help_text):
     p = sub.add_parser(name, help=help_text, description=help_text, formatter_class=Formatter)
     what = p.add_subparsers(dest="what", metavar="<what>", parser_class=type(p))
@@ -83,6 +93,11 @@ def add_parser(sub, name, help_text):
     g.add_argument("--twins", action="store_true",
                    help="also render each frame's clear-weather twin, as the study presets do (frames/s counts a "
                    "frame and its twin once)")
+    g.add_argument("--against", type=checkouts_arg, default=(), metavar="DIR[,DIR]",
+                   help="compare with other hydrabench checkouts (e.g. `git worktree add /tmp/old COMMIT`): "
+                   "every run is then `python -m study.cli generate --contexts all ... --json` from each checkout "
+                   "in turn (this code first) for --rounds rounds; reports each one's median frames/s, this "
+                   "code's ratio to it, and whether its dataset had the same bytes")
     g.add_argument("--json", action="store_true", help="print one JSON object on stdout")
     g.set_defaults(run=run_generate)
     b = what.add_parser("boxes", help="our NMS / Soft-NMS / WBF against ensemble-boxes (ms, speed-up, equal output)",
@@ -178,6 +193,8 @@ def run_sim(args) -> int:
 def run_generate(args) -> int:
     from study.bench.pipeline import bench_generate
 
+    if args.against:
+        return _run_generate_against(args)
     result = bench_generate(profiles=args.profiles, workers=args.workers, frames_per_context=args.frames_per_context,
                             sequence_length=args.sequence_length, seed=args.seed, start_methods=args.start_methods,
                             rounds=args.rounds, twins=args.twins)
@@ -193,6 +210,40 @@ def run_generate(args) -> int:
             d = r["degradation"][p]
             lines.append(f"{p} degradation {d['ms_total']} ms ({d['share_of_frame']} of a frame): "
                          + ", ".join(f"{k} {v}" for k, v in d["ms_per_model"].items()))
+        return "\n".join(lines)
+
+    emit(result, args.json, text)
+    return 0
+
+
+def _run_generate_against(args) -> int:
+    import sys
+
+    from sim.errors import UserError
+    from study.bench.pipeline import bench_generate_against, checkout_of
+
+    if args.start_methods != (None,):
+        raise UserError("--against compares checkouts with their default start method; leave out --start-methods")
+    for c in args.against:
+        checkout_of(c)  # a wrong directory is refused before the first run
+
+    def progress(x):
+        print(f"bench generate: round {x['round'] + 1}/{args.rounds} {x['profile']} workers {x['workers']} "
+              f"{x['commit'] or x['dir']}: {x['frames_per_second']} frames/s ({x['frames']} frames in "
+              f"{x['seconds']} s)", file=sys.stderr, flush=True)
+
+    result = bench_generate_against(args.against, profiles=args.profiles, workers=args.workers,
+                                    frames_per_context=args.frames_per_context, sequence_length=args.sequence_length,
+                                    seed=args.seed, rounds=args.rounds, twins=args.twins, progress=progress)
+
+    def text(r):
+        names = {s["dir"]: s["commit"] or s["dir"] for s in [r["this"], *r["against"]]}
+        lines = [f"round {x['round'] + 1} {x['profile']} workers {x['workers']} {names[x['dir']]}: "
+                 f"{x['frames_per_second']} frames/s ({x['frames']} frames in {x['seconds']} s)"
+                 + ("" if x["dir"] == r["this"]["dir"] else f", same bytes: {x['same_bytes']}") for x in r["runs"]]
+        for key, ratio in r["ratios"].items():
+            lines.append(f"{key}: this code ({names[r['this']['dir']]}) frames/s over "
+                         + ", ".join(f"{names[d]}'s: {v}" for d, v in ratio.items()) + " (medians)")
         return "\n".join(lines)
 
     emit(result, args.json, text)
