@@ -66,10 +66,13 @@ def _sample_points(cls: str, center, size, yaw) -> np.ndarray:
 
 
 def fwd_labels(instance: np.ndarray, depth: np.ndarray, actors, cam: CameraCalibration,
-               world_from_ego: np.ndarray) -> dict:
+               world_from_ego: np.ndarray, geometry: dict | None = None) -> dict:
     """Ground-truth boxes of one camera. Returns columnar lists (JSON-ready):
     ids, labels (class ids 1..8), boxes [x1, y1, x2, y2] px, visible_px, occlusion, truncation,
-    distance_m (camera to box centre), difficult (bool)."""
+    distance_m (camera to box centre), difficult (bool).
+
+    `geometry`: a dict shared by the calls for the cameras of one moment (same actors and pose);
+    each actor's box corners and mesh sample points in the ego frame are computed once into it."""
     H = instance.shape[0]
     out = {k: [] for k in ("ids", "labels", "boxes", "visible_px", "occlusion", "truncation", "distance_m", "difficult")}
     ids, counts = np.unique(instance[instance > 0], return_counts=True)
@@ -85,17 +88,21 @@ def fwd_labels(instance: np.ndarray, depth: np.ndarray, actors, cam: CameraCalib
     names = actors.class_names()
     min_h = DIFFICULT_HEIGHT_PX_AT_188 * H / 188.0
     cam_from_world = invert(world_from_ego @ cam.ego_from_camera)
+    geometry = {} if geometry is None else geometry
     for actor_id, count in zip(ids.tolist(), counts.tolist()):
         if count < MIN_VISIBLE_PX or actor_id not in row_of:
             continue
         i = row_of[actor_id]
         sl = slices[lut[actor_id] - 1]
         box = [float(sl[1].start), float(sl[0].start), float(sl[1].stop), float(sl[0].stop)]
-        center, size, yaw = actors.centers[i], actors.sizes[i], float(actors.yaws[i])
-        corners_ego = transform_points(ego_from_world, _corners3d(center, size, yaw))
+        center = actors.centers[i]
+        if i not in geometry:
+            size, yaw = actors.sizes[i], float(actors.yaws[i])
+            geometry[i] = (transform_points(ego_from_world, _corners3d(center, size, yaw)),
+                           transform_points(ego_from_world, _sample_points(names[i], center, size, yaw)))
+        corners_ego, pts = geometry[i]
         full, inside = _projected_area(corners_ego, cam)
         truncation = 1.0 - inside / full if full > 0 else 1.0
-        pts = transform_points(ego_from_world, _sample_points(names[i], center, size, yaw))
         uv, z = cam.project(pts)
         u = np.floor(uv[:, 0]).astype(int)
         v = np.floor(uv[:, 1]).astype(int)
@@ -140,11 +147,12 @@ def bev_labels(actors, calib: Calibration, world_from_ego: np.ndarray, lidar_obs
     if radar_obs is not None:
         strong = (radar_obs.instance > 0) & (radar_obs.signal > 3.0 * radar_obs.noise.mean())
         radar_seen = set(np.unique(radar_obs.instance[strong]).tolist())
-    for i in np.flatnonzero(on):
-        corners = box_corners_2d(centers[i:i + 1, :2], actors.sizes[i:i + 1, :2], yaws[i:i + 1])[0]
-        uv = calib.radar_to_bev(corners)
-        x1, y1 = np.clip(uv.min(axis=0), 0, S)
-        x2, y2 = np.clip(uv.max(axis=0), 0, S)
+    rows = np.flatnonzero(on)
+    # the axis-aligned boxes of all rotated footprints at once (row by row the same arithmetic)
+    corners = box_corners_2d(centers[rows, :2], actors.sizes[rows, :2], yaws[rows])
+    uv = calib.radar_to_bev(corners.reshape(-1, 2)).reshape(-1, 4, 2)
+    lo, hi = np.clip(uv.min(axis=1), 0, S), np.clip(uv.max(axis=1), 0, S)
+    for i, (x1, y1), (x2, y2) in zip(rows.tolist(), lo.tolist(), hi.tolist()):
         if x2 - x1 <= 0 or y2 - y1 <= 0:
             continue
         aid = int(actors.ids[i])
@@ -154,7 +162,7 @@ def bev_labels(actors, calib: Calibration, world_from_ego: np.ndarray, lidar_obs
         small = max(x2 - x1, y2 - y1) < BEV_MIN_SIZE_PX
         out["ids"].append(aid)
         out["labels"].append(int(actors.classes[i]))
-        out["boxes"].append([round(float(x1), 2), round(float(y1), 2), round(float(x2), 2), round(float(y2), 2)])
+        out["boxes"].append([round(x1, 2), round(y1, 2), round(x2, 2), round(y2, 2)])
         out["rotated"].append([round(float(uv_c[i, 0]), 2), round(float(uv_c[i, 1]), 2), round(float(length_px), 2),
                                round(float(width_px), 2), round(float(np.arctan2(np.sin(yaws[i]), np.cos(yaws[i]))), 4)])
         out["lidar_points"].append(n_lidar)
