@@ -131,16 +131,10 @@ def forward_image(pts: np.ndarray, calib: Calibration, camera: str = "camera_rig
     cam = calib.camera(camera)
     ego = transform_points(calib.ego_from_lidar, pts[:, :3])
     uv, z = cam.project(ego)
-    ok = z > 0.5
-    u = np.floor(uv[ok, 0]).astype(int)
-    v = np.floor(uv[ok, 1]).astype(int)
-    inb = (u >= 0) & (u < cam.width) & (v >= 0) & (v < cam.height)
-    u, v, zz = u[inb], v[inb], z[ok][inb]
-    inten = pts[ok, 3][inb]
-    height = ego[ok, 2][inb]
-    order = np.argsort(-zz)  # far first, near overwrites
-    img = np.zeros((cam.height, cam.width, 3), np.float32)
-    img[v[order], u[order], 0] = np.clip(1 - zz[order] / FWD_DEPTH_MAX_M, 0, 1)
-    img[v[order], u[order], 1] = inten[order]
-    img[v[order], u[order], 2] = np.clip(height[order] / 4.0, 0, 1)
-    return np.round(img * 255).astype(np.uint8)
+    # points in front (z > 0.5 m) on the image (lidar_kernels.forward_pixels), drawn far first so
+    # the nearest point of a pixel wins
+    idx, u, v = lidar_kernels.forward_pixels(uv, z, cam.width, cam.height, 0.5)
+    zz = z[idx]
+    order = np.argsort(-zz)
+    return lidar_kernels.forward_raster(order, u, v, zz, np.ascontiguousarray(pts[idx, 3]), ego[idx, 2], cam.width,
+                                        cam.height, FWD_DEPTH_MAX_M)

@@ -85,3 +85,45 @@ def bev_pixels(height, count, density_of_count, intensity, size):
                 x = _F32(1.0)
             out[r, col, ch] = np.uint8(np.rint(x * _F32(255.0)))
     return out
+
+
+@njit(cache=True, error_model="numpy")
+def forward_pixels(uv, z, width, height, min_depth):
+    """Indices (M,) of the points in front of the camera (z > min_depth) whose floored pixel
+    np.floor(uv).astype(int) lies in the image, in input order, with their pixel columns and rows."""
+    n = z.shape[0]
+    idx = np.empty(n, np.int64)
+    us = np.empty(n, np.int64)
+    vs = np.empty(n, np.int64)
+    m = 0
+    for k in range(n):
+        if not z[k] > min_depth:
+            continue
+        u = int(np.floor(uv[k, 0]))
+        v = int(np.floor(uv[k, 1]))
+        if u >= 0 and u < width and v >= 0 and v < height:
+            idx[m], us[m], vs[m] = k, u, v
+            m += 1
+    return idx[:m], us[:m], vs[:m]
+
+
+@njit(cache=True, error_model="numpy")
+def forward_raster(order, us, vs, depth, intensity, height_m, width, height, depth_max):
+    """(H, W, 3) uint8 forward lidar image: the points written in `order` (a later point overwrites)
+    as closeness clip(1 - depth / depth_max, 0, 1), intensity and clip(height_m / 4, 0, 1), each
+    computed in float64 and stored in float32 (numpy's assignment into a float32 image), then
+    round(x * 255) in float32 for every pixel."""
+    img = np.zeros((height, width, 3), np.float32)
+    for j in range(order.shape[0]):
+        k = order[j]
+        c = 1 - depth[k] / depth_max
+        h = height_m[k] / 4.0
+        img[vs[k], us[k], 0] = _F32(min(max(c, 0.0), 1.0)) if not np.isnan(c) else _F32(c)
+        img[vs[k], us[k], 1] = intensity[k]
+        img[vs[k], us[k], 2] = _F32(min(max(h, 0.0), 1.0)) if not np.isnan(h) else _F32(h)
+    out = np.empty((height, width, 3), np.uint8)
+    for r in range(height):
+        for col in range(width):
+            for ch in range(3):
+                out[r, col, ch] = np.uint8(np.rint(img[r, col, ch] * _F32(255.0)))
+    return out

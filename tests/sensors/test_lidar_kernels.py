@@ -1,5 +1,5 @@
-"""The lidar BEV kernels (sensors.lidar_kernels) give the bits of the numpy formulation of
-sensors.lidar.bev_image they replaced."""
+"""The lidar image kernels (sensors.lidar_kernels) give the bits of the numpy formulations of
+sensors.lidar.bev_image and forward_image they replaced."""
 
 import numpy as np
 import pytest
@@ -57,3 +57,42 @@ def test_bev_image_of_a_rendered_sweep_equals_numpy(city):
     pts = lidar_mod.points(obs.lidar, renderer.calib)
     assert len(pts) > 1000
     assert lidar_mod.bev_image(pts, renderer.calib).tobytes() == bev_image_numpy(pts, renderer.calib).tobytes()
+
+
+def forward_image_numpy(pts, calib, camera="camera_right"):
+    """sensors.lidar.forward_image before the kernels (commit f473f51)."""
+    cam = calib.camera(camera)
+    ego = transform_points(calib.ego_from_lidar, pts[:, :3])
+    uv, z = cam.project(ego)
+    ok = z > 0.5
+    u = np.floor(uv[ok, 0]).astype(int)
+    v = np.floor(uv[ok, 1]).astype(int)
+    inb = (u >= 0) & (u < cam.width) & (v >= 0) & (v < cam.height)
+    u, v, zz = u[inb], v[inb], z[ok][inb]
+    inten = pts[ok, 3][inb]
+    height = ego[ok, 2][inb]
+    order = np.argsort(-zz)
+    img = np.zeros((cam.height, cam.width, 3), np.float32)
+    img[v[order], u[order], 0] = np.clip(1 - zz[order] / lidar_mod.FWD_DEPTH_MAX_M, 0, 1)
+    img[v[order], u[order], 1] = inten[order]
+    img[v[order], u[order], 2] = np.clip(height[order] / 4.0, 0, 1)
+    return np.round(img * 255).astype(np.uint8)
+
+
+@pytest.mark.parametrize("n, seed", [(0, 0), (1, 1), (7, 2), (30000, 3)])
+@pytest.mark.parametrize("camera", ["camera_left", "camera_right"])
+def test_forward_image_equals_numpy(n, seed, camera):
+    pts = _points(n, seed)
+    pts[: n // 2, 0] = np.abs(pts[: n // 2, 0]) / 4.0  # many in front, up to 100 m (closeness clips)
+    m = n // 8
+    pts[n // 4: n // 4 + m] = pts[m: 2 * m]  # repeated points: equal depths on one pixel
+    fast, ref = lidar_mod.forward_image(pts, CALIB, camera), forward_image_numpy(pts, CALIB, camera)
+    assert fast.dtype == ref.dtype and fast.shape == ref.shape
+    assert fast.tobytes() == ref.tobytes()
+
+
+def test_forward_image_of_a_rendered_sweep_equals_numpy(city):
+    _, renderer, obs = city
+    pts = lidar_mod.points(obs.lidar, renderer.calib)
+    fast = lidar_mod.forward_image(pts, renderer.calib)
+    assert fast.any() and fast.tobytes() == forward_image_numpy(pts, renderer.calib).tobytes()
