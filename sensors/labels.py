@@ -19,6 +19,7 @@ from __future__ import annotations
 import numpy as np
 from scipy import ndimage
 
+from sensors.label_kernels import visible_samples
 from sensors.rig import Calibration, CameraCalibration, invert, transform_points
 from sensors.world_mesh import class_template
 from sim.actors import CLASSES, box_corners_2d
@@ -103,16 +104,11 @@ def fwd_labels(instance: np.ndarray, depth: np.ndarray, actors, cam: CameraCalib
         corners_ego, pts = geometry[i]
         full, inside = _projected_area(corners_ego, cam)
         truncation = 1.0 - inside / full if full > 0 else 1.0
+        # sample points in the image (z > 0.3 m), seen when the pixel shows the actor or nothing
+        # nearer than the point by more than 0.3 m + 2 % (label_kernels.visible_samples)
         uv, z = cam.project(pts)
-        u = np.floor(uv[:, 0]).astype(int)
-        v = np.floor(uv[:, 1]).astype(int)
-        inimg = (z > 0.3) & (u >= 0) & (u < cam.width) & (v >= 0) & (v < cam.height)
-        if inimg.any():
-            du, dv, dz = u[inimg], v[inimg], z[inimg]
-            seen = (instance[dv, du] == actor_id) | (depth[dv, du] >= dz - (0.3 + 0.02 * dz))
-            occlusion = 1.0 - float(seen.mean())
-        else:
-            occlusion = 1.0
+        n_in, n_seen = visible_samples(uv, z, instance, depth, actor_id, 0.3)
+        occlusion = 1.0 - n_seen / n_in if n_in else 1.0
         dist = float(np.linalg.norm(transform_points(cam_from_world, center[None])[0]))
         difficult = (box[3] - box[1] < min_h) or occlusion > DIFFICULT_OCCLUSION or truncation > DIFFICULT_TRUNCATION
         out["ids"].append(int(actor_id))

@@ -5,6 +5,7 @@ import dataclasses
 import numpy as np
 import pytest
 
+from sensors.label_kernels import visible_samples
 from sensors.labels import BEV_MIN_SIZE_PX, bev_labels, fwd_labels
 from sensors.rig import invert, transform_points
 from sim.actors import box_corners_2d
@@ -75,3 +76,38 @@ def test_fwd_labels_with_shared_geometry_equal_separate_calls(city):
         assert len(alone["ids"]) > 0
         assert fwd_labels(o.instance, o.depth, scene.actors, cam, scene.ego.pose, geometry) == alone
     assert geometry
+
+
+def visible_samples_numpy(uv, z, instance, depth, actor_id, min_depth):
+    """The occlusion test of sensors.labels.fwd_labels before the kernel (commit f473f51)."""
+    with np.errstate(invalid="ignore"):
+        u = np.floor(uv[:, 0]).astype(int)
+        v = np.floor(uv[:, 1]).astype(int)
+    inimg = (z > min_depth) & (u >= 0) & (u < instance.shape[1]) & (v >= 0) & (v < instance.shape[0])
+    du, dv, dz = u[inimg], v[inimg], z[inimg]
+    seen = (instance[dv, du] == actor_id) | (depth[dv, du] >= dz - (0.3 + 0.02 * dz))
+    return int(inimg.sum()), int(seen.sum())
+
+
+def test_visible_samples_equal_numpy(city):
+    scene, renderer, obs = city
+    rng = np.random.default_rng(0)
+    checked = 0
+    for name in ("camera_left", "camera_right"):
+        o, cam = getattr(obs, name), renderer.calib.camera(name)
+        ego_from_world = invert(scene.ego.pose)
+        for i, aid in enumerate(scene.actors.ids.tolist()):
+            pts = transform_points(ego_from_world, scene.actors.centers[i] + rng.normal(0, 2.0, (300, 3)))
+            uv, z = cam.project(pts)
+            args = (o.instance, o.depth, aid, 0.3)
+            ref = visible_samples_numpy(uv, z, *args)
+            assert visible_samples(uv, z, *args) == ref
+            checked += ref[0] > 0
+        # behind the camera (inf / NaN pixels), a single point, no points
+        pts = np.array([[0.5, 0.06, 1.95], [-5.0, 0.0, 1.0], [0.6, 0.0, 1.95], [30.0, 1.0, 1.0]])
+        with np.errstate(divide="ignore", invalid="ignore"):
+            uv, z = cam.project(pts)
+        for k in (4, 1, 0):
+            assert visible_samples(uv[:k], z[:k], o.instance, o.depth, 0, 0.3) == \
+                visible_samples_numpy(uv[:k], z[:k], o.instance, o.depth, 0, 0.3)
+    assert checked > 3
