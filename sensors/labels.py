@@ -17,9 +17,8 @@ the active sensors saw it; it is difficult when neither did or when it is under 
 from __future__ import annotations
 
 import numpy as np
-from scipy import ndimage
 
-from sensors.label_kernels import visible_samples
+from sensors.label_kernels import instance_boxes, visible_samples
 from sensors.rig import Calibration, CameraCalibration, invert, transform_points
 from sensors.world_mesh import class_template
 from sim.actors import CLASSES, box_corners_2d
@@ -79,23 +78,18 @@ def fwd_labels(instance: np.ndarray, depth: np.ndarray, actors, cam: CameraCalib
     ids, counts = np.unique(instance[instance > 0], return_counts=True)
     if len(ids) == 0:
         return out
-    compact = np.zeros(instance.shape, np.int32)
-    lut = {int(a): i + 1 for i, a in enumerate(ids)}
-    sel = instance > 0
-    compact[sel] = np.searchsorted(ids, instance[sel]) + 1
-    slices = ndimage.find_objects(compact)
+    boxes = instance_boxes(instance, ids).tolist()  # [row0, col0, row1, col1) of each id
     row_of = {int(a): i for i, a in enumerate(actors.ids)}
     ego_from_world = invert(world_from_ego)
     names = actors.class_names()
     min_h = DIFFICULT_HEIGHT_PX_AT_188 * H / 188.0
     cam_from_world = invert(world_from_ego @ cam.ego_from_camera)
     geometry = {} if geometry is None else geometry
-    for actor_id, count in zip(ids.tolist(), counts.tolist()):
+    for actor_id, count, (r0, c0, r1, c1) in zip(ids.tolist(), counts.tolist(), boxes):
         if count < MIN_VISIBLE_PX or actor_id not in row_of:
             continue
         i = row_of[actor_id]
-        sl = slices[lut[actor_id] - 1]
-        box = [float(sl[1].start), float(sl[0].start), float(sl[1].stop), float(sl[0].stop)]
+        box = [float(c0), float(r0), float(c1), float(r1)]
         center = actors.centers[i]
         if i not in geometry:
             size, yaw = actors.sizes[i], float(actors.yaws[i])

@@ -4,8 +4,9 @@ import dataclasses
 
 import numpy as np
 import pytest
+from scipy import ndimage
 
-from sensors.label_kernels import visible_samples
+from sensors.label_kernels import instance_boxes, visible_samples
 from sensors.labels import BEV_MIN_SIZE_PX, bev_labels, fwd_labels
 from sensors.rig import invert, transform_points
 from sim.actors import box_corners_2d
@@ -111,3 +112,25 @@ def test_visible_samples_equal_numpy(city):
             assert visible_samples(uv[:k], z[:k], o.instance, o.depth, 0, 0.3) == \
                 visible_samples_numpy(uv[:k], z[:k], o.instance, o.depth, 0, 0.3)
     assert checked > 3
+
+
+def instance_boxes_scipy(instance, ids):
+    """The visible-pixel boxes of sensors.labels.fwd_labels before the kernel (commit f473f51)."""
+    compact = np.zeros(instance.shape, np.int32)
+    sel = instance > 0
+    compact[sel] = np.searchsorted(ids, instance[sel]) + 1
+    return [[s[0].start, s[1].start, s[0].stop, s[1].stop] for s in ndimage.find_objects(compact)]
+
+
+def test_instance_boxes_equal_scipys_find_objects(city):
+    _, _, obs = city
+    images = [obs.camera_left.instance, obs.camera_right.instance]
+    one = np.zeros((5, 7), np.int64)
+    one[4, 6] = 200084  # a single pixel in the last row and column
+    images.append(one)
+    rng = np.random.default_rng(0)
+    images.append(np.where(rng.uniform(size=(40, 60)) < 0.1, rng.integers(1, 5, (40, 60)) * 1000, 0))
+    for instance in images:
+        ids = np.unique(instance[instance > 0])
+        assert len(ids) > 0
+        assert instance_boxes(instance, ids).tolist() == instance_boxes_scipy(instance, ids)
