@@ -186,9 +186,10 @@ class SequenceRenderer:
         polar = radar_mod.to_counts(obs.radar.power)
         rbev = np.round(radar_mod.cartesian(polar.astype(np.float32), self.calib)).astype(np.uint8)
         t = self._tick("radar_images", t)
+        geometry = {}  # the actors' boxes and sample points, shared by both cameras
         labels = {
             name: fwd_labels(getattr(obs, name).instance, getattr(obs, name).depth, scene.actors,
-                             self.calib.camera(name), scene.ego.pose)
+                             self.calib.camera(name), scene.ego.pose, geometry)
             for name in ("camera_left", "camera_right")
         }
         labels["bev"] = bev_labels(scene.actors, self.calib, scene.ego.pose, obs.lidar, obs.radar)

@@ -17,8 +17,8 @@ the active sensors saw it; it is difficult when neither did or when it is under 
 from __future__ import annotations
 
 import numpy as np
-from scipy import ndimage
 
+from sensors.label_kernels import instance_boxes, visible_samples
 from sensors.rig import Calibration, CameraCalibration, invert, transform_points
 from sensors.world_mesh import class_template
 from sim.actors import CLASSES, box_corners_2d
@@ -66,46 +66,43 @@ def _sample_points(cls: str, center, size, yaw) -> np.ndarray:
 
 
 def fwd_labels(instance: np.ndarray, depth: np.ndarray, actors, cam: CameraCalibration,
-               world_from_ego: np.ndarray) -> dict:
+               world_from_ego: np.ndarray, geometry: dict | None = None) -> dict:
     """Ground-truth boxes of one camera. Returns columnar lists (JSON-ready):
     ids, labels (class ids 1..8), boxes [x1, y1, x2, y2] px, visible_px, occlusion, truncation,
-    distance_m (camera to box centre), difficult (bool)."""
+    distance_m (camera to box centre), difficult (bool).
+
+    `geometry`: a dict shared by the calls for the cameras of one moment (same actors and pose);
+    each actor's box corners and mesh sample points in the ego frame are computed once into it."""
     H = instance.shape[0]
     out = {k: [] for k in ("ids", "labels", "boxes", "visible_px", "occlusion", "truncation", "distance_m", "difficult")}
     ids, counts = np.unique(instance[instance > 0], return_counts=True)
     if len(ids) == 0:
         return out
-    compact = np.zeros(instance.shape, np.int32)
-    lut = {int(a): i + 1 for i, a in enumerate(ids)}
-    sel = instance > 0
-    compact[sel] = np.searchsorted(ids, instance[sel]) + 1
-    slices = ndimage.find_objects(compact)
+    boxes = instance_boxes(instance, ids).tolist()  # [row0, col0, row1, col1) of each id
     row_of = {int(a): i for i, a in enumerate(actors.ids)}
     ego_from_world = invert(world_from_ego)
     names = actors.class_names()
     min_h = DIFFICULT_HEIGHT_PX_AT_188 * H / 188.0
     cam_from_world = invert(world_from_ego @ cam.ego_from_camera)
-    for actor_id, count in zip(ids.tolist(), counts.tolist()):
+    geometry = {} if geometry is None else geometry
+    for actor_id, count, (r0, c0, r1, c1) in zip(ids.tolist(), counts.tolist(), boxes):
         if count < MIN_VISIBLE_PX or actor_id not in row_of:
             continue
         i = row_of[actor_id]
-        sl = slices[lut[actor_id] - 1]
-        box = [float(sl[1].start), float(sl[0].start), float(sl[1].stop), float(sl[0].stop)]
-        center, size, yaw = actors.centers[i], actors.sizes[i], float(actors.yaws[i])
-        corners_ego = transform_points(ego_from_world, _corners3d(center, size, yaw))
+        box = [float(c0), float(r0), float(c1), float(r1)]
+        center = actors.centers[i]
+        if i not in geometry:
+            size, yaw = actors.sizes[i], float(actors.yaws[i])
+            geometry[i] = (transform_points(ego_from_world, _corners3d(center, size, yaw)),
+                           transform_points(ego_from_world, _sample_points(names[i], center, size, yaw)))
+        corners_ego, pts = geometry[i]
         full, inside = _projected_area(corners_ego, cam)
         truncation = 1.0 - inside / full if full > 0 else 1.0
-        pts = transform_points(ego_from_world, _sample_points(names[i], center, size, yaw))
+        # sample points in the image (z > 0.3 m), seen when the pixel shows the actor or nothing
+        # nearer than the point by more than 0.3 m + 2 % (label_kernels.visible_samples)
         uv, z = cam.project(pts)
-        u = np.floor(uv[:, 0]).astype(int)
-        v = np.floor(uv[:, 1]).astype(int)
-        inimg = (z > 0.3) & (u >= 0) & (u < cam.width) & (v >= 0) & (v < cam.height)
-        if inimg.any():
-            du, dv, dz = u[inimg], v[inimg], z[inimg]
-            seen = (instance[dv, du] == actor_id) | (depth[dv, du] >= dz - (0.3 + 0.02 * dz))
-            occlusion = 1.0 - float(seen.mean())
-        else:
-            occlusion = 1.0
+        n_in, n_seen = visible_samples(uv, z, instance, depth, actor_id, 0.3)
+        occlusion = 1.0 - n_seen / n_in if n_in else 1.0
         dist = float(np.linalg.norm(transform_points(cam_from_world, center[None])[0]))
         difficult = (box[3] - box[1] < min_h) or occlusion > DIFFICULT_OCCLUSION or truncation > DIFFICULT_TRUNCATION
         out["ids"].append(int(actor_id))
@@ -140,11 +137,12 @@ def bev_labels(actors, calib: Calibration, world_from_ego: np.ndarray, lidar_obs
     if radar_obs is not None:
         strong = (radar_obs.instance > 0) & (radar_obs.signal > 3.0 * radar_obs.noise.mean())
         radar_seen = set(np.unique(radar_obs.instance[strong]).tolist())
-    for i in np.flatnonzero(on):
-        corners = box_corners_2d(centers[i:i + 1, :2], actors.sizes[i:i + 1, :2], yaws[i:i + 1])[0]
-        uv = calib.radar_to_bev(corners)
-        x1, y1 = np.clip(uv.min(axis=0), 0, S)
-        x2, y2 = np.clip(uv.max(axis=0), 0, S)
+    rows = np.flatnonzero(on)
+    # the axis-aligned boxes of all rotated footprints at once (row by row the same arithmetic)
+    corners = box_corners_2d(centers[rows, :2], actors.sizes[rows, :2], yaws[rows])
+    uv = calib.radar_to_bev(corners.reshape(-1, 2)).reshape(-1, 4, 2)
+    lo, hi = np.clip(uv.min(axis=1), 0, S), np.clip(uv.max(axis=1), 0, S)
+    for i, (x1, y1), (x2, y2) in zip(rows.tolist(), lo.tolist(), hi.tolist()):
         if x2 - x1 <= 0 or y2 - y1 <= 0:
             continue
         aid = int(actors.ids[i])
@@ -154,7 +152,7 @@ def bev_labels(actors, calib: Calibration, world_from_ego: np.ndarray, lidar_obs
         small = max(x2 - x1, y2 - y1) < BEV_MIN_SIZE_PX
         out["ids"].append(aid)
         out["labels"].append(int(actors.classes[i]))
-        out["boxes"].append([round(float(x1), 2), round(float(y1), 2), round(float(x2), 2), round(float(y2), 2)])
+        out["boxes"].append([round(x1, 2), round(y1, 2), round(x2, 2), round(y2, 2)])
         out["rotated"].append([round(float(uv_c[i, 0]), 2), round(float(uv_c[i, 1]), 2), round(float(length_px), 2),
                                round(float(width_px), 2), round(float(np.arctan2(np.sin(yaws[i]), np.cos(yaws[i]))), 4)])
         out["lidar_points"].append(n_lidar)

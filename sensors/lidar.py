@@ -19,7 +19,7 @@ from functools import lru_cache
 
 import numpy as np
 
-from sensors import ray_kernels
+from sensors import lidar_kernels, ray_kernels
 from sensors.materials import NIR
 from sensors.raycast import WorldCaster
 from sensors.rig import LIDAR_MAX_RANGE_M, LIDAR_MIN_RANGE_M, Calibration, invert, transform_points
@@ -115,25 +115,14 @@ def bev_image(pts: np.ndarray, calib: Calibration) -> np.ndarray:
     """(S, S, 3) uint8 BEV on the radar grid: max height above the road, log density, max intensity."""
     S = calib.bev_size_px
     xyz = transform_points(invert(calib.ego_from_radar) @ calib.ego_from_lidar, pts[:, :3])
-    uv = calib.radar_to_bev(xyz[:, :2])
-    u, v = np.floor(uv[:, 0]).astype(int), np.floor(uv[:, 1]).astype(int)
-    ok = (u >= 0) & (u < S) & (v >= 0) & (v < S)
-    u, v = u[ok], v[ok]
-    height = xyz[ok, 2] + calib.radar_height_m  # above the road
-    lin = v * S + u
-    img = np.zeros((3, S * S), np.float32)
-    h01 = np.clip((height - HEIGHT_RANGE_M[0]) / (HEIGHT_RANGE_M[1] - HEIGHT_RANGE_M[0]), 0, 1)
-    img[0] = _cell_max(lin, h01, S * S)
-    img[1] = np.log1p(np.bincount(lin, minlength=S * S)) / np.log(64.0)
-    img[2] = _cell_max(lin, pts[ok, 3], S * S)
-    return np.round(np.clip(img, 0, 1) * 255).astype(np.uint8).reshape(3, S, S).transpose(1, 2, 0)
-
-
-def _cell_max(cells: np.ndarray, values: np.ndarray, n: int) -> np.ndarray:
-    """Per-cell maximum of values (0 where a cell has none), in one pass (sensors.kernels)."""
-    from sensors.kernels import cell_max
-
-    return cell_max(np.ascontiguousarray(cells, np.int64), np.ascontiguousarray(values), n)
+    # per cell of the grid (lidar_kernels.bev_cells): uv = calib.radar_to_bev(xyz[:, :2]) floored;
+    # the height above the road scaled to HEIGHT_RANGE_M and clipped to 0..1, its maximum; the
+    # number of points; the maximum intensity
+    height, count, inten = lidar_kernels.bev_cells(
+        xyz, np.ascontiguousarray(pts[:, 3]), S, float(calib.bev_resolution_m), calib.radar_height_m,
+        HEIGHT_RANGE_M[0], HEIGHT_RANGE_M[1] - HEIGHT_RANGE_M[0])
+    density = np.log1p(np.arange(count.max() + 1)) / np.log(64.0)  # log density, 1 at 63 points
+    return lidar_kernels.bev_pixels(height, count, density, inten, S)
 
 
 def forward_image(pts: np.ndarray, calib: Calibration, camera: str = "camera_right") -> np.ndarray:
@@ -142,16 +131,10 @@ def forward_image(pts: np.ndarray, calib: Calibration, camera: str = "camera_rig
     cam = calib.camera(camera)
     ego = transform_points(calib.ego_from_lidar, pts[:, :3])
     uv, z = cam.project(ego)
-    ok = z > 0.5
-    u = np.floor(uv[ok, 0]).astype(int)
-    v = np.floor(uv[ok, 1]).astype(int)
-    inb = (u >= 0) & (u < cam.width) & (v >= 0) & (v < cam.height)
-    u, v, zz = u[inb], v[inb], z[ok][inb]
-    inten = pts[ok, 3][inb]
-    height = ego[ok, 2][inb]
-    order = np.argsort(-zz)  # far first, near overwrites
-    img = np.zeros((cam.height, cam.width, 3), np.float32)
-    img[v[order], u[order], 0] = np.clip(1 - zz[order] / FWD_DEPTH_MAX_M, 0, 1)
-    img[v[order], u[order], 1] = inten[order]
-    img[v[order], u[order], 2] = np.clip(height[order] / 4.0, 0, 1)
-    return np.round(img * 255).astype(np.uint8)
+    # points in front (z > 0.5 m) on the image (lidar_kernels.forward_pixels), drawn far first so
+    # the nearest point of a pixel wins
+    idx, u, v = lidar_kernels.forward_pixels(uv, z, cam.width, cam.height, 0.5)
+    zz = z[idx]
+    order = np.argsort(-zz)
+    return lidar_kernels.forward_raster(order, u, v, zz, np.ascontiguousarray(pts[idx, 3]), ego[idx, 2], cam.width,
+                                        cam.height, FWD_DEPTH_MAX_M)

@@ -18,6 +18,7 @@ Every transform takes the calibration of the frame (stored with every frame), ne
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from functools import cached_property
 from pathlib import Path
 
 import numpy as np
@@ -136,12 +137,21 @@ class CameraCalibration:
     K: np.ndarray
     ego_from_camera: np.ndarray
 
+    @cached_property
+    def camera_from_ego(self) -> np.ndarray:
+        """(4, 4) inverse of ego_from_camera (computed once per calibration)."""
+        return invert(self.ego_from_camera)
+
+    @cached_property
+    def _focal(self) -> np.ndarray:
+        return np.array([self.K[0, 0], self.K[1, 1]])
+
     def project(self, pts_ego: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """(N, 3) ego points -> (N, 2) pixel coordinates and (N,) depth along the optical axis [m]."""
-        p = transform_points(invert(self.ego_from_camera), pts_ego)
+        p = transform_points(self.camera_from_ego, pts_ego)
         z = p[:, 2]
         with np.errstate(divide="ignore", invalid="ignore"):
-            uv = (p[:, :2] / z[:, None]) * np.array([self.K[0, 0], self.K[1, 1]]) + self.K[:2, 2]
+            uv = (p[:, :2] / z[:, None]) * self._focal + self.K[:2, 2]
         return uv, z
 
     def rays(self) -> np.ndarray:

@@ -171,3 +171,18 @@ def test_project_box3d_handles_boxes_behind_the_camera():
     box = project_box3d(corners, cam)
     assert box is not None and box[0] == 0 and box[2] == cam.width  # straddles the camera: clipped to the image
     assert project_box3d(corners - [20, 0, 0], cam) is None
+
+
+def test_project_equals_the_inverse_formulation():
+    """CameraCalibration.project (cached camera_from_ego) gives the bits of inverting per call."""
+    calib = make_calibration(load_profile("cpu"))
+    rng = np.random.default_rng(0)
+    pts = np.vstack([rng.uniform(-50, 50, (200, 3)), [[0.5, 0.06, 1.95], [np.nan, 1.0, 2.0], [np.inf, 0.0, 1.0]]])
+    for cam in (calib.camera_left, calib.camera_right):
+        for p_in in (pts, pts[:1], pts[:0]):
+            p = transform_points(invert(cam.ego_from_camera), p_in)
+            with np.errstate(divide="ignore", invalid="ignore"):
+                uv_ref = (p[:, :2] / p[:, 2:3]) * np.array([cam.K[0, 0], cam.K[1, 1]]) + cam.K[:2, 2]
+            uv, z = cam.project(p_in)
+            assert uv.tobytes() == uv_ref.tobytes() and z.tobytes() == p[:, 2].tobytes()
+            assert uv.shape == (len(p_in), 2)
