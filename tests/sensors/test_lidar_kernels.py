@@ -6,7 +6,7 @@ import pytest
 
 from sensors import lidar as lidar_mod
 from sensors.kernels import cell_max
-from sensors.rig import load_profile, make_calibration, invert, transform_points
+from sensors.rig import invert, load_profile, make_calibration, transform_points
 
 CALIB = make_calibration(load_profile("cpu"))
 
