@@ -61,6 +61,9 @@ def checkouts_arg(text: str) -> tuple:
     return items
 
 
+checkouts_arg.kind = "names"
+
+
 def add_parser(sub, name, help_text):
     p = sub.add_parser(name, help=help_text, description=help_text, formatter_class=Formatter)
     what = p.add_subparsers(dest="what", metavar="<what>", parser_class=type(p))
