@@ -211,22 +211,26 @@ def instance_ids(index, actor_ids):
     return out
 
 
+@njit(cache=True)
+def take_max(best, state, c, v):
+    """One step of `cell_max`: value v into cell c (state: 0 empty, 1 has a value, 2 holds NaN)."""
+    if np.isnan(v):
+        best[c] = v
+        state[c] = 2
+    elif state[c] == 0 or (state[c] == 1 and v >= best[c]):
+        best[c] = v
+        state[c] = 1
+
+
 @njit(cache=True, error_model="numpy")
 def cell_max(cells, values, n):
     """(n,) float32 per-cell maximum of `values` (0 where a cell has none), as
     `sensors.lidar._cell_max` (a stable sort by value, last per cell): among equal values the later
     one wins, NaN is the largest; the maximum is taken in the input precision and rounded once."""
     best = np.zeros(n, values.dtype)
-    state = np.zeros(n, np.uint8)  # 0 empty, 1 has a value, 2 holds NaN
+    state = np.zeros(n, np.uint8)
     for i in range(cells.shape[0]):
-        c = cells[i]
-        v = values[i]
-        if np.isnan(v):
-            best[c] = v
-            state[c] = 2
-        elif state[c] == 0 or (state[c] == 1 and v >= best[c]):
-            best[c] = v
-            state[c] = 1
+        take_max(best, state, cells[i], values[i])
     return best.astype(np.float32)
 
 

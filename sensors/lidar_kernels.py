@@ -14,18 +14,9 @@ from __future__ import annotations
 import numpy as np
 from numba import njit
 
+from sensors.kernels import take_max
+
 _F32 = np.float32
-
-
-@njit(cache=True)
-def _take_max(best, state, c, v):
-    """One step of `sensors.kernels.cell_max` for cell c and value v."""
-    if np.isnan(v):
-        best[c] = v
-        state[c] = 2
-    elif state[c] == 0 or (state[c] == 1 and v >= best[c]):
-        best[c] = v
-        state[c] = 1
 
 
 @njit(cache=True, error_model="numpy")
@@ -59,9 +50,9 @@ def bev_cells(xyz, intensity, size, resolution, radar_height, h_low, h_span):
             h = 0.0
         elif h > 1.0:
             h = 1.0
-        _take_max(h_best, h_state, c, h)
+        take_max(h_best, h_state, c, h)
         count[c] += 1
-        _take_max(i_best, i_state, c, intensity[k])
+        take_max(i_best, i_state, c, intensity[k])
     return h_best.astype(np.float32), count, i_best.astype(np.float32)
 
 
