@@ -161,6 +161,14 @@ def _renderer(width: int, height: int) -> pyrender.OffscreenRenderer:
     return _RENDERERS[key]
 
 
+def gl_info() -> dict:
+    """The OpenGL renderer that draws the code pass (e.g. "llvmpipe (LLVM 15.0.6, 256 bits)") and
+    its version string (with Mesa's version), from a renderer's context."""
+    r = _renderer(16, 16)
+    r._platform.make_current()
+    return {k: GL.glGetString(getattr(GL, f"GL_{k.upper()}")).decode(errors="replace") for k in ("renderer", "version")}
+
+
 @dataclass
 class CameraObservation:
     """What one camera sees of a frame, before the camera model.

@@ -103,7 +103,7 @@ class SequenceRenderer:
         self.timings: dict[str, float] = defaultdict(float)
         self.frames_done = 0
         self.timings["setup"] += time.perf_counter() - t0
-        self._actors_key = None
+        self._actors_key, self.actors_soup = None, MeshSoup.empty()
         self._geometry_key, self._geometry = None, None
 
     def _tick(self, name: str, t0: float) -> float:
@@ -126,11 +126,15 @@ class SequenceRenderer:
             soup, _ = actors_mesh(moving, SENSOR_RANGE_M, scene.ego.position, index_of=self.index_of)
             self.caster.set_actors(soup)
             self.stereo.set_actors(soup)
+            self.actors_soup = soup
             self._actors_key = key
         return np.array(self._ids[1:], np.int64)
 
-    def observe(self, scene: Scene, weather: WeatherState | None = None) -> Observations:
-        """Raw observations of `scene` under `weather` (default: the scene's own weather)."""
+    def observe(self, scene: Scene, weather: WeatherState | None = None, trace: dict | None = None) -> Observations:
+        """Raw observations of `scene` under `weather` (default: the scene's own weather).
+
+        `trace`: a dict that receives the intermediate products by stage (the actors' mesh, the
+        cameras' code pass, the lidar and radar scans, the shaded cameras), for `sensors.stages`."""
         weather = scene.weather if weather is None else weather
         light = light_for(weather, scene.light.sun_azimuth_deg)
         t = time.perf_counter()
@@ -156,12 +160,17 @@ class SequenceRenderer:
             t = self._tick("radar", t)
             self._geometry_key, self._geometry = key, (codes, lid, rad)
         codes, lid, rad = self._geometry
+        if trace is not None:
+            trace.update(actors_mesh=self.actors_soup, camera_raster=codes,
+                         lidar_scan=lid, radar_scan=rad)
         cams = {}
         for name in ("camera_left", "camera_right"):
             index, material, depth = (a.copy() for a in codes[name])  # the observation owns its arrays
             cams[name] = cam_mod.shade(index, material, depth, self.calib.camera(name), scene.ego.pose, ids, lighting,
                                        self.caster)
             t = self._tick("camera_shading", t)
+        if trace is not None:
+            trace["camera_shading"] = cams
         return Observations(cams["camera_left"], cams["camera_right"], lid.copy(), rad.copy(), weather, ids)
 
     def finalize(self, scene: Scene, obs: Observations, degradation: dict | None = None,

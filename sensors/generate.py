@@ -144,8 +144,9 @@ def plan(config: GenerateConfig) -> list[ShardSpec]:
     return shards
 
 
-def render_sequence(spec: ShardSpec, config: GenerateConfig, on_frame: Callable[[], None] | None = None):
-    """Simulate and render one shard's sequence. Returns (frames, twin frames or None, timings)."""
+def open_sequence(spec: ShardSpec, config: GenerateConfig):
+    """Simulate shard `spec`'s sequence and build its sensors: (simulator, scenes, renderer,
+    degrader or None, simulation seconds). The world is built around the ego's simulated path."""
     from sensors.frame import SequenceRenderer
     from sensors.rig import load_profile
 
@@ -155,15 +156,21 @@ def render_sequence(spec: ShardSpec, config: GenerateConfig, on_frame: Callable[
                                  transition=spec.transition))
     all_scenes = list(sim.scenes())  # simulate first: the world is then built around the ego's path
     t_sim = time.perf_counter() - t0
-    first = all_scenes[0]
-    scenes = iter(all_scenes[1:])
-    renderer = SequenceRenderer(first, load_profile(config.profile), seed=spec.seed,
+    renderer = SequenceRenderer(all_scenes[0], load_profile(config.profile), seed=spec.seed,
                                 ego_path=np.array([s.ego.position[:2] for s in all_scenes]))
     degrader = None
     if config.degrade:
         from sensors.degrade import Degrader
 
         degrader = Degrader(renderer.calib, spec.context, spec.seed, lidar_fog=config.lidar_fog)
+    return sim, all_scenes, renderer, degrader, t_sim
+
+
+def render_sequence(spec: ShardSpec, config: GenerateConfig, on_frame: Callable[[], None] | None = None):
+    """Simulate and render one shard's sequence. Returns (frames, twin frames or None, timings)."""
+    sim, all_scenes, renderer, degrader, t_sim = open_sequence(spec, config)
+    first = all_scenes[0]
+    scenes = iter(all_scenes[1:])
     frames, twins = [], [] if config.twins else None
     # The twin holds everything but the condition's own quantities: the sequence's drawn clear-air
     # visibility and (for fog, rain, snow) its light; persistent faults and random streams stay.

@@ -361,6 +361,7 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "verify": ("study.commands.dataset:add_verify", "check a dataset's shards against its manifest checksums"),
     "export-coco": ("study.commands.dataset:add_export", "write a dataset's FWD labels as COCO JSON"),
     "labels": ("study.commands.labels:add_parser", "what each evaluation protocol asks a detector to find (counts per range bin)"),
+    "stages": ("study.commands.stages:add_parser", "a digest of every generation stage for one frame, to compare two machines"),
     "show": ("study.commands.dataset:add_show", "draw one frame of a dataset with every sensor and its labels"),
     "gallery": ("study.commands.gallery:add_parser", "one scene under every condition and severity, all sensors side by side"),
     "theory": ("study.commands.theory:add_parser", "HydraFusion Sec. 1.1 measured: single sensors vs full, selective and gated fusion per weather"),
