@@ -256,6 +256,19 @@ def _init_worker(threads: int) -> None:
     os.environ["OPENBLAS_NUM_THREADS"] = str(threads)
 
 
+def shard_files(config_dict: dict, spec_dict: dict) -> tuple[dict, dict[str, bytes]]:
+    """A Ray task's body (`sensors.ray_backend.run_shards`): render one shard in a scratch
+    directory and return (its record, {path relative to the shard directory: bytes})."""
+    import tempfile
+
+    _init_worker(1)  # one CPU per task (the task's num_cpus)
+    with tempfile.TemporaryDirectory(prefix="hydrabench-ray-shard-") as tmp:
+        record = generate_shard(config_dict, spec_dict, tmp)
+        d = Path(tmp) / record["name"]
+        files = {str(p.relative_to(d)): p.read_bytes() for p in sorted(d.rglob("*")) if p.is_file()}
+    return record, files
+
+
 def existing_record(root: Path, spec: ShardSpec, config: GenerateConfig, digest: bool = True) -> dict | None:
     """The record of an already complete shard, if it was made by the same config (UserError if it
     was made by another); `digest=False` only checks."""
@@ -346,7 +359,7 @@ def generate(config: GenerateConfig, out: str | Path, workers: int = 1, progress
     if backend == "ray":
         from sensors.ray_backend import run_shards
 
-        ray_info = run_shards(cfg, [asdict(s) for s in todo], root, collect, workers=workers, address=address)
+        ray_info = run_shards(shard_files, cfg, [asdict(s) for s in todo], root, collect, workers=workers, address=address)
     elif workers <= 1 or len(todo) <= 1:
         _init_worker(max(1, os.cpu_count() or 1))
         for s in todo:

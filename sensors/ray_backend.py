@@ -18,24 +18,11 @@ from __future__ import annotations
 
 import logging
 import os
-import tempfile
 import time
 from collections.abc import Callable
 from pathlib import Path
 
 from sim.errors import UserError
-
-
-def render_shard_files(config_dict: dict, spec_dict: dict) -> tuple[dict, dict[str, bytes]]:
-    """Ray task body: (the shard's record, {path relative to the shard directory: bytes})."""
-    from sensors.generate import _init_worker, generate_shard
-
-    _init_worker(1)  # one CPU per task (the task's num_cpus)
-    with tempfile.TemporaryDirectory(prefix="hydrabench-ray-shard-") as tmp:
-        record = generate_shard(config_dict, spec_dict, tmp)
-        d = Path(tmp) / record["name"]
-        files = {str(p.relative_to(d)): p.read_bytes() for p in sorted(d.rglob("*")) if p.is_file()}
-    return record, files
 
 
 def write_shard_files(root: Path, name: str, files: dict[str, bytes]) -> None:
@@ -50,10 +37,12 @@ def write_shard_files(root: Path, name: str, files: dict[str, bytes]) -> None:
     commit_shard(tmp, root / name)
 
 
-def run_shards(config_dict: dict, specs: list[dict], root: Path, collect: Callable[[dict], None], workers: int = 1,
-               address: str | None = None) -> dict:
+def run_shards(task: Callable[[dict, dict], tuple[dict, dict[str, bytes]]], config_dict: dict, specs: list[dict],
+               root: Path, collect: Callable[[dict], None], workers: int = 1, address: str | None = None) -> dict:
     """Render `specs` as Ray tasks and write each shard into `root` as it completes (`collect` gets
-    its record). Returns {"address", "cluster_cpus", "started_local"}."""
+    its record). `task(config_dict, spec_dict)` renders one shard and returns (its record, {path
+    relative to the shard directory: bytes}) (`sensors.generate.shard_files`); it runs on whichever
+    node Ray picks. Returns {"address", "cluster_cpus", "started_local"}."""
     if not address:
         # A local instance on loopback: this command's alone, not a service on the network. Ray
         # advertises the node's network address on Linux unless this (read when ray is imported) is 0.
@@ -81,9 +70,9 @@ def run_shards(config_dict: dict, specs: list[dict], root: Path, collect: Callab
             hint = "" if address else " (on a busy machine start one with `ray start --head` and pass --address)"
             raise UserError(f"--backend ray: could not start or join {where}: {str(exc).splitlines()[0]}{hint}") from None
     try:
-        task = ray.remote(num_cpus=1, max_retries=2)(render_shard_files)
+        remote = ray.remote(num_cpus=1, max_retries=2)(task)
         cfg_ref = ray.put(config_dict)
-        pending = {task.remote(cfg_ref, spec): spec for spec in specs}
+        pending = {remote.remote(cfg_ref, spec): spec for spec in specs}
         while pending:
             done, _ = ray.wait(list(pending), num_returns=1)
             for ref in done:
