@@ -17,7 +17,7 @@ To compare two machines: `hydrabench stages --json > a.json` on one, then
 `hydrabench stages --against a.json` on the other; it names the first stage whose bytes differ
 (exit 0 either way: differing machines are a finding, not an error).
 
-`--datasets A B` instead checks two datasets of one generation config (made on two machines)
+`--dataset A --against-dataset B` instead checks two datasets of one generation config (made on two machines)
 against the cross-machine tolerances of `sensors.stages.TOLERANCES`; exit 1 if any is exceeded."""
 
 
@@ -28,8 +28,10 @@ def add_parser(sub, name, help_text):
     p.add_argument("--profile", type=name_arg, default="cpu", help="sensor profile: cpu or paper")
     p.add_argument("--against", type=in_file, default=None, metavar="JSON",
                    help="the --json output of this command on another machine: name the first stage that differs")
-    p.add_argument("--datasets", type=dataset_dir, nargs=2, default=None, metavar=("A", "B"),
-                   help="compare two datasets of one config against the cross-machine tolerances instead")
+    p.add_argument("--dataset", type=dataset_dir, default=None,
+                   help="with --against-dataset: compare two datasets of one config against the cross-machine "
+                        "tolerances instead")
+    p.add_argument("--against-dataset", type=dataset_dir, default=None, help="the other dataset of --dataset")
     p.add_argument("--json", action="store_true", help="print one JSON object on stdout")
     p.set_defaults(run=run)
 
@@ -47,12 +49,14 @@ def _load_record(path: str) -> dict:
 def run(args) -> int:
     from sensors import stages
 
-    if args.datasets:
+    if (args.dataset is None) != (args.against_dataset is None):
+        raise UserError("--dataset and --against-dataset go together (the two datasets to compare)")
+    if args.dataset:
         try:
-            bad = stages.dataset_differences(*args.datasets)
+            bad = stages.dataset_differences(args.dataset, args.against_dataset)
         except ValueError as exc:
-            raise UserError(f"--datasets: {exc}") from None
-        emit({"datasets": list(args.datasets), "within_tolerances": not bad, "violations": bad,
+            raise UserError(f"--dataset: {exc}") from None
+        emit({"datasets": [args.dataset, args.against_dataset], "within_tolerances": not bad, "violations": bad,
               "tolerances": stages.TOLERANCES}, args.json,
              lambda r: "within the cross-machine tolerances" if not bad else "\n".join(["beyond tolerance:", *bad]))
         return 0 if not bad else 1
