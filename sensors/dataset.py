@@ -25,6 +25,7 @@ from __future__ import annotations
 
 import contextlib
 import fcntl
+import functools
 import hashlib
 import json
 import math
@@ -229,8 +230,21 @@ def _not_finite(obj, where: str = "") -> str | None:
     return None
 
 
-# NaN, Infinity (Python's json reads and writes both, JSON has neither) and numbers beyond a double
-_MAYBE_NOT_FINITE = re.compile(r"NaN|Infinity|\d[eE][+]?\d{3}")
+# A number with a 3-digit exponent (1e999 reads as infinity); what precedes it tells a JSON number
+# from letters and digits inside a string (a hex id such as "7ce3e50e0c0e728a")
+_BIG_EXPONENT = re.compile(r"[-+.0-9]*[0-9][eE]\+?[0-9]{3,}")
+
+
+class _NotFinite(Exception):
+    pass
+
+
+def _no_constant(name: str):
+    raise _NotFinite(name)  # json calls this for NaN, Infinity and -Infinity (JSON has none of them)
+
+
+def _may_overflow(text: str) -> bool:
+    return any(m.start() == 0 or text[m.start() - 1] in ":,[ \n\t" for m in _BIG_EXPONENT.finditer(text))
 
 
 def _load_json(root: Path, path: Path):
@@ -239,14 +253,17 @@ def _load_json(root: Path, path: Path):
         raise DatasetError(root, path, "is missing")
     try:
         text = path.read_text(encoding="utf-8")
-        doc = json.loads(text)
+        doc = json.loads(text, parse_constant=_no_constant)
+        not_finite = _may_overflow(text)
+    except _NotFinite:
+        doc, not_finite = json.loads(text), True
     except UnicodeDecodeError:
         raise DatasetError(root, path, "is not text (not valid JSON)") from None
     except json.JSONDecodeError as exc:
         raise DatasetError(root, path, f"is not valid JSON ({exc.msg} at line {exc.lineno})") from None
     except OSError as exc:
         raise DatasetError(root, path, f"cannot be read ({exc.strerror})") from None
-    if _MAYBE_NOT_FINITE.search(text):  # (the walk only when the text could hold one: a fast path)
+    if not_finite:  # (the walk, to say where, only when the text holds one: a fast path)
         where = _not_finite(doc)
         if where:
             raise DatasetError(root, path, f"{where} is not a finite number (NaN or infinity)")
@@ -387,6 +404,17 @@ def check(root: str | Path) -> dict:
     return reader.manifest
 
 
+@functools.lru_cache(maxsize=8)
+def _profile_shapes(name: str) -> dict:
+    """Each array's per-frame shape under sensor profile `name` (configs/profiles, read once)."""
+    from sensors.rig import load_profile
+
+    p = load_profile(name)
+    cam, s = (p.camera.height, p.camera.width, 3), p.bev.size_px
+    return {"camera_left": cam, "camera_right": cam, "fwd_lidar": cam, "lidar_bev": (s, s, 3),
+            "radar_polar": (p.radar.azimuths, p.radar.range_bins), "radar_bev": (s, s)}
+
+
 @dataclass
 class DatasetReader:
     """Lazy reader: arrays are memory-mapped per shard, labels loaded per shard on first use.
@@ -418,15 +446,12 @@ class DatasetReader:
         """Each array's per-frame shape under the dataset's sensor profile (DatasetError when the
         manifest names a profile this hydrabench does not have)."""
         if self._shapes is None:
-            from sensors.rig import load_profile, profile_names
+            from sensors.rig import profile_names
 
             name = self.manifest["profile"]
             _expect(name in profile_names(), self.root, self.root / "manifest.json",
                     f"profile {name!r} is not a sensor profile of this hydrabench ({', '.join(profile_names())})")
-            p = load_profile(name)
-            cam, s = (p.camera.height, p.camera.width, 3), p.bev.size_px
-            self._shapes = {"camera_left": cam, "camera_right": cam, "fwd_lidar": cam, "lidar_bev": (s, s, 3),
-                            "radar_polar": (p.radar.azimuths, p.radar.range_bins), "radar_bev": (s, s)}
+            self._shapes = _profile_shapes(name)
         return self._shapes
 
     def __len__(self) -> int:
