@@ -23,9 +23,14 @@ shard is never half-written; an interrupted generation resumes by skipping compl
 
 from __future__ import annotations
 
+import contextlib
+import fcntl
+import functools
 import hashlib
 import json
+import math
 import os
+import re
 import shutil
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
@@ -137,12 +142,51 @@ def clean_partial(root: Path) -> int:
 
 def foreign_entries(root: Path) -> list[str]:
     """Names in `root` that no dataset writer made (an existing dataset, or a partial one, is fine)."""
-    import re
-
     if not root.is_dir():
         return []
-    ours = re.compile(r"^(manifest\.json|\.manifest\.json\.tmp-\d+|shard-\d{5}(\.tmp-\d+)?)$")
+    ours = re.compile(r"^(manifest\.json|\.manifest\.json\.tmp-\d+|\.generate\.lock|shard-\d{5}(\.tmp-\d+)?)$")
     return sorted(p.name for p in root.iterdir() if not ours.match(p.name))
+
+
+LOCK_NAME = ".generate.lock"
+
+
+@contextlib.contextmanager
+def output_lock(root: Path, command: str = "generate"):
+    """Hold an exclusive lock on the dataset directory `root` (fcntl.flock on root/.generate.lock,
+    which holds the holder's PID) while writing it; a second writer is refused (UserError naming
+    the holder's PID), not left to race the first. The lock goes with the process (a killed run
+    holds nothing); the file is removed on release."""
+    path = Path(root) / LOCK_NAME
+    while True:
+        try:
+            fd = os.open(path, os.O_RDWR | os.O_CREAT, 0o644)
+        except OSError as exc:
+            raise UserError(f"cannot lock {root} for writing ({exc.strerror})") from None
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except OSError:
+            holder = os.pread(fd, 32, 0).decode("ascii", "replace").strip()
+            os.close(fd)
+            raise UserError(f"{root} is being written by another hydrabench {command} "
+                            f"({'PID ' + holder if holder.isdigit() else 'its PID not yet recorded'}); "
+                            "wait for it to finish, or use another --out") from None
+        st = os.fstat(fd)
+        try:
+            now = os.stat(path)
+        except FileNotFoundError:
+            now = None
+        if now is not None and (now.st_dev, now.st_ino) == (st.st_dev, st.st_ino):
+            break
+        os.close(fd)  # the holder removed the file between our open and our lock: lock the new one
+    try:
+        os.ftruncate(fd, 0)
+        os.pwrite(fd, f"{os.getpid()}\n".encode(), 0)
+        yield path
+    finally:
+        with contextlib.suppress(FileNotFoundError):
+            os.unlink(path)
+        os.close(fd)
 
 
 def write_manifest(root: Path, manifest: dict) -> None:
@@ -169,26 +213,118 @@ def _is_int(v) -> bool:
     return isinstance(v, int) and not isinstance(v, bool)
 
 
+def _not_finite(obj, where: str = "") -> str | None:
+    """Where in a JSON value the first NaN or infinity is (a path such as frames[0].labels.bev.boxes[2][1])."""
+    if isinstance(obj, float):
+        return None if math.isfinite(obj) else where or "the value"
+    if isinstance(obj, dict):
+        items = ((f"{where}.{k}" if where else str(k), v) for k, v in obj.items())
+    elif isinstance(obj, list):
+        items = ((f"{where}[{i}]", v) for i, v in enumerate(obj))
+    else:
+        return None
+    for w, v in items:
+        found = _not_finite(v, w)
+        if found:
+            return found
+    return None
+
+
+# A number with a 3-digit exponent (1e999 reads as infinity); what precedes it tells a JSON number
+# from letters and digits inside a string (a hex id such as "7ce3e50e0c0e728a")
+_BIG_EXPONENT = re.compile(r"[-+.0-9]*[0-9][eE]\+?[0-9]{3,}")
+
+
+class _NotFinite(Exception):
+    pass
+
+
+def _no_constant(name: str):
+    raise _NotFinite(name)  # json calls this for NaN, Infinity and -Infinity (JSON has none of them)
+
+
+def _may_overflow(text: str) -> bool:
+    return any(m.start() == 0 or text[m.start() - 1] in ":,[ \n\t" for m in _BIG_EXPONENT.finditer(text))
+
+
 def _load_json(root: Path, path: Path):
+    """A dataset JSON file, parsed, with every number finite (DatasetError naming the file and where)."""
     if not path.is_file():
         raise DatasetError(root, path, "is missing")
     try:
-        return json.loads(path.read_text())
+        text = path.read_text(encoding="utf-8")
+        doc = json.loads(text, parse_constant=_no_constant)
+        not_finite = _may_overflow(text)
+    except _NotFinite:
+        doc, not_finite = json.loads(text), True
     except UnicodeDecodeError:
         raise DatasetError(root, path, "is not text (not valid JSON)") from None
     except json.JSONDecodeError as exc:
         raise DatasetError(root, path, f"is not valid JSON ({exc.msg} at line {exc.lineno})") from None
     except OSError as exc:
         raise DatasetError(root, path, f"cannot be read ({exc.strerror})") from None
+    if not_finite:  # (the walk, to say where, only when the text holds one: a fast path)
+        where = _not_finite(doc)
+        if where:
+            raise DatasetError(root, path, f"{where} is not a finite number (NaN or infinity)")
+    return doc
+
+
+def _is_number(v) -> bool:
+    return isinstance(v, int | float) and not isinstance(v, bool)
+
+
+LABEL_FRAMES = ("camera_left", "camera_right", "bev")
+"""The 2D label sets of a frame: columnar lists of one length, with at least these columns."""
+LABEL_COLUMNS = ("ids", "labels", "boxes", "difficult")
+
+
+def _check_record(root: Path, path: Path, k: int, rec: dict, camera: tuple[int, int]) -> None:
+    """One frames.json record: the label sets (columns of one length, boxes [x1, y1, x2, y2] numbers,
+    integer ids and classes), the 3D objects (columns of one length) and the cameras' calibration
+    (width x height of the profile). NaN and infinity are refused for the whole file by _load_json."""
+    where = f"frames[{k}].labels"
+    labels = rec["labels"]
+    for frame in LABEL_FRAMES:
+        lab = labels.get(frame)
+        _expect(isinstance(lab, dict), root, path, f"{where} has no {frame!r} object")
+        for col in LABEL_COLUMNS:
+            _expect(isinstance(lab.get(col), list), root, path, f"{where}.{frame}.{col} must be a list")
+        n = len(lab["boxes"])
+        for col, v in lab.items():
+            _expect(isinstance(v, list) and len(v) == n, root, path,
+                    f"{where}.{frame}.{col} must be a list of {n} entries, like boxes")
+        for j, b in enumerate(lab["boxes"]):
+            _expect(isinstance(b, list) and len(b) == 4 and all(_is_number(x) for x in b), root, path,
+                    f"{where}.{frame}.boxes[{j}] must be 4 numbers [x1, y1, x2, y2], got {str(b)[:40]}")
+        for col in ("ids", "labels"):
+            _expect(all(_is_int(x) for x in lab[col]), root, path, f"{where}.{frame}.{col} must be integers")
+    objects = labels.get("objects")
+    _expect(isinstance(objects, dict) and isinstance(objects.get("ids"), list), root, path,
+            f"{where}.objects must be an object with an 'ids' list")
+    for col, v in objects.items():
+        _expect(isinstance(v, list) and len(v) == len(objects["ids"]), root, path,
+                f"{where}.objects.{col} must be a list of {len(objects['ids'])} entries, like ids")
+    cal = rec["meta"].get("calibration")
+    _expect(isinstance(cal, dict), root, path, f"frames[{k}].meta.calibration must be an object")
+    for name in ("camera_left", "camera_right"):
+        c = cal.get(name)
+        _expect(isinstance(c, dict) and (c.get("height"), c.get("width")) == camera, root, path,
+                f"frames[{k}].meta.calibration.{name} must give the profile's {camera[1]}x{camera[0]} "
+                f"(width x height)")
 
 
 def read_manifest(root: str | Path) -> dict:
     """The manifest of dataset `root`, checked field by field (DatasetError naming what is wrong)."""
     root = Path(root)
     path = root / "manifest.json"
-    if not root.is_dir():
-        raise UserError(f"{root} is not a directory" if root.exists() else f"{root} does not exist")
-    if not path.exists():
+    try:
+        is_dir, exists, has_manifest = root.is_dir(), root.exists(), path.exists()
+    except OSError as exc:  # a file name too long, a symlink loop
+        raise UserError(f"{root}: cannot be read as a dataset ({exc.strerror})") from None
+    if not is_dir:
+        raise UserError(f"{root} is not a directory" if exists else f"{root} does not exist")
+    if not has_manifest:
         raise UserError(f"{root} has no manifest.json (not a dataset, or its generation did not finish)")
     m = _load_json(root, path)
     _expect(isinstance(m, dict), root, path, f"is a JSON {type(m).__name__}, expected an object")
@@ -268,6 +404,17 @@ def check(root: str | Path) -> dict:
     return reader.manifest
 
 
+@functools.lru_cache(maxsize=8)
+def _profile_shapes(name: str) -> dict:
+    """Each array's per-frame shape under sensor profile `name` (configs/profiles, read once)."""
+    from sensors.rig import load_profile
+
+    p = load_profile(name)
+    cam, s = (p.camera.height, p.camera.width, 3), p.bev.size_px
+    return {"camera_left": cam, "camera_right": cam, "fwd_lidar": cam, "lidar_bev": (s, s, 3),
+            "radar_polar": (p.radar.azimuths, p.radar.range_bins), "radar_bev": (s, s)}
+
+
 @dataclass
 class DatasetReader:
     """Lazy reader: arrays are memory-mapped per shard, labels loaded per shard on first use.
@@ -293,6 +440,19 @@ class DatasetReader:
             raise UserError(f"{self.root} has no clear twins (generate with --twins)")
         self.index = [(f["shard"], f["index"]) for f in self.manifest["frames"]]
         self._frames = {s["name"]: s["frames"] for s in self.manifest["shards"]}
+        self._shapes: dict | None = None
+
+    def frame_shapes(self) -> dict:
+        """Each array's per-frame shape under the dataset's sensor profile (DatasetError when the
+        manifest names a profile this hydrabench does not have)."""
+        if self._shapes is None:
+            from sensors.rig import profile_names
+
+            name = self.manifest["profile"]
+            _expect(name in profile_names(), self.root, self.root / "manifest.json",
+                    f"profile {name!r} is not a sensor profile of this hydrabench ({', '.join(profile_names())})")
+            self._shapes = _profile_shapes(name)
+        return self._shapes
 
     def __len__(self) -> int:
         return len(self.index)
@@ -310,10 +470,12 @@ class DatasetReader:
         n = self._frames[shard]
         self._load_records(shard)
         arrays = {name: self._open(shard, name) for name in ARRAYS + POINT_ARRAYS}
+        shapes = self.frame_shapes()
         for name in ARRAYS:
-            a = arrays[name]
-            _expect(a.ndim >= 3 and a.shape[0] == n and a.dtype == np.uint8, self.root, d / f"{name}.npy",
-                    f"holds {a.dtype} {a.shape}, expected uint8 with {n} frames")
+            a, want = arrays[name], (n, *shapes[name])
+            _expect(a.shape == want and a.dtype == np.uint8, self.root, d / f"{name}.npy",
+                    f"holds {a.dtype} {a.shape}, expected uint8 {want} ({n} frames at profile "
+                    f"{self.manifest['profile']})")
         pts, inst, off = arrays["lidar_points"], arrays["lidar_instance"], arrays["lidar_offsets"]
         _expect(pts.ndim == 2 and pts.shape[1] == 5 and pts.dtype == np.float32, self.root, d / "lidar_points.npy",
                 f"holds {pts.dtype} {pts.shape}, expected float32 (N, 5)")
@@ -352,9 +514,11 @@ class DatasetReader:
             recs = doc["frames"]
             _expect(len(recs) == self._frames[shard], self.root, path,
                     f"has {len(recs)} frames, the manifest says {self._frames[shard]}")
+            camera = self.frame_shapes()["camera_right"][:2]
             for k, r in enumerate(recs):
                 _expect(isinstance(r, dict) and isinstance(r.get("meta"), dict) and isinstance(r.get("labels"), dict),
                         self.root, path, f"frames[{k}] must be an object with 'meta' and 'labels' objects")
+                _check_record(self.root, path, k, r, camera)
             self._json[shard] = recs
         return self._json[shard]
 

@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import math
 import os
+import shutil
 import time
 from collections.abc import Callable
 from dataclasses import asdict, dataclass
@@ -215,11 +216,15 @@ def generate_shard(config_dict: dict, spec_dict: dict, out: str) -> dict:
     frames, twins, timings = render_sequence(spec, config)
     t_write = time.perf_counter()
     extra = {"shard": asdict(spec), "config": config.to_dict(), "sensor_model_version": SENSOR_MODEL_VERSION}
-    write_frames(tmp, frames, extra)
-    if twins is not None:
-        write_frames(tmp / "clear", twins, {**extra, "twin": "clear"})
-    digest = shard_digest(tmp)
-    commit_shard(tmp, final)
+    try:
+        write_frames(tmp, frames, extra)
+        if twins is not None:
+            write_frames(tmp / "clear", twins, {**extra, "twin": "clear"})
+        digest = shard_digest(tmp)
+        commit_shard(tmp, final)
+    except BaseException:  # a full disk, an interrupt: no half-written shard left behind
+        shutil.rmtree(tmp, ignore_errors=True)
+        raise
     timings["write"] = time.perf_counter() - t_write
     return {"name": spec.name, "sha256": digest, "frames": len(frames), **asdict(spec),
             "seconds": time.perf_counter() - t0, "timings": timings}
@@ -278,6 +283,10 @@ def existing_record(root: Path, spec: ShardSpec, config: GenerateConfig, digest:
 
     d = root / spec.name
     fj = d / "frames.json"
+    if d.exists() and not d.is_dir():
+        raise UserError(f"{d} is not a directory (a damaged shard); delete it and run again to render that shard anew")
+    if d.is_dir() and not fj.exists():
+        raise UserError(f"{d} has no frames.json (a damaged shard); delete {d} and run again to render it anew")
     if not fj.exists():
         return None
     try:
@@ -320,7 +329,7 @@ def generate(config: GenerateConfig, out: str | Path, workers: int = 1, progress
     # chosen (and HYDRABENCH_START_METHOD checked) before anything is touched; used if a pool runs
     pool_method = (start_method or worker_start_method()) if backend == "local" and workers > 1 else None
 
-    from sensors.dataset import FORMAT_VERSION, clean_partial, foreign_entries, write_manifest
+    from sensors.dataset import FORMAT_VERSION, clean_partial, foreign_entries, output_lock, write_manifest
     from sim.progress import progress as progress_bar
 
     root = Path(out)
@@ -332,74 +341,82 @@ def generate(config: GenerateConfig, out: str | Path, workers: int = 1, progress
     for s in shards:  # refuse a dataset of another config before touching anything
         existing_record(root, s, config, digest=False)
     root.mkdir(parents=True, exist_ok=True)
-    clean_partial(root)
-    records: dict[str, dict] = {}
-    todo = []
-    for s in shards:
-        rec = existing_record(root, s, config)
-        if rec is None:
-            todo.append(s)
-        else:
-            records[s.name] = rec
-    total = sum(s.frames for s in shards)
-    bar = progress_bar(total=total, initial=sum(r["frames"] for r in records.values()), unit="frame",
-                       desc="generate", enabled=progress)
-    t0 = time.perf_counter()
-    timings: dict[str, float] = {}
+    # one generate at a time per --out (a second one is refused naming the holder); a failed or
+    # interrupted run leaves no shard-*.tmp-PID/ behind (kill -9 does: the next run removes them)
+    with output_lock(root, "generate"):
+        try:
+            clean_partial(root)
+            records: dict[str, dict] = {}
+            todo = []
+            for s in shards:
+                rec = existing_record(root, s, config)
+                if rec is None:
+                    todo.append(s)
+                else:
+                    records[s.name] = rec
+            total = sum(s.frames for s in shards)
+            bar = progress_bar(total=total, initial=sum(r["frames"] for r in records.values()), unit="frame",
+                               desc="generate", enabled=progress)
+            t0 = time.perf_counter()
+            timings: dict[str, float] = {}
 
-    def collect(rec: dict) -> None:
-        records[rec["name"]] = rec
-        for k, v in rec["timings"].items():
-            timings[k] = timings.get(k, 0.0) + v
-        bar.update(rec["frames"])
+            def collect(rec: dict) -> None:
+                records[rec["name"]] = rec
+                for k, v in rec["timings"].items():
+                    timings[k] = timings.get(k, 0.0) + v
+                bar.update(rec["frames"])
 
-    cfg = config.to_dict()
-    ray_info = None
-    method = None  # the local pool's start method, when a pool ran
-    if backend == "ray":
-        from sensors.ray_backend import run_shards
+            cfg = config.to_dict()
+            ray_info = None
+            method = None  # the local pool's start method, when a pool ran
+            if backend == "ray":
+                from sensors.ray_backend import run_shards
 
-        ray_info = run_shards(shard_files, cfg, [asdict(s) for s in todo], root, collect, workers=workers, address=address)
-    elif workers <= 1 or len(todo) <= 1:
-        _init_worker(max(1, os.cpu_count() or 1))
-        for s in todo:
-            collect(generate_shard(cfg, asdict(s), str(root)))
-    else:
-        method = pool_method
-        ctx = mp.get_context(method)
-        threads = max(1, (os.cpu_count() or 1) // workers)
-        with ctx.Pool(workers, initializer=_init_worker, initargs=(threads,), maxtasksperchild=None) as pool:
-            results = [pool.apply_async(generate_shard, (cfg, asdict(s), str(root))) for s in todo]
-            for r in results:
-                collect(r.get())
-    bar.close()
-    seconds = time.perf_counter() - t0
-    frames_index = []
-    for s in shards:
-        for k in range(s.frames):
-            frames_index.append({"shard": s.name, "index": k, "context": s.context, "severity": s.severity})
-    manifest = {
-        "format_version": FORMAT_VERSION,
-        "sensor_model_version": SENSOR_MODEL_VERSION,
-        "created_by": "hydrabench generate",
-        "config": cfg,
-        "seed": config.seed,
-        "profile": config.profile,
-        "shards": [{k: v for k, v in records[s.name].items() if k not in ("timings", "seconds")} for s in shards],
-        "frames": frames_index,
-    }
-    write_manifest(root, manifest)
-    rendered = sum(records[s.name]["frames"] for s in todo)
-    return {
-        "frames": total,
-        "frames_rendered": rendered,
-        "seconds": round(seconds, 3),
-        "frames_per_second": round(rendered / seconds, 3) if seconds > 0 and rendered else None,
-        "profile": config.profile,
-        "workers": workers,
-        "backend": backend,
-        **({"start_method": method} if method else {}),
-        **({"ray": ray_info} if ray_info else {}),
-        "ms_per_frame": {k: round(1000 * v / max(rendered, 1), 2) for k, v in sorted(timings.items())},
-        "out": str(root),
-    }
+                ray_info = run_shards(shard_files, cfg, [asdict(s) for s in todo], root, collect, workers=workers,
+                                      address=address)
+            elif workers <= 1 or len(todo) <= 1:
+                _init_worker(max(1, os.cpu_count() or 1))
+                for s in todo:
+                    collect(generate_shard(cfg, asdict(s), str(root)))
+            else:
+                method = pool_method
+                ctx = mp.get_context(method)
+                threads = max(1, (os.cpu_count() or 1) // workers)
+                with ctx.Pool(workers, initializer=_init_worker, initargs=(threads,), maxtasksperchild=None) as pool:
+                    results = [pool.apply_async(generate_shard, (cfg, asdict(s), str(root))) for s in todo]
+                    for r in results:
+                        collect(r.get())
+            bar.close()
+            seconds = time.perf_counter() - t0
+            frames_index = []
+            for s in shards:
+                for k in range(s.frames):
+                    frames_index.append({"shard": s.name, "index": k, "context": s.context, "severity": s.severity})
+            manifest = {
+                "format_version": FORMAT_VERSION,
+                "sensor_model_version": SENSOR_MODEL_VERSION,
+                "created_by": "hydrabench generate",
+                "config": cfg,
+                "seed": config.seed,
+                "profile": config.profile,
+                "shards": [{k: v for k, v in records[s.name].items() if k not in ("timings", "seconds")} for s in shards],
+                "frames": frames_index,
+            }
+            write_manifest(root, manifest)
+            rendered = sum(records[s.name]["frames"] for s in todo)
+            return {
+                "frames": total,
+                "frames_rendered": rendered,
+                "seconds": round(seconds, 3),
+                "frames_per_second": round(rendered / seconds, 3) if seconds > 0 and rendered else None,
+                "profile": config.profile,
+                "workers": workers,
+                "backend": backend,
+                **({"start_method": method} if method else {}),
+                **({"ray": ray_info} if ray_info else {}),
+                "ms_per_frame": {k: round(1000 * v / max(rendered, 1), 2) for k, v in sorted(timings.items())},
+                "out": str(root),
+            }
+        except BaseException:
+            clean_partial(root)
+            raise

@@ -116,7 +116,10 @@ def load_yaml(cls: type[T], path: str | Path) -> T:
     """Load a YAML file into dataclass `cls` strictly (see `from_dict`)."""
     path = Path(path)
     try:
-        text = path.read_text()
+        text = path.read_text(encoding="utf-8")
+    except UnicodeDecodeError as exc:
+        raise UserError(f"{path}: not UTF-8 text (byte {exc.object[exc.start]:#04x} at offset {exc.start}); "
+                        "save the YAML file as UTF-8") from None
     except OSError as exc:
         raise UserError(f"cannot read config {path}: {exc.strerror}") from None
     try:

@@ -200,6 +200,11 @@ def _path_text(text: str) -> str:
         raise argparse.ArgumentTypeError("expected a path, got an empty string")
     if "\x00" in str(text):
         raise argparse.ArgumentTypeError("a path cannot contain a NUL character")
+    from study.outputs import path_problem
+
+    problem = path_problem(str(text))
+    if problem:
+        raise argparse.ArgumentTypeError(problem)
     return str(text)
 
 
@@ -305,6 +310,12 @@ def training_run(text: str) -> str:
         raise argparse.ArgumentTypeError(f"{text} is not a directory" if path.exists() else f"{text} does not exist")
     if not (path / "config.json").is_file():
         raise argparse.ArgumentTypeError(f"{text} is not a training run (no config.json; see hydrabench train)")
+    from study.checkpoints import checkpoint_problem
+
+    for ckpt in sorted(path.glob("*.pt")):  # checkpoint.pt and epoch-NNN.pt: whole, before any work
+        problem = checkpoint_problem(ckpt)
+        if problem:
+            raise argparse.ArgumentTypeError(f"{ckpt} {problem}")
     return str(path)
 
 

@@ -43,8 +43,9 @@ def load_run(run: str | Path, which: str = "latest", device: str = "cpu"):
     branches = [BranchSpec(b["name"], tuple(b["sensors"]), b["frame"], b.get("fusion", "features"))
                 for b in cfg["branch_specs"]]
     model = build_hydrafusion(profile=run_profile(cfg, run), branches=branches)
-    state = torch.load(ckpt, map_location="cpu", weights_only=False)
-    model.load_state_dict(state["model"])
+    from study.checkpoints import load_checkpoint, load_weights
+
+    load_weights(model, load_checkpoint(ckpt)["model"], ckpt)
     model.eval()
     if str(device) != "cpu":
         model.to(device)

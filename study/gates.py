@@ -255,7 +255,9 @@ def train_gate(run_dir, data, cfg: GateTrainConfig, progress: bool = True, fresh
     settings.pop("epochs")
     settings.pop("threads")
     if ckpt.exists() and not fresh:
-        state = torch.load(ckpt, map_location="cpu", weights_only=False)
+        from study.checkpoints import load_checkpoint
+
+        state = load_checkpoint(ckpt, ("config", "epoch", "gate", "optimizer", "best_state", "history", "torch_rng"))
         old = {**state["config"], "data_key": state.get("data_key")}
         old.pop("epochs", None)
         old.pop("threads", None)
@@ -310,7 +312,6 @@ def train_gate(run_dir, data, cfg: GateTrainConfig, progress: bool = True, fresh
 
 def load_trained_gate(run_dir, name: str, model, checkpoint: str = "latest"):
     """The gate `train_gate` saved in RUN/gates/<name>/gate.pt, for this checkpoint of the run."""
-    import torch
 
     from fusion.nets.gates import build_gate
 
@@ -318,14 +319,16 @@ def load_trained_gate(run_dir, name: str, model, checkpoint: str = "latest"):
     path = run_dir / "gates" / name / "gate.pt"
     if not path.exists():
         raise UserError(f"no trained {name} gate in {run_dir} (run: hydrabench train-gate {run_dir} DATA --gate {name})")
-    saved = torch.load(path, map_location="cpu", weights_only=False)
+    from study.checkpoints import load_checkpoint, load_weights
+
+    saved = load_checkpoint(path, ("branches", "options", "state"))
     if saved.get("checkpoint_sha256") != cached_sha256(checkpoint_path(run_dir, checkpoint)):
         raise UserError(f"{path} was trained for another checkpoint of this run than {checkpoint!r}; "
                         f"train it again (hydrabench train-gate {run_dir} DATA --gate {name} --fresh)")
     if list(saved["branches"]) != list(model.branches):
         raise UserError(f"{path} ranks branches {saved['branches']}, the run has {list(model.branches)}")
     gate = build_gate(name, model, **saved["options"])
-    gate.load_state_dict(saved["state"])
+    load_weights(gate, saved["state"], path)
     return gate.eval()
 
 

@@ -8,12 +8,45 @@ get the ordinary permissions (0666 minus the umask, 0644 usually), not the 0600 
 from __future__ import annotations
 
 import contextlib
+import errno
 import os
 import tempfile
 from collections.abc import Iterator
 from pathlib import Path
 
 from sim.errors import UserError
+
+NAME_MAX = 255  # bytes in one file name (Linux, macOS and most file systems)
+PATH_MAX = 4096  # bytes in a whole path (Linux)
+
+
+def path_problem(path: str | Path) -> str | None:
+    """What makes `path` unusable whatever the command does with it, or None: a file name over
+    NAME_MAX bytes, a path over PATH_MAX, a symbolic link loop on the way. Every path argument of the
+    command line passes here (study.cli), so no later `exists()` raises OSError."""
+    text = os.fspath(path)
+    for part in Path(text).parts:
+        n = len(part.encode("utf-8", "surrogateescape"))
+        if n > NAME_MAX:
+            return f"file name too long ({n} bytes, the limit is {NAME_MAX}): {part[:24]}..."
+    if len(text.encode("utf-8", "surrogateescape")) >= PATH_MAX:
+        return f"path too long (the limit is {PATH_MAX - 1} bytes)"
+    try:
+        os.stat(text)
+    except OSError as exc:
+        if exc.errno == errno.ELOOP:
+            return "a symbolic link loop (too many levels of symbolic links)"
+        if exc.errno == errno.ENAMETOOLONG:
+            return "file name too long"
+    return None
+
+
+def check_path(path: str | Path) -> Path:
+    """`path`, or a UserError naming it and its `path_problem`."""
+    problem = path_problem(path)
+    if problem:
+        raise UserError(f"{path}: {problem}")
+    return Path(path)
 
 
 def _nearest_existing(path: Path) -> Path:
@@ -40,7 +73,7 @@ def check_writable_file(path: str | Path, suffixes: tuple[str, ...] | None = Non
     """Fail early (UserError) when `path` cannot be written, or its extension is not one of `suffixes`.
 
     Creates nothing; `atomic_path` creates the missing parent directories when the file is written."""
-    path = Path(path)
+    path = check_path(path)
     if suffixes and path.suffix.lower() not in suffixes:
         got = f"extension {path.suffix!r}" if path.suffix else "no extension"
         raise UserError(f"{path}: {got} is not supported (write {', '.join(suffixes)})")
@@ -55,7 +88,7 @@ def check_writable_file(path: str | Path, suffixes: tuple[str, ...] | None = Non
 def check_writable_dir(path: str | Path) -> Path:
     """Fail early (UserError) unless `path` is a directory that exists or can be created, and can be
     written. Creates nothing: the command creates it when it starts writing."""
-    path = Path(path)
+    path = check_path(path)
     if path.exists() and not path.is_dir():
         raise UserError(f"output {path} exists and is not a directory")
     _probe(_nearest_existing(path), path)

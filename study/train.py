@@ -39,6 +39,7 @@ from sensors.dataset import DatasetReader
 from sensors.dataset import check as check_dataset
 from sim.config import from_dict, to_dict
 from sim.errors import UserError
+from study.checkpoints import load_checkpoint, load_weights
 from study.device import resolve_device, to_device
 
 
@@ -238,6 +239,8 @@ def evaluate_epoch(model, cfg: TrainConfig, reader, test_idx, branches, setup=No
 
 
 # settings a resumed run may change: they decide how long and where it runs, not what it learns
+RESUME_KEYS = ("model", "optimizer", "epoch", "step_in_epoch", "global_step", "torch_rng")
+"""What a run's checkpoint.pt must hold to be resumed."""
 FREE_ON_RESUME = ("epochs", "lr_drop_epoch", "eval_frames", "threads", "checkpoint_steps", "checkpoint_seconds", "device",
                   "amp", "workers")
 
@@ -358,22 +361,17 @@ def train(cfg: TrainConfig, out: Path, progress: bool = True) -> dict:
         raise UserError(f"--init-from {missing[0]}: no checkpoint.pt there")
     check_run_dir(out, main_rank)
     cfg_path = out / "config.json"
-    if main_rank:
-        out.mkdir(parents=True, exist_ok=True)
-        if cfg_path.exists():
-            old = json.loads(cfg_path.read_text())
-            # fields added after a run was made hold their default in it (LEGACY_DEFAULTS: what it meant then)
-            old = {**{f.name: LEGACY_DEFAULTS.get(f.name, f.default) for f in dataclasses.fields(TrainConfig)
-                      if f.name not in old}, **old}
-            old = json.loads(json.dumps(old))
-            comparable = {k: v for k, v in old.items() if k not in FREE_ON_RESUME}
-            now = {k: v for k, v in run_cfg.items() if k not in FREE_ON_RESUME}
-            if comparable != now:
-                diff = sorted(k for k in now if comparable.get(k) != now.get(k))
-                raise UserError(f"{out} holds a run with a different config ({', '.join(diff)}); use another --out")
-        tmp = cfg_path.with_name(".config.json.tmp")
-        tmp.write_text(json.dumps(run_cfg, indent=1))
-        os.replace(tmp, cfg_path)
+    if main_rank and cfg_path.exists():
+        old = json.loads(cfg_path.read_text())
+        # fields added after a run was made hold their default in it (LEGACY_DEFAULTS: what it meant then)
+        old = {**{f.name: LEGACY_DEFAULTS.get(f.name, f.default) for f in dataclasses.fields(TrainConfig)
+                  if f.name not in old}, **old}
+        old = json.loads(json.dumps(old))
+        comparable = {k: v for k, v in old.items() if k not in FREE_ON_RESUME}
+        now = {k: v for k, v in run_cfg.items() if k not in FREE_ON_RESUME}
+        if comparable != now:
+            diff = sorted(k for k in now if comparable.get(k) != now.get(k))
+            raise UserError(f"{out} holds a run with a different config ({', '.join(diff)}); use another --out")
 
     train_idx, test_idx = split_by_sequence(reader, cfg.train_fraction, cfg.split_seed)
     torch.manual_seed(cfg.seed)
@@ -382,11 +380,22 @@ def train(cfg: TrainConfig, out: Path, progress: bool = True) -> dict:
         from fusion.nets.sampling import use_frame_seeded_sampling
 
         use_frame_seeded_sampling(model)
+    # Every checkpoint the run reads is read (and its weights loaded) before RUN/ is created or its
+    # config.json rewritten: a truncated or foreign checkpoint is refused with nothing changed.
     ckpt_path = out / "checkpoint.pt"
+    resuming = ckpt_path.exists()  # (no rank writes a checkpoint before the barrier below)
+    state = load_checkpoint(ckpt_path, RESUME_KEYS) if resuming else None
+    if state is not None:
+        load_weights(model, state["model"], ckpt_path)
+    sources = [load_checkpoint(s)["model"] for s in srcs] if cfg.init_from and not resuming else []
+    if main_rank:
+        out.mkdir(parents=True, exist_ok=True)
+        tmp = cfg_path.with_name(".config.json.tmp")
+        tmp.write_text(json.dumps(run_cfg, indent=1))
+        os.replace(tmp, cfg_path)
     ddp.barrier()  # rank 0 has checked and written config.json; no checkpoint is written before this
-    resuming = ckpt_path.exists()
-    if cfg.init_from and not resuming:
-        report = warm_start(model, [torch.load(s, map_location="cpu", weights_only=False)["model"] for s in srcs])
+    if sources:
+        report = warm_start(model, sources)
         if main_rank:
             (out / "warm_start.json").write_text(json.dumps({"sources": [str(s) for s in srcs], **report}, indent=1))
         if progress:
@@ -399,9 +408,7 @@ def train(cfg: TrainConfig, out: Path, progress: bool = True) -> dict:
     opt = torch.optim.SGD(params, lr=cfg.lr, momentum=0.9, weight_decay=1e-4)
     epoch, step_in_epoch, global_step = 0, 0, 0
     resumed: dict = {}  # the interrupted epoch's running loss sums, so its row averages the whole epoch
-    if resuming:
-        state = torch.load(ckpt_path, map_location="cpu", weights_only=False)
-        model.load_state_dict(state["model"])
+    if state is not None:
         opt.load_state_dict(state["optimizer"])
         epoch, step_in_epoch, global_step = state["epoch"], state["step_in_epoch"], state["global_step"]
         torch.set_rng_state(state["torch_rng"])

@@ -310,6 +310,10 @@ def bench_inference(profile: str = "cpu", repeats: int = 5, threads: int = 2, ru
                     configurations=None, train_branches=None) -> dict:
     """HydraFusion Table 4 on this machine (see the module doc). `configurations` / `train_branches`:
     subsets of CONFIGURATIONS and of the paper branches to measure (default: all)."""
+    if run_dir:  # its weights loaded here first: a damaged run is refused before any worker starts
+        from study.detect import load_run
+
+        load_run(run_dir)
     ctx = mp.get_context("spawn")
     results: dict = {}
     with ctx.Pool(1, maxtasksperchild=1) as pool:

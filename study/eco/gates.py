@@ -42,7 +42,9 @@ def train_eco_gate(run_dir, data, gate: str, cfg: GateTrainConfig, s: EcoSetting
         settings.pop(k)
     state = None
     if (out / "checkpoint.pt").exists() and not fresh:
-        state = torch.load(out / "checkpoint.pt", map_location="cpu", weights_only=False)
+        from study.checkpoints import load_checkpoint
+
+        state = load_checkpoint(out / "checkpoint.pt", ("config", "epoch", "gate", "optimizer", "best_state", "history", "torch_rng"))
         old = {**state["config"], "gate": gate, "data_key": state.get("data_key"),
                "loss": state.get("loss", dataclasses.asdict(FusedLossSpec()))}
         for k in ("epochs", "threads"):
@@ -90,7 +92,6 @@ def train_eco_gate(run_dir, data, gate: str, cfg: GateTrainConfig, s: EcoSetting
 def load_eco_gate(run_dir, name: str, model, configs, data_key: str, s: EcoSettings = EcoSettings()):
     """A trained configuration gate from `s.gate_dir(run_dir, name)`/gate.pt (for this configuration
     dataset and this L_f)."""
-    import torch
 
     from fusion.eco.gates import build_config_gate
 
@@ -99,12 +100,14 @@ def load_eco_gate(run_dir, name: str, model, configs, data_key: str, s: EcoSetti
     if not path.exists():
         raise UserError(f"no trained {name} configuration gate in {run_dir}{' for' + fp if fp else ''} "
                         f"(run: hydrabench eco-train-gate {run_dir} DATA --gate {name}{fp})")
-    saved = torch.load(path, map_location="cpu", weights_only=False)
+    from study.checkpoints import load_checkpoint, load_weights
+
+    saved = load_checkpoint(path, ("options", "state"))
     if saved.get("data_key") != data_key:
         raise UserError(f"{path} was trained on another configuration dataset (checkpoint, configurations, fusion "
                         f"or loss differ); train it again with --fresh")
     if saved.get("loss", dataclasses.asdict(FusedLossSpec())) != dataclasses.asdict(s.loss_spec()):
         raise UserError(f"{path} was trained on another L_f (false-positive weight); train it again with --fresh")
     g = build_config_gate(name, model, configs, **saved["options"])
-    g.load_state_dict(saved["state"])
+    load_weights(g, saved["state"], path)
     return g.eval()

@@ -65,13 +65,22 @@ def world(tmp_path_factory):
     (root / "wrong_types.yaml").write_text("frames_per_context: many\n")
     (root / "list.yaml").write_text("- 1\n- 2\n")
     (root / "unknown_key.yaml").write_text("frames_per_contxt: 3\n")
+    (root / "latin1.yaml").write_bytes("frames_per_context: 3  # caf\u00e9\n".encode("latin-1"))  # not UTF-8
+    (root / "links").mkdir()
+    os.symlink("loop", root / "links" / "loop")  # a symbolic link loop
     damaged = root / "damaged"
     damaged.mkdir()
     for name, (_, damage) in DAMAGES.items():
         copy = damaged / name
         shutil.copytree(data, copy)
         damage(copy)
-    return {"root": root, "data": data, "run": run, "box": box, "damaged": damaged}
+    damaged_runs = root / "damaged_runs"  # (outside "damaged": the snapshot sees every file of these)
+    damaged_runs.mkdir()
+    for name, (_, damage, _) in RUN_DAMAGES.items():
+        copy = damaged_runs / name
+        shutil.copytree(run, copy)
+        damage(copy)
+    return {"root": root, "data": data, "run": run, "box": box, "damaged": damaged, "damaged_runs": damaged_runs}
 
 
 def _write(path: Path, text: str) -> None:
@@ -124,7 +133,29 @@ def _shard_is_file(d: Path) -> None:
     (d / "shard-00000").write_text("x")
 
 
+def _edit_records(edit):
+    """Damage the first record of shard-00000/frames.json: edit(record) in place."""
+    def damage(d: Path) -> None:
+        p = d / S0 / "frames.json"
+        doc = json.loads(p.read_text())
+        edit(doc["frames"][0])
+        p.write_text(json.dumps(doc))  # (json writes NaN and Infinity as bare words: not JSON)
+    return damage
+
+
+def _one_box(box):
+    """A valid camera_right label set of one box `box` (so only the box's values are wrong)."""
+    return lambda r: r["labels"].update(camera_right={"ids": [1], "labels": [1], "boxes": [box], "difficult": [False]})
+
+
+def _array_of_shape(name: str, frame_shape: tuple):
+    def damage(d: Path) -> None:
+        np.save(d / S0 / f"{name}.npy", np.zeros((1, *frame_shape), np.uint8))  # one frame, like the shard
+    return damage
+
+
 S0 = "shard-00000"
+NAN, INF = float("nan"), float("inf")
 # damage name -> (what the error line must name, how to damage a copy of the fixture dataset)
 DAMAGES = {
     "manifest_is_a_list": ("manifest.json", lambda d: _write(d / "manifest.json", "[]")),
@@ -157,6 +188,70 @@ DAMAGES = {
     "offsets_reversed": ("lidar_offsets.npy", _reversed_offsets),
     "shard_missing": (S0, _remove(S0)),
     "shard_is_a_file": (S0, _shard_is_file),
+    # labels and calibration: structure, types, finite numbers; arrays against the sensor profile
+    "labels_without_a_camera": ("frames.json", _edit_records(lambda r: r["labels"].pop("camera_right"))),
+    "labels_without_boxes": ("frames.json", _edit_records(lambda r: r["labels"]["camera_right"].pop("boxes"))),
+    "labels_without_objects": ("frames.json", _edit_records(lambda r: r["labels"].pop("objects"))),
+    "labels_a_list": ("frames.json", _edit_records(lambda r: r["labels"].update(bev=[]))),
+    "boxes_a_string": ("frames.json", _edit_records(lambda r: r["labels"]["bev"].update(boxes="0,0,1,1"))),
+    "box_of_strings": ("frames.json", _edit_records(_one_box(["0", "0", "1", "1"]))),
+    "box_of_three": ("frames.json", _edit_records(_one_box([0.0, 0.0, 1.0]))),
+    "box_a_number": ("frames.json", _edit_records(_one_box(3.0))),
+    "box_of_booleans": ("frames.json", _edit_records(_one_box([True, False, True, True]))),
+    "label_columns_of_other_lengths": ("frames.json", _edit_records(
+        lambda r: r["labels"]["camera_right"].update(ids=[1], labels=[1], boxes=[[1, 1, 2, 2]], difficult=[]))),
+    "label_class_a_string": ("frames.json", _edit_records(
+        lambda r: r["labels"]["camera_right"].update(ids=[1], labels=["car"], boxes=[[1, 1, 2, 2]], difficult=[0]))),
+    "box_nan": ("frames.json", _edit_records(_one_box([NAN, 0.0, 10.0, 10.0]))),
+    "box_inf": ("frames.json", _edit_records(_one_box([0.0, 0.0, INF, 10.0]))),
+    "box_minus_inf": ("frames.json", _edit_records(_one_box([-INF, 0.0, 10.0, 10.0]))),
+    "box_overflowing_number": ("frames.json", lambda d: _write(d / S0 / "frames.json", (d / S0 / "frames.json")
+                                                               .read_text().replace('"labels":', '"x": 1e999, "labels":', 1))),
+    "object_nan": ("frames.json", _edit_records(lambda r: r["labels"].update(objects={"ids": [1], "range_m": [NAN]}))),
+    "calibration_nan": ("frames.json", _edit_records(lambda r: r["meta"]["calibration"]["camera_right"]["K"][0]
+                                                     .__setitem__(0, NAN))),
+    "calibration_inf": ("frames.json", _edit_records(lambda r: r["meta"]["calibration"]["ego_from_lidar"][0]
+                                                     .__setitem__(3, INF))),
+    "calibration_missing": ("frames.json", _edit_records(lambda r: r["meta"].pop("calibration"))),
+    "calibration_other_size": ("frames.json", _edit_records(lambda r: r["meta"]["calibration"]["camera_right"]
+                                                            .update(width=100))),
+    "manifest_nan": ("manifest.json", _edit_manifest(lambda m: m["config"].update(frame_rate_hz=NAN))),
+    "camera_wrong_height": ("camera_right.npy", _array_of_shape("camera_right", (100, 336, 3))),
+    "camera_wrong_width": ("camera_left.npy", _array_of_shape("camera_left", (188, 100, 3))),
+    "camera_wrong_channels": ("camera_right.npy", _array_of_shape("camera_right", (188, 336, 1))),
+    "camera_gray": ("camera_right.npy", _array_of_shape("camera_right", (188, 336))),
+    "lidar_bev_wrong_size": ("lidar_bev.npy", _array_of_shape("lidar_bev", (128, 128, 3))),
+    "radar_polar_wrong_size": ("radar_polar.npy", _array_of_shape("radar_polar", (400, 100))),
+    "radar_bev_with_channels": ("radar_bev.npy", _array_of_shape("radar_bev", (256, 256, 3))),
+    "fwd_lidar_wrong_size": ("fwd_lidar.npy", _array_of_shape("fwd_lidar", (94, 168, 3))),
+}
+
+
+def _save_torch(rel: str, obj):
+    def damage(d: Path) -> None:
+        import torch
+
+        torch.save(obj() if callable(obj) else obj, d / rel)
+    return damage
+
+
+def _foreign_weights():
+    import torch
+
+    return {"model": {"encoder.weight": torch.zeros(3, 3)}, "optimizer": {}, "epoch": 1, "step_in_epoch": 0,
+            "global_step": 1, "torch_rng": torch.get_rng_state()}
+
+
+# damaged runs: name -> (what the error line must name, the damage, whether `train --out RUN` and
+# `--init-from RUN` read the damaged file: they read checkpoint.pt only)
+RUN_DAMAGES = {
+    "checkpoint_truncated": ("checkpoint.pt", _truncate("checkpoint.pt"), True),
+    "checkpoint_truncated_end": ("checkpoint.pt", _truncate("checkpoint.pt", 0.999), True),
+    "checkpoint_empty": ("checkpoint.pt", _truncate("checkpoint.pt", 0.0), True),
+    "checkpoint_text": ("checkpoint.pt", lambda d: _write(d / "checkpoint.pt", "not a checkpoint\n"), True),
+    "checkpoint_a_list": ("checkpoint.pt", _save_torch("checkpoint.pt", [1, 2, 3]), True),
+    "checkpoint_other_weights": ("checkpoint.pt", _save_torch("checkpoint.pt", _foreign_weights), True),
+    "epoch_truncated": ("epoch-001.pt", _truncate("epoch-001.pt"), False),
 }
 
 
@@ -233,8 +328,32 @@ def base_argv(words, parser, world, skip=None) -> list[str]:
     return argv_with(words, parser, world, skip, None)
 
 
+PATH_KINDS = ("out_file", "out_path", "out_dir", "cache_dir", "in_file", "study_config", "dataset", "run")
+
+
+def bad_paths(world, suffix: str = "") -> list[str]:
+    """Paths no command can use, for every path kind: a file name over 255 bytes (the OS says
+    ENAMETOOLONG on any look at it), and a symbolic link loop, as the path and on its way."""
+    links = world["root"] / "links"
+    if suffix and not (links / f"loop{suffix}").is_symlink():
+        os.symlink(f"loop{suffix}", links / f"loop{suffix}")
+    return [str(world["box"] / ("x" * 300 + suffix)), str(world["box"] / ("\u00e9" * 200 + suffix)),
+            str(links / f"loop{suffix}"), str(links / "loop" / f"x{suffix}")]
+
+
 def bad_values(action, world) -> list[str]:
     """The bad values of an argument's kind (each must be refused)."""
+    values = _bad_values(action, world)
+    k = kind(action)
+    if k in PATH_KINDS:
+        suffixes = getattr(action.type, "suffixes", None) or ((".png",) if k == "out_path" else ())
+        values += bad_paths(world, suffixes[0] if suffixes else "")
+    if k in ("in_file", "study_config"):
+        values.append(str(world["root"] / "latin1.yaml"))
+    return values
+
+
+def _bad_values(action, world) -> list[str]:
     root, box = world["root"], world["box"]
     t, k = action.type, kind(action)
     if action.choices is not None:
@@ -291,7 +410,7 @@ def snapshot(root: Path) -> dict:
         out[dirpath] = "dir"  # (its mtime changes when an output check probes it, by design)
         if "damaged" not in Path(dirpath).relative_to(root).parts:
             for f in filenames:
-                st = os.stat(os.path.join(dirpath, f))
+                st = os.lstat(os.path.join(dirpath, f))  # (a link is not followed: links/loop loops)
                 out[os.path.join(dirpath, f)] = (st.st_size, st.st_mtime_ns)
     return out
 
@@ -412,6 +531,111 @@ def test_every_dataset_argument_refuses_damaged_datasets_naming_the_file(sandbox
                 tried += 1
     report(failures, tried)
     assert tried >= 6 * len(DAMAGES), tried
+
+
+def test_every_run_argument_refuses_damaged_checkpoints_naming_the_file(sandbox, capsys):
+    """Truncated, empty, foreign checkpoints: every command taking a run (its RUN argument, with
+    --checkpoint epoch-001 where it has one), `train --out RUN` resuming it and `train --init-from
+    RUN` are refused before any work, naming the file, and change nothing (the run's config.json
+    included: train must not rewrite it before it has read the checkpoint)."""
+    world = sandbox
+    tried, failures = 0, []
+    parser = build_parser()
+    for words, p in commands(parser):
+        for action in value_actions(p):
+            if kind(action) != "run":
+                continue
+            has_checkpoint = any(kind(a) == "checkpoint" for a in value_actions(p))
+            for name, (culprit, _, _) in RUN_DAMAGES.items():
+                copy = str(world["damaged_runs"] / name)
+                argv = argv_with(words, p, world, action, copy)
+                if has_checkpoint and culprit.startswith("epoch-"):
+                    argv = argv[:len(words)] + ["--checkpoint", culprit[:-3]] + argv[len(words):]
+                # the file, or the run (a command may first miss something else in it: a trained gate)
+                check_refused(argv, capsys, world, failures=failures,
+                              needle=lambda line, c=culprit, r=copy: c in line or r in line)
+                tried += 1
+    fixture = ["--branches", "camera_right", "--batch-size", "1", "--warmup-steps", "1", "--threads", "2",
+               "--eval-frames", "1"]  # the fixture run's config: a resume reaches its checkpoint
+    for name, (culprit, _, read_by_train) in RUN_DAMAGES.items():
+        if not read_by_train:
+            continue
+        copy = str(world["damaged_runs"] / name)
+        for argv in (["train", str(world["data"]), "--out", copy, "--epochs", "2", *fixture],
+                     ["train", str(world["data"]), "--out", str(world["box"] / "new_run"), "--init-from", copy,
+                      *fixture]):
+            if "--init-from" in argv and name == "checkpoint_other_weights":
+                continue  # (a warm start copies the tensors that match, none here: not an error)
+            check_refused(argv, capsys, world, needle=culprit, failures=failures)
+            tried += 1
+    report(failures, tried)
+    assert tried >= 5 * len(RUN_DAMAGES), tried
+
+
+def test_generate_refuses_an_out_another_generate_is_writing(world, tmp_path, capsys):
+    """Two generate runs into one --out: the second is refused with one line naming the first's
+    PID, and changes nothing; once the first is done, the same command completes the dataset and
+    leaves no lock file and no shard-*.tmp-PID/ behind."""
+    out = tmp_path / "d"
+    shutil.copytree(world["data"], out)
+    holder = subprocess.Popen(
+        [sys.executable, "-c", "import sys, time\nfrom pathlib import Path\nfrom sensors.dataset import output_lock\n"
+         "with output_lock(Path(sys.argv[1])):\n    print('locked', flush=True)\n    sys.stdin.readline()\n", str(out)],
+        stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True, cwd=Path(__file__).resolve().parents[2],
+        env=dict(os.environ, PYTHONPATH=str(Path(__file__).resolve().parents[2])))
+    argv = ["generate", "--out", str(out), "--contexts", "junction", "--frames-per-context", "2",
+            "--sequence-length", "1", "--seed", "3"]
+    try:
+        assert holder.stdout.readline().strip() == "locked"
+        before = snapshot(out)
+        TRACKED.append(("generate while another generate writes --out", 0.0))
+        code = cli(argv)
+        err = capsys.readouterr().err
+        assert code == 2 and len(err.strip().splitlines()) == 1, err
+        assert f"PID {holder.pid}" in err and str(out) in err, err
+        assert snapshot(out) == before
+    finally:
+        holder.communicate("\n", timeout=60)
+    assert holder.returncode == 0
+    assert cli(argv + ["--json"]) == 0
+    r = json.loads(capsys.readouterr().out)
+    assert r["frames"] == 2 and r["frames_rendered"] == 0
+    assert sorted(os.listdir(out)) == ["manifest.json", "shard-00000", "shard-00001"]
+
+
+def test_generate_refuses_a_damaged_shard_in_its_out_and_leaves_no_partial_shard(world, tmp_path, capsys,
+                                                                               monkeypatch):
+    """A shard of --out that is a file, or a directory without frames.json, is refused by name before
+    anything is written; a write that fails (here: a full disk at the commit) removes its
+    shard-*.tmp-PID/ and the lock."""
+    argv = ["--contexts", "junction", "--frames-per-context", "2", "--sequence-length", "1", "--seed", "3"]
+    for name in ("shard_is_a_file", "frames_json_missing"):
+        out = tmp_path / name
+        shutil.copytree(world["damaged"] / name, out)
+        before = snapshot(tmp_path)
+        TRACKED.append((f"generate --out {name}", 0.0))
+        code = cli(["generate", "--out", str(out), *argv])
+        err = capsys.readouterr().err
+        assert code == 2 and len(err.strip().splitlines()) == 1 and S0 in err and "Traceback" not in err, err
+        assert snapshot(tmp_path) == before
+    import errno
+
+    import sensors.dataset
+
+    def full_disk(tmp, final):
+        raise OSError(errno.ENOSPC, "No space left on device")
+
+    monkeypatch.setattr(sensors.dataset, "commit_shard", full_disk)
+    out = tmp_path / "partial"
+    shutil.copytree(world["data"], out)
+    shutil.rmtree(out / "shard-00001")  # one shard left to render
+    (out / "manifest.json").unlink()
+    from sensors.generate import GenerateConfig, generate
+
+    with pytest.raises(OSError, match="No space left"):
+        generate(GenerateConfig(contexts=("junction",), frames_per_context=2, sequence_length=1, seed=3), out,
+                 workers=1, progress=False)
+    assert sorted(os.listdir(out)) == [S0]
 
 
 def test_verify_json_reports_every_damage_on_stdout(sandbox, capsys):
