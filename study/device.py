@@ -59,6 +59,11 @@ class DeviceSetup:
 
         return torch.device(self.device)
 
+    @property
+    def precision(self) -> str:
+        """The dtype the forward passes run in under `autocast()`: "fp32" (no autocast), "bf16"."""
+        return "bf16" if self.amp else "fp32"
+
     def autocast(self):
         """Context for forward passes: bf16 autocast when `amp`, else nothing."""
         if not self.amp:
@@ -76,6 +81,18 @@ class DeviceSetup:
 
             out["gpu"] = torch.cuda.get_device_name(self.torch_device())
         return out
+
+
+def compute_identity(setup: DeviceSetup | None = None, *, device: str | None = None,
+                     precision: str | None = None) -> dict:
+    """What a result computed under `setup` depends on beyond its inputs: the device type ("cpu" or
+    "cuda", not the index: two GPUs of one kind give the same numbers) and the resolved precision
+    ("fp32", "bf16", "fp16": whether autocast is on and in which dtype). Part of every cache key and
+    record (`study.runner` stage keys, the gate-data cache key). Without a setup, `device` (a torch
+    device or its string) and `precision` (default "fp32") say it directly."""
+    dev = str(setup.device if setup is not None else (device or "cpu"))
+    prec = setup.precision if setup is not None else (precision or "fp32")
+    return {"device": dev.split(":", 1)[0], "precision": prec}
 
 
 def parse_device(text: str) -> str:

@@ -6,7 +6,8 @@ gates consume, `fusion.nets.gates.pool_features` of the stem outputs (float16, 6
 sensor on an 8 x 16 grid by default: 80 kB a frame for five sensors), and each branch's four
 Faster R-CNN losses from `HydraFusion.per_sample_losses` (seed 0; the gate target is their sum).
 Cached under the run directory, keyed by the checkpoint's SHA-256, the dataset manifest's SHA-256,
-the grid, the sensors, the branches and the seed:
+the grid, the sensors, the branches, the seed, and the device type and precision the network ran in
+(`study.device.compute_identity`):
 
     RUN/gate_data/<key>/info.json         what the key was made of
     RUN/gate_data/<key>/chunk-NNNNN.npz   indices (n,), features (n, C, rows, cols) float16,
@@ -19,15 +20,16 @@ from __future__ import annotations
 
 import hashlib
 import json
-import os
 from collections import defaultdict
 from pathlib import Path
 
 import numpy as np
 
 from sim.errors import UserError
+from study.device import compute_identity
+from study.outputs import atomic_path
 
-GATE_DATA_VERSION = 1
+GATE_DATA_VERSION = 2
 LOSS_SEED = 0
 
 
@@ -62,15 +64,18 @@ def checkpoint_path(run_dir: Path, checkpoint: str = "latest") -> Path:
 def _atomic_torch_save(obj, path: Path) -> None:
     import torch
 
-    tmp = path.with_name(f".{path.name}.tmp-{os.getpid()}")
-    torch.save(obj, tmp)
-    os.replace(tmp, path)
+    with atomic_path(path) as tmp:
+        torch.save(obj, tmp)
 
 
 def _atomic_text(path: Path, text: str) -> None:
-    tmp = path.with_name(f".{path.name}.tmp-{os.getpid()}")
-    tmp.write_text(text)
-    os.replace(tmp, path)
+    with atomic_path(path) as tmp:
+        tmp.write_text(text)
+
+
+def model_device(model) -> str:
+    """The device the network's parameters are on ("cpu", "cuda:0")."""
+    return str(next(model.parameters()).device)
 
 
 def _bar(total: int, desc: str, progress: bool):
@@ -123,6 +128,8 @@ class GateData:
             "branches": list(self.branches), "loss_seed": self.seed,
             "bev_size": list(model.transform.image_size("radar")),
         }
+        # where and in which precision the network ran: `ensure` runs it where it is, without autocast
+        self.identity.update(compute_identity(device=model_device(model), precision="fp32"))
         self.identity.update(self.extra_identity())
         self.key = hashlib.sha256(json.dumps(self.identity, sort_keys=True).encode()).hexdigest()[:16]
         self.dir = self.run_dir / self.subdir / self.key
@@ -182,7 +189,7 @@ class GateData:
         from study.device import to_device
 
         model = self.model.eval()
-        device = next(model.parameters()).device  # the network runs where it is (`study.device`), in float32
+        device = model_device(model)  # the network runs where it is (`study.device`), in float32
         ds = FrameDataset(self.data, todo, sensors=model.sensors, bev_size=model.transform.image_size("radar"),
                           protocol=self.protocol)
         n_chunk = len(self._chunks())
@@ -196,10 +203,9 @@ class GateData:
             while (self.dir / f"chunk-{n_chunk:05d}.npz").exists():
                 n_chunk += 1
             path = self.dir / f"chunk-{n_chunk:05d}.npz"
-            tmp = self.dir / f".chunk-{n_chunk:05d}.tmp-{os.getpid()}.npz"
-            np.savez(tmp, indices=np.asarray(pending["indices"], np.int64),
-                     **{k: np.concatenate(v) for k, v in pending.items() if k != "indices"})
-            os.replace(tmp, path)
+            with atomic_path(path) as tmp:
+                np.savez(tmp, indices=np.asarray(pending["indices"], np.int64),
+                         **{k: np.concatenate(v) for k, v in pending.items() if k != "indices"})
             n_chunk += 1
             pending.clear()
 

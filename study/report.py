@@ -320,7 +320,8 @@ def write_report(results: dict, context: dict, work: Path, eval_dir: Path, rel_t
     work, eval_dir = Path(work), Path(eval_dir)
     doc, summary = build(results, context, work, eval_dir)
     report = {**summary, "report_version": REPORT_VERSION, "config": context.get("config"),
-              "stages": {n: {"key": s.get("key"), "seconds": s.get("seconds")} for n, s in context.get("stages", {}).items()},
+              "stages": {n: {"key": s.get("key"), "seconds": s.get("seconds"),
+                             "compute": s.get("compute")} for n, s in context.get("stages", {}).items()},
               "results": results}
     for name, text in (("report.md", doc.markdown(Path(rel_to or work))), ("report.html", doc.html(f"hydrabench study ({summary['scale']})")),
                        ("report.json", json.dumps(report, indent=1, default=str))):

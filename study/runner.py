@@ -19,8 +19,13 @@ Stages below `train` work on a *farm* of the run directory: the upstream run's d
 recreated and its files symlinked (relative links), so what a stage writes (gate caches, gates,
 latency tables) lands in its own directory and never changes a finished stage.
 
-Execution settings (`run:` section: device, threads, workers, backend) are not part of any key:
-they decide where and how fast a stage runs, not what it computes.
+Beside its config section and its inputs, a stage's key holds everything else its output depends
+on (`stage_identity`): the code it runs (`study.code_identity.code_digest` of its modules and of
+its stage function), the sensor model version and the sensor profile (generate), the model
+profile's contents (train), and the device type and precision the networks run in
+(`study.device.compute_identity`; generation always runs on the CPU). Each key also holds the key of
+every stage it reads, so a change reruns exactly its stage and the stages below it. Threads,
+workers and backend are part of no key: they decide how fast a stage runs, not what it computes.
 """
 
 from __future__ import annotations
@@ -37,8 +42,9 @@ from pathlib import Path
 from sim.config import from_dict, load_yaml, to_dict
 from sim.errors import UserError
 from study.gate_data import file_sha256
+from study.outputs import atomic_path
 
-STUDY_VERSION = 1
+STUDY_VERSION = 2
 PRESETS_DIR = Path(__file__).resolve().parents[1] / "configs" / "study"
 STAGES = ("generate", "train", "gatedata", "gates", "evaluate", "report")
 MARKER = "study.json"
@@ -228,8 +234,8 @@ class EvaluateSection:
 
 @dataclass(frozen=True)
 class RunSection:
-    """Where and how fast the stages run; part of no key (the same results on any setting, up to
-    floating-point reduction order on other devices).
+    """Where and how fast the stages run. The resolved device type and precision are part of the
+    keys of the stages that run networks; threads, workers and backend of none.
 
     Fields:
         device: auto | cpu | cuda | cuda:N.
@@ -314,9 +320,8 @@ def _digest(obj) -> str:
 
 
 def _atomic_json(path: Path, obj) -> None:
-    tmp = path.with_name(f".{path.name}.tmp-{os.getpid()}")
-    tmp.write_text(json.dumps(obj, indent=1, default=str))
-    os.replace(tmp, path)
+    with atomic_path(path) as tmp:
+        tmp.write_text(json.dumps(obj, indent=1, default=str))
 
 
 def link_farm(src: Path, dst: Path) -> None:
@@ -372,9 +377,11 @@ class Study:
         self.stages_dir.mkdir(parents=True, exist_ok=True)
         _atomic_json(self.out / MARKER, {"version": STUDY_VERSION, "config": to_dict(self.cfg)})
 
-    def stage(self, name: str, inputs: dict, func) -> StageRecord:
-        """Run `func(work_dir, record) -> (outputs digest, extra manifest fields)` unless the stage
-        with this key is done; see the module docstring."""
+    def stage(self, name: str, inputs: dict, upstream: tuple[StageRecord, ...], func, **kwargs) -> StageRecord:
+        """Run `func(work_dir, **kwargs) -> (outputs digest, extra manifest fields)` unless the stage
+        with this key is done. The key is made of `inputs` (with what `stage_identity` adds) and the
+        key and digest of each `upstream` stage; see the module docstring."""
+        inputs = {**inputs, "upstream": {r.name: {"key": r.key, "digest": r.digest} for r in upstream}}
         key = _digest({"stage": name, "version": STUDY_VERSION, **inputs})[:16]
         final = self.stages_dir / f"{name}-{key}"
         partial = self.stages_dir / f"{name}-{key}.partial"
@@ -391,10 +398,11 @@ class Study:
         self.say(f"{name}: {'resuming' if resumed else 'running'} (key {key})")
         t0 = time.perf_counter()
         rec.dir = partial
-        digest, extra = func(partial, rec)
+        digest, extra = func(partial, **kwargs)
         rec.seconds = round(time.perf_counter() - t0, 2)
         rec.digest = digest
-        rec.manifest = {"stage": name, "key": key, "inputs": inputs, "digest": digest, "seconds": rec.seconds,
+        rec.manifest = {"stage": name, "key": key, "compute": inputs.get("compute"), "inputs": inputs,
+                        "digest": digest, "seconds": rec.seconds,
                         "finished": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()), **extra}
         _atomic_json(partial / "manifest.json", rec.manifest)
         if final.exists():  # a stale final directory without a manifest (cannot happen via rename) is replaced
@@ -406,8 +414,8 @@ class Study:
         return rec
 
     def summary(self) -> dict:
-        return {n: {"key": r.key, "status": r.status, "seconds": r.seconds, "dir": str(r.dir)}
-                for n, r in self.records.items()}
+        return {n: {"key": r.key, "status": r.status, "seconds": r.seconds, "dir": str(r.dir),
+                    "compute": r.manifest.get("compute")} for n, r in self.records.items()}
 
 
 def _device_setup(cfg: StudyConfig):
@@ -423,7 +431,147 @@ def eco_settings(cfg: StudyConfig):
                        rule=cfg.evaluate.rule, batch_size=cfg.train.batch_size, max_frames=cfg.gates.eco_max_frames)
 
 
-# ----- the stages -----------------------------------------------------------------------------
+# ----- the stages: each a function of its work directory and its inputs ----------------------
+
+
+def generate_stage(work: Path, gcfg, workers: int, backend: str, progress: bool) -> tuple[str, dict]:
+    """The dataset (`sensors.generate`) in work/data."""
+    from sensors.generate import generate
+
+    generate(gcfg, work / "data", workers=workers, progress=progress, backend=backend)
+    manifest = work / "data" / "manifest.json"
+    return file_sha256(manifest), {"frames": len(json.loads(manifest.read_text())["frames"])}
+
+
+def train_stage(work: Path, data: Path, train_cfg: TrainSection, profile: str, setup, say,
+                progress: bool) -> tuple[str, dict]:
+    """The paper's branches in work/paper and, with early_fusion, the early-fusion models in work/early."""
+    from study.train import TrainConfig, train
+
+    t = train_cfg
+    runs = {"paper": ("paper", t.branches)}
+    if t.early_fusion:
+        runs["early"] = ("early_fusion", t.early_branches)
+    digests = {}
+    for name, (bset, branches) in runs.items():
+        say(f"train: {name} ({bset} branch set)")
+        tc = TrainConfig(data=str(Path(data).resolve()), model_profile=profile, branch_set=bset,
+                         branches=tuple(branches), epochs=t.epochs, batch_size=t.batch_size, lr=t.lr,
+                         warmup_steps=t.warmup_steps, clip_grad=t.clip_grad, seed=t.seed,
+                         checkpoint_steps=t.checkpoint_steps, eval_frames=t.eval_frames, threads=setup.threads,
+                         protocol=t.protocol, device=setup.device, amp=setup.amp)
+        train(tc, work / name, progress=progress)
+        digests[name] = file_sha256(work / name / "checkpoint.pt")
+    return _digest(digests), {"checkpoints_sha256": digests}
+
+
+def gatedata_stage(work: Path, run_paper: Path, data: Path, settings, batch_size: int, setup,
+                   progress: bool) -> tuple[str, dict]:
+    """HydraFusion's gate dataset and EcoFusion's, cached under work/run (a farm of the paper run)."""
+    from study.detect import frames_for, load_run
+    from study.eco.data import build_eco_data
+    from study.gate_data import GateData
+
+    run = work / "run"
+    link_farm(run_paper, run)
+    model, run_cfg = load_run(run, "latest", device=setup.device)
+    train_idx, _ = frames_for(run_cfg, data, "train")
+    test_idx, _ = frames_for(run_cfg, data, "test")
+    gd = GateData(run, data, model)
+    gd.ensure(train_idx + test_idx, batch_size=batch_size, progress=progress)
+    eco = build_eco_data(run, data, settings, progress=progress)
+    return _digest({"gate_data": gd.key, "eco_data": Path(eco["eco_data"]).name}), {
+        "gate_data_key": gd.key, "eco_data": eco}
+
+
+def gates_stage(work: Path, gatedata_run: Path, data: Path, gates: GatesSection, settings, setup, say,
+                progress: bool) -> tuple[str, dict]:
+    """The learned HydraFusion and EcoFusion gates and the latency table, under work/run."""
+    from study.eco.energy import energy_table
+    from study.eco.gates import train_eco_gate
+    from study.gates import GateTrainConfig, train_gate
+
+    g = gates
+    run = work / "run"
+    link_farm(gatedata_run, run)
+    out, digests = {}, {}
+    for gate in g.gates:
+        gate_cfg = GateTrainConfig(gate=gate, epochs=g.epochs, batch_size=g.batch_size, lr=g.lr,
+                                   val_fraction=g.val_fraction, seed=g.seed, threads=setup.threads)
+        say(f"gates: HydraFusion {gate} gate")
+        out[f"hydra_{gate}"] = train_gate(run, data, gate_cfg, progress=progress, setup=setup)
+        digests[f"hydra_{gate}"] = file_sha256(run / "gates" / gate / "gate.pt")
+        say(f"gates: EcoFusion {gate} gate")
+        out[f"eco_{gate}"] = train_eco_gate(run, data, gate, gate_cfg, settings, progress=progress)
+        digests[f"eco_{gate}"] = file_sha256(run / "eco" / "gates" / gate / "gate.pt")
+    say("gates: latency and energy of every configuration")
+    energy = energy_table(run, data, settings, threads=1, repeats=g.energy_repeats, frames=g.energy_frames,
+                          progress=progress, n_check=g.energy_check)
+    energy = {k: v for k, v in energy.items() if not k.startswith("_")}
+    digests["latency"] = file_sha256(run / "eco" / "latency.json")
+    return _digest(digests), {"gates": out, "energy": energy}
+
+
+def evaluate_stage(work: Path, gates_run: Path, run_early: Path | None, data: Path, cfg: StudyConfig, settings,
+                   setup, progress: bool) -> tuple[str, dict]:
+    """Every method on the test split (`study.study_eval`) -> work/results.json (with the device
+    type and precision it ran in)."""
+    from study.device import compute_identity
+    from study.study_eval import evaluate_study
+
+    run = work / "run"
+    link_farm(gates_run, run)
+    res = evaluate_study(run, run_early, data, cfg, settings, work, setup=setup, progress=progress)
+    res["compute"] = compute_identity(setup)
+    _atomic_json(work / "results.json", res)
+    return file_sha256(work / "results.json"), {}
+
+
+def report_stage(work: Path, results_dir: Path, context: dict, rel_to: Path) -> tuple[str, dict]:
+    """report.md, report.html and report.json of the evaluation's results."""
+    from study.report import write_report
+
+    results = json.loads((Path(results_dir) / "results.json").read_text())
+    write_report(results, context, work, results_dir, rel_to=rel_to)
+    return file_sha256(work / "report.json"), {"files": sorted(p.name for p in work.iterdir())}
+
+
+STAGE_CODE = {
+    "generate": (("sensors.generate",), generate_stage),
+    "train": (("study.train",), train_stage),
+    "gatedata": (("study.detect", "study.eco.data", "study.gate_data"), gatedata_stage),
+    "gates": (("study.eco.energy", "study.eco.gates", "study.gates"), gates_stage),
+    "evaluate": (("study.study_eval",), evaluate_stage),
+    "report": (("study.report",), report_stage),
+}
+"""Per stage: the modules it runs and its stage function; their code is part of its key."""
+
+
+def stage_identity(name: str, cfg: StudyConfig, setup) -> dict:
+    """What stage `name`'s output depends on beyond its config section and its upstream stages:
+    its code, its device type and precision, and (generate) the sensor model version and sensor
+    profile, (train) the model profile's contents, (report) REPORT_VERSION."""
+    from study.code_identity import code_digest
+    from study.device import compute_identity
+
+    modules, func = STAGE_CODE[name]
+    out = {"code": code_digest(modules, (func,))[:16],
+           "compute": compute_identity(device="cpu") if name in ("generate", "report") else compute_identity(setup)}
+    if name == "generate":
+        import sensors
+        from sensors.rig import load_profile as sensor_profile
+
+        out["sensor_model_version"] = sensors.SENSOR_MODEL_VERSION
+        out["sensor_profile"] = _digest(to_dict(sensor_profile(cfg.profile)))[:16]
+    elif name == "train":
+        from fusion.nets import load_profile as model_profile
+
+        out["model_profile"] = _digest(to_dict(model_profile(cfg.profile)))[:16]
+    elif name == "report":
+        import study.report
+
+        out["report_version"] = study.report.REPORT_VERSION
+    return out
 
 
 def run_study(cfg: StudyConfig, out: str | Path, until: str = "report", progress: bool = True) -> dict:
@@ -436,152 +584,56 @@ def run_study(cfg: StudyConfig, out: str | Path, until: str = "report", progress
     setup = _device_setup(cfg)
     t_start = time.perf_counter()
     last = STAGES.index(until)
-    profile = cfg.profile
-
-    # generate ------------------------------------------------------------------------------
-    gcfg = cfg.data.generate_config(profile)
-
-    def do_generate(work: Path, rec):
-        from sensors.generate import generate
-
-        generate(gcfg, work / "data", workers=cfg.run.workers, progress=progress, backend=cfg.run.backend)
-        return file_sha256(work / "data" / "manifest.json"), {"frames": len(json.loads(
-            (work / "data" / "manifest.json").read_text())["frames"])}
-
-    gen = study.stage("generate", {"data": gcfg.to_dict()}, do_generate)
-    data = gen.dir / "data"
     result: dict = {"out": str(study.out)}
+
+    def ident(name: str) -> dict:
+        return stage_identity(name, cfg, setup)
+
+    gcfg = cfg.data.generate_config(cfg.profile)
+    gen = study.stage("generate", {"data": gcfg.to_dict(), **ident("generate")}, (), generate_stage,
+                      gcfg=gcfg, workers=cfg.run.workers, backend=cfg.run.backend, progress=progress)
+    data = gen.dir / "data"
     if last < 1:
         return _finish(study, result, t_start)
 
-    # train ---------------------------------------------------------------------------------
-    t = cfg.train
-    train_fields = {k: v for k, v in to_dict(t).items()}
-
-    def train_config(branch_set: str, branches):
-        from study.train import TrainConfig
-
-        return TrainConfig(data=str(data.resolve()), model_profile=profile, branch_set=branch_set,
-                           branches=tuple(branches), epochs=t.epochs, batch_size=t.batch_size, lr=t.lr,
-                           warmup_steps=t.warmup_steps, clip_grad=t.clip_grad, seed=t.seed,
-                           checkpoint_steps=t.checkpoint_steps, eval_frames=t.eval_frames, threads=setup.threads,
-                           protocol=t.protocol, device=setup.device)
-
-    def do_train(work: Path, rec):
-        from study.train import train
-
-        digests = {}
-        runs = {"paper": ("paper", t.branches)}
-        if t.early_fusion:
-            runs["early"] = ("early_fusion", t.early_branches)
-        for name, (bset, branches) in runs.items():
-            study.say(f"train: {name} ({bset} branch set)")
-            train(train_config(bset, branches), work / name, progress=progress)
-            digests[name] = file_sha256(work / name / "checkpoint.pt")
-        return _digest(digests), {"checkpoints_sha256": digests}
-
-    tr = study.stage("train", {"generate": gen.digest, "profile": profile, "train": train_fields}, do_train)
-    run_paper = tr.dir / "paper"
-    run_early = tr.dir / "early" if t.early_fusion else None
+    tr = study.stage("train", {"profile": cfg.profile, "train": to_dict(cfg.train), **ident("train")}, (gen,),
+                     train_stage, data=data, train_cfg=cfg.train, profile=cfg.profile, setup=setup, say=study.say,
+                     progress=progress)
+    run_early = tr.dir / "early" if cfg.train.early_fusion else None
     if last < 2:
         return _finish(study, result, t_start)
 
-    # gate datasets -------------------------------------------------------------------------
-    g = cfg.gates
-    s = eco_settings(cfg)
-
-    def do_gatedata(work: Path, rec):
-        from study.detect import frames_for, load_run
-        from study.eco.data import build_eco_data
-        from study.gate_data import GateData
-
-        run = work / "run"
-        link_farm(run_paper, run)
-        model, run_cfg = load_run(run, "latest", device=setup.device)
-        train_idx, _ = frames_for(run_cfg, data, "train")
-        test_idx, _ = frames_for(run_cfg, data, "test")
-        gd = GateData(run, data, model)
-        gd.ensure(train_idx + test_idx, batch_size=t.batch_size, progress=progress)
-        eco = build_eco_data(run, data, s, progress=progress)
-        return _digest({"gate_data": gd.key, "eco_data": Path(eco["eco_data"]).name}), {
-            "gate_data_key": gd.key, "eco_data": eco}
-
-    gdr = study.stage("gatedata", {"train": tr.digest, "eco_max_frames": g.eco_max_frames, "fusion": g.fusion},
-                      do_gatedata)
+    settings = eco_settings(cfg)
+    gdr = study.stage("gatedata", {"eco_max_frames": cfg.gates.eco_max_frames, "fusion": cfg.gates.fusion,
+                                   "batch_size": cfg.train.batch_size, **ident("gatedata")}, (tr,),
+                      gatedata_stage, run_paper=tr.dir / "paper", data=data, settings=settings,
+                      batch_size=cfg.train.batch_size, setup=setup, progress=progress)
     if last < 3:
         return _finish(study, result, t_start)
 
-    # gates ---------------------------------------------------------------------------------
-    def do_gates(work: Path, rec):
-        from study.eco.energy import energy_table
-        from study.eco.gates import train_eco_gate
-        from study.gates import GateTrainConfig, train_gate
-
-        run = work / "run"
-        link_farm(gdr.dir / "run", run)
-        out, digests = {}, {}
-        for gate in g.gates:
-            gcfg_ = GateTrainConfig(gate=gate, epochs=g.epochs, batch_size=g.batch_size, lr=g.lr,
-                                    val_fraction=g.val_fraction, seed=g.seed, threads=setup.threads)
-            study.say(f"gates: HydraFusion {gate} gate")
-            out[f"hydra_{gate}"] = train_gate(run, data, gcfg_, progress=progress, setup=setup)
-            digests[f"hydra_{gate}"] = file_sha256(run / "gates" / gate / "gate.pt")
-            study.say(f"gates: EcoFusion {gate} gate")
-            out[f"eco_{gate}"] = train_eco_gate(run, data, gate, gcfg_, s, progress=progress)
-            digests[f"eco_{gate}"] = file_sha256(run / "eco" / "gates" / gate / "gate.pt")
-        study.say("gates: latency and energy of every configuration")
-        energy = energy_table(run, data, s, threads=1, repeats=g.energy_repeats, frames=g.energy_frames,
-                              progress=progress, n_check=g.energy_check)
-        energy = {k: v for k, v in energy.items() if not k.startswith("_")}
-        digests["latency"] = file_sha256(run / "eco" / "latency.json")
-        return _digest(digests), {"gates": out, "energy": energy}
-
-    gt = study.stage("gates", {"gatedata": gdr.digest, "gates": to_dict(g)}, do_gates)
+    gt = study.stage("gates", {"gates": to_dict(cfg.gates), **ident("gates")}, (gdr,), gates_stage,
+                     gatedata_run=gdr.dir / "run", data=data, gates=cfg.gates, settings=settings, setup=setup,
+                     say=study.say, progress=progress)
     if last < 4:
         return _finish(study, result, t_start)
 
-    # evaluate ------------------------------------------------------------------------------
-    def do_evaluate(work: Path, rec):
-        from study.study_eval import evaluate_study
-
-        run = work / "run"
-        link_farm(gt.dir / "run", run)
-        res = evaluate_study(run, run_early, data, cfg, s, work, setup=setup, progress=progress)
-        _atomic_json(work / "results.json", res)
-        return file_sha256(work / "results.json"), {}
-
-    ev = study.stage("evaluate", {"gates": gt.digest, "train": tr.digest, "evaluate": to_dict(cfg.evaluate)},
-                     do_evaluate)
+    ev = study.stage("evaluate", {"evaluate": to_dict(cfg.evaluate), **ident("evaluate")}, (gt, tr),
+                     evaluate_stage, gates_run=gt.dir / "run", run_early=run_early, data=data, cfg=cfg,
+                     settings=settings, setup=setup, progress=progress)
     if last < 5:
         return _finish(study, result, t_start)
 
-    # report --------------------------------------------------------------------------------
-    def do_report(work: Path, rec):
-        from study.report import write_report
-
-        results = json.loads((ev.dir / "results.json").read_text())
-        context = {"scale": cfg.scale, "meaningless": cfg.meaningless, "config": to_dict(cfg),
-                   "stages": {n: r.manifest for n, r in study.records.items()},
-                   "stage_dirs": {n: str(r.dir) for n, r in study.records.items()}}
-        write_report(results, context, work, ev.dir, rel_to=study.out)
-        return file_sha256(work / "report.json"), {"files": sorted(p.name for p in work.iterdir())}
-
-    rp = study.stage("report", {"evaluate": ev.digest, "scale": cfg.scale, "meaningless": cfg.meaningless,
-                                "report_version": _report_version()}, do_report)
+    context = {"scale": cfg.scale, "meaningless": cfg.meaningless, "config": to_dict(cfg),
+               "stages": {n: r.manifest for n, r in study.records.items()},
+               "stage_dirs": {n: str(r.dir) for n, r in study.records.items()}}
+    rp = study.stage("report", {"scale": cfg.scale, "meaningless": cfg.meaningless, **ident("report")}, (ev,),
+                     report_stage, results_dir=ev.dir, context=context, rel_to=study.out)
     for name in ("report.md", "report.html", "report.json"):
-        tmp = study.out / f".{name}.tmp-{os.getpid()}"
-        shutil.copyfile(rp.dir / name, tmp)
-        os.replace(tmp, study.out / name)
+        with atomic_path(study.out / name) as tmp:
+            shutil.copyfile(rp.dir / name, tmp)
     result["report"] = {n: str(study.out / n) for n in ("report.md", "report.html", "report.json")}
     result["report_json"] = json.loads((study.out / "report.json").read_text())
     return _finish(study, result, t_start)
-
-
-def _report_version() -> str:
-    """The report code's identity: a changed report.py renders the report again."""
-    import study.report
-
-    return _digest([study.report.REPORT_VERSION, Path(study.report.__file__).read_text()])[:16]
 
 
 def _finish(study: Study, result: dict, t_start: float) -> dict:

@@ -153,7 +153,7 @@ def test_image_order_and_input_formats_do_not_matter():
                                     [(g["boxes"], g["labels"]) for g in gts])
     assert as_tuples.ap == r.ap
     assert mean_average_precision(dets, gts) == r.mean_ap
-    torch = pytest.importorskip("torch")
+    import torch  # locked dependencies: a broken install fails here, it is not skipped
     as_tensors = evaluate_detections([{k: torch.as_tensor(v) for k, v in d.items()} for d in dets],
                                      [{k: torch.as_tensor(v) for k, v in g.items()} for g in gts])
     assert as_tensors.ap == r.ap
@@ -216,8 +216,8 @@ def test_map_agrees_with_torchmetrics():
     class. Our VOC all-point AP is the exact area under the same precision envelope; the 101-point
     mean differs from that area by at most 1/100 per class (the envelope is non-increasing, so
     each 0.01-wide recall strip is bounded by its two end samples), hence the 0.01 tolerance."""
-    torch = pytest.importorskip("torch")
-    detection = pytest.importorskip("torchmetrics.detection")
+    import torch  # locked dependencies: a broken install fails here, it is not skipped
+    from torchmetrics import detection
     rng = np.random.default_rng(2024)
     for trial in range(4):
         gts, dets = random_scenes(rng, n_images=10)

@@ -36,6 +36,23 @@ from study.cli import build_parser, main
 EXAMPLES = {"--gate": "deep"}
 BOGUS = "__bogus__"
 TRACKED: list[tuple[str, float]] = []  # (case, seconds) of every case tried, for the count
+CASES_BY_TEST: dict[str, int] = {}  # test name -> cases it tried
+CONTRIBUTORS = {"test_every_option_of_every_command_refuses_its_bad_values",
+                "test_every_dataset_argument_refuses_damaged_datasets_naming_the_file",
+                "test_verify_json_reports_every_damage_on_stdout", "test_unknown_flags_and_missing_arguments_are_named",
+                "test_help_explains_every_option_without_noise", "test_entry_point_end_to_end_in_a_subprocess",
+                "test_generate_refuses_a_folder_of_other_files_and_duplicates",
+                "test_train_on_a_one_sequence_dataset_writes_its_checkpoint_and_reports_no_map"}
+"""The tests that try cases; the count test checks that each of them ran and tried some."""
+
+
+@pytest.fixture(autouse=True)
+def _count_cases(request):
+    """Count the cases each test of this file tried (TRACKED grows while it runs)."""
+    before = len(TRACKED)
+    yield
+    if len(TRACKED) > before:
+        CASES_BY_TEST[request.node.name] = len(TRACKED) - before
 
 
 # ---------------------------------------------------------------------------------------------
@@ -714,14 +731,10 @@ def test_generate_refuses_a_folder_of_other_files_and_duplicates(world, tmp_path
     (foreign / "thesis.tex").write_text("x")
     for argv, needle in ((["--out", str(foreign)], "thesis.tex"),
                          (["--out", str(tmp_path / "d"), "--contexts", "fog,motorway+fog"], "twice"),
-                         (["--out", str(tmp_path / "d"), "--contexts", "city", "--frames-per-context", "999999",
-                           "--sequence-length", "5"], None),
                          (["--out", str(tmp_path / "d"), "--contexts", "all", "--frames-per-context", "200000"],
                           "limit is 1000000"),
                          (["--out", str(tmp_path / "d"), "--sequence-length", "20", "--frame-rate", "0.001"],
                           "3600")):
-        if needle is None:
-            continue
         TRACKED.append(("generate " + " ".join(argv), 0.0))
         code = cli(["generate", *argv])
         err = capsys.readouterr().err
@@ -851,7 +864,13 @@ def test_gate_data_label_and_lidar_fog_bars_print_whole_lines_into_a_log(capsys,
 def test_zz_count_of_cases(capsys):
     """Runs last in this file: the number of cases the suite tried (see the README)."""
     with capsys.disabled():
-        print(f"\nfuzz: {len(TRACKED)} cases tried, {sum(t for _, t in TRACKED):.1f} s in-process; slowest:")
+        print(f"\nfuzz: {len(TRACKED)} cases tried ({', '.join(f'{n}: {c}' for n, c in CASES_BY_TEST.items())}), {sum(t for _, t in TRACKED):.1f} s in-process; slowest:")
         for case, sec in sorted(TRACKED, key=lambda c: -c[1])[:8]:
             print(f"  {sec:6.2f} s  {case[:150]}")
+    # every case-trying test of the file ran (none skipped or deselected), and the total is theirs
+    assert set(CASES_BY_TEST) == CONTRIBUTORS, sorted(CONTRIBUTORS ^ set(CASES_BY_TEST))
+    assert len(TRACKED) == sum(CASES_BY_TEST.values())
+    assert CASES_BY_TEST["test_generate_refuses_a_folder_of_other_files_and_duplicates"] == 4
+    assert CASES_BY_TEST["test_train_on_a_one_sequence_dataset_writes_its_checkpoint_and_reports_no_map"] == 5
+    assert CASES_BY_TEST["test_entry_point_end_to_end_in_a_subprocess"] == 1
     assert len(TRACKED) > 500

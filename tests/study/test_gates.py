@@ -110,6 +110,18 @@ def test_gate_dataset_is_cached_keyed_and_resumable(run, data, trained, tmp_path
     copy = _linked_copy(run, tmp_path / "copy")
     gd2 = GateData(copy, data, model)
     assert gd2.key == gd.key and gd2.missing(indices) == indices
+    # the device type and precision the network ran in are part of the key and of info.json
+    assert gd.identity["device"] == "cpu" and gd.identity["precision"] == "fp32"
+    assert json.loads((gd.dir / "info.json").read_text())["device"] == "cpu"
+    import study.gate_data as gate_data
+
+    real_device = gate_data.model_device
+    gate_data.model_device = lambda m: "cuda:1"  # as if the network were on a GPU
+    try:
+        on_gpu = GateData(copy, data, model)
+    finally:
+        gate_data.model_device = real_device
+    assert on_gpu.identity["device"] == "cuda" and on_gpu.key != gd2.key
     assert gd2.ensure(indices[:3], progress=False) == 3 and gd2.missing(indices) == list(range(3, 8))
     f2, l2 = gd2.load(indices[:3])
     assert np.allclose(f2.astype(np.float32), feats[:3].astype(np.float32), rtol=2e-3, atol=1e-3)

@@ -1,0 +1,128 @@
+"""What reruns when: every kind of change reruns exactly the stages below it and nothing else.
+
+The stages' work is replaced by recording stand-ins (the keys are what is tested, and the real
+stages are run end to end in test_study_runner.py): each test runs the study once, changes one
+thing (the sensor model version, the model profile, the code of a module, the device type, the
+precision) and runs it again in the same directory.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+from pathlib import Path
+
+import pytest
+
+import study.runner as runner
+from study.device import DeviceSetup
+from study.runner import STAGES, load_study_config, run_study
+
+
+@pytest.fixture
+def fake_stages(monkeypatch):
+    """Replace each stage's work by a stand-in that records that it ran and writes what run_study reads."""
+    ran: list[str] = []
+
+    def stand_in(name):
+        def work(work_dir: Path, **kwargs):
+            ran.append(name)
+            if name == "generate":
+                (work_dir / "data").mkdir()
+            if name == "report":
+                for f in ("report.md", "report.html", "report.json"):
+                    (work_dir / f).write_text("{}")
+            return f"digest-of-{name}", {}
+
+        return work
+
+    for name in STAGES:
+        monkeypatch.setattr(runner, f"{name}_stage", stand_in(name))
+    return ran
+
+
+def _setup(device="cpu", amp=False):
+    return lambda cfg: DeviceSetup(device=device, threads=1, amp=amp)
+
+
+def _rerun(tmp_path, ran, monkeypatch, change, setup=None) -> list[str]:
+    """Stages that ran again after `change()` (the first run in the same directory ran them all)."""
+    cfg = load_study_config("tiny")
+    monkeypatch.setattr(runner, "_device_setup", setup or _setup())
+    first = run_study(cfg, tmp_path / "study", progress=False)
+    assert ran == list(STAGES) and {s["status"] for s in first["stages"].values()} == {"ran"}
+    ran.clear()
+    assert run_study(cfg, tmp_path / "study", progress=False) and ran == []  # nothing changed: no work
+    change()
+    again = run_study(cfg, tmp_path / "study", progress=False)
+    assert [n for n, s in again["stages"].items() if s["status"] == "ran"] == ran
+    for n, s in again["stages"].items():  # a skipped stage kept its key, a rerun one has a new key
+        assert (s["key"] == first["stages"][n]["key"]) == (s["status"] == "skipped"), n
+    return list(ran)
+
+
+def test_a_new_sensor_model_version_reruns_every_stage(fake_stages, tmp_path, monkeypatch):
+    import sensors
+
+    assert _rerun(tmp_path, fake_stages, monkeypatch,
+                  lambda: monkeypatch.setattr(sensors, "SENSOR_MODEL_VERSION", "5")) == list(STAGES)
+
+
+def test_changed_model_profile_contents_rerun_train_and_below(fake_stages, tmp_path, monkeypatch):
+    import fusion.nets
+
+    real = fusion.nets.load_profile
+
+    def changed():  # the same profile name, one number of its contents changed
+        monkeypatch.setattr(fusion.nets, "load_profile", lambda name, **kw: dataclasses.replace(
+            real(name, **kw), rpn_nms_thresh=real(name, **kw).rpn_nms_thresh + 0.01))
+
+    assert _rerun(tmp_path, fake_stages, monkeypatch, changed) == list(STAGES[1:])
+
+
+@pytest.mark.parametrize("module, first", [("study.report", "report"), ("study.gates", "gates"),
+                                           ("study.train", "train"), ("sensors.generate", "generate")])
+def test_changed_code_of_a_module_reruns_the_first_stage_that_runs_it_and_below(fake_stages, tmp_path, monkeypatch,
+                                                                              module, first):
+    import study.code_identity as ci
+
+    real = ci.read_module
+
+    def changed():
+        monkeypatch.setattr(ci, "read_module", lambda m: real(m) + ("\n_CHANGED = 1\n" if m == module else ""))
+
+    assert _rerun(tmp_path, fake_stages, monkeypatch, changed) == list(STAGES[STAGES.index(first):])
+
+
+def test_a_changed_comment_or_docstring_reruns_nothing(fake_stages, tmp_path, monkeypatch):
+    import study.code_identity as ci
+
+    real = ci.read_module
+
+    def changed():
+        monkeypatch.setattr(ci, "read_module", lambda m: '"""Another docstring."""\n# a comment\n' +
+                            real(m).split('"""', 2)[2] if m == "study.train" else real(m))
+
+    assert _rerun(tmp_path, fake_stages, monkeypatch, changed) == []
+
+
+def test_another_device_reruns_every_stage_that_runs_a_network(fake_stages, tmp_path, monkeypatch):
+    assert _rerun(tmp_path, fake_stages, monkeypatch,
+                  lambda: monkeypatch.setattr(runner, "_device_setup", _setup("cuda:0"))) == list(STAGES[1:])
+
+
+def test_another_precision_reruns_every_stage_that_runs_a_network(fake_stages, tmp_path, monkeypatch):
+    assert _rerun(tmp_path, fake_stages, monkeypatch,
+                  lambda: monkeypatch.setattr(runner, "_device_setup", _setup("cuda:0", amp=True)),
+                  setup=_setup("cuda:0")) == list(STAGES[1:])
+
+
+def test_every_stage_records_its_device_and_precision(fake_stages, tmp_path, monkeypatch):
+    monkeypatch.setattr(runner, "_device_setup", _setup("cuda:3", amp=True))
+    r = run_study(load_study_config("tiny"), tmp_path / "study", progress=False)
+    for name, s in r["stages"].items():
+        manifest = json.loads((Path(s["dir"]) / "manifest.json").read_text())
+        want = {"device": "cpu", "precision": "fp32"} if name in ("generate", "report") else \
+            {"device": "cuda", "precision": "bf16"}
+        assert manifest["compute"] == s["compute"] == want, name
+        assert manifest["inputs"]["code"] and manifest["key"] == s["key"]
