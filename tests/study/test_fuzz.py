@@ -42,7 +42,10 @@ CONTRIBUTORS = {"test_every_option_of_every_command_refuses_its_bad_values",
                 "test_verify_json_reports_every_damage_on_stdout", "test_unknown_flags_and_missing_arguments_are_named",
                 "test_help_explains_every_option_without_noise", "test_entry_point_end_to_end_in_a_subprocess",
                 "test_generate_refuses_a_folder_of_other_files_and_duplicates",
-                "test_train_on_a_one_sequence_dataset_writes_its_checkpoint_and_reports_no_map"}
+                "test_train_on_a_one_sequence_dataset_writes_its_checkpoint_and_reports_no_map",
+                "test_every_run_argument_refuses_damaged_checkpoints_naming_the_file",
+                "test_generate_refuses_a_damaged_shard_in_its_out_and_leaves_no_partial_shard",
+                "test_generate_refuses_an_out_another_generate_is_writing"}
 """The tests that try cases; the count test checks that each of them ran and tried some."""
 
 
