@@ -1,8 +1,12 @@
 """scripts/readme_results.py: the README's results block is a function of a study's report JSON,
-replaced between its markers only, idempotently, and refused without them."""
+replaced between its markers only, idempotently, and refused without them; and every number block the
+README and docs/results.md quote from a file in results/ is that file's (the README's block is what the
+script makes of results/study_cpu/report.json; each table of the reference run and of EcoFusion is
+recomputed cell by cell from its JSON)."""
 
 import importlib.util
 import json
+import re
 from pathlib import Path
 
 import pytest
@@ -83,3 +87,132 @@ def test_replacing_keeps_the_rest_and_is_idempotent(tmp_path):
 def test_the_repository_readme_has_one_block():
     text = (ROOT / "README.md").read_text()
     assert text.count(rr.BEGIN) == 1 and text.count(rr.END) == 1
+
+
+# --- every number block the README and docs/ quote from a file in results/ is that file's ---------------
+
+RESULTS = ROOT / "results"
+
+
+def table(doc: Path, header: str) -> dict[str, list[str]]:
+    """The Markdown table of `doc` whose header row starts with `header`: {first cell: other cells}, bold
+    marks dropped; an AssertionError when the table is missing."""
+    lines = doc.read_text().splitlines()
+    starts = [i for i, line in enumerate(lines) if line.startswith(header)]
+    assert len(starts) == 1, f"{doc.name}: one table headed {header!r}"
+    rows = {}
+    for line in lines[starts[0] + 2:]:
+        if not line.startswith("|"):
+            break
+        cells = [c.strip().replace("**", "") for c in line.strip("|").split("|")]
+        rows[cells[0]] = cells[1:]
+    return rows
+
+
+def _load(name: str) -> dict:
+    return json.loads((RESULTS / name).read_text())
+
+
+def _f(v, nd: int) -> str:
+    return "-" if v is None else f"{v:.{nd}f}"
+
+
+def test_the_readmes_block_is_what_the_script_makes_of_the_stored_cpu_study():
+    report = RESULTS / "study_cpu" / "report.json"
+    assert rr.main([str(report), "--readme", str(ROOT / "README.md"), "--check"]) == 0, \
+        f"README.md's results block is stale: python scripts/readme_results.py {report.relative_to(ROOT)}"
+
+
+def test_the_numbers_the_readme_and_docs_quote_from_the_cpu_study_are_its():
+    readme = (ROOT / "README.md").read_text()
+    block = readme.split(rr.BEGIN)[1].split(rr.END)[0]
+    # the README's reading of the block: every decimal number in it is one of the block's
+    reading = readme.split(rr.END)[1].split("\n## ")[0]
+    numbers = re.findall(r"[-+]?\d+\.\d+", reading)
+    assert len(numbers) >= 5 and not [n for n in numbers if n not in block], numbers
+    # docs/results.md's reading: every 3-decimal interval is one of the report's (any context, any pair)
+    intervals = _load("study_cpu/report.json")["results"]["intervals"]["per_context"]
+    stored = {f"[{lo:+.3f}, {hi:+.3f}]" for ctx in intervals.values() for kind in ("map", "difference")
+              for lo, hi in ctx[kind].values()}
+    stored |= {f"[{-hi:+.3f}, {-lo:+.3f}]" for ctx in intervals.values() for lo, hi in ctx["difference"].values()}
+    text = (ROOT / "docs" / "results.md").read_text()
+    reading = text.split("**What the `cpu` study resolves**")[1].split("\n## ")[0]
+    quoted = re.findall(r"\[[-+]\d\.\d{3}, [-+]\d\.\d{3}\]", reading)
+    assert len(quoted) >= 6 and not [q for q in quoted if q not in stored], quoted
+
+
+REF3 = {"camera_right": "camera_right", "radar": "radar", "lidar": "lidar", "late fusion (Soft-NMS)": None}
+CONTEXTS = ["city", "junction", "motorway", "rural", "rain", "fog", "snow", "night"]
+
+
+def _branch(result: dict, name):
+    return result if name is None else result["per_branch_reference"][name]
+
+
+def test_the_reference_runs_table_1_analogue_and_range_bins_are_their_files():
+    e4, e2 = _load("ref3_e4_reference.json"), _load("ref3_reference.json")
+    doc = ROOT / "docs" / "results.md"
+    rows = table(doc, "| branch | city | junction |")
+    assert set(rows) == set(REF3)
+    for row, name in REF3.items():
+        b4, b2 = _branch(e4, name), _branch(e2, name)
+        expected = [_f(b4["map_vehicles_per_context"][c], 3) for c in CONTEXTS]
+        expected.append(f"{_f(b4['map_vehicles'], 3)} (was {_f(b2['map_vehicles'], 3)})")
+        assert rows[row] == expected, row
+    rows = table(doc, "| branch | 0-15 m | 15-30 m |")
+    for row, name in {**REF3, "late fusion": None}.items():
+        if row in rows:
+            assert rows[row] == [_f(_branch(e4, name)["map_vehicles_per_range"][b], 3)
+                                 for b in ("0-15", "15-30", "30-50", "50-100")], row
+    assert len(rows) == 4
+
+
+def test_the_reference_runs_intervals_are_their_file():
+    ci = _load("ref3_e4_reference_ci.json")["ci95"]["per_context"]
+    rows = table(ROOT / "docs" / "results.md", "| 95 % interval | city |")
+    names = {"camera_right": "camera_right", "radar": "radar", "lidar": "lidar", "late fusion": "fused"}
+    for row, name in names.items():
+        assert rows[row] == [f"[{ci[c]['map_vehicles'][name][0]:.2f}, {ci[c]['map_vehicles'][name][1]:.2f}]"
+                             for c in [*CONTEXTS, "all"]], row
+    for row in ("radar - lidar", "late fusion - radar", "late fusion - lidar"):
+        pair = row.replace("late fusion", "fused")
+        assert rows[row] == [f"[{ci[c]['difference'][pair][0]:+.2f}, {ci[c]['difference'][pair][1]:+.2f}]"
+                             for c in [*CONTEXTS, "all"]], row
+    assert len(rows) == 7
+
+
+TWINS = {"fog": "ref3_e4_fogtwins.json", "rain": "ref3_e4_raintwins.json", "snow": "ref3_e4_snowtwins.json",
+         "night (city, lit)": "ref3_e4_nighttwins.json", "night (rural, unlit)": "ref3_e4_ruralnight_twins.json"}
+TWIN_BRANCHES = {"radar (BEV)": "radar", "lidar (BEV)": "lidar", "camera_right": "camera_right",
+                 "late fusion (camera frame)": None}
+
+
+def test_the_twins_table_is_the_twin_files():
+    doc = ROOT / "docs" / "results.md"
+    lines = [line for line in doc.read_text().splitlines() if line.startswith(tuple(f"| {c} | " for c in TWINS))]
+    assert len(lines) == len(TWINS) * len(TWIN_BRANCHES)
+    for line in lines:
+        cond, branch, *cells = [c.strip() for c in line.strip("|").split("|")]
+        twins = _load(TWINS[cond])["twins"]
+        t = twins["fused"] if TWIN_BRANCHES[branch] is None else twins["branches"][TWIN_BRANCHES[branch]]
+        lo, hi = t["ci95"]["all"]["retained"]
+        expected = [f"{t['degraded']:.3f} / {t['clear']:.3f}", f"{t['retained']:.2f} [{lo:.2f}, {hi:.2f}]"]
+        expected += [_f((t["per_severity"].get(str(s)) or {}).get("retained"), 2) for s in range(1, 6)]
+        assert cells == expected, (cond, branch)
+
+
+def test_the_ecofusion_table_1_analogue_is_its_file():
+    ev = _load("eco_ref3/evaluate_ci.json")
+    assert ev["lambda_e"] == 0.01
+    rows = table(ROOT / "docs" / "results.md", "| Table 1 analogue")
+    late = ev["baselines"]["late"]
+    names = {"radar alone": ("baselines", "none_radar"), "camera_right alone": ("baselines", "none_camera_right"),
+             "lidar alone": ("baselines", "none_lidar"), "late (radar + camera_right + lidar)": ("baselines", "late"),
+             "EcoFusion attention, lambda_E 0 / 0.01 / 0.05": ("gates", "attention"),
+             "EcoFusion knowledge (any lambda_E)": ("gates", "knowledge"),
+             "EcoFusion loss-based (oracle), lambda_E 0.01": ("gates", "loss_based")}
+    assert set(rows) == set(names)
+    for row, (kind, name) in names.items():
+        m = ev[kind][name]
+        ratio = "1" if name == "late" else _f(m["energy"] / late["energy"], 2)
+        assert rows[row] == [_f(m["map"], 3), _f(m["energy"], 2), f"{m['latency_ms']:.0f}", ratio], row
