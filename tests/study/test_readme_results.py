@@ -216,3 +216,33 @@ def test_the_ecofusion_table_1_analogue_is_its_file():
         m = ev[kind][name]
         ratio = "1" if name == "late" else _f(m["energy"] / late["energy"], 2)
         assert rows[row] == [_f(m["map"], 3), _f(m["energy"], 2), f"{m['latency_ms']:.0f}", ratio], row
+
+
+def _close(quoted: str, value) -> bool:
+    """`quoted` is `value` rounded to the digits it shows."""
+    digits = len(quoted.split(".")[1]) if "." in quoted else 0
+    return value is not None and abs(float(quoted) - value) <= 0.5 * 10 ** -digits + 1e-9
+
+
+def test_the_fusion_theory_table_is_its_file():
+    """docs/results.md's SMALL_CONFIG table (`hydrabench theory ... --json`, results/theory_small.json): each
+    method's mean +- standard error (median) of the squared error, and the objects with a gross error."""
+    theory = _load("theory_small.json")["details"]
+    rows = table(ROOT / "docs" / "results.md", "| cell | camera | lidar | radar | full, nominal R |")
+    cells = {"clear": ("fog", "0"), "fog, visibility 30-75 m": ("fog", "5"), "rain 25-50 mm/h": ("rain", "5"),
+             "night": ("night", "5")}
+    columns = ["camera", "lidar", "radar", "full_nominal", "full_true", "selective", "gated", "gated_true"]
+    assert set(rows) == set(cells)
+    for row, (cond, sev) in cells.items():
+        d = theory[cond][sev]
+        *quoted, gross = rows[row]
+        for col, text in zip(columns, quoted, strict=True):
+            r = d["robust"][col]
+            m = re.fullmatch(r"([\d.]+) \+- ([\d.]+) \(([\d.]+)\)", text)
+            if col == "selective":  # its mean, and the sensors it selects
+                assert _close(text.split(" (")[0], r["mean"]), (row, col, text)
+            else:
+                assert m and _close(m[1], r["mean"]) and _close(m[2], r["se"]) and _close(m[3], r["median"]), \
+                    (row, col, text)
+        g = d["gross"]["objects_with_gross"]
+        assert gross == f"{g['nominal']} / {g['measured']} of {d['compared']}", (row, gross)
