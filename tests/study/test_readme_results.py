@@ -246,3 +246,39 @@ def test_the_fusion_theory_table_is_its_file():
                     (row, col, text)
         g = d["gross"]["objects_with_gross"]
         assert gross == f"{g['nominal']} / {g['measured']} of {d['compared']}", (row, gross)
+
+
+def test_the_full_theory_sweeps_table_is_its_file():
+    """docs/results.md's table of the cells where fusion with the measured R loses to the best sensor alone
+    (`hydrabench theory --json`, results/theory_default.json)."""
+    theory = _load("theory_default.json")["details"]
+    rows = table(ROOT / "docs" / "results.md", "| cell | best alone |")
+    assert len(rows) == 6
+    for row, cells in rows.items():
+        cond, sev = row.split()[:2]
+        d = theory[cond][sev]
+        best_alone, full, paired, gross, without, weather, gated = cells
+        best = d["paired_vs_best_single"]["best_single"]
+        name, value = best_alone.split()
+        assert name == best and _close(value, d["robust"][best]["mean"]), (row, best_alone)
+        r = d["robust"]["full_true"]
+        m = re.fullmatch(r"([\d.]+) \+- ([\d.]+) \(([\d.]+)\)", full)
+        assert m and _close(m[1], r["mean"]) and _close(m[2], r["se"]) and _close(m[3], r["median"]), (row, full)
+        p = d["paired_vs_best_single"]["full_true"]
+        m = re.fullmatch(r"([-+][\d.]+) \+- ([\d.]+)", paired)
+        assert m and _close(m[1], p["mean"]) and _close(m[2], p["se"]), (row, paired)
+        g = d["gross"]
+        share = round(100 * g["sse_share"]["full_true"])
+        assert gross == f"{g['objects_with_gross']['measured']} of {d['compared']}: {share} %", (row, gross)
+        w = g["mse_without_gross"]["measured"]
+        a, b = without.split(" / ")
+        assert _close(a, w[best]) and _close(b, w["full_true"]), (row, without)
+        assert int(weather.split()[0].rstrip(",")) == g["per_sensor"]["measured"]["lidar"]["causes"].get("weather", 0), \
+            (row, weather)
+        gate = {}
+        for sensor in g["per_sensor"]["measured"].values():
+            for what, n in sensor["gate"]["measured"].items():
+                gate[what] = gate.get(what, 0) + n
+        value, what = gated.split(" (")
+        assert _close(value, d["robust"]["gated_true"]["mean"]), (row, gated)
+        assert dict((k, int(n)) for k, n in (x.split() for x in what.rstrip(")").split(", "))) == gate, (row, gated, gate)
