@@ -17,7 +17,7 @@ PAGES = sorted((ROOT / "docs").glob("*.md"))
 DOCS = [README, *PAGES, ROOT / "BENCHMARKS.md"]
 
 FENCE = re.compile(r"^```.*?^```", re.M | re.S)
-SPAN = re.compile(r"`([^`\n]+)`")
+SPAN = re.compile(r"`([^`]+)`")  # a span may wrap a line
 LINK = re.compile(r"!?\[(?:[^\]\n]|\][^(])*\]\(([^)\s]+)\)")
 MAKE_TARGET = re.compile(r"^([\w-]+):", re.M)
 
@@ -29,7 +29,7 @@ def _fmt(x: float) -> str:
 def _code(text: str) -> list[str]:
     """The code of a Markdown text: its fenced blocks and its inline spans (outside the blocks)."""
     blocks = FENCE.findall(text)
-    return blocks + SPAN.findall(FENCE.sub("", text))
+    return blocks + [span.replace("\n", " ") for span in SPAN.findall(FENCE.sub("", text))]
 
 
 def test_the_readme_opens_with_the_two_commands_and_fits_on_a_screen():
@@ -147,3 +147,23 @@ def test_the_command_check_sees_quotes_in_code_only():
     text = ("hydrabench is a benchmark. Run `hydrabench bench sim --json` and `hydrabench eco-*`, or\n"
             "```\nhydrabench train data --out runs/x\nhydrabench evaluate runs/x data\n```\n")
     assert quoted_commands(text) == {("bench", "sim"), ("train", "data"), ("evaluate", "runs")}
+
+
+def _expand(pattern: str) -> list[str]:
+    """`a{b,c}d` as [abd, acd] (the shell's brace expansion, one level at a time)."""
+    m = re.search(r"\{([^{}]*)\}", pattern)
+    if not m:
+        return [pattern]
+    return [x for alt in m[1].split(",") for x in _expand(pattern[:m.start()] + alt + pattern[m.end():])]
+
+
+def test_every_results_file_the_docs_name_exists():
+    """A figure's file in results/ (`results/x.json`, `results/ref3_e4_{fog,rain}twins*.json`) is there."""
+    missing, named = [], 0
+    for doc in DOCS:
+        for code in _code(doc.read_text()):
+            for ref in re.findall(r"(?<![\w/.-])results/[\w./{},*-]*[\w*}]", code):
+                named += 1
+                if not all(list(ROOT.glob(p)) for p in _expand(ref)):
+                    missing.append(f"{doc.name}: {ref}")
+    assert named > 10 and not missing, missing
