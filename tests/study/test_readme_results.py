@@ -282,3 +282,26 @@ def test_the_full_theory_sweeps_table_is_its_file():
         value, what = gated.split(" (")
         assert _close(value, d["robust"]["gated_true"]["mean"]), (row, gated)
         assert dict((k, int(n)) for k, n in (x.split() for x in what.rstrip(")").split(", "))) == gate, (row, gated, gate)
+
+
+def test_the_other_protocols_figures_are_their_files():
+    """The paragraph of docs/results.md on the `visible` and `bev` protocols (results/ref3_e4_{visible,bev}.json,
+    and results/ref3_visible.json in brackets)."""
+    text = (ROOT / "docs" / "results.md").read_text()
+    para = " ".join(text.split("The same run after 4 epochs under the other protocols")[1].split("\n\n")[0].split())
+    v4, v2, bev = _load("ref3_e4_visible.json"), _load("ref3_visible.json"), _load("ref3_e4_bev.json")
+    m = re.search(r"late fusion ([\d.]+) \(([\d.]+)\), radar ([\d.]+) \(([\d.]+)\), lidar ([\d.]+) \(([\d.]+)\), "
+                  r"camera ([\d.]+) \(([\d.]+)\)", para)
+    assert m, para
+    expected = [v4["map_vehicles"], v2["map_vehicles"]]
+    for name in ("radar", "lidar", "camera_right"):
+        expected += [v4["per_branch_reference"][name]["map_vehicles"], v2["per_branch_reference"][name]["map_vehicles"]]
+    assert all(_close(q, e) for q, e in zip(m.groups(), expected, strict=True)), (m.groups(), expected)
+    m = re.search(r"radar ([\d.]+), lidar ([\d.]+) vehicle mAP, per range bin radar ([\d.]+) / ([\d.]+) / ([\d.]+) / "
+                  r"([\d.]+) and lidar ([\d.]+) / ([\d.]+) / ([\d.]+) / ([\d.]+)", para)
+    assert m, para
+    radar, lidar = bev["per_branch"]["radar"], bev["per_branch"]["lidar"]
+    bins = ("0-15", "15-30", "30-50", "50-100")
+    expected = [radar["map_vehicles"], lidar["map_vehicles"], *(radar["map_vehicles_per_range"][b] for b in bins),
+                *(lidar["map_vehicles_per_range"][b] for b in bins)]
+    assert all(_close(q, e) for q, e in zip(m.groups(), expected, strict=True)), (m.groups(), expected)
