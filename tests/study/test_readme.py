@@ -167,3 +167,20 @@ def test_every_results_file_the_docs_name_exists():
                 if not all(list(ROOT.glob(p)) for p in _expand(ref)):
                     missing.append(f"{doc.name}: {ref}")
     assert named > 10 and not missing, missing
+
+
+def test_module_paths_named_in_the_docs_pages_exist():
+    """tests/study/test_layout.py checks the README and BENCHMARKS.md; the same check over docs/*.md."""
+    from tests.study.test_layout import FILE_SUFFIXES, _resolves
+
+    missing = []
+    for doc in PAGES:
+        for span in _code(doc.read_text()):
+            for ref in re.findall(r"(?<![\w/.-])((?:sim|sensors|fusion|study)(?:\.[A-Za-z_][A-Za-z0-9_]*)+)", span):
+                if ref.rsplit(".", 1)[1] not in FILE_SUFFIXES and not _resolves(ref):
+                    missing.append(f"{doc.name}: {ref}")
+            for ref in re.findall(r"(?<![\w/.-])((?:sim|sensors|fusion|study|scripts|notebooks)/[\w/]+\.(?:py|sh))\b",
+                                  span):
+                if not (ROOT / ref).is_file():
+                    missing.append(f"{doc.name}: {ref}")
+    assert not missing, "the docs name modules that do not exist: " + "; ".join(missing)
