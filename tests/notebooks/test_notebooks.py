@@ -1,5 +1,7 @@
 """The teaching notebooks run top to bottom (nbclient), so they cannot rot; the degradation-physics notebook's
-fitted coefficients are held to the laws it teaches.
+fitted coefficients are held to the laws it teaches. They are stored executed, with their figures, so a
+reader sees them on GitHub (`python notebooks/execute.py` stores them; docs/notebooks.md): the stored
+outputs are checked for shape here, never compared with a run's, and each run starts from cleared outputs.
 
 The fusion-theory notebook reads its simulated measurements from $HYDRABENCH_CACHE/theory, pointed
 here at the session's shared cache: whichever of this test and tests/study/test_theory_measured.py
@@ -23,6 +25,9 @@ def run_notebook(name: str, monkeypatch, cache_root: Path):
     monkeypatch.setenv("PYTHONPATH", os.pathsep.join([str(ROOT), os.environ.get("PYTHONPATH", "")]).rstrip(os.pathsep))
     monkeypatch.setenv("MPLBACKEND", "Agg")
     nb = nbformat.read(ROOT / "notebooks" / name, as_version=4)
+    for cell in nb.cells:  # the stored outputs: what this run asserts on must be its own
+        if cell.cell_type == "code":
+            cell.outputs, cell.execution_count = [], None
     client = NotebookClient(nb, timeout=600, kernel_name="python3", resources={"metadata": {"path": str(ROOT)}})
     client.execute()  # raises CellExecutionError, naming the cell, if any cell fails
     return nb
@@ -137,3 +142,38 @@ def test_selective_fusion_notebook_reads_a_tiny_study_and_answers_its_three_ques
     assert "hydrafusion / optimal" in text and "ecofusion / loss_based" in text  # what each gate picks
     assert "fog (severity 4): ranking" in text  # why: the knowledge gate's table rows
     assert "lambda_E 0 -> 1" in text and "selection - late" in text and "hurts in" in text
+
+
+def _outputs(nb) -> list:
+    return [o for c in nb.cells if c.cell_type == "code" for o in c.get("outputs", [])]
+
+
+@pytest.mark.parametrize("name, figures", [("01_fusion_theory.ipynb", 5), ("02_degradation_physics.ipynb", 5),
+                                           ("03_selective_fusion.ipynb", 3)])
+def test_notebooks_are_stored_executed_with_their_figures(name, figures):
+    """Stored as one top-to-bottom run: every code cell executed in order, its figures as PNG, no error, no
+    per-cell timing metadata (a diff of a rerun shows what changed, not when), a size GitHub renders."""
+    path = ROOT / "notebooks" / name
+    nb = nbformat.read(path, as_version=4)
+    code = [c for c in nb.cells if c.cell_type == "code"]
+    assert [c.execution_count for c in code] == list(range(1, len(code) + 1)), "run notebooks/execute.py"
+    outputs = _outputs(nb)
+    assert len([o for o in outputs if "image/png" in o.get("data", {})]) >= figures
+    assert not [o for o in outputs if o.get("output_type") == "error"]
+    assert not [c for c in nb.cells if "execution" in c.metadata]
+    assert set(nb.metadata) <= {"kernelspec", "language_info"}
+    assert path.stat().st_size < 3_000_000
+
+
+def test_selective_fusion_notebook_is_stored_on_the_committed_cpu_study_and_runs_on_it(monkeypatch, shared_cache):
+    """03's default study is results/study_cpu (a report without its trained run): stored on it, and it still
+    runs on it, printing the Knowledge gate's table rows where a study has no run to explain frames with."""
+    stored = "".join(o.get("text", "") for o in _outputs(nbformat.read(ROOT / "notebooks" / "03_selective_fusion.ipynb",
+                                                                        as_version=4)))
+    assert "study results/study_cpu: scale cpu" in stored and "MEAN NOTHING" not in stored
+    monkeypatch.delenv("HYDRABENCH_STUDY", raising=False)
+    nb = run_notebook("03_selective_fusion.ipynb", monkeypatch, shared_cache)
+    text = "".join(o.get("text", "") for o in _outputs(nb) if o.get("output_type") == "stream")
+    assert "study results/study_cpu: scale cpu" in text and "MEAN NOTHING" not in text
+    assert "holds the report, not the trained run" in text and "fog (motorway layout + fog):" in text
+    assert len([o for o in _outputs(nb) if "image/png" in o.get("data", {})]) >= 3

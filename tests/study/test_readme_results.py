@@ -1,8 +1,12 @@
 """scripts/readme_results.py: the README's results block is a function of a study's report JSON,
-replaced between its markers only, idempotently, and refused without them."""
+replaced between its markers only, idempotently, and refused without them; and every number block the
+README and docs/results.md quote from a file in results/ is that file's (the README's block is what the
+script makes of results/study_cpu/report.json; each table of the reference run and of EcoFusion is
+recomputed cell by cell from its JSON)."""
 
 import importlib.util
 import json
+import re
 from pathlib import Path
 
 import pytest
@@ -83,3 +87,221 @@ def test_replacing_keeps_the_rest_and_is_idempotent(tmp_path):
 def test_the_repository_readme_has_one_block():
     text = (ROOT / "README.md").read_text()
     assert text.count(rr.BEGIN) == 1 and text.count(rr.END) == 1
+
+
+# --- every number block the README and docs/ quote from a file in results/ is that file's ---------------
+
+RESULTS = ROOT / "results"
+
+
+def table(doc: Path, header: str) -> dict[str, list[str]]:
+    """The Markdown table of `doc` whose header row starts with `header`: {first cell: other cells}, bold
+    marks dropped; an AssertionError when the table is missing."""
+    lines = doc.read_text().splitlines()
+    starts = [i for i, line in enumerate(lines) if line.startswith(header)]
+    assert len(starts) == 1, f"{doc.name}: one table headed {header!r}"
+    rows = {}
+    for line in lines[starts[0] + 2:]:
+        if not line.startswith("|"):
+            break
+        cells = [c.strip().replace("**", "") for c in line.strip("|").split("|")]
+        rows[cells[0]] = cells[1:]
+    return rows
+
+
+def _load(name: str) -> dict:
+    return json.loads((RESULTS / name).read_text())
+
+
+def _f(v, nd: int) -> str:
+    return "-" if v is None else f"{v:.{nd}f}"
+
+
+def test_the_readmes_block_is_what_the_script_makes_of_the_stored_cpu_study():
+    report = RESULTS / "study_cpu" / "report.json"
+    assert rr.main([str(report), "--readme", str(ROOT / "README.md"), "--check"]) == 0, \
+        f"README.md's results block is stale: python scripts/readme_results.py {report.relative_to(ROOT)}"
+
+
+def test_the_numbers_the_readme_and_docs_quote_from_the_cpu_study_are_its():
+    readme = (ROOT / "README.md").read_text()
+    block = readme.split(rr.BEGIN)[1].split(rr.END)[0]
+    # the README's reading of the block: every decimal number in it is one of the block's
+    reading = readme.split(rr.END)[1].split("\n## ")[0]
+    numbers = re.findall(r"[-+]?\d+\.\d+", reading)
+    assert len(numbers) >= 5 and not [n for n in numbers if n not in block], numbers
+    # docs/results.md's reading: every 3-decimal interval is one of the report's (any context, any pair)
+    intervals = _load("study_cpu/report.json")["results"]["intervals"]["per_context"]
+    stored = {f"[{lo:+.3f}, {hi:+.3f}]" for ctx in intervals.values() for kind in ("map", "difference")
+              for lo, hi in ctx[kind].values()}
+    stored |= {f"[{-hi:+.3f}, {-lo:+.3f}]" for ctx in intervals.values() for lo, hi in ctx["difference"].values()}
+    text = (ROOT / "docs" / "results.md").read_text()
+    reading = text.split("**What the `cpu` study resolves**")[1].split("\n## ")[0]
+    quoted = re.findall(r"\[[-+]\d\.\d{3}, [-+]\d\.\d{3}\]", reading)
+    assert len(quoted) >= 6 and not [q for q in quoted if q not in stored], quoted
+
+
+REF3 = {"camera_right": "camera_right", "radar": "radar", "lidar": "lidar", "late fusion (Soft-NMS)": None}
+CONTEXTS = ["city", "junction", "motorway", "rural", "rain", "fog", "snow", "night"]
+
+
+def _branch(result: dict, name):
+    return result if name is None else result["per_branch_reference"][name]
+
+
+def test_the_reference_runs_table_1_analogue_and_range_bins_are_their_files():
+    e4, e2 = _load("ref3_e4_reference.json"), _load("ref3_reference.json")
+    doc = ROOT / "docs" / "results.md"
+    rows = table(doc, "| branch | city | junction |")
+    assert set(rows) == set(REF3)
+    for row, name in REF3.items():
+        b4, b2 = _branch(e4, name), _branch(e2, name)
+        expected = [_f(b4["map_vehicles_per_context"][c], 3) for c in CONTEXTS]
+        expected.append(f"{_f(b4['map_vehicles'], 3)} (was {_f(b2['map_vehicles'], 3)})")
+        assert rows[row] == expected, row
+    rows = table(doc, "| branch | 0-15 m | 15-30 m |")
+    for row, name in {**REF3, "late fusion": None}.items():
+        if row in rows:
+            assert rows[row] == [_f(_branch(e4, name)["map_vehicles_per_range"][b], 3)
+                                 for b in ("0-15", "15-30", "30-50", "50-100")], row
+    assert len(rows) == 4
+
+
+def test_the_reference_runs_intervals_are_their_file():
+    ci = _load("ref3_e4_reference_ci.json")["ci95"]["per_context"]
+    rows = table(ROOT / "docs" / "results.md", "| 95 % interval | city |")
+    names = {"camera_right": "camera_right", "radar": "radar", "lidar": "lidar", "late fusion": "fused"}
+    for row, name in names.items():
+        assert rows[row] == [f"[{ci[c]['map_vehicles'][name][0]:.2f}, {ci[c]['map_vehicles'][name][1]:.2f}]"
+                             for c in [*CONTEXTS, "all"]], row
+    for row in ("radar - lidar", "late fusion - radar", "late fusion - lidar"):
+        pair = row.replace("late fusion", "fused")
+        assert rows[row] == [f"[{ci[c]['difference'][pair][0]:+.2f}, {ci[c]['difference'][pair][1]:+.2f}]"
+                             for c in [*CONTEXTS, "all"]], row
+    assert len(rows) == 7
+
+
+TWINS = {"fog": "ref3_e4_fogtwins.json", "rain": "ref3_e4_raintwins.json", "snow": "ref3_e4_snowtwins.json",
+         "night (city, lit)": "ref3_e4_nighttwins.json", "night (rural, unlit)": "ref3_e4_ruralnight_twins.json"}
+TWIN_BRANCHES = {"radar (BEV)": "radar", "lidar (BEV)": "lidar", "camera_right": "camera_right",
+                 "late fusion (camera frame)": None}
+
+
+def test_the_twins_table_is_the_twin_files():
+    doc = ROOT / "docs" / "results.md"
+    lines = [line for line in doc.read_text().splitlines() if line.startswith(tuple(f"| {c} | " for c in TWINS))]
+    assert len(lines) == len(TWINS) * len(TWIN_BRANCHES)
+    for line in lines:
+        cond, branch, *cells = [c.strip() for c in line.strip("|").split("|")]
+        twins = _load(TWINS[cond])["twins"]
+        t = twins["fused"] if TWIN_BRANCHES[branch] is None else twins["branches"][TWIN_BRANCHES[branch]]
+        lo, hi = t["ci95"]["all"]["retained"]
+        expected = [f"{t['degraded']:.3f} / {t['clear']:.3f}", f"{t['retained']:.2f} [{lo:.2f}, {hi:.2f}]"]
+        expected += [_f((t["per_severity"].get(str(s)) or {}).get("retained"), 2) for s in range(1, 6)]
+        assert cells == expected, (cond, branch)
+
+
+def test_the_ecofusion_table_1_analogue_is_its_file():
+    ev = _load("eco_ref3/evaluate_ci.json")
+    assert ev["lambda_e"] == 0.01
+    rows = table(ROOT / "docs" / "results.md", "| Table 1 analogue")
+    late = ev["baselines"]["late"]
+    names = {"radar alone": ("baselines", "none_radar"), "camera_right alone": ("baselines", "none_camera_right"),
+             "lidar alone": ("baselines", "none_lidar"), "late (radar + camera_right + lidar)": ("baselines", "late"),
+             "EcoFusion attention, lambda_E 0 / 0.01 / 0.05": ("gates", "attention"),
+             "EcoFusion knowledge (any lambda_E)": ("gates", "knowledge"),
+             "EcoFusion loss-based (oracle), lambda_E 0.01": ("gates", "loss_based")}
+    assert set(rows) == set(names)
+    for row, (kind, name) in names.items():
+        m = ev[kind][name]
+        ratio = "1" if name == "late" else _f(m["energy"] / late["energy"], 2)
+        assert rows[row] == [_f(m["map"], 3), _f(m["energy"], 2), f"{m['latency_ms']:.0f}", ratio], row
+
+
+def _close(quoted: str, value) -> bool:
+    """`quoted` is `value` rounded to the digits it shows."""
+    digits = len(quoted.split(".")[1]) if "." in quoted else 0
+    return value is not None and abs(float(quoted) - value) <= 0.5 * 10 ** -digits + 1e-9
+
+
+def test_the_fusion_theory_table_is_its_file():
+    """docs/results.md's SMALL_CONFIG table (`hydrabench theory ... --json`, results/theory_small.json): each
+    method's mean +- standard error (median) of the squared error, and the objects with a gross error."""
+    theory = _load("theory_small.json")["details"]
+    rows = table(ROOT / "docs" / "results.md", "| cell | camera | lidar | radar | full, nominal R |")
+    cells = {"clear": ("fog", "0"), "fog, visibility 30-75 m": ("fog", "5"), "rain 25-50 mm/h": ("rain", "5"),
+             "night": ("night", "5")}
+    columns = ["camera", "lidar", "radar", "full_nominal", "full_true", "selective", "gated", "gated_true"]
+    assert set(rows) == set(cells)
+    for row, (cond, sev) in cells.items():
+        d = theory[cond][sev]
+        *quoted, gross = rows[row]
+        for col, text in zip(columns, quoted, strict=True):
+            r = d["robust"][col]
+            m = re.fullmatch(r"([\d.]+) \+- ([\d.]+) \(([\d.]+)\)", text)
+            if col == "selective":  # its mean, and the sensors it selects
+                assert _close(text.split(" (")[0], r["mean"]), (row, col, text)
+            else:
+                assert m and _close(m[1], r["mean"]) and _close(m[2], r["se"]) and _close(m[3], r["median"]), \
+                    (row, col, text)
+        g = d["gross"]["objects_with_gross"]
+        assert gross == f"{g['nominal']} / {g['measured']} of {d['compared']}", (row, gross)
+
+
+def test_the_full_theory_sweeps_table_is_its_file():
+    """docs/results.md's table of the cells where fusion with the measured R loses to the best sensor alone
+    (`hydrabench theory --json`, results/theory_default.json)."""
+    theory = _load("theory_default.json")["details"]
+    rows = table(ROOT / "docs" / "results.md", "| cell | best alone |")
+    assert len(rows) == 6
+    for row, cells in rows.items():
+        cond, sev = row.split()[:2]
+        d = theory[cond][sev]
+        best_alone, full, paired, gross, without, weather, gated = cells
+        best = d["paired_vs_best_single"]["best_single"]
+        name, value = best_alone.split()
+        assert name == best and _close(value, d["robust"][best]["mean"]), (row, best_alone)
+        r = d["robust"]["full_true"]
+        m = re.fullmatch(r"([\d.]+) \+- ([\d.]+) \(([\d.]+)\)", full)
+        assert m and _close(m[1], r["mean"]) and _close(m[2], r["se"]) and _close(m[3], r["median"]), (row, full)
+        p = d["paired_vs_best_single"]["full_true"]
+        m = re.fullmatch(r"([-+][\d.]+) \+- ([\d.]+)", paired)
+        assert m and _close(m[1], p["mean"]) and _close(m[2], p["se"]), (row, paired)
+        g = d["gross"]
+        share = round(100 * g["sse_share"]["full_true"])
+        assert gross == f"{g['objects_with_gross']['measured']} of {d['compared']}: {share} %", (row, gross)
+        w = g["mse_without_gross"]["measured"]
+        a, b = without.split(" / ")
+        assert _close(a, w[best]) and _close(b, w["full_true"]), (row, without)
+        assert int(weather.split()[0].rstrip(",")) == g["per_sensor"]["measured"]["lidar"]["causes"].get("weather", 0), \
+            (row, weather)
+        gate = {}
+        for sensor in g["per_sensor"]["measured"].values():
+            for what, n in sensor["gate"]["measured"].items():
+                gate[what] = gate.get(what, 0) + n
+        value, what = gated.split(" (")
+        assert _close(value, d["robust"]["gated_true"]["mean"]), (row, gated)
+        assert dict((k, int(n)) for k, n in (x.split() for x in what.rstrip(")").split(", "))) == gate, (row, gated, gate)
+
+
+def test_the_other_protocols_figures_are_their_files():
+    """The paragraph of docs/results.md on the `visible` and `bev` protocols (results/ref3_e4_{visible,bev}.json,
+    and results/ref3_visible.json in brackets)."""
+    text = (ROOT / "docs" / "results.md").read_text()
+    para = " ".join(text.split("The same run after 4 epochs under the other protocols")[1].split("\n\n")[0].split())
+    v4, v2, bev = _load("ref3_e4_visible.json"), _load("ref3_visible.json"), _load("ref3_e4_bev.json")
+    m = re.search(r"late fusion ([\d.]+) \(([\d.]+)\), radar ([\d.]+) \(([\d.]+)\), lidar ([\d.]+) \(([\d.]+)\), "
+                  r"camera ([\d.]+) \(([\d.]+)\)", para)
+    assert m, para
+    expected = [v4["map_vehicles"], v2["map_vehicles"]]
+    for name in ("radar", "lidar", "camera_right"):
+        expected += [v4["per_branch_reference"][name]["map_vehicles"], v2["per_branch_reference"][name]["map_vehicles"]]
+    assert all(_close(q, e) for q, e in zip(m.groups(), expected, strict=True)), (m.groups(), expected)
+    m = re.search(r"radar ([\d.]+), lidar ([\d.]+) vehicle mAP, per range bin radar ([\d.]+) / ([\d.]+) / ([\d.]+) / "
+                  r"([\d.]+) and lidar ([\d.]+) / ([\d.]+) / ([\d.]+) / ([\d.]+)", para)
+    assert m, para
+    radar, lidar = bev["per_branch"]["radar"], bev["per_branch"]["lidar"]
+    bins = ("0-15", "15-30", "30-50", "50-100")
+    expected = [radar["map_vehicles"], lidar["map_vehicles"], *(radar["map_vehicles_per_range"][b] for b in bins),
+                *(lidar["map_vehicles_per_range"][b] for b in bins)]
+    assert all(_close(q, e) for q, e in zip(m.groups(), expected, strict=True)), (m.groups(), expected)
