@@ -38,6 +38,7 @@ from study.device import resolve_device
 from study.gate_data import GateData, _atomic_text, _atomic_torch_save, _bar, cached_sha256, checkpoint_path
 
 TABLE_KS = (1, 3, 5, "all")
+SELECT_ON = ("regret", "mae")
 TABLE_FUSIONS = ("nms", "soft_nms", "wbf")
 FUSION_LABEL = {"nms": "nms", "soft_nms": "soft-nms", "wbf": "wbf"}
 
@@ -85,6 +86,13 @@ class GateTrainConfig:
         dropout: before the MLP.
         checkpoint: which run checkpoint the gate serves ("latest" or "epoch-NNN").
         threads: torch CPU threads (0: the cores available).
+        objective: what the gate is trained on (`fusion.gate_objectives.OBJECTIVES`): "mae" (the
+            papers' regression of each choice's loss), "centred", "soft_ce" or "expected" (the
+            decision: see that module).
+        tau: temperature of "soft_ce" and "expected", in loss units (0: `default_tau` of the
+            fitting frames' losses, recorded in the result).
+        select_on: what picks the epoch on the validation frames: "regret" (the mean loss of the
+            chosen branch minus the per-frame best; ties by MAE) or "mae".
     """
 
     gate: str = "deep"
@@ -100,6 +108,18 @@ class GateTrainConfig:
     dropout: float = 0.2
     checkpoint: str = "latest"
     threads: int = 0
+    objective: str = "mae"
+    tau: float = 0.0
+    select_on: str = "regret"
+
+    def __post_init__(self) -> None:
+        from fusion.gate_objectives import OBJECTIVES
+
+        OBJECTIVES.get(self.objective)  # UserError naming the choices
+        if not self.tau >= 0:
+            raise UserError(f"tau: must be >= 0 (0: the default temperature), got {self.tau}")
+        if self.select_on not in SELECT_ON:
+            raise UserError(f"select_on: expected one of {', '.join(SELECT_ON)}, got {self.select_on!r}")
 
     def gate_options(self) -> dict:
         return {"grid": list(self.grid), "channels": list(self.channels), "hidden": self.hidden,
@@ -156,19 +176,27 @@ def ranking_agreement(pred: np.ndarray, truth: np.ndarray, k: int) -> float:
 def fit_gate(gate, x_fit: np.ndarray, y_fit: np.ndarray, x_val: np.ndarray, y_val: np.ndarray, cfg: GateTrainConfig,
              out: Path | None = None, progress: bool = True, state: dict | None = None,
              extra: dict | None = None) -> dict:
-    """Train `gate` (a ConvGate) with MAE and Adam; checkpoint to `out` every epoch (resumable from
-    the checkpoint dict `state`; `extra` is stored in every checkpoint).
+    """Train `gate` (a ConvGate) on `cfg.objective` with Adam; checkpoint to `out` every epoch
+    (resumable from the checkpoint dict `state`; `extra` is stored in every checkpoint).
 
-    Returns {"best_epoch", "best_val_mae", "history"}; the gate holds the weights of the best
-    validation epoch (the last epoch when there is no validation set).
+    y are the per-frame costs of the gate's choices (branch losses, or L_f per configuration). The
+    epoch is picked on the validation frames by `cfg.select_on`: the regret of the gate's choice
+    (its cost minus the frame's best), ties broken by MAE; or MAE alone.
+
+    Returns {"best_epoch", "best_val_mae", "best_val_regret", "tau", "history"}; the gate holds the
+    weights of the best validation epoch (the last epoch when there is no validation set).
     """
     import torch
 
+    from fusion.gate_objectives import OBJECTIVES, choose, default_tau, regret
+
     torch.manual_seed(cfg.seed)
+    objective = OBJECTIVES.get(cfg.objective)
+    tau = float(cfg.tau) if cfg.tau > 0 else default_tau(y_fit)
     if state is None:
         gate.fit_normalization(torch.from_numpy(x_fit), torch.from_numpy(y_fit))
     opt = torch.optim.Adam(gate.parameters(), lr=cfg.lr, weight_decay=cfg.weight_decay)
-    epoch, best_val, best_epoch, best_state, history = 0, float("inf"), 0, None, []
+    epoch, best_val, best_epoch, best_state, history = 0, None, 0, None, []
     if state is not None:
         gate.load_state_dict(state["gate"])
         opt.load_state_dict(state["optimizer"])
@@ -185,35 +213,58 @@ def fit_gate(gate, x_fit: np.ndarray, y_fit: np.ndarray, x_val: np.ndarray, y_va
         for k in range(0, len(order), cfg.batch_size):
             b = order[k:k + cfg.batch_size]
             pred = gate.predict_prepared(torch.from_numpy(x_fit[b]))
-            loss = (pred - y_fit_t[b]).abs().mean()  # mean absolute error (Section 5.2.2)
+            loss = objective(pred, y_fit_t[b], tau)
             opt.zero_grad(set_to_none=True)
             loss.backward()
             opt.step()
             total += float(loss.detach()) * len(b)
             n += len(b)
             bar.update(len(b))
-            bar.set_postfix(mae=f"{total / max(n, 1):.4f}")
+            bar.set_postfix(**{cfg.objective: f"{total / max(n, 1):.4f}"})
         bar.close()
         epoch += 1
-        val = mae(_predict(gate, x_val), y_val) if len(x_val) else float("nan")
-        row = {"epoch": epoch, "train_mae": round(total / max(n, 1), 6), "val_mae": round(val, 6) if val == val else ""}
+        row = {"epoch": epoch, f"train_{cfg.objective}": round(total / max(n, 1), 6), "val_mae": "", "val_regret": ""}
+        if len(x_val):
+            p_val = _predict(gate, x_val)
+            row["val_mae"], row["val_regret"] = round(mae(p_val, y_val), 6), round(regret(y_val, choose(p_val)), 6)
+            score = [row["val_regret"], row["val_mae"]] if cfg.select_on == "regret" else [row["val_mae"]]
         history.append(row)
-        if not len(x_val) or val < best_val:
-            best_val, best_epoch = (val if len(x_val) else float("nan")), epoch
+        if not len(x_val) or best_val is None or score < best_val:
+            best_val, best_epoch = (score if len(x_val) else None), epoch
             best_state = {k: v.detach().clone() for k, v in gate.state_dict().items()}
         if out is not None:
             _atomic_torch_save({"gate": gate.state_dict(), "optimizer": opt.state_dict(), "epoch": epoch,
                                 "best_val": best_val, "best_epoch": best_epoch, "best_state": best_state,
-                                "history": history, "torch_rng": torch.get_rng_state(),
-                                "config": dataclasses.asdict(cfg), **(extra or {})}, out / "checkpoint.pt")
+                               "history": history, "torch_rng": torch.get_rng_state(),
+                               "config": dataclasses.asdict(cfg), **(extra or {})}, out / "checkpoint.pt")
             _write_csv(out / "metrics.csv", history)
         if progress:
             sys.stderr.write(json.dumps(row) + "\n")
     if best_state is not None:
         gate.load_state_dict(best_state)
     gate.eval()
-    return {"best_epoch": best_epoch, "best_val_mae": None if best_val != best_val else round(best_val, 6),
-            "history": history}
+    best = history[best_epoch - 1] if best_epoch else {}
+    return {"best_epoch": best_epoch, "best_val_mae": best.get("val_mae") if best.get("val_mae") != "" else None,
+            "best_val_regret": best.get("val_regret") if best.get("val_regret") != "" else None,
+            "tau": round(tau, 6), "history": history}
+
+
+OBJECTIVE_LABEL = {"mae": "mean absolute error", "centred": "mean absolute error of the within-frame differences",
+                   "soft_ce": "cross entropy against softmax(-L / tau)", "expected": "expected regret under softmax(-s / tau)"}
+
+
+def choice_table(pred: np.ndarray, y_fit: np.ndarray, y_test: np.ndarray, contexts_fit, contexts_test,
+                 names: list[str]) -> dict:
+    """The gate's one choice per test frame (argmin of its predictions) beside the best constant and
+    the per-context constant (both fitted on the fitting frames) and the oracle: mean test loss of
+    what each chooses, regret, and how often the gate differs from the constant."""
+    from fusion.gate_objectives import apply_context_choice, choose, constant_choice, context_choice, judge
+
+    const = constant_choice(y_fit)
+    table = context_choice(y_fit, contexts_fit)
+    j = judge(y_test, choose(pred), const, apply_context_choice(table, contexts_test, const))
+    return {**{k: (round(v, 6) if isinstance(v, float) else v) for k, v in j.items()},
+            "constant": names[const], "per_context_constant": {c: names[i] for c, i in table.items()}}
 
 
 def _write_csv(path: Path, rows: list[dict]) -> None:
@@ -283,10 +334,13 @@ def train_gate(run_dir, data, cfg: GateTrainConfig, progress: bool = True, fresh
     pred = _predict(gate, x_test)
     mean_c, median_c = y_fit.mean(axis=0), np.median(y_fit, axis=0)
     branches = list(model.branches)
+    contexts = [[reader.manifest["frames"][int(i)]["context"] for i in idx] for idx in (fit_idx, test_idx)]
     result = {
         "gate": cfg.gate, "run": str(run_dir), "data": str(data), "checkpoint": cfg.checkpoint,
-        "optimizer": "Adam", "lr": cfg.lr, "loss": "mean absolute error", "epochs": cfg.epochs,
-        "best_epoch": fitted["best_epoch"], "val_mae": fitted["best_val_mae"],
+        "optimizer": "Adam", "lr": cfg.lr, "loss": OBJECTIVE_LABEL[cfg.objective], "objective": cfg.objective,
+        "tau": fitted["tau"], "selected_on": f"validation {cfg.select_on}", "epochs": cfg.epochs,
+        "best_epoch": fitted["best_epoch"], "val_mae": fitted["best_val_mae"], "val_regret": fitted["best_val_regret"],
+        "choice": choice_table(pred, y_fit, y_test, contexts[0], contexts[1], branches),
         "train_frames": len(fit_idx), "val_frames": len(val_idx), "test_frames": len(test_idx),
         "test_mae": round(mae(pred, y_test), 6),
         "constant_mean_mae": round(mae(np.broadcast_to(mean_c, y_test.shape), y_test), 6),

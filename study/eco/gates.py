@@ -15,7 +15,7 @@ from fusion.eco.loss import FusedLossSpec
 from sim.errors import UserError
 from study.eco.data import EcoSettings, _setup, _splits
 from study.gate_data import _atomic_text, _atomic_torch_save
-from study.gates import GateTrainConfig, _predict, fit_gate, mae, validation_split
+from study.gates import OBJECTIVE_LABEL, GateTrainConfig, _predict, choice_table, fit_gate, mae, validation_split
 
 
 def train_eco_gate(run_dir, data, gate: str, cfg: GateTrainConfig, s: EcoSettings = EcoSettings(),
@@ -66,15 +66,19 @@ def train_eco_gate(run_dir, data, gate: str, cfg: GateTrainConfig, s: EcoSetting
                       extra={"data_key": ed.key, "loss": loss})
     pred = _predict(g, x_test)
     mean_c = y_fit.mean(axis=0)
+    frames = DatasetReader(data).manifest["frames"]
+    contexts = [[frames[int(i)]["context"] for i in idx] for idx in (fit_idx, test)]
     from fusion.eco.optimise import select
 
     zero = np.zeros(len(configs))
     pick = select(pred, zero, 0.0, 0.0, "prose")
     result = {
         "gate": gate, "run": str(run_dir), "data": str(data), "configurations": len(configs), "optimizer": "Adam",
-        "lr": cfg.lr, "loss": "mean absolute error of L_f per configuration", "loss_definition": loss,
-        "epochs": cfg.epochs,
-        "best_epoch": fitted["best_epoch"], "val_mae": fitted["best_val_mae"], "train_frames": len(fit_idx),
+        "lr": cfg.lr, "loss": f"{OBJECTIVE_LABEL[cfg.objective]} of L_f per configuration", "loss_definition": loss,
+        "objective": cfg.objective, "tau": fitted["tau"], "selected_on": f"validation {cfg.select_on}",
+        "epochs": cfg.epochs, "choice": choice_table(pred, y_fit, y_test, *contexts, configs.names),
+        "best_epoch": fitted["best_epoch"], "val_mae": fitted["best_val_mae"], "val_regret": fitted["best_val_regret"],
+        "train_frames": len(fit_idx),
         "val_frames": len(val_idx), "test_frames": len(test), "test_mae": round(mae(pred, y_test), 6),
         "constant_mean_mae": round(mae(np.broadcast_to(mean_c, y_test.shape), y_test), 6),
         "test_loss_of_predicted_best": round(float(y_test[np.arange(len(test)), pick].mean()), 4),
