@@ -378,7 +378,7 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "theory": ("study.commands.theory:add_parser", "HydraFusion Sec. 1.1 measured: single sensors vs full, selective and gated fusion per weather"),
     "train": ("study.commands.train:add_parser", "train HydraFusion stems and branches (resumable, per-epoch CSV and checkpoints)"),
     "evaluate": ("study.commands.evaluate:add_parser", "VOC mAP@0.5 of a run's branches fused in the right camera (per class, per context)"),
-    "train-gate": ("study.commands.gates:add_train_gate", "train the deep or attention gate on a run's stem features and branch losses"),
+    "train-gate": ("study.commands.train_gate:add_train_gate", "train the deep or attention gate on a run's stem features and branch losses"),
     "eco-data": ("study.commands.eco:add_eco_data", "EcoFusion: per-frame stem features and fused loss / AP of every branch configuration"),
     "eco-energy": ("study.commands.eco:add_eco_energy", "EcoFusion: measured stem / branch / fusion latency and energy of every configuration"),
     "eco-train-gate": ("study.commands.eco:add_eco_train_gate", "EcoFusion: train the deep or attention configuration gate"),

@@ -2,7 +2,7 @@
 
 **Gate dataset** (Section 5.2.2: "the stem outputs and branch losses of a fully trained HydraFusion
 model as the inputs and targets for the gate"). For every frame of a dataset, what the learned
-gates consume, `fusion.nets.gates.pool_features` of the stem outputs (float16, 64 channels per
+gates consume, `fusion.nets.branch_gates.pool_features` of the stem outputs (float16, 64 channels per
 sensor on an 8 x 16 grid by default: 80 kB a frame for five sensors), and each branch's four
 Faster R-CNN losses from `HydraFusion.per_sample_losses` (seed 0; the gate target is their sum).
 Cached under the run directory, keyed by the checkpoint's SHA-256, the dataset manifest's SHA-256,
@@ -102,7 +102,7 @@ class GateData:
     """
 
     def __init__(self, run_dir, data, model, checkpoint: str = "latest", grid=None, seed: int = LOSS_SEED) -> None:
-        from fusion.nets.gates import DEFAULT_GRID, gate_sensors
+        from fusion.nets.branch_gates import DEFAULT_GRID, gate_sensors
 
         self.run_dir, self.data, self.model = Path(run_dir), Path(data), model
         self.grid = tuple(int(g) for g in (grid or DEFAULT_GRID))
@@ -176,7 +176,7 @@ class GateData:
         import torch
 
         from fusion.data import FrameDataset, collate
-        from fusion.nets.gates import pool_features
+        from fusion.nets.branch_gates import pool_features
 
         todo = self.missing(indices)
         if not todo:

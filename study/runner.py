@@ -138,7 +138,7 @@ class TrainSection:
 
 @dataclass(frozen=True)
 class GatesSection:
-    """Gate datasets and gates: HydraFusion's per-branch gates (`study.gates`, Section 5.2.2) and
+    """Gate datasets and gates: HydraFusion's per-branch gates (`study.branch_gate_study`, Section 5.2.2) and
     EcoFusion's per-configuration gates (`study.eco`), and the latency table (Eq. 6).
 
     Fields:
@@ -487,9 +487,9 @@ def gatedata_stage(work: Path, run_paper: Path, data: Path, settings, batch_size
 def gates_stage(work: Path, gatedata_run: Path, data: Path, gates: GatesSection, settings, setup, say,
                 progress: bool) -> tuple[str, dict]:
     """The learned HydraFusion and EcoFusion gates and the latency table, under work/run."""
+    from study.branch_gate_study import GateTrainConfig, train_gate
+    from study.eco.config_gate_study import train_eco_gate
     from study.eco.energy import energy_table
-    from study.eco.gates import train_eco_gate
-    from study.gates import GateTrainConfig, train_gate
 
     g = gates
     run = work / "run"
@@ -540,7 +540,7 @@ STAGE_CODE = {
     "generate": (("sensors.generate",), generate_stage),
     "train": (("study.train",), train_stage),
     "gatedata": (("study.detect", "study.eco.data", "study.gate_data"), gatedata_stage),
-    "gates": (("study.eco.energy", "study.eco.gates", "study.gates"), gates_stage),
+    "gates": (("study.eco.energy", "study.eco.config_gate_study", "study.branch_gate_study"), gates_stage),
     "evaluate": (("study.study_eval",), evaluate_stage),
     "report": (("study.report",), report_stage),
 }

@@ -15,7 +15,7 @@ chosen branches (a branch depends only on its own sensors' stems; tested in test
   branch losses (the oracle);
 - EcoFusion: a configuration gate's choice at lambda_E, gamma (Eq. 7-9); loss_based = the oracle.
 
-Besides the papers' tables (HydraFusion 3, 6, 7 from `study.gates.evaluate_all_gates`; EcoFusion
+Besides the papers' tables (HydraFusion 3, 6, 7 from `study.branch_gate_study.evaluate_all_gates`; EcoFusion
 1-3 and Figures 4-5 from `study.eco.sweep.sweep`) it measures what neither paper has: mAP against
 severity per condition with the clear twins of the same frames, mAP per range bin per context,
 each gate's regret against its oracle per context and how often its choice differs from the
@@ -78,8 +78,8 @@ def _summary(sc: dict) -> dict:
 
 def hydra_predictions(run, data, ev, gates) -> dict[str, np.ndarray]:
     """Predicted (or, for optimal, a-posteriori) per-branch losses on the test frames, (n, n_branches)."""
+    from study.branch_gate_study import _predict, load_trained_gate, make_gate
     from study.gate_data import GateData
-    from study.gates import _predict, load_trained_gate, make_gate
 
     out = {}
     for g in gates:
@@ -97,7 +97,7 @@ def hydra_predictions(run, data, ev, gates) -> dict[str, np.ndarray]:
 def top_k_members(pred: np.ndarray, branches, k: int) -> list[tuple[str, ...]]:
     import torch
 
-    from fusion.nets.gates import top_k
+    from fusion.nets.branch_gates import top_k
 
     return top_k(torch.as_tensor(pred, dtype=torch.float32), branches, min(k, len(branches)))
 
@@ -106,11 +106,11 @@ def evaluate_study(run, run_early, data, cfg, s, work: Path, setup=None, progres
     """Every number of the study's report (module docstring). `cfg`: the StudyConfig; `s`: its
     EcoSettings; figures are written under `work`."""
     from fusion.eco.configurations import SINGLE_SENSORS
+    from study.branch_gate_study import evaluate_all_gates
     from study.detect import fusion_method
     from study.eco.energy import machine_description
     from study.eco.evaluate import GATE_ORDER, EcoEval
     from study.eco.sweep import sweep
-    from study.gates import evaluate_all_gates
 
     e = cfg.evaluate
     run, data, work = Path(run), Path(data), Path(work)

@@ -8,6 +8,7 @@ from pathlib import Path
 
 from sim.errors import UserError
 from study import eco
+from study.branch_gate_study import GateTrainConfig
 from study.cli import (
     Formatter,
     bootstrap_int,
@@ -25,13 +26,12 @@ from study.cli import (
     pos_int,
     training_run,
 )
-from study.commands.gates import _fraction, _grid_arg
+from study.commands.train_gate import _fraction, _grid_arg
+from study.eco.config_gate_study import train_eco_gate
 from study.eco.data import EcoSettings, build_eco_data
 from study.eco.energy import energy_table
 from study.eco.evaluate import GATE_ORDER, EcoEval, evaluate_eco, execute_ecofusion
-from study.eco.gates import train_eco_gate
 from study.eco.sweep import SWEEP_LAMBDAS, sweep
-from study.gates import GateTrainConfig
 
 EPILOG = """\
 examples:

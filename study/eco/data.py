@@ -218,7 +218,7 @@ def _setup(run_dir, data, s: EcoSettings, threads: int = 2):
     import torch
 
     from fusion.eco.configurations import build_configurations, load_configurations_config
-    from fusion.nets.gates import gate_sensors
+    from fusion.nets.branch_gates import gate_sensors
     from study.detect import fusion_method, load_run
 
     torch.set_num_threads(threads)

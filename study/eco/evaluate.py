@@ -13,11 +13,11 @@ import numpy as np
 
 from fusion.metrics import MAX_BOOTSTRAP
 from sim.errors import UserError
+from study.branch_gate_study import _predict
+from study.eco.config_gate_study import load_eco_gate
 from study.eco.data import EcoSettings, _setup, _splits, detections_from_array, fuse_choice
 from study.eco.energy import energy_table
-from study.eco.gates import load_eco_gate
 from study.gate_data import _bar
-from study.gates import _predict
 
 GATE_ORDER = ("knowledge", "deep", "attention", "loss_based")
 FEATURE_GATES = ("deep", "attention")
@@ -31,7 +31,7 @@ class EcoEval:
 
     def __init__(self, run_dir, data, s: EcoSettings = EcoSettings(), gates=None, threads: int = 2,
                  latency_threads: int = 1, progress: bool = True) -> None:
-        from fusion.eco.gates import build_config_gate
+        from fusion.eco.config_gates import build_config_gate
         from fusion.eco.optimise import normalise_energy
         from sensors.dataset import DatasetReader
 
@@ -90,7 +90,7 @@ class EcoEval:
         counted."""
         if gate not in FEATURE_GATES:
             return np.zeros(len(choice)), [set() for _ in choice]
-        from fusion.nets.gates import gate_sensors
+        from fusion.nets.branch_gates import gate_sensors
 
         read = set(gate_sensors(self.model))
         stems = self.latency_model.stems
@@ -213,7 +213,7 @@ def execute_ecofusion(run_dir, data, gate: str, lambda_e: float, gamma: float, s
     import torch
 
     from fusion.data import FrameDataset, collate
-    from fusion.eco.gates import EcoFusionSelector, build_config_gate
+    from fusion.eco.config_gates import EcoFusionSelector, build_config_gate
     from fusion.late import fuse
     from sensors.rig import Calibration
     from study.detect import fusion_method, to_detections

@@ -79,7 +79,7 @@ def test_eco_data_reports_loss_ap_rank_correlation_and_subsets_fused_afterwards_
     ed = EcoData(eco, data, model, configs, "soft_nms")
     assert ed.dir.parent == eco / "eco_data" and ed.missing(range(8)) == []
     arr = ed.arrays([1, 6], ["features", "detections", "terms", "ap"])
-    from fusion.nets.gates import gate_sensors
+    from fusion.nets.branch_gates import gate_sensors
 
     assert set(gate_sensors(model)) == {"radar", "camera_left", "camera_right", "lidar", "fwd_lidar"}  # every stem
     assert arr["features"].shape == (2, 5 * 64, 8, 16) and arr["terms"].shape == (2, 31, 7)

@@ -7,8 +7,8 @@ import numpy as np
 import pytest
 import torch
 
-from fusion.nets.gates import GATES
-from study.gates import GateTrainConfig, _predict, fit_gate, mae, ranking_agreement
+from fusion.nets.branch_gates import GATES
+from study.branch_gate_study import GateTrainConfig, _predict, fit_gate, mae, ranking_agreement
 
 
 @pytest.fixture(autouse=True, scope="module")

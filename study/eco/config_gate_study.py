@@ -13,9 +13,9 @@ import numpy as np
 
 from fusion.eco.loss import FusedLossSpec
 from sim.errors import UserError
+from study.branch_gate_study import GateTrainConfig, _predict, fit_gate, mae, validation_split
 from study.eco.data import EcoSettings, _setup, _splits
 from study.gate_data import _atomic_text, _atomic_torch_save
-from study.gates import GateTrainConfig, _predict, fit_gate, mae, validation_split
 
 
 def train_eco_gate(run_dir, data, gate: str, cfg: GateTrainConfig, s: EcoSettings = EcoSettings(),
@@ -25,7 +25,7 @@ def train_eco_gate(run_dir, data, gate: str, cfg: GateTrainConfig, s: EcoSetting
     RUN/eco/gates/<gate>/ (resumable, like train-gate)."""
     import torch
 
-    from fusion.eco.gates import CONFIG_GATES, build_config_gate
+    from fusion.eco.config_gates import CONFIG_GATES, build_config_gate
     from sensors.dataset import DatasetReader
 
     cls = CONFIG_GATES.get(gate)
@@ -93,7 +93,7 @@ def load_eco_gate(run_dir, name: str, model, configs, data_key: str, s: EcoSetti
     """A trained configuration gate from `s.gate_dir(run_dir, name)`/gate.pt (for this configuration
     dataset and this L_f)."""
 
-    from fusion.eco.gates import build_config_gate
+    from fusion.eco.config_gates import build_config_gate
 
     path = s.gate_dir(run_dir, name) / "gate.pt"
     fp = s.fp_flag()

@@ -1,12 +1,12 @@
-"""`hydrabench train-gate`: the command line of `study.gates.train_gate` (the gate dataset and the
-training are described in `study.gate_data` and `study.gates`)."""
+"""`hydrabench train-gate`: the command line of `study.branch_gate_study.train_gate` (the gate dataset
+and the training are described in `study.gate_data` and `study.branch_gate_study`)."""
 
 from __future__ import annotations
 
 import argparse
 from pathlib import Path
 
-from study import gates
+from study import branch_gate_study
 from study.cli import (
     Formatter,
     checkpoint_arg,
@@ -52,7 +52,7 @@ def _fraction(text: str) -> float:
 
 
 def add_train_gate(sub, name, help_text):
-    doc = gates.__doc__.split("**train-gate**", 1)[1].split("**Tables.**", 1)[0]
+    doc = branch_gate_study.__doc__.split("**train-gate**", 1)[1].split("**Tables.**", 1)[0]
     p = sub.add_parser(name, help=help_text, description="hydrabench train-gate" + doc.rstrip(), epilog=TRAIN_EPILOG,
                        formatter_class=Formatter)
     p.add_argument("run_dir", metavar="RUN", type=training_run, help="training run directory (hydrabench train --out)")
@@ -74,10 +74,10 @@ def add_train_gate(sub, name, help_text):
 
 def run_train_gate(args) -> int:
     setup = resolve_device(args)
-    cfg = gates.GateTrainConfig(gate=args.gate, epochs=args.epochs, batch_size=args.batch_size, lr=args.lr,
-                          val_fraction=args.val_fraction, seed=args.seed, grid=tuple(args.grid),
-                          checkpoint=args.checkpoint, threads=setup.threads)
-    result = gates.train_gate(Path(args.run_dir), Path(args.data), cfg, fresh=args.fresh, setup=setup)
+    cfg = branch_gate_study.GateTrainConfig(gate=args.gate, epochs=args.epochs, batch_size=args.batch_size,
+                                            lr=args.lr, val_fraction=args.val_fraction, seed=args.seed,
+                                            grid=tuple(args.grid), checkpoint=args.checkpoint, threads=setup.threads)
+    result = branch_gate_study.train_gate(Path(args.run_dir), Path(args.data), cfg, fresh=args.fresh, setup=setup)
 
     def text(r):
         lines = [f"{r['gate']} gate: held-out MAE {r['test_mae']} vs constant predictor {r['constant_mean_mae']} "

@@ -44,7 +44,7 @@ FUSION_LABEL = {"nms": "nms", "soft_nms": "soft-nms", "wbf": "wbf"}
 
 def parse_k(text: Any, n_branches: int, field: str = "--k") -> int | str:
     """An int 1..n_branches or "all" (the table's column name); UserError naming `field` otherwise."""
-    from fusion.nets.gates import check_k
+    from fusion.nets.branch_gates import check_k
 
     if isinstance(text, str) and text.strip().lower() == "all":
         return "all"
@@ -72,7 +72,7 @@ class GateTrainConfig:
     """One gate training run.
 
     Fields:
-        gate: "deep" or "attention" (fusion.nets.gates.GATES entries that learn).
+        gate: "deep" or "attention" (fusion.nets.branch_gates.GATES entries that learn).
         epochs: passes over the training frames.
         batch_size: frames per step.
         lr: Adam learning rate (HydraFusion 5.3 trains its gates at 5e-5).
@@ -233,7 +233,7 @@ def train_gate(run_dir, data, cfg: GateTrainConfig, progress: bool = True, fresh
     float32). The gate itself, a few small convs on pooled features, trains on the CPU."""
     import torch
 
-    from fusion.nets.gates import GATES, build_gate
+    from fusion.nets.branch_gates import GATES, build_gate
     from sensors.dataset import DatasetReader
     from study.detect import load_run, run_train_test
 
@@ -313,7 +313,7 @@ def train_gate(run_dir, data, cfg: GateTrainConfig, progress: bool = True, fresh
 def load_trained_gate(run_dir, name: str, model, checkpoint: str = "latest"):
     """The gate `train_gate` saved in RUN/gates/<name>/gate.pt, for this checkpoint of the run."""
 
-    from fusion.nets.gates import build_gate
+    from fusion.nets.branch_gates import build_gate
 
     run_dir = Path(run_dir)
     path = run_dir / "gates" / name / "gate.pt"
@@ -334,7 +334,7 @@ def load_trained_gate(run_dir, name: str, model, checkpoint: str = "latest"):
 
 def make_gate(name: str, model, run_dir, checkpoint: str = "latest", k: int | str | None = None):
     """A ready gate: trained ones loaded from the run, the others built from the model."""
-    from fusion.nets.gates import GATES, build_gate
+    from fusion.nets.branch_gates import GATES, build_gate
 
     cls = GATES.get(name)
     gate = load_trained_gate(run_dir, name, model, checkpoint) if cls.trainable else build_gate(name, model).eval()
@@ -356,7 +356,7 @@ def _rates_per_context(selections, contexts, branches) -> dict[str, dict[str, fl
 
 
 def _setup(run_dir, data, split, weights, checkpoint, setup=None):
-    from fusion.nets.gates import gate_sensors
+    from fusion.nets.branch_gates import gate_sensors
     from sensors.dataset import DatasetReader
     from study.detect import frames_for, load_run
 
@@ -464,7 +464,7 @@ def evaluate_all_gates(run_dir, data, gates=None, fusions=TABLE_FUSIONS, ks=None
     import torch
 
     from fusion.late import fuse
-    from fusion.nets.gates import GATES, rank_branches
+    from fusion.nets.branch_gates import GATES, rank_branches
     from sensors.rig import Calibration
     from study.detect import score, to_detections
     from study.train import run_protocol
