@@ -24,7 +24,6 @@ from __future__ import annotations
 import csv
 import dataclasses
 import json
-import os
 import sys
 from collections import defaultdict
 from dataclasses import dataclass
@@ -34,8 +33,10 @@ from typing import Any
 import numpy as np
 
 from sim.errors import UserError
+from sim.progress import progress as progress_bar
 from study.device import resolve_device
-from study.gate_data import GateData, _atomic_text, _atomic_torch_save, _bar, cached_sha256, checkpoint_path
+from study.gate_data import GateData, cached_sha256, checkpoint_path
+from study.outputs import atomic_path, torch_save_atomic, write_json_atomic
 
 TABLE_KS = (1, 3, 5, "all")
 TABLE_FUSIONS = ("nms", "soft_nms", "wbf")
@@ -130,9 +131,11 @@ def mae(pred: np.ndarray, target: np.ndarray) -> float:
     return float(np.abs(np.asarray(pred, np.float64) - np.asarray(target, np.float64)).mean()) if len(target) else float("nan")
 
 
-def _predict(gate, feats: np.ndarray, batch: int = 256) -> np.ndarray:
-    """A gate's predictions (one per branch, or per configuration for EcoFusion's configuration
-    gates) on prepared pooled features, in batches, without gradients."""
+def predict_losses(gate, feats: np.ndarray, batch: int = 256) -> np.ndarray:
+    """A learned gate's predicted losses on prepared pooled features, in batches, without gradients.
+
+    feats: (n, channels, rows, cols) pooled stem features as `GateData` stores them.
+    Returns (n, n_branches) float32, or (n, n_configurations) for EcoFusion's configuration gates."""
     import torch
 
     gate.eval()
@@ -181,7 +184,8 @@ def fit_gate(gate, x_fit: np.ndarray, y_fit: np.ndarray, x_val: np.ndarray, y_va
         order = np.random.default_rng([cfg.seed, epoch]).permutation(len(x_fit))
         total, n = 0.0, 0
         # a live bar on a terminal; in a log file only the per-epoch JSON line below
-        bar = _bar(len(order), f"train-gate {gate.name} epoch {epoch + 1}/{cfg.epochs}", progress and sys.stderr.isatty())
+        bar = progress_bar(total=len(order), desc=f"train-gate {gate.name} epoch {epoch + 1}/{cfg.epochs}",
+                           enabled=progress and sys.stderr.isatty())
         for k in range(0, len(order), cfg.batch_size):
             b = order[k:k + cfg.batch_size]
             pred = gate.predict_prepared(torch.from_numpy(x_fit[b]))
@@ -195,17 +199,17 @@ def fit_gate(gate, x_fit: np.ndarray, y_fit: np.ndarray, x_val: np.ndarray, y_va
             bar.set_postfix(mae=f"{total / max(n, 1):.4f}")
         bar.close()
         epoch += 1
-        val = mae(_predict(gate, x_val), y_val) if len(x_val) else float("nan")
+        val = mae(predict_losses(gate, x_val), y_val) if len(x_val) else float("nan")
         row = {"epoch": epoch, "train_mae": round(total / max(n, 1), 6), "val_mae": round(val, 6) if val == val else ""}
         history.append(row)
         if not len(x_val) or val < best_val:
             best_val, best_epoch = (val if len(x_val) else float("nan")), epoch
             best_state = {k: v.detach().clone() for k, v in gate.state_dict().items()}
         if out is not None:
-            _atomic_torch_save({"gate": gate.state_dict(), "optimizer": opt.state_dict(), "epoch": epoch,
-                                "best_val": best_val, "best_epoch": best_epoch, "best_state": best_state,
-                                "history": history, "torch_rng": torch.get_rng_state(),
-                                "config": dataclasses.asdict(cfg), **(extra or {})}, out / "checkpoint.pt")
+            torch_save_atomic({"gate": gate.state_dict(), "optimizer": opt.state_dict(), "epoch": epoch,
+                              "best_val": best_val, "best_epoch": best_epoch, "best_state": best_state,
+                              "history": history, "torch_rng": torch.get_rng_state(),
+                              "config": dataclasses.asdict(cfg), **(extra or {})}, out / "checkpoint.pt")
             _write_csv(out / "metrics.csv", history)
         if progress:
             sys.stderr.write(json.dumps(row) + "\n")
@@ -217,12 +221,10 @@ def fit_gate(gate, x_fit: np.ndarray, y_fit: np.ndarray, x_val: np.ndarray, y_va
 
 
 def _write_csv(path: Path, rows: list[dict]) -> None:
-    tmp = path.with_name(f".{path.name}.tmp-{os.getpid()}")
-    with open(tmp, "w", newline="") as fh:
+    with atomic_path(path) as tmp, open(tmp, "w", newline="") as fh:
         w = csv.DictWriter(fh, fieldnames=list(rows[0]))
         w.writeheader()
         w.writerows(rows)
-    os.replace(tmp, path)
 
 
 def train_gate(run_dir, data, cfg: GateTrainConfig, progress: bool = True, fresh: bool = False, setup=None) -> dict:
@@ -280,7 +282,7 @@ def train_gate(run_dir, data, cfg: GateTrainConfig, progress: bool = True, fresh
     fitted = fit_gate(gate, x_fit, y_fit, x_val, y_val, cfg, out=out, progress=progress, state=state,
                       extra={"data_key": gd.key})
 
-    pred = _predict(gate, x_test)
+    pred = predict_losses(gate, x_test)
     mean_c, median_c = y_fit.mean(axis=0), np.median(y_fit, axis=0)
     branches = list(model.branches)
     result = {
@@ -300,11 +302,11 @@ def train_gate(run_dir, data, cfg: GateTrainConfig, progress: bool = True, fresh
         "gate_data": str(gd.dir), "gate_path": str(out / "gate.pt"),
     }
     result["beats_constant"] = result["test_mae"] < result["constant_mean_mae"]
-    _atomic_torch_save({"name": cfg.gate, "options": {**cfg.gate_options(), "sensors": list(gd.sensors)},
-                        "branches": branches, "state": gate.state_dict(), "data_key": gd.key,
-                        "checkpoint": cfg.checkpoint, "checkpoint_sha256": gd.identity["checkpoint_sha256"],
-                        "result": result}, out / "gate.pt")
-    _atomic_text(out / "result.json", json.dumps(result, indent=1))
+    torch_save_atomic({"name": cfg.gate, "options": {**cfg.gate_options(), "sensors": list(gd.sensors)},
+                      "branches": branches, "state": gate.state_dict(), "data_key": gd.key,
+                      "checkpoint": cfg.checkpoint, "checkpoint_sha256": gd.identity["checkpoint_sha256"],
+                      "result": result}, out / "gate.pt")
+    write_json_atomic(out / "result.json", result)
     return result
 
 
@@ -424,7 +426,7 @@ def evaluate_gate(run_dir, data, gate: str, k=None, fusion: str = "soft-nms", sp
     per_frame = []
     try:
         with torch.no_grad():
-            bar = _bar(len(indices), f"evaluate {gate} k={k}", progress)
+            bar = progress_bar(total=len(indices), desc=f"evaluate {gate} k={k}", enabled=progress)
             for inputs, _targets, metas in _loader(model, data, indices, batch_size):
                 if losses is not None:
                     metas = [dict(m, branch_losses=losses[int(m["dataset_index"])]) for m in metas]
@@ -482,7 +484,7 @@ def evaluate_all_gates(run_dir, data, gates=None, fusions=TABLE_FUSIONS, ks=None
     predicted: dict[str, list] = {g: [] for g in names}
     per_frame = []
     with torch.no_grad():
-        bar = _bar(len(indices), "evaluate all gates", progress)
+        bar = progress_bar(total=len(indices), desc="evaluate all gates", enabled=progress)
         for inputs, _targets, metas in _loader(model, data, indices, batch_size):
             if losses is not None:
                 metas = [dict(m, branch_losses=losses[int(m["dataset_index"])]) for m in metas]
@@ -514,7 +516,7 @@ def evaluate_all_gates(run_dir, data, gates=None, fusions=TABLE_FUSIONS, ks=None
     ctx_table: dict = {}
     rates: dict = {}
     rates_ctx: dict = {}
-    bar = _bar(len(names) * len(ks) * len(fusions), "fuse and score", progress)
+    bar = progress_bar(total=len(names) * len(ks) * len(fusions), desc="fuse and score", enabled=progress)
     for g in names:
         map_table[g], ctx_table[g], rates[g], rates_ctx[g] = {}, {}, {}, {}
         for k in ks:

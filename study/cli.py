@@ -141,6 +141,28 @@ nonneg_float = float_range(0.0, 1e9, "nonneg_float")
 probability = float_range(0.0, 1.0, "probability")
 
 
+def holdout_fraction(text: str) -> float:
+    """An argparse type: the share of data held out, a number in [0, 1)."""
+    try:
+        v = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a number, got {text!r}") from None
+    if not 0.0 <= v < 1.0:
+        raise argparse.ArgumentTypeError(f"must be in [0, 1), got {v}")
+    return v
+
+
+def pool_grid(text: str) -> tuple[int, int]:
+    """An argparse type: the ROWSxCOLS grid stem features are pooled to (`8x16`), at least 4x4."""
+    try:
+        rows, cols = (int(t) for t in text.lower().split("x"))
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected ROWSxCOLS such as 8x16, got {text!r}") from None
+    if rows < 4 or cols < 4:
+        raise argparse.ArgumentTypeError(f"grid must be at least 4x4, got {text!r}")
+    return rows, cols
+
+
 def name_list(text: str) -> tuple[str, ...]:
     """A comma-separated list of names: no empty items, no name twice, no dangling '+' in a combination
     ("rain+", "+fog", "city++rain"). Whether each name exists is the command's check."""

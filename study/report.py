@@ -14,6 +14,8 @@ import json
 import os
 from pathlib import Path
 
+from study.outputs import write_text_atomic
+
 REPORT_VERSION = 1
 
 
@@ -325,7 +327,5 @@ def write_report(results: dict, context: dict, work: Path, eval_dir: Path, rel_t
               "results": results}
     for name, text in (("report.md", doc.markdown(Path(rel_to or work))), ("report.html", doc.html(f"hydrabench study ({summary['scale']})")),
                        ("report.json", json.dumps(report, indent=1, default=str))):
-        tmp = work / f".{name}.tmp-{os.getpid()}"
-        tmp.write_text(text)
-        os.replace(tmp, work / name)
+        write_text_atomic(work / name, text)
     return report

@@ -78,7 +78,7 @@ def _summary(sc: dict) -> dict:
 
 def hydra_predictions(run, data, ev, gates) -> dict[str, np.ndarray]:
     """Predicted (or, for optimal, a-posteriori) per-branch losses on the test frames, (n, n_branches)."""
-    from study.branch_gate_study import _predict, load_trained_gate, make_gate
+    from study.branch_gate_study import load_trained_gate, make_gate, predict_losses
     from study.gate_data import GateData
 
     out = {}
@@ -90,7 +90,7 @@ def hydra_predictions(run, data, ev, gates) -> dict[str, np.ndarray]:
         elif g == "knowledge":
             out[g] = make_gate(g, ev.model, run).predict(None, ev.metas).numpy()
         else:
-            out[g] = _predict(load_trained_gate(run, g, ev.model), ev.features)
+            out[g] = predict_losses(load_trained_gate(run, g, ev.model), ev.features)
     return out
 
 

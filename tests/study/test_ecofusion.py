@@ -190,7 +190,7 @@ def test_fp_weight_reweights_cached_terms_and_keeps_its_gates_apart(eco, data, c
     from fusion.eco.configurations import build_configurations
     from fusion.eco.loss import FusedLossSpec
     from study.detect import load_run
-    from study.eco.data import EcoData, EcoSettings, _splits
+    from study.eco.data import EcoData, EcoSettings, eco_splits
 
     assert main(["eco-data", str(eco), str(data), "--fp-weight", "0.25", "--json"]) == 0
     r = _json(capsys)
@@ -199,7 +199,7 @@ def test_fp_weight_reweights_cached_terms_and_keeps_its_gates_apart(eco, data, c
     model, cfg = load_run(eco)
     configs = build_configurations(model.branch_sensors)
     ed = EcoData(eco, data, model, configs, "soft_nms")
-    _, test = _splits(cfg, data)
+    _, test = eco_splits(cfg, data)
     t = ed.arrays(test, ["terms"])["terms"]
     law = (t[..., 0] + t[..., 1] + 0.25 * t[..., 2] + FusedLossSpec().miss_cost * t[..., 3]) / np.maximum(t[..., 4], 1)
     for name, v in r["mean_loss_test"].items():
