@@ -141,6 +141,28 @@ nonneg_float = float_range(0.0, 1e9, "nonneg_float")
 probability = float_range(0.0, 1.0, "probability")
 
 
+def holdout_fraction(text: str) -> float:
+    """An argparse type: the share of data held out, a number in [0, 1)."""
+    try:
+        v = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a number, got {text!r}") from None
+    if not 0.0 <= v < 1.0:
+        raise argparse.ArgumentTypeError(f"must be in [0, 1), got {v}")
+    return v
+
+
+def pool_grid(text: str) -> tuple[int, int]:
+    """An argparse type: the ROWSxCOLS grid stem features are pooled to (`8x16`), at least 4x4."""
+    try:
+        rows, cols = (int(t) for t in text.lower().split("x"))
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected ROWSxCOLS such as 8x16, got {text!r}") from None
+    if rows < 4 or cols < 4:
+        raise argparse.ArgumentTypeError(f"grid must be at least 4x4, got {text!r}")
+    return rows, cols
+
+
 def name_list(text: str) -> tuple[str, ...]:
     """A comma-separated list of names: no empty items, no name twice, no dangling '+' in a combination
     ("rain+", "+fog", "city++rain"). Whether each name exists is the command's check."""
@@ -378,7 +400,7 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "theory": ("study.commands.theory:add_parser", "HydraFusion Sec. 1.1 measured: single sensors vs full, selective and gated fusion per weather"),
     "train": ("study.commands.train:add_parser", "train HydraFusion stems and branches (resumable, per-epoch CSV and checkpoints)"),
     "evaluate": ("study.commands.evaluate:add_parser", "VOC mAP@0.5 of a run's branches fused in the right camera (per class, per context)"),
-    "train-gate": ("study.commands.gates:add_train_gate", "train the deep or attention gate on a run's stem features and branch losses"),
+    "train-gate": ("study.commands.train_gate:add_train_gate", "train the deep or attention gate on a run's stem features and branch losses"),
     "eco-data": ("study.commands.eco:add_eco_data", "EcoFusion: per-frame stem features and fused loss / AP of every branch configuration"),
     "eco-energy": ("study.commands.eco:add_eco_energy", "EcoFusion: measured stem / branch / fusion latency and energy of every configuration"),
     "eco-train-gate": ("study.commands.eco:add_eco_train_gate", "EcoFusion: train the deep or attention configuration gate"),

@@ -32,7 +32,7 @@ def load_run(run: str | Path, which: str = "latest", device: str = "cpu"):
     """(model in eval mode on `device`, run config dict) from a training run directory."""
     from fusion.nets import build_hydrafusion
     from fusion.nets.profile import BranchSpec
-    from study.train import run_profile
+    from study.run_config import run_profile
 
     run = Path(run)
     cfg_path = run / "config.json"

@@ -2,7 +2,7 @@
 
 **Gate dataset** (Section 5.2.2: "the stem outputs and branch losses of a fully trained HydraFusion
 model as the inputs and targets for the gate"). For every frame of a dataset, what the learned
-gates consume, `fusion.nets.gates.pool_features` of the stem outputs (float16, 64 channels per
+gates consume, `fusion.nets.branch_gates.pool_features` of the stem outputs (float16, 64 channels per
 sensor on an 8 x 16 grid by default: 80 kB a frame for five sensors), and each branch's four
 Faster R-CNN losses from `HydraFusion.per_sample_losses` (seed 0; the gate target is their sum).
 Cached under the run directory, keyed by the checkpoint's SHA-256, the dataset manifest's SHA-256,
@@ -26,8 +26,9 @@ from pathlib import Path
 import numpy as np
 
 from sim.errors import UserError
+from sim.progress import progress as progress_bar
 from study.device import compute_identity
-from study.outputs import atomic_path
+from study.outputs import atomic_path, write_json_atomic
 
 GATE_DATA_VERSION = 2
 LOSS_SEED = 0
@@ -61,29 +62,9 @@ def checkpoint_path(run_dir: Path, checkpoint: str = "latest") -> Path:
     return Path(run_dir) / ("checkpoint.pt" if checkpoint == "latest" else f"{checkpoint}.pt")
 
 
-def _atomic_torch_save(obj, path: Path) -> None:
-    import torch
-
-    with atomic_path(path) as tmp:
-        torch.save(obj, tmp)
-
-
-def _atomic_text(path: Path, text: str) -> None:
-    with atomic_path(path) as tmp:
-        tmp.write_text(text)
-
-
 def model_device(model) -> str:
     """The device the network's parameters are on ("cpu", "cuda:0")."""
     return str(next(model.parameters()).device)
-
-
-def _bar(total: int, desc: str, progress: bool):
-    """tqdm on a terminal; a whole line every few seconds when stderr is a file or pipe (a tqdm bar
-    there writes carriage returns that a log shows as one line)."""
-    from sim.progress import progress as progress_bar
-
-    return progress_bar(total=total, desc=desc, enabled=progress)
 
 
 # ----- the gate dataset -----------------------------------------------------------------------
@@ -102,7 +83,7 @@ class GateData:
     """
 
     def __init__(self, run_dir, data, model, checkpoint: str = "latest", grid=None, seed: int = LOSS_SEED) -> None:
-        from fusion.nets.gates import DEFAULT_GRID, gate_sensors
+        from fusion.nets.branch_gates import DEFAULT_GRID, gate_sensors
 
         self.run_dir, self.data, self.model = Path(run_dir), Path(data), model
         self.grid = tuple(int(g) for g in (grid or DEFAULT_GRID))
@@ -176,7 +157,7 @@ class GateData:
         import torch
 
         from fusion.data import FrameDataset, collate
-        from fusion.nets.gates import pool_features
+        from fusion.nets.branch_gates import pool_features
 
         todo = self.missing(indices)
         if not todo:
@@ -184,8 +165,8 @@ class GateData:
         self.dir.mkdir(parents=True, exist_ok=True)
         info = self.dir / "info.json"
         if not info.exists():
-            _atomic_text(info, json.dumps({**self.identity, "key": self.key, "run": str(self.run_dir),
-                                           "data": str(self.data)}, indent=1))
+            write_json_atomic(info, {**self.identity, "key": self.key, "run": str(self.run_dir),
+                                     "data": str(self.data)})
         from study.device import to_device
 
         model = self.model.eval()
@@ -193,7 +174,7 @@ class GateData:
         ds = FrameDataset(self.data, todo, sensors=model.sensors, bev_size=model.transform.image_size("radar"),
                           protocol=self.protocol)
         n_chunk = len(self._chunks())
-        bar = _bar(len(todo), self.subdir.replace("_", " "), progress)
+        bar = progress_bar(total=len(todo), desc=self.subdir.replace("_", " "), enabled=progress)
         pending: dict[str, list] = defaultdict(list)
 
         def flush():

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import contextlib
 import errno
+import json
 import os
 import tempfile
 from collections.abc import Iterator
@@ -130,6 +131,26 @@ def atomic_path(path: str | Path) -> Iterator[Path]:
             os.unlink(tmp)
 
 
+def write_text_atomic(path: str | Path, text: str) -> None:
+    """Write `text` to `path` atomically (`atomic_path`): readers see the old file or the whole new one."""
+    with atomic_path(path) as tmp:
+        tmp.write_text(text)
+
+
+def write_json_atomic(path: str | Path, obj, default=None) -> None:
+    """`obj` as JSON (indent 1; `default` as in `json.dumps`) written to `path` atomically."""
+    write_text_atomic(path, json.dumps(obj, indent=1, default=default))
+
+
+def torch_save_atomic(obj, path: str | Path) -> None:
+    """`torch.save(obj)` to `path` atomically (`atomic_path`): an interrupted save leaves the old file."""
+    import torch
+
+    with atomic_path(path) as tmp:
+        torch.save(obj, tmp)
+
+
 def savefig_atomic(fig, path: str | Path, **kw) -> None:
+    """`fig.savefig` to `path` atomically (`atomic_path`), in the format its extension names."""
     with atomic_path(path) as tmp:
         fig.savefig(tmp, format=Path(path).suffix.lstrip(".").lower() or "png", **kw)

@@ -14,6 +14,8 @@ import json
 import os
 from pathlib import Path
 
+from study.outputs import write_text_atomic
+
 REPORT_VERSION = 1
 
 
@@ -126,16 +128,41 @@ def _severity_figure(results: dict, path: Path) -> bool:
 
 
 def build(results: dict, context: dict, work: Path, eval_dir: Path) -> tuple[Doc, dict]:
+    """The report (the papers' tables in their order, then what neither paper has) and its summary."""
     r = results
-    ds = r["dataset"]
-    m = r["machine"]
+    tag = run_tag(r, context["scale"])
+    doc = Doc()
+    add_intro(doc, r, context, tag)
+    add_hydra_table2(doc, r, tag)
+    add_intervals(doc, r, tag)
+    add_hydra_table3(doc, r, tag)
+    add_hydra_table4(doc, r, tag)
+    add_hydra_table5(doc, r, tag)
+    add_hydra_tables_6_7(doc, r, tag)
+    add_eco_tables(doc, r, tag, eval_dir)
+    add_severity(doc, r, tag, work)
+    add_range_bins(doc, r, tag)
+    add_gate_regret(doc, r, tag)
+    add_fusion_regret(doc, r, tag)
+    add_gate_picks(doc, r, tag)
+    summary = {"scale": context["scale"], "meaningless": bool(context.get("meaningless")), "protocol": r["protocol"],
+               "dataset": r["dataset"], "machine": r["machine"], "device": r.get("device"), "tag": tag}
+    return doc, summary
+
+
+def run_tag(r: dict, scale: str) -> str:
+    """What every caption names: the protocol, the scale, the dataset's size and the machine."""
+    ds, m = r["dataset"], r["machine"]
     dev = r.get("device")
     dev = dev.get("device", "") if isinstance(dev, dict) else str(dev or "")
     machine = f"{m.get('cpu') or m.get('platform', '?')}, {m.get('threads', '?')} thread(s), device {dev}"
-    scale = context["scale"]
-    tag = (f"protocol {r['protocol']}; scale {scale}; dataset {ds['frames']} frames ({ds['train_frames']} train, "
-           f"{ds['test_frames']} test); machine {machine}")
-    doc = Doc()
+    return (f"protocol {r['protocol']}; scale {scale}; dataset {ds['frames']} frames ({ds['train_frames']} train, "
+            f"{ds['test_frames']} test); machine {machine}")
+
+
+def add_intro(doc: Doc, r: dict, context: dict, tag: str) -> None:
+    """The warning of a meaningless scale, the title, what is measured how, and the stages' times."""
+    ds, scale = r["dataset"], context["scale"]
     if context.get("meaningless"):
         doc.p(f"**These numbers mean nothing**: scale `{scale}` trains for minutes on a handful of frames, to check "
               "that every stage runs; read a `cpu` or `paper` study for results.")
@@ -147,7 +174,14 @@ def build(results: dict, context: dict, work: Path, eval_dir: Path) -> tuple[Doc
         doc.table(f"Stages (seconds when each ran; {tag})", ["stage", "key", "seconds"],
                   [[n, s.get("key"), s.get("seconds")] for n, s in stages.items()])
 
-    # HydraFusion Table 2
+
+def _gate_ks(r: dict) -> list:
+    """The k of the gate tables (HydraFusion Tables 3, 6, 7): numbers ascending, then "all"."""
+    return sorted({k for v in r["hydra_table3"].values() for k in v["map"]}, key=lambda k: (k == "all", k))
+
+
+def add_hydra_table2(doc: Doc, r: dict, tag: str) -> None:
+    """HydraFusion Table 2 (single sensors, early, late, HydraFusion) and every method per context."""
     doc.h(2, "HydraFusion Table 2 analogue: single sensors, early, late, HydraFusion")
     t2 = r["hydra_table2"]
     rows = []
@@ -157,9 +191,14 @@ def build(results: dict, context: dict, work: Path, eval_dir: Path) -> tuple[Doc
         for name, v in t2.get(group, {}).items():
             rows.append([label, name, v])
     doc.table(f"mAP@0.5 ({tag})", ["set", "model", "mAP"], rows)
-    ctxs = ds["contexts"]
+    ctxs = r["dataset"]["contexts"]
     rows = [[name, v["what"], v["map"], *[v["map_per_context"].get(c) for c in ctxs]] for name, v in r["methods"].items()]
     doc.table(f"mAP@0.5 per context, every method ({tag})", ["method", "what", "all", *ctxs], rows)
+
+
+def add_intervals(doc: Doc, r: dict, tag: str) -> None:
+    """The bootstrap intervals of every method's mAP and of its difference from late fusion."""
+    ctxs = r["dataset"]["contexts"]
     ci = r.get("intervals")
     if ci:
         from study.detect import difference_interval
@@ -183,14 +222,17 @@ def build(results: dict, context: dict, work: Path, eval_dir: Path) -> tuple[Doc
                       ["method", *groups],
                       [[n, *[cell(difference_interval(per[g], n, "late")) for g in groups]] for n in r["methods"] if n != "late"])
 
-    # Table 3
+
+def add_hydra_table3(doc: Doc, r: dict, tag: str) -> None:
+    """HydraFusion Table 3: each gate's best fusion method per k."""
+    t3, ks = r["hydra_table3"], _gate_ks(r)
     doc.h(2, "HydraFusion Table 3 analogue: best fusion per gate and k")
-    t3 = r["hydra_table3"]
-    ks = sorted({k for v in t3.values() for k in v["map"]}, key=lambda k: (k == "all", k))
     doc.table(f"mAP@0.5 of each gate's best fusion method ({tag})", ["gate", "fusion", *[f"k={k}" for k in ks]],
               [[g, v["fusion"], *[v["map"].get(k) for k in ks]] for g, v in t3.items()])
 
-    # Table 4
+
+def add_hydra_table4(doc: Doc, r: dict, tag: str) -> None:
+    """HydraFusion Table 4: latency and energy per method."""
     doc.h(2, "HydraFusion Table 4 analogue: latency and energy per model")
     doc.p(f"Latency: the additive model of measured stem, branch and fusion latencies on this machine (batch 1); "
           f"energy: {r['energy_unit']}. Gated methods: the mean over frames of the chosen branches.")
@@ -198,13 +240,18 @@ def build(results: dict, context: dict, work: Path, eval_dir: Path) -> tuple[Doc
                                               "energy (lambda_E scale)"],
               [[n, v["branches"], v["latency_ms"], v["energy_j"], v["energy"]] for n, v in r["hydra_table4"].items()])
 
-    # Table 5
+
+def add_hydra_table5(doc: Doc, r: dict, tag: str) -> None:
+    """HydraFusion Table 5: the late fusion methods on sensor combinations (when any was run)."""
     if r["hydra_table5"]:
         doc.h(2, "HydraFusion Table 5 analogue: late fusion methods")
         doc.table(f"mAP@0.5 of late-fused single-sensor branches ({tag})", ["sensors", "wbf", "nms", "soft-nms"],
                   [[c, v.get("wbf"), v.get("nms"), v.get("soft_nms")] for c, v in r["hydra_table5"].items()])
 
-    # Table 6, 7
+
+def add_hydra_tables_6_7(doc: Doc, r: dict, tag: str) -> None:
+    """HydraFusion Tables 6 and 7: mAP per gate, fusion and k; branch selection rates."""
+    ks = _gate_ks(r)
     doc.h(2, "HydraFusion Tables 6 and 7 analogues: gates x fusion x k; branch selection rates")
     rows = []
     for g, per in r["hydra_table6"].items():
@@ -220,7 +267,9 @@ def build(results: dict, context: dict, work: Path, eval_dir: Path) -> tuple[Doc
             rows.append([k, g, *[per[k].get(b) for b in branches]])
     doc.table(f"Branch selection rate [% of test frames] ({tag})", ["k", "gate", *branches], rows)
 
-    # EcoFusion
+
+def add_eco_tables(doc: Doc, r: dict, tag: str, eval_dir: Path) -> None:
+    """EcoFusion Tables 1-3 and Figures 4-5 (the figures read from `eval_dir`)."""
     eco = r["eco"]
     doc.h(2, "EcoFusion Table 1 analogue: energy and performance")
     doc.p(f"Energy: {r['energy_unit']}; gamma {r['gamma']}, Eq. 7 rule {r['rule']}.")
@@ -248,7 +297,9 @@ def build(results: dict, context: dict, work: Path, eval_dir: Path) -> tuple[Doc
             eval_dir / figs.get("figure4", "missing.png"))
     doc.img(f"EcoFusion Figure 5 analogue: loss and energy per scene ({tag})", eval_dir / figs.get("figure5", "missing.png"))
 
-    # beyond the papers
+
+def add_severity(doc: Doc, r: dict, tag: str, work: Path) -> None:
+    """mAP against severity per condition beside the clear twins; the figure is written in `work`."""
     doc.h(2, "mAP against severity per condition")
     doc.p("Vehicle mAP@0.5 of the test frames of each condition at each severity; beside it the same frames' "
           "clear-weather twins (everything but the condition held: the difference is the weather alone). "
@@ -264,12 +315,18 @@ def build(results: dict, context: dict, work: Path, eval_dir: Path) -> tuple[Doc
     if _severity_figure(r, work / "severity.png"):
         doc.img(f"mAP against severity per condition ({tag})", work / "severity.png")
 
+
+def add_range_bins(doc: Doc, r: dict, tag: str) -> None:
+    """Vehicle mAP per range bin per context, per method."""
     doc.h(2, "mAP per range bin per context")
     for name, per in r["range_per_context"].items():
         bins = sorted({b for v in per.values() for b in v}, key=lambda b: float(b.split("-")[0]))
         doc.table(f"{name}: vehicle mAP@0.5 per range bin [m] per context ({tag})", ["context", *bins],
                   [[c, *[v.get(b) for b in bins]] for c, v in per.items()])
 
+
+def add_gate_regret(doc: Doc, r: dict, tag: str) -> None:
+    """Each gate against its oracle, per context."""
     doc.h(2, "Gate regret against the oracle, per context")
     doc.p(f"HydraFusion: each gate's top-{r['k']} against Optimal gating (the k lowest a-posteriori branch losses); "
           f"EcoFusion at lambda_E {r['lambda_e']:g}: each gate against Loss-based (the a-posteriori L_f). regret = "
@@ -290,6 +347,9 @@ def build(results: dict, context: dict, work: Path, eval_dir: Path) -> tuple[Doc
                            ["regret (L_f)", *[rows_[c]["regret_loss"] for c in cols]],
                            ["differs [%]", *[rows_[c]["differs_pct"] for c in cols]]])
 
+
+def add_fusion_regret(doc: Doc, r: dict, tag: str) -> None:
+    """Each sensor's fusion regret: late fusion with it against without it, per context."""
     doc.h(2, "Each sensor's fusion regret")
     doc.p("Late fusion of the single-sensor branches with the sensor against without it, per context: regret = "
           "mAP without minus mAP with (positive: fusing the sensor costs that much there); L_f regret = mean fused "
@@ -303,15 +363,15 @@ def build(results: dict, context: dict, work: Path, eval_dir: Path) -> tuple[Doc
         doc.table(f"L_f regret of fusing each sensor, per context ({tag})", ["sensor", *cols],
                   [[b, *[v["per_context"][c]["regret_loss"] for c in cols]] for b, v in fr.items()])
 
+
+def add_gate_picks(doc: Doc, r: dict, tag: str) -> None:
+    """What each gate picks per context."""
     doc.h(2, "What each gate picks per context")
     for fam, per in r["picks"].items():
         for g, by in per.items():
             doc.table(f"{fam} {g}: most chosen branch sets [% of the context's test frames] ({tag})",
                       ["context", "choices"],
                       [[c, "; ".join(f"{k} {_fmt(v)}" for k, v in d.items())] for c, d in by.items()])
-    summary = {"scale": scale, "meaningless": bool(context.get("meaningless")), "protocol": r["protocol"],
-               "dataset": ds, "machine": m, "device": r.get("device"), "tag": tag}
-    return doc, summary
 
 
 def write_report(results: dict, context: dict, work: Path, eval_dir: Path, rel_to: Path | None = None) -> dict:
@@ -325,7 +385,5 @@ def write_report(results: dict, context: dict, work: Path, eval_dir: Path, rel_t
               "results": results}
     for name, text in (("report.md", doc.markdown(Path(rel_to or work))), ("report.html", doc.html(f"hydrabench study ({summary['scale']})")),
                        ("report.json", json.dumps(report, indent=1, default=str))):
-        tmp = work / f".{name}.tmp-{os.getpid()}"
-        tmp.write_text(text)
-        os.replace(tmp, work / name)
+        write_text_atomic(work / name, text)
     return report

@@ -42,7 +42,7 @@ from pathlib import Path
 from sim.config import from_dict, load_yaml, to_dict
 from sim.errors import UserError
 from study.gate_data import file_sha256
-from study.outputs import atomic_path
+from study.outputs import atomic_path, write_json_atomic
 
 STUDY_VERSION = 2
 PRESETS_DIR = Path(__file__).resolve().parents[1] / "configs" / "study"
@@ -138,7 +138,7 @@ class TrainSection:
 
 @dataclass(frozen=True)
 class GatesSection:
-    """Gate datasets and gates: HydraFusion's per-branch gates (`study.gates`, Section 5.2.2) and
+    """Gate datasets and gates: HydraFusion's per-branch gates (`study.branch_gate_study`, Section 5.2.2) and
     EcoFusion's per-configuration gates (`study.eco`), and the latency table (Eq. 6).
 
     Fields:
@@ -319,11 +319,6 @@ def _digest(obj) -> str:
     return hashlib.sha256(json.dumps(obj, sort_keys=True, default=str).encode()).hexdigest()
 
 
-def _atomic_json(path: Path, obj) -> None:
-    with atomic_path(path) as tmp:
-        tmp.write_text(json.dumps(obj, indent=1, default=str))
-
-
 def link_farm(src: Path, dst: Path) -> None:
     """Recreate `src`'s directories under `dst` and symlink its files (relative links); entries
     already in `dst` are kept (a resumed stage keeps what it wrote)."""
@@ -375,7 +370,7 @@ class Study:
                 raise UserError(f"--out {self.out} is not empty and holds no study (no {MARKER}); use a new or "
                                 "empty directory")
         self.stages_dir.mkdir(parents=True, exist_ok=True)
-        _atomic_json(self.out / MARKER, {"version": STUDY_VERSION, "config": to_dict(self.cfg)})
+        write_json_atomic(self.out / MARKER, {"version": STUDY_VERSION, "config": to_dict(self.cfg)}, default=str)
 
     def stage(self, name: str, inputs: dict, upstream: tuple[StageRecord, ...], func, **kwargs) -> StageRecord:
         """Run `func(work_dir, **kwargs) -> (outputs digest, extra manifest fields)` unless the stage
@@ -404,7 +399,7 @@ class Study:
         rec.manifest = {"stage": name, "key": key, "compute": inputs.get("compute"), "inputs": inputs,
                         "digest": digest, "seconds": rec.seconds,
                         "finished": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()), **extra}
-        _atomic_json(partial / "manifest.json", rec.manifest)
+        write_json_atomic(partial / "manifest.json", rec.manifest, default=str)
         if final.exists():  # a stale final directory without a manifest (cannot happen via rename) is replaced
             shutil.rmtree(final)
         os.replace(partial, final)
@@ -487,9 +482,9 @@ def gatedata_stage(work: Path, run_paper: Path, data: Path, settings, batch_size
 def gates_stage(work: Path, gatedata_run: Path, data: Path, gates: GatesSection, settings, setup, say,
                 progress: bool) -> tuple[str, dict]:
     """The learned HydraFusion and EcoFusion gates and the latency table, under work/run."""
+    from study.branch_gate_study import GateTrainConfig, train_gate
+    from study.eco.config_gate_study import train_eco_gate
     from study.eco.energy import energy_table
-    from study.eco.gates import train_eco_gate
-    from study.gates import GateTrainConfig, train_gate
 
     g = gates
     run = work / "run"
@@ -523,7 +518,7 @@ def evaluate_stage(work: Path, gates_run: Path, run_early: Path | None, data: Pa
     link_farm(gates_run, run)
     res = evaluate_study(run, run_early, data, cfg, settings, work, setup=setup, progress=progress)
     res["compute"] = compute_identity(setup)
-    _atomic_json(work / "results.json", res)
+    write_json_atomic(work / "results.json", res, default=str)
     return file_sha256(work / "results.json"), {}
 
 
@@ -540,7 +535,7 @@ STAGE_CODE = {
     "generate": (("sensors.generate",), generate_stage),
     "train": (("study.train",), train_stage),
     "gatedata": (("study.detect", "study.eco.data", "study.gate_data"), gatedata_stage),
-    "gates": (("study.eco.energy", "study.eco.gates", "study.gates"), gates_stage),
+    "gates": (("study.eco.energy", "study.eco.config_gate_study", "study.branch_gate_study"), gates_stage),
     "evaluate": (("study.study_eval",), evaluate_stage),
     "report": (("study.report",), report_stage),
 }

@@ -15,7 +15,7 @@ chosen branches (a branch depends only on its own sensors' stems; tested in test
   branch losses (the oracle);
 - EcoFusion: a configuration gate's choice at lambda_E, gamma (Eq. 7-9); loss_based = the oracle.
 
-Besides the papers' tables (HydraFusion 3, 6, 7 from `study.gates.evaluate_all_gates`; EcoFusion
+Besides the papers' tables (HydraFusion 3, 6, 7 from `study.branch_gate_study.evaluate_all_gates`; EcoFusion
 1-3 and Figures 4-5 from `study.eco.sweep.sweep`) it measures what neither paper has: mAP against
 severity per condition with the clear twins of the same frames, mAP per range bin per context,
 each gate's regret against its oracle per context and how often its choice differs from the
@@ -26,11 +26,14 @@ from __future__ import annotations
 
 import json
 from collections import defaultdict
+from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
 from sim.errors import UserError
+from sim.progress import progress as progress_bar
 
 FUSIONS = ("nms", "soft_nms", "wbf")
 LATE_COMBOS = (("camera_left", "camera_right"), ("camera_left", "camera_right", "lidar"), ("radar", "lidar"),
@@ -78,8 +81,8 @@ def _summary(sc: dict) -> dict:
 
 def hydra_predictions(run, data, ev, gates) -> dict[str, np.ndarray]:
     """Predicted (or, for optimal, a-posteriori) per-branch losses on the test frames, (n, n_branches)."""
+    from study.branch_gate_study import load_trained_gate, make_gate, predict_losses
     from study.gate_data import GateData
-    from study.gates import _predict, load_trained_gate, make_gate
 
     out = {}
     for g in gates:
@@ -90,14 +93,14 @@ def hydra_predictions(run, data, ev, gates) -> dict[str, np.ndarray]:
         elif g == "knowledge":
             out[g] = make_gate(g, ev.model, run).predict(None, ev.metas).numpy()
         else:
-            out[g] = _predict(load_trained_gate(run, g, ev.model), ev.features)
+            out[g] = predict_losses(load_trained_gate(run, g, ev.model), ev.features)
     return out
 
 
 def top_k_members(pred: np.ndarray, branches, k: int) -> list[tuple[str, ...]]:
     import torch
 
-    from fusion.nets.gates import top_k
+    from fusion.nets.branch_gates import top_k
 
     return top_k(torch.as_tensor(pred, dtype=torch.float32), branches, min(k, len(branches)))
 
@@ -105,88 +108,146 @@ def top_k_members(pred: np.ndarray, branches, k: int) -> list[tuple[str, ...]]:
 def evaluate_study(run, run_early, data, cfg, s, work: Path, setup=None, progress: bool = True) -> dict:
     """Every number of the study's report (module docstring). `cfg`: the StudyConfig; `s`: its
     EcoSettings; figures are written under `work`."""
-    from fusion.eco.configurations import SINGLE_SENSORS
+    from study.branch_gate_study import evaluate_all_gates
     from study.detect import fusion_method
-    from study.eco.energy import machine_description
     from study.eco.evaluate import GATE_ORDER, EcoEval
     from study.eco.sweep import sweep
-    from study.gates import evaluate_all_gates
 
     e = cfg.evaluate
     run, data, work = Path(run), Path(data), Path(work)
     method = fusion_method(s.fusion)
     learned = tuple(cfg.gates.gates)
+    hydra_gates = ["knowledge", *learned, "optimal"]
     # HydraFusion Tables 3, 6, 7: every branch once per frame, each gate's top-k fused afterwards
-    hydra_tables = evaluate_all_gates(run, data, gates=("knowledge", *learned, "optimal"), setup=setup,
+    hydra_tables = evaluate_all_gates(run, data, gates=tuple(hydra_gates), setup=setup,
                                       batch_size=cfg.train.batch_size, progress=progress)
     eco_gates = [g for g in GATE_ORDER if g in ("knowledge", "loss_based") or g in learned]
     ev = EcoEval(run, data, s, eco_gates, threads=setup.threads if setup else 2, progress=progress)
     eco_tables = sweep(run, data, work / "eco", gamma=e.gamma, s=s, gates=eco_gates,
                        fig_gate=e.eco_gate if e.eco_gate in eco_gates else "knowledge", progress=progress, ev=ev)
     M = Methods(ev, method)
-    branches = M.branches
-    sensors_of = ev.model.branch_sensors
-    singles = [b for b in branches if len(sensors_of[b]) == 1 and sensors_of[b][0] in SINGLE_SENSORS]
-    late = tuple(ev.configs.members[ev.configs.baselines["late"]]) if "late" in ev.configs.baselines else tuple(singles)
-    n = len(ev.test)
+    singles, late = single_and_late(ev)
     contexts = [m["context"] for m in ev.metas]
-    severities = [int(m.get("severity", 0)) for m in ev.metas]
 
-    # the methods' per-frame choices --------------------------------------------------------
-    choices: dict[str, list[tuple[str, ...]]] = {}
-    kinds: dict[str, str] = {}
+    choices, kinds = fixed_choices(M, singles, late)
+    hydra_choices, hydra_kinds = hydra_gate_choices(run, data, ev, hydra_gates, e.k)
+    eco_choice, eco_kinds = eco_gate_choices(ev, eco_gates, e.lambda_e, e.gamma)
+    choices |= hydra_choices | {f"ecofusion:{g}": [ev.configs.members[c] for c in ch] for g, ch in eco_choice.items()}
+    kinds |= hydra_kinds | eco_kinds
+    scores = score_methods(M, choices, progress)
+    early = early_fusion(run_early, data, ev, method, cfg.train.batch_size, setup)
+    for b, sc in early.scores.items():
+        scores[f"early:{b}"], kinds[f"early:{b}"] = sc, f"early fusion model ({'+'.join(early.sensors[b])})"
+    intervals = (bootstrap_intervals(M, choices, early.fused, ev, e.bootstrap) if e.bootstrap else None)
+    table2, table5 = hydra_tables_2_and_5(M, scores, singles, early.scores, e)
+    twins = clear_twins(ev, early.model, data, cfg.train.batch_size) if e.twins else None
+    swept = swept_methods(scores, e)
+    run_cfg = json.loads((run / "config.json").read_text())
+    return results_record(
+        ev, setup, e, method, run_cfg, data, singles, late, kinds, scores, intervals, hydra_tables, eco_tables, work,
+        hydra_table2=table2, hydra_table4=cost_table(ev, choices), hydra_table5=table5,
+        severity=severity_sweeps(M, ev, scores, choices, early.fused, twins, swept, method, progress),
+        range_per_context={name: scores[name]["map_vehicles_per_context_range"] for name in swept},
+        regret={"hydrafusion": hydra_regret(choices, scores, hydra_gates, contexts),
+                "ecofusion": eco_regret(ev, eco_choice, scores, contexts)},
+        fusion_regret=fusion_regret(M, ev, scores, late, contexts), picks=gate_picks(choices, contexts),
+        severity_clear_twins=twins is not None)
+
+
+def single_and_late(ev) -> tuple[list[str], tuple[str, ...]]:
+    """The run's single-sensor branches, and the branches late fusion fuses (the configuration set's
+    "late" baseline, else the single-sensor branches)."""
+    from fusion.eco.configurations import SINGLE_SENSORS
+
+    sensors_of = ev.model.branch_sensors
+    singles = [b for b in ev.ed.branches if len(sensors_of[b]) == 1 and sensors_of[b][0] in SINGLE_SENSORS]
+    if "late" in ev.configs.baselines:
+        return singles, tuple(ev.configs.members[ev.configs.baselines["late"]])
+    return singles, tuple(singles)
+
+
+def fixed_choices(M: Methods, singles, late) -> tuple[dict, dict]:
+    """The methods that choose the same branches on every frame: ({name: per-frame members},
+    {name: what it is})."""
+    choices, kinds = {}, {}
     for b in singles:
         choices[f"single:{b}"], kinds[f"single:{b}"] = M.fixed((b,)), "single sensor"
     choices["late"], kinds["late"] = M.fixed(late), "late fusion of the single-sensor branches"
-    choices["all_branches"], kinds["all_branches"] = M.fixed(tuple(branches)), "all branches (early + late)"
-    hydra_gates = ["knowledge", *learned, "optimal"]
-    preds = hydra_predictions(run, data, ev, hydra_gates)
-    for g in hydra_gates:
-        choices[f"hydrafusion:{g}"] = top_k_members(preds[g], branches, e.k)
-        kinds[f"hydrafusion:{g}"] = f"HydraFusion, {g} gate, top {min(e.k, len(branches))}"
-    eco_choice = {}
-    for g in eco_gates:
-        eco_choice[g] = ev.choose(g, e.lambda_e, e.gamma)
-        choices[f"ecofusion:{g}"] = [ev.configs.members[c] for c in eco_choice[g]]
-        kinds[f"ecofusion:{g}"] = f"EcoFusion, {g} gate, lambda_E {e.lambda_e:g}, gamma {e.gamma:g}"
-    from sim.progress import progress as progress_bar
+    choices["all_branches"], kinds["all_branches"] = M.fixed(tuple(M.branches)), "all branches (early + late)"
+    return choices, kinds
 
+
+def hydra_gate_choices(run, data, ev, gates, k: int) -> tuple[dict, dict]:
+    """HydraFusion's methods: each branch gate's top k per frame (Table 2 (iv))."""
+    branches = list(ev.ed.branches)
+    preds = hydra_predictions(run, data, ev, gates)
+    choices = {f"hydrafusion:{g}": top_k_members(preds[g], branches, k) for g in gates}
+    kinds = {f"hydrafusion:{g}": f"HydraFusion, {g} gate, top {min(k, len(branches))}" for g in gates}
+    return choices, kinds
+
+
+def eco_gate_choices(ev, gates, lambda_e: float, gamma: float) -> tuple[dict, dict]:
+    """EcoFusion's methods: each configuration gate's choice per frame (configuration indices, Eq. 7-9),
+    and what each is."""
+    choice = {g: ev.choose(g, lambda_e, gamma) for g in gates}
+    kinds = {f"ecofusion:{g}": f"EcoFusion, {g} gate, lambda_E {lambda_e:g}, gamma {gamma:g}" for g in gates}
+    return choice, kinds
+
+
+def score_methods(M: Methods, choices: dict, progress: bool) -> dict:
+    """Each method's choices fused and scored: {name: `study.detect.score` result}."""
     bar = progress_bar(total=len(choices), desc="fuse and score the methods", unit="method", enabled=progress)
     scores = {}
     for name, ch in choices.items():
         scores[name] = M.score(ch)
         bar.update(1)
     bar.close()
+    return scores
 
-    # the early-fusion run (Table 2 (ii)) ----------------------------------------------------
-    early, early_fused, early_model = {}, {}, None  # early_fused: each early model's detections, fused once
-    if run_early is not None:
-        from study.detect import fused as fuse_frames
-        from study.detect import load_run, run_branches, score
 
-        early_model, _ = load_run(run_early, "latest", device=setup.device if setup else "cpu")
-        enames = list(early_model.branches)
-        early_per_frame = run_branches(early_model, data, ev.test, enames, batch_size=cfg.train.batch_size,
-                                       progress="early fusion")
-        for b in enames:
-            early_fused[b] = fuse_frames(early_per_frame, [b], early_model.branch_frames, method)
-            sc = score(early_fused[b], ev.reader, "camera_right", protocol=ev.ed.protocol)
-            early[b] = sc
-            scores[f"early:{b}"], kinds[f"early:{b}"] = sc, f"early fusion model ({'+'.join(early_model.branch_sensors[b])})"
+@dataclass
+class EarlyFusion:
+    """The early-fusion run's models on the test frames (Table 2 (ii)); empty without that run."""
 
-    # 95 % intervals: whole test sequences drawn with replacement, every method on each draw ------
-    intervals = None
-    if e.bootstrap:
-        from study.detect import context_bootstrap
+    model: Any = None
+    scores: dict = field(default_factory=dict)  # branch -> `score` result
+    fused: dict = field(default_factory=dict)  # branch -> its detections per test frame, fused once
+    sensors: dict = field(default_factory=dict)  # branch -> the sensors its model fuses
 
-        sources = {name: M.fused(ch) for name, ch in choices.items()}
-        sources.update({f"early:{b}": per for b, per in early_fused.items()})
-        intervals = context_bootstrap(sources, ev.reader, "camera_right", protocol=ev.ed.protocol,
-                                      resamples=e.bootstrap, classes="all", desc="bootstrap the methods")
 
-    # HydraFusion Table 2 --------------------------------------------------------------------
+def early_fusion(run_early, data, ev, method: str, batch_size: int, setup) -> EarlyFusion:
+    """Run and score every early-fusion model of `run_early` on the test frames (None: no run)."""
+    if run_early is None:
+        return EarlyFusion()
+    from study.detect import fused as fuse_frames
+    from study.detect import load_run, run_branches, score
+
+    model, _ = load_run(run_early, "latest", device=setup.device if setup else "cpu")
+    names = list(model.branches)
+    per_frame = run_branches(model, data, ev.test, names, batch_size=batch_size, progress="early fusion")
+    out = EarlyFusion(model=model, sensors=dict(model.branch_sensors))
+    for b in names:
+        out.fused[b] = fuse_frames(per_frame, [b], model.branch_frames, method)
+        out.scores[b] = score(out.fused[b], ev.reader, "camera_right", protocol=ev.ed.protocol)
+    return out
+
+
+def bootstrap_intervals(M: Methods, choices: dict, early_fused: dict, ev, resamples: int) -> dict:
+    """95 % intervals: whole test sequences drawn with replacement, every method on each draw."""
+    from study.detect import context_bootstrap
+
+    sources = {name: M.fused(ch) for name, ch in choices.items()}
+    sources.update({f"early:{b}": per for b, per in early_fused.items()})
+    return context_bootstrap(sources, ev.reader, "camera_right", protocol=ev.ed.protocol,
+                             resamples=resamples, classes="all", desc="bootstrap the methods")
+
+
+def hydra_tables_2_and_5(M: Methods, scores: dict, singles, early_scores: dict, e) -> tuple[dict, dict]:
+    """HydraFusion Table 2 (mAP of each kind of method) and Table 5 (late fusion of sensor combinations
+    by each fusion method; Table 2 takes the best)."""
+    branches = M.branches
     table2 = {"single_sensors": {b: scores[f"single:{b}"]["map"] for b in singles},
-              "early_fusion": {b: sc["map"] for b, sc in early.items()},
+              "early_fusion": {b: sc["map"] for b, sc in early_scores.items()},
               "late_fusion": {}, "hydrafusion": {}}
     table5 = {}
     for combo in LATE_COMBOS:
@@ -201,135 +262,178 @@ def evaluate_study(run, run_early, data, cfg, s, work: Path, setup=None, progres
     table2["hydrafusion"] = {f"{e.hydra_gate} top {min(e.k, len(branches))}": scores[f"hydrafusion:{e.hydra_gate}"]["map"]}
     table2["ecofusion"] = {f"{e.eco_gate} lambda_E {e.lambda_e:g}": scores[f"ecofusion:{e.eco_gate}"]["map"]
                            if f"ecofusion:{e.eco_gate}" in scores else None}
+    return table2, table5
 
-    # HydraFusion Table 4 analogue: latency and energy per model ------------------------------
-    cfg_index = {m: i for i, m in enumerate(ev.configs.members)}
+
+def _config_index(ev) -> dict[tuple[str, ...], int]:
+    return {m: i for i, m in enumerate(ev.configs.members)}
+
+
+def cost_table(ev, choices: dict) -> dict:
+    """HydraFusion Table 4 analogue: each method's mean latency, energy and branch count per frame."""
+    index = _config_index(ev)
 
     def cost(members_per_frame) -> dict:
-        idx = np.array([cfg_index[tuple(m)] for m in members_per_frame])
+        idx = np.array([index[tuple(m)] for m in members_per_frame])
         return {"latency_ms": _r(1000 * ev.t[idx].mean(), 2), "energy_j": _r(ev.e_raw[idx].mean()),
                 "energy": _r(ev.e[idx].mean()), "branches": _r(np.mean([len(m) for m in members_per_frame]), 3)}
 
-    table4 = {name: cost(ch) for name, ch in choices.items()}
+    return {name: cost(ch) for name, ch in choices.items()}
 
-    # severity sweeps per condition, with the clear twins of the same frames --------------------
-    twins = None
-    if e.twins and ev.reader.manifest["config"].get("twins"):
-        from sensors.dataset import DatasetReader
-        from study.detect import fused as fuse_frames
-        from study.detect import run_branches, score
 
-        clear_reader = DatasetReader(data, clear=True)
-        clear_frames = run_branches(ev.model, data, ev.test, branches, batch_size=cfg.train.batch_size,
-                                    progress="clear twins", clear=True)
-        twins = {"paper": (clear_frames, ev.model.branch_frames)}
-        if early_model is not None:
-            twins["early"] = (run_branches(early_model, data, ev.test, list(early_model.branches),
-                                           batch_size=cfg.train.batch_size, progress="clear twins (early)",
-                                           clear=True),
-                              early_model.branch_frames)
+@dataclass
+class Twins:
+    """The clear-weather twins of the test frames: each model's detections on them."""
+
+    reader: Any  # DatasetReader on the clear arrays
+    frames: dict  # "paper" / "early" -> (per-frame branch detections, the model's branch_frames)
+
+
+def clear_twins(ev, early_model, data, batch_size: int) -> Twins | None:
+    """Run the paper's branches (and the early models) on the clear twins of the test frames; None
+    when the dataset has no twins."""
+    if not ev.reader.manifest["config"].get("twins"):
+        return None
+    from sensors.dataset import DatasetReader
+    from study.detect import run_branches
+
+    reader = DatasetReader(data, clear=True)
+    clear_frames = run_branches(ev.model, data, ev.test, list(ev.ed.branches), batch_size=batch_size,
+                                progress="clear twins", clear=True)
+    frames = {"paper": (clear_frames, ev.model.branch_frames)}
+    if early_model is not None:
+        frames["early"] = (run_branches(early_model, data, ev.test, list(early_model.branches),
+                                        batch_size=batch_size, progress="clear twins (early)", clear=True),
+                           early_model.branch_frames)
+    return Twins(reader, frames)
+
+
+def swept_methods(scores: dict, e) -> list[str]:
+    """The methods of the severity sweeps and range tables: the fixed ones, the early models, the
+    chosen gates and the oracles."""
+    return [m for m in scores if m.split(":")[0] in ("single", "early") or m in
+            ("late", "all_branches", f"hydrafusion:{e.hydra_gate}", "hydrafusion:optimal",
+             f"ecofusion:{e.eco_gate}", "ecofusion:loss_based")]
+
+
+def severity_sweeps(M: Methods, ev, scores: dict, choices: dict, early_fused: dict, twins: Twins | None,
+                    swept, method: str, progress: bool) -> dict:
+    """Vehicle mAP against severity per condition, {condition: {method: {severity: {"degraded",
+    "clear", "frames"}}}}; "clear" is the same frames' clear twins (fixed choices and early models)."""
+    from study.detect import fused as fuse_frames
+    from study.detect import score
+
+    contexts = [m["context"] for m in ev.metas]
+    severities = [int(m.get("severity", 0)) for m in ev.metas]
     conditions = sorted({c for c, sv in zip(contexts, severities) if sv > 0})
-    sweep_rows: dict = {}
-    swept = [m for m in scores if m.split(":")[0] in ("single", "early") or m in
-             ("late", "all_branches", f"hydrafusion:{e.hydra_gate}", "hydrafusion:optimal",
-              f"ecofusion:{e.eco_gate}", "ecofusion:loss_based")]
+    rows: dict = {}
     bar = progress_bar(total=len(conditions) * len(swept), desc="severity sweeps", unit="curve", enabled=progress)
     for cond in conditions:
         keep = [c == cond for c in contexts]
-        sweep_rows[cond] = {}
+        rows[cond] = {}
         for name in swept:
             if name.startswith("early:"):
-                from study.detect import score
-
                 per = [p for p, k in zip(early_fused[name.split(":", 1)[1]], keep) if k]
                 deg = score(per, ev.reader, "camera_right", protocol=ev.ed.protocol)
             else:
                 deg = M.score(choices[name], keep=keep)
             clear = None
-            members = None
             if twins is not None and (name.startswith(("single:", "early:")) or name in ("late", "all_branches")):
-                from study.detect import fused as fuse_frames
-                from study.detect import score
-
                 src = "early" if name.startswith("early:") else "paper"
-                if src in twins:
-                    frames_, bframes = twins[src]
+                if src in twins.frames:
+                    frames_, bframes = twins.frames[src]
                     members = ([name.split(":", 1)[1]] if ":" in name else list(choices[name][0]))
                     per = [p for p, k in zip(fuse_frames(frames_, members, bframes, method), keep) if k]
-                    clear = score(per, clear_reader, "camera_right", protocol=ev.ed.protocol)
+                    clear = score(per, twins.reader, "camera_right", protocol=ev.ed.protocol)
             sev = sorted(set(deg["map_vehicles_per_severity"]), key=int)
-            sweep_rows[cond][name] = {
+            rows[cond][name] = {
                 sv: {"degraded": deg["map_vehicles_per_severity"].get(sv),
                      "clear": None if clear is None else clear["map_vehicles_per_severity"].get(sv),
                      "frames": int(sum(1 for c, x in zip(contexts, severities) if c == cond and str(x) == sv))}
                 for sv in sev}
             bar.update(1)
     bar.close()
+    return rows
 
-    # range bins per context -------------------------------------------------------------------
-    range_rows = {name: scores[name]["map_vehicles_per_context_range"] for name in swept}
 
-    # gate regret against the oracle, per context ---------------------------------------------
-    ctx_list = sorted(set(contexts))
-    regret: dict = {"hydrafusion": {}, "ecofusion": {}}
-    opt = choices["hydrafusion:optimal"]
-    for g in hydra_gates:
+def _map_in(sc: dict, ctx: str):
+    """A score's mAP in one context, or over all frames (ctx "all")."""
+    return sc["map"] if ctx == "all" else sc["map_per_context"].get(ctx)
+
+
+def hydra_regret(choices: dict, scores: dict, gates, contexts: list[str]) -> dict:
+    """Each HydraFusion gate against the optimal gate, per context and over all frames: both mAPs,
+    the mAP regret and how often the two choose differently."""
+    opt, best = choices["hydrafusion:optimal"], scores["hydrafusion:optimal"]
+    out = {}
+    for g in gates:
         if g == "optimal":
             continue
-        ch = choices[f"hydrafusion:{g}"]
+        ch, sc = choices[f"hydrafusion:{g}"], scores[f"hydrafusion:{g}"]
         row = {}
-        for ctx in [*ctx_list, "all"]:
-            keep = [ctx == "all" or c == ctx for c in contexts]
-            a = scores[f"hydrafusion:{g}"]["map"] if ctx == "all" else scores[f"hydrafusion:{g}"]["map_per_context"].get(ctx)
-            o = scores["hydrafusion:optimal"]["map"] if ctx == "all" else scores["hydrafusion:optimal"]["map_per_context"].get(ctx)
-            frames_ = [k for k, x in enumerate(keep) if x]
+        for ctx in [*sorted(set(contexts)), "all"]:
+            frames_ = [k for k, c in enumerate(contexts) if ctx == "all" or c == ctx]
+            a, o = _map_in(sc, ctx), _map_in(best, ctx)
             row[ctx] = {"map": a, "map_oracle": o, "regret_map": None if a is None or o is None else _r(o - a),
                         "differs_pct": _r(100.0 * np.mean([ch[k] != opt[k] for k in frames_]), 1),
                         "frames": len(frames_)}
-        regret["hydrafusion"][g] = row
-    lb = eco_choice["loss_based"]
-    rows_n = np.arange(n)
-    for g in eco_gates:
+        out[g] = row
+    return out
+
+
+def eco_regret(ev, eco_choice: dict, scores: dict, contexts: list[str]) -> dict:
+    """Each EcoFusion gate against the loss-based oracle, per context and over all frames: both mAPs,
+    both mean L_f, the regrets and how often the two choose differently."""
+    lb, best = eco_choice["loss_based"], scores["ecofusion:loss_based"]
+    rows_n = np.arange(len(ev.test))
+    out = {}
+    for g, ch in eco_choice.items():
         if g == "loss_based":
             continue
-        ch = eco_choice[g]
+        sc = scores[f"ecofusion:{g}"]
         row = {}
-        for ctx in [*ctx_list, "all"]:
+        for ctx in [*sorted(set(contexts)), "all"]:
             keep = np.array([ctx == "all" or c == ctx for c in contexts])
-            a = scores[f"ecofusion:{g}"]["map"] if ctx == "all" else scores[f"ecofusion:{g}"]["map_per_context"].get(ctx)
-            o = scores["ecofusion:loss_based"]["map"] if ctx == "all" else scores["ecofusion:loss_based"]["map_per_context"].get(ctx)
+            a, o = _map_in(sc, ctx), _map_in(best, ctx)
             lf = ev.losses[rows_n, ch][keep].mean()
             lf_o = ev.losses[rows_n, lb][keep].mean()
             row[ctx] = {"map": a, "map_oracle": o, "regret_map": None if a is None or o is None else _r(o - a),
                         "avg_loss": _r(lf), "avg_loss_oracle": _r(lf_o), "regret_loss": _r(lf - lf_o),
                         "differs_pct": _r(100.0 * float(np.mean(ch[keep] != lb[keep])), 1), "frames": int(keep.sum())}
-        regret["ecofusion"][g] = row
+        out[g] = row
+    return out
 
-    # each sensor's fusion regret: late fusion with it against without it ------------------------
-    fusion_regret = {}
-    late_idx = cfg_index[tuple(late)]
+
+def fusion_regret(M: Methods, ev, scores: dict, late, contexts: list[str]) -> dict:
+    """Each sensor's fusion regret: late fusion with its branch against late fusion without it, per
+    context (mAP and L_f), and the contexts where adding it lowers the mAP."""
+    index = _config_index(ev)
+    late_idx = index[tuple(late)]
+    with_ = scores["late"]
+    out = {}
     for b in late:
         rest = tuple(x for x in late if x != b)
         if not rest:
             continue
         without = M.score(M.fixed(rest))
-        with_ = scores["late"]
-        rest_idx = cfg_index[rest]
+        rest_idx = index[rest]
         row = {}
-        for ctx in [*ctx_list, "all"]:
+        for ctx in [*sorted(set(contexts)), "all"]:
             keep = np.array([ctx == "all" or c == ctx for c in contexts])
-            a = with_["map"] if ctx == "all" else with_["map_per_context"].get(ctx)
-            w = without["map"] if ctx == "all" else without["map_per_context"].get(ctx)
+            a, w = _map_in(with_, ctx), _map_in(without, ctx)
             row[ctx] = {"map_with": a, "map_without": w,
                         "regret_map": None if a is None or w is None else _r(w - a),
                         "regret_loss": _r(ev.losses[keep, late_idx].mean() - ev.losses[keep, rest_idx].mean())}
         hurts = {c: v["regret_map"] for c, v in row.items() if c != "all" and v["regret_map"] is not None
                  and v["regret_map"] > 0}
-        fusion_regret[b] = {"per_context": row, "hurts_in": hurts,
-                            "worst_context": max(hurts, key=hurts.get) if hurts else None,
-                            "worst_regret_map": max(hurts.values()) if hurts else 0.0}
+        out[b] = {"per_context": row, "hurts_in": hurts,
+                  "worst_context": max(hurts, key=hurts.get) if hurts else None,
+                  "worst_regret_map": max(hurts.values()) if hurts else 0.0}
+    return out
 
-    # what each gate picks, per context --------------------------------------------------------
+
+def gate_picks(choices: dict, contexts: list[str]) -> dict:
+    """What each gate picks per context: its five most frequent choices, % of the context's frames."""
     picks: dict = {"hydrafusion": {}, "ecofusion": {}}
     for name, ch in choices.items():
         fam = name.split(":")[0]
@@ -341,17 +445,26 @@ def evaluate_study(run, run_early, data, cfg, s, work: Path, setup=None, progres
         picks[fam][name.split(":", 1)[1]] = {
             c: dict(sorted(((k, _r(100.0 * v / sum(d.values()), 1)) for k, v in d.items()), key=lambda kv: -kv[1])[:5])
             for c, d in sorted(by.items())}
+    return picks
 
+
+def results_record(ev, setup, e, method: str, run_cfg: dict, data, singles, late, kinds: dict, scores: dict,
+                   intervals, hydra_tables: dict, eco_tables: dict, work: Path, **measured) -> dict:
+    """results.json: the protocol, the data and machine, the settings, every method's summary, the
+    papers' tables and `measured` (Table 2, 4, 5, the severity sweeps, range bins, regrets, picks)."""
     from study.detect import frames_for
+    from study.eco.energy import machine_description
 
-    run_cfg = json.loads((run / "config.json").read_text())
+    contexts = [m["context"] for m in ev.metas]
+    ctx_list = sorted(set(contexts))
     train_idx, _ = frames_for(run_cfg, data, "train")
+    branches = list(ev.ed.branches)
     return {
         "protocol": ev.ed.protocol,
         "metric": "VOC all-point AP at IoU 0.5 in the right camera, difficult ground truth ignored; "
                   "vehicle mAP = mean over car, van, truck, bus",
         "fusion": method,
-        "dataset": {"frames": len(ev.reader), "train_frames": len(train_idx), "test_frames": n,
+        "dataset": {"frames": len(ev.reader), "train_frames": len(train_idx), "test_frames": len(ev.test),
                     "contexts": ctx_list, "twins": bool(ev.reader.manifest["config"].get("twins")),
                     "frames_per_context_test": {c: contexts.count(c) for c in ctx_list}},
         "machine": machine_description(setup.threads if setup else 1),
@@ -361,16 +474,17 @@ def evaluate_study(run, run_early, data, cfg, s, work: Path, setup=None, progres
         "hydra_gate": e.hydra_gate, "eco_gate": e.eco_gate,
         "methods": {name: {"what": kinds[name], **_summary(sc)} for name, sc in scores.items()},
         "intervals": intervals,
-        "hydra_table2": table2, "hydra_table3": hydra_tables["table3"], "hydra_table4": table4,
-        "hydra_table5": table5, "hydra_table6": hydra_tables["map_table"], "hydra_table7": hydra_tables["selection_rate"],
+        "hydra_table2": measured["hydra_table2"], "hydra_table3": hydra_tables["table3"],
+        "hydra_table4": measured["hydra_table4"], "hydra_table5": measured["hydra_table5"],
+        "hydra_table6": hydra_tables["map_table"], "hydra_table7": hydra_tables["selection_rate"],
         "hydra_selection_per_context": hydra_tables["selection_rate_per_context"],
         "hydra_loss_mae": hydra_tables.get("loss_mae"),
         "eco": {k: v for k, v in eco_tables.items() if k not in ("curve",)},
         "eco_curve": eco_tables["curve"],
         "energy_unit": ev.energy_label(),
-        "severity": sweep_rows, "severity_clear_twins": twins is not None,
-        "range_per_context": range_rows,
-        "regret": regret, "fusion_regret": fusion_regret, "picks": picks,
+        "severity": measured["severity"], "severity_clear_twins": measured["severity_clear_twins"],
+        "range_per_context": measured["range_per_context"],
+        "regret": measured["regret"], "fusion_regret": measured["fusion_regret"], "picks": measured["picks"],
         "figures": {"figure4": str(Path(eco_tables["figures"][0]).relative_to(work)),
                     "figure5": str(Path(eco_tables["figures"][1]).relative_to(work))},
     }

@@ -34,13 +34,14 @@ import numpy as np
 import torch
 
 from fusion.data import FrameDataset, collate, split_by_sequence
-from fusion.nets.profile import ModelProfile, load_profile
+from fusion.nets.profile import load_profile
 from sensors.dataset import DatasetReader
 from sensors.dataset import check as check_dataset
-from sim.config import from_dict, to_dict
+from sim.config import to_dict
 from sim.errors import UserError
 from study.checkpoints import load_checkpoint, load_weights
 from study.device import resolve_device, to_device
+from study.run_config import run_profile
 
 
 @dataclass(frozen=True)
@@ -243,14 +244,6 @@ RESUME_KEYS = ("model", "optimizer", "epoch", "step_in_epoch", "global_step", "t
 """What a run's checkpoint.pt must hold to be resumed."""
 FREE_ON_RESUME = ("epochs", "lr_drop_epoch", "eval_frames", "threads", "checkpoint_steps", "checkpoint_seconds", "device",
                   "amp", "workers")
-
-
-def run_profile(run_cfg: dict, where) -> ModelProfile:
-    """The model profile a run was trained with: its recorded fields, or (runs from before they were
-    recorded) the named profile as it is now."""
-    if "profile_fields" in run_cfg:
-        return from_dict(ModelProfile, run_cfg["profile_fields"], where=f"{where}/config.json profile_fields")
-    return load_profile(run_cfg["model_profile"])
 
 
 class _Batches(torch.utils.data.Dataset):

@@ -9,7 +9,8 @@ See `HydraFusion` for the input/output contract and `configs/model/*.yaml` for t
 """
 
 from fusion.nets.hydrafusion import LOSS_NAMES, HydraFusion, SensorTransform, build_hydrafusion
-from fusion.nets.layers import NORM_LAYERS, STEM_CHANNELS, Branch, Stem, build_branch, build_stem
+from fusion.nets.layers import STEM_CHANNELS, Branch, Stem, build_branch, build_stem
+from fusion.nets.norms import NORM_LAYERS
 from fusion.nets.profile import (
     FRAMES,
     PROFILE_DIR,

@@ -12,7 +12,6 @@ No pretrained weights are loaded: everything starts from torchvision's initialis
 from __future__ import annotations
 
 from collections import OrderedDict
-from functools import partial
 
 import torch
 import torchvision
@@ -23,19 +22,11 @@ from torchvision.models.detection.roi_heads import RoIHeads
 from torchvision.models.detection.rpn import AnchorGenerator, RegionProposalNetwork, RPNHead
 from torchvision.ops import MultiScaleRoIAlign
 
+from fusion.nets.norms import NORM_LAYERS
 from fusion.nets.profile import FRAMES, SENSORS, BranchSpec, ModelProfile
-from sim.registry import Registry
 
 STEM_CHANNELS = 64
 """Channels of every stem output (ResNet-18 layer1)."""
-
-NORM_LAYERS: Registry = Registry(
-    "normalisation layer",
-    doc="Entries are called with a channel count and return an nn.Module normalising (N, C, H, W).",
-)
-NORM_LAYERS.add("batch", nn.BatchNorm2d)  # torchvision's ResNet-18 when trained from scratch
-# 32 groups (Wu & He 2018): batch-independent, so a sample's output never depends on its batch
-NORM_LAYERS.add("group", partial(nn.GroupNorm, 32))
 
 
 def _resnet18(norm: str) -> torchvision.models.ResNet:

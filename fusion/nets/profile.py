@@ -203,7 +203,7 @@ class ModelProfile:
     branches: tuple[BranchSpec, ...]  # the branch set (HydraFusion 5.2.1 has seven)
 
     def __post_init__(self) -> None:
-        from fusion.nets.layers import NORM_LAYERS  # the registry lives with the layers it builds
+        from fusion.nets.norms import NORM_LAYERS  # here, not at the top: importing profiles needs no torch
 
         if self.num_classes < 2:
             raise ValueError(f"num_classes: need background + at least one class, got {self.num_classes}")

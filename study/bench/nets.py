@@ -230,7 +230,7 @@ def bench_gates(profile: str = "cpu", repeats: int = 5, threads: int = 2, run_di
 
     from fusion.late import fuse
     from fusion.nets import build_hydrafusion
-    from fusion.nets.gates import GATES, build_gate
+    from fusion.nets.branch_gates import GATES, build_gate
     from sensors.rig import load_profile as sensor_profile
     from sensors.rig import make_calibration
     from study.device import resolve_device
@@ -272,7 +272,7 @@ def bench_gates(profile: str = "cpu", repeats: int = 5, threads: int = 2, run_di
         if cls.trainable and run_dir:
             from pathlib import Path
 
-            from study.gates import load_trained_gate
+            from study.branch_gate_study import load_trained_gate
 
             if (Path(run_dir) / "gates" / name / "gate.pt").exists():
                 gate = load_trained_gate(run_dir, name, model).to(device)

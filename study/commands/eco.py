@@ -8,6 +8,7 @@ from pathlib import Path
 
 from sim.errors import UserError
 from study import eco
+from study.branch_gate_study import GateTrainConfig
 from study.cli import (
     Formatter,
     bootstrap_int,
@@ -15,23 +16,23 @@ from study.cli import (
     dataset_dir,
     emit,
     float_range,
+    holdout_fraction,
     in_file,
     name_arg,
     name_list,
     nonneg_float,
     nonneg_int,
     out_dir,
+    pool_grid,
     pos_float,
     pos_int,
     training_run,
 )
-from study.commands.gates import _fraction, _grid_arg
+from study.eco.config_gate_study import train_eco_gate
 from study.eco.data import EcoSettings, build_eco_data
 from study.eco.energy import energy_table
 from study.eco.evaluate import GATE_ORDER, EcoEval, evaluate_eco, execute_ecofusion
-from study.eco.gates import train_eco_gate
 from study.eco.sweep import SWEEP_LAMBDAS, sweep
-from study.gates import GateTrainConfig
 
 EPILOG = """\
 examples:
@@ -254,8 +255,8 @@ def add_eco_train_gate(sub, name, help_text):
     p.add_argument("--epochs", type=pos_int, default=100, help="passes over the training frames (more: continues)")
     p.add_argument("--gate-batch-size", type=pos_int, default=32, help="frames per Adam step")
     p.add_argument("--lr", type=pos_float, default=5e-5, help="Adam learning rate (HydraFusion 5.3's gate rate)")
-    p.add_argument("--val-fraction", type=_fraction, default=0.15, help="share of train sequences held out to pick the epoch")
-    p.add_argument("--grid", type=_grid_arg, default="8x16", help="ROWSxCOLS the stem features are pooled to")
+    p.add_argument("--val-fraction", type=holdout_fraction, default=0.15, help="share of train sequences held out to pick the epoch")
+    p.add_argument("--grid", type=pool_grid, default="8x16", help="ROWSxCOLS the stem features are pooled to")
     p.add_argument("--seed", type=nonneg_int, default=0, help="initialisation, data order, validation split")
     p.add_argument("--threads", type=pos_int, default=2, help="torch CPU threads")
     p.add_argument("--fresh", action="store_true", help="discard a previous training of this gate")

@@ -20,7 +20,7 @@ thread count and checkpoint.
 
 **Gates** (`train_eco_gate`): the deep and attention configuration gates regress L_f of every
 configuration from the pooled stem features, with mean absolute error and Adam at lr 5e-5 on the
-run's train split (`study.gates.fit_gate`), saved in `RUN/eco/gates/<gate>/`.
+run's train split (`study.branch_gate_study.fit_gate`), saved in `RUN/eco/gates/<gate>/`.
 
 **Evaluation** (`evaluate_eco`, `sweep`): on the run's test split, each gate's predictions go
 through the joint optimisation (Eq. 7-9, `fusion.eco.optimise`) at lambda_E and gamma; the chosen
@@ -32,6 +32,6 @@ gating (Eq. 10-11) per scene.
 # Where each part lives:
 #   study.eco.data      EcoData, EcoSettings, build_eco_data, rank_correlation   (configuration dataset)
 #   study.eco.energy    measure_latency, energy_table                             (latency and energy)
-#   study.eco.gates     train_eco_gate, load_eco_gate                             (gates)
+#   study.eco.config_gate_study     train_eco_gate, load_eco_gate                             (gates)
 #   study.eco.evaluate  EcoEval, evaluate_eco, execute_ecofusion                  (evaluation)
 #   study.eco.sweep     sweep, plot_figure4, plot_figure5                         (Tables 1-3, Figures 4-5)

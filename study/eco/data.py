@@ -214,11 +214,16 @@ class EcoSettings:
         return Path(run_dir) / "eco" / "gates" / name
 
 
-def _setup(run_dir, data, s: EcoSettings, threads: int = 2):
+def open_eco_run(run_dir, data, s: EcoSettings, threads: int = 2):
+    """A trained run ready for EcoFusion: (model, run config, configurations, EcoData).
+
+    Loads the run's network at `s.checkpoint`, builds the configuration set of `s.configurations`
+    over its branches, and the configuration dataset (`EcoData`) of `data` under `s`'s loss and
+    fusion method. UserError if the run's branches share no stems (the learned gates read them)."""
     import torch
 
     from fusion.eco.configurations import build_configurations, load_configurations_config
-    from fusion.nets.gates import gate_sensors
+    from fusion.nets.branch_gates import gate_sensors
     from study.detect import fusion_method, load_run
 
     torch.set_num_threads(threads)
@@ -239,7 +244,9 @@ def _subsample(indices: list[int], n: int) -> list[int]:
     return [indices[int(k)] for k in np.linspace(0, len(indices) - 1, n).round().astype(int)]
 
 
-def _splits(cfg, data, max_frames: int = 0) -> tuple[list[int], list[int]]:
+def eco_splits(cfg, data, max_frames: int = 0) -> tuple[list[int], list[int]]:
+    """The run's (train, test) dataset indices of `data` (`study.detect.run_train_test`), each cut
+    to at most `max_frames` evenly spaced frames (0 = all)."""
     from study.detect import run_train_test
 
     train, test = run_train_test(cfg, data, "EcoFusion")
@@ -252,8 +259,8 @@ def build_eco_data(run_dir, data, s: EcoSettings = EcoSettings(), progress: bool
     from fusion.eco.loss import FusedLossSpec
 
     run_dir, data = Path(run_dir), Path(data)
-    model, cfg, configs, ed = _setup(run_dir, data, s)
-    train, test = _splits(cfg, data, s.max_frames)
+    model, cfg, configs, ed = open_eco_run(run_dir, data, s)
+    train, test = eco_splits(cfg, data, s.max_frames)
     t0 = time.perf_counter()
     computed = ed.ensure(train + test, batch_size=s.batch_size, progress=progress)
     seconds = time.perf_counter() - t0

@@ -15,8 +15,10 @@ from pathlib import Path
 import numpy as np
 
 from sim.errors import UserError
-from study.eco.data import EcoSettings, _setup, _splits
-from study.gate_data import _atomic_text, _bar, cached_sha256, checkpoint_path
+from sim.progress import progress as progress_bar
+from study.eco.data import EcoSettings, eco_splits, open_eco_run
+from study.gate_data import cached_sha256, checkpoint_path
+from study.outputs import write_json_atomic
 
 LATENCY_VERSION = 1
 
@@ -96,7 +98,7 @@ def measure_latency(model, data, indices, configs, method: str = "soft_nms", rep
         if energy is not None:
             energy[key].append(e)
 
-    bar = _bar(len(indices), "latency", progress)
+    bar = progress_bar(total=len(indices), desc="latency", enabled=progress)
     with torch.no_grad():
         for k in range(len(ds)):
             inputs, _t, metas = collate([ds[k]])
@@ -165,8 +167,8 @@ def energy_table(run_dir, data, s: EcoSettings = EcoSettings(), threads: int = 1
 
     run_dir, data = Path(run_dir), Path(data)
     if model is None:
-        model, cfg, configs, _ed = _setup(run_dir, data, s, threads)
-        _train, test = _splits(cfg, data, s.max_frames)
+        model, cfg, configs, _ed = open_eco_run(run_dir, data, s, threads)
+        _train, test = eco_splits(cfg, data, s.max_frames)
     try:
         power = power_model(s.power)
     except ValueError as exc:
@@ -185,7 +187,7 @@ def energy_table(run_dir, data, s: EcoSettings = EcoSettings(), threads: int = 1
         lat, check = measure_latency(model, data, test[:frames], configs, fusion_method(s.fusion), repeats, threads,
                                      counter, check=n_check, progress=progress)
         path.parent.mkdir(parents=True, exist_ok=True)
-        _atomic_text(path, json.dumps({"identity": ident, "model": lat.to_dict(), "check": check}, indent=1))
+        write_json_atomic(path, {"identity": ident, "model": lat.to_dict(), "check": check})
     t, e, source = configuration_energy(lat, configs.members, power)
     base = {k: {"configuration": configs.names[i], "latency_ms": round(1000 * t[i], 2), "energy_j": round(e[i], 4)}
             for k, i in configs.baselines.items()}

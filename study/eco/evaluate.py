@@ -13,11 +13,11 @@ import numpy as np
 
 from fusion.metrics import MAX_BOOTSTRAP
 from sim.errors import UserError
-from study.eco.data import EcoSettings, _setup, _splits, detections_from_array, fuse_choice
+from sim.progress import progress as progress_bar
+from study.branch_gate_study import predict_losses
+from study.eco.config_gate_study import load_eco_gate
+from study.eco.data import EcoSettings, detections_from_array, eco_splits, fuse_choice, open_eco_run
 from study.eco.energy import energy_table
-from study.eco.gates import load_eco_gate
-from study.gate_data import _bar
-from study.gates import _predict
 
 GATE_ORDER = ("knowledge", "deep", "attention", "loss_based")
 FEATURE_GATES = ("deep", "attention")
@@ -31,13 +31,13 @@ class EcoEval:
 
     def __init__(self, run_dir, data, s: EcoSettings = EcoSettings(), gates=None, threads: int = 2,
                  latency_threads: int = 1, progress: bool = True) -> None:
-        from fusion.eco.gates import build_config_gate
+        from fusion.eco.config_gates import build_config_gate
         from fusion.eco.optimise import normalise_energy
         from sensors.dataset import DatasetReader
 
         self.run_dir, self.data, self.s = Path(run_dir), Path(data), s
-        self.model, cfg, self.configs, self.ed = _setup(self.run_dir, self.data, s, threads)
-        train, self.test = _splits(cfg, self.data, s.max_frames)
+        self.model, cfg, self.configs, self.ed = open_eco_run(self.run_dir, self.data, s, threads)
+        train, self.test = eco_splits(cfg, self.data, s.max_frames)
         self.ed.ensure(train + self.test, batch_size=s.batch_size, progress=progress)
         self.reader = DatasetReader(self.data)
         self.metas = [self.reader.meta(i) for i in self.test]
@@ -70,7 +70,7 @@ class EcoEval:
                 self.predicted[g] = build_config_gate(g, self.model, self.configs).predict(None, self.metas).numpy()
             else:
                 gate = load_eco_gate(self.run_dir, g, self.model, self.configs, self.ed.key, s)
-                self.predicted[g] = _predict(gate, self.features)
+                self.predicted[g] = predict_losses(gate, self.features)
 
     def choose(self, gate: str, lambda_e: float, gamma: float) -> np.ndarray:
         from fusion.eco.optimise import select
@@ -90,7 +90,7 @@ class EcoEval:
         counted."""
         if gate not in FEATURE_GATES:
             return np.zeros(len(choice)), [set() for _ in choice]
-        from fusion.nets.gates import gate_sensors
+        from fusion.nets.branch_gates import gate_sensors
 
         read = set(gate_sensors(self.model))
         stems = self.latency_model.stems
@@ -213,7 +213,7 @@ def execute_ecofusion(run_dir, data, gate: str, lambda_e: float, gamma: float, s
     import torch
 
     from fusion.data import FrameDataset, collate
-    from fusion.eco.gates import EcoFusionSelector, build_config_gate
+    from fusion.eco.config_gates import EcoFusionSelector, build_config_gate
     from fusion.late import fuse
     from sensors.rig import Calibration
     from study.detect import fusion_method, to_detections
@@ -241,7 +241,7 @@ def execute_ecofusion(run_dir, data, gate: str, lambda_e: float, gamma: float, s
     model.gate = selector
     try:
         with torch.no_grad():
-            bar = _bar(len(idx), f"execute {gate}", progress)
+            bar = progress_bar(total=len(idx), desc=f"execute {gate}", enabled=progress)
             for k, pos in enumerate(idx):
                 inputs, _t, metas = collate([ds[k]])
                 if gate == "loss_based":

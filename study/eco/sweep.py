@@ -3,14 +3,14 @@ See `study.eco`."""
 
 from __future__ import annotations
 
-import json
 from pathlib import Path
 
 import numpy as np
 
+from sim.progress import progress as progress_bar
 from study.eco.data import EcoSettings
 from study.eco.evaluate import METRIC, EcoEval
-from study.gate_data import _atomic_text, _bar
+from study.outputs import write_json_atomic
 
 TABLE1_LAMBDAS = (0.0, 0.01, 0.05)
 TABLE2_LAMBDAS = (0.0, 0.01, 0.1)
@@ -30,7 +30,7 @@ def sweep(run_dir, data, out: Path, gamma: float = 0.5, lambdas=SWEEP_LAMBDAS, s
     eco_gate = fig_gate if fig_gate in gates else gates[0]
     lambdas = sorted(set(lambdas) | set(TABLE1_LAMBDAS) | set(TABLE2_LAMBDAS))
     curve = {g: {} for g in gates}
-    bar = _bar(len(gates) * len(lambdas), "sweep", progress)
+    bar = progress_bar(total=len(gates) * len(lambdas), desc="sweep", enabled=progress)
     for g in gates:
         for lam in lambdas:
             ch = ev.choose(g, lam, gamma)
@@ -85,7 +85,7 @@ def sweep(run_dir, data, out: Path, gamma: float = 0.5, lambdas=SWEEP_LAMBDAS, s
         "frames": len(ev.test), "configurations": len(ev.configs), "metric": METRIC,
         "run": str(run_dir), "data": str(data),
     }
-    _atomic_text(out / "result.json", json.dumps(result, indent=1))
+    write_json_atomic(out / "result.json", result)
     return result
 
 

@@ -79,7 +79,7 @@ def test_eco_data_reports_loss_ap_rank_correlation_and_subsets_fused_afterwards_
     ed = EcoData(eco, data, model, configs, "soft_nms")
     assert ed.dir.parent == eco / "eco_data" and ed.missing(range(8)) == []
     arr = ed.arrays([1, 6], ["features", "detections", "terms", "ap"])
-    from fusion.nets.gates import gate_sensors
+    from fusion.nets.branch_gates import gate_sensors
 
     assert set(gate_sensors(model)) == {"radar", "camera_left", "camera_right", "lidar", "fwd_lidar"}  # every stem
     assert arr["features"].shape == (2, 5 * 64, 8, 16) and arr["terms"].shape == (2, 31, 7)
@@ -190,7 +190,7 @@ def test_fp_weight_reweights_cached_terms_and_keeps_its_gates_apart(eco, data, c
     from fusion.eco.configurations import build_configurations
     from fusion.eco.loss import FusedLossSpec
     from study.detect import load_run
-    from study.eco.data import EcoData, EcoSettings, _splits
+    from study.eco.data import EcoData, EcoSettings, eco_splits
 
     assert main(["eco-data", str(eco), str(data), "--fp-weight", "0.25", "--json"]) == 0
     r = _json(capsys)
@@ -199,7 +199,7 @@ def test_fp_weight_reweights_cached_terms_and_keeps_its_gates_apart(eco, data, c
     model, cfg = load_run(eco)
     configs = build_configurations(model.branch_sensors)
     ed = EcoData(eco, data, model, configs, "soft_nms")
-    _, test = _splits(cfg, data)
+    _, test = eco_splits(cfg, data)
     t = ed.arrays(test, ["terms"])["terms"]
     law = (t[..., 0] + t[..., 1] + 0.25 * t[..., 2] + FusedLossSpec().miss_cost * t[..., 3]) / np.maximum(t[..., 4], 1)
     for name, v in r["mean_loss_test"].items():

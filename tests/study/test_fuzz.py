@@ -851,10 +851,10 @@ def test_line_progress_of_a_resumed_job_times_only_its_own_steps(monkeypatch):
 def test_gate_data_label_and_lidar_fog_bars_print_whole_lines_into_a_log(capsys, monkeypatch):
     """In a log file a tqdm bar is carriage returns on one line; these bars print whole lines."""
     from sim.progress import LineProgress
-    from study.gate_data import _bar
+    from sim.progress import progress as progress_bar
 
     monkeypatch.setenv("HYDRABENCH_PROGRESS_S", "0")  # a line at every update
-    bar = _bar(3, "gate data", True)
+    bar = progress_bar(total=3, desc="gate data", enabled=True)  # as study.gate_data makes its bar
     assert isinstance(bar, LineProgress)
     bar.update(2)
     bar.close()

@@ -7,8 +7,8 @@ import numpy as np
 import pytest
 import torch
 
-from fusion.nets.gates import GATES
-from study.gates import GateTrainConfig, _predict, fit_gate, mae, ranking_agreement
+from fusion.nets.branch_gates import GATES
+from study.branch_gate_study import GateTrainConfig, fit_gate, mae, predict_losses, ranking_agreement
 
 
 @pytest.fixture(autouse=True, scope="module")
@@ -55,7 +55,7 @@ def test_trained_gate_beats_the_constant_predictor_on_held_out_mae(data, name):
     (xf, yf), (xv, yv), (xt, yt) = data
     gate = gate_of(name)
     fitted = fit_gate(gate, xf, yf, xv, yv, dataclasses.replace(CFG, gate=name), progress=False)
-    pred = _predict(gate, xt)
+    pred = predict_losses(gate, xt)
     constant = mae(np.broadcast_to(yf.mean(axis=0), yt.shape), yt)
     assert constant > 0.2  # the losses really vary
     assert mae(pred, yt) < 0.5 * constant, (mae(pred, yt), constant)
@@ -64,7 +64,7 @@ def test_trained_gate_beats_the_constant_predictor_on_held_out_mae(data, name):
     # the untrained gate is exactly the per-branch training median
     fresh = gate_of(name)
     fresh.fit_normalization(torch.from_numpy(xf), torch.from_numpy(yf))
-    assert np.allclose(_predict(fresh, xt), np.median(yf, axis=0), atol=1e-6)
+    assert np.allclose(predict_losses(fresh, xt), np.median(yf, axis=0), atol=1e-6)
 
 
 def test_gate_on_features_without_information_does_not_beat_the_constant(data):
@@ -75,7 +75,7 @@ def test_gate_on_features_without_information_does_not_beat_the_constant(data):
     gate = gate_of("deep")
     fit_gate(gate, xf, yf[rng.permutation(len(yf))], xv, yv[rng.permutation(len(yv))], CFG, progress=False)
     constant = mae(np.broadcast_to(yf.mean(axis=0), yt.shape), yt)
-    assert mae(_predict(gate, xt), yt) > 0.8 * constant
+    assert mae(predict_losses(gate, xt), yt) > 0.8 * constant
 
 
 def test_gate_training_resumes_to_identical_weights(data, tmp_path):
@@ -112,7 +112,7 @@ def test_each_objective_trains_a_gate_whose_choice_beats_the_constant(data, obje
     gate = gate_of("deep")
     cfg = dataclasses.replace(CFG, objective=objective)
     fitted = fit_gate(gate, xf, yf, xv, yv, cfg, progress=False)
-    j = judge(yt, choose(_predict(gate, xt)), constant_choice(yf))
+    j = judge(yt, choose(predict_losses(gate, xt)), constant_choice(yf))
     assert j["constant_regret"] > 0.04, j  # the constant (radar) is wrong on a quarter of the frames (0.054)
     assert j["regret"] < 0.5 * j["constant_regret"], (objective, j)
     assert fitted["best_val_regret"] == min(r["val_regret"] for r in fitted["history"])

@@ -6,6 +6,7 @@
   imports no torch at module level, so `hydrabench --help` and the light commands import no torch;
 - experiments never import the command line back (`study.cli`, `study.commands`);
 - nothing in `sim/`, `sensors/`, `fusion/` imports `study` (packages import one way);
+- no two modules import each other, directly or round a longer circle, even inside a function;
 - every module path the README and BENCHMARKS.md name in code spans exists.
 """
 
@@ -15,9 +16,11 @@ import ast
 import re
 import subprocess
 import sys
+from collections import deque
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[2]
+PACKAGES = ("sim", "sensors", "fusion", "study")
 STUDY = ROOT / "study"
 COMMANDS = STUDY / "commands"
 PARSER_CALLS = {"add_argument", "add_parser", "add_subparsers", "add_argument_group", "add_mutually_exclusive_group",
@@ -142,6 +145,78 @@ def test_library_packages_never_import_study():
     offenders = [f"{_rel(path)} imports {m}" for pkg in ("sim", "sensors", "fusion") for path in _py(ROOT / pkg)
                  for m in _imports(_tree(path)) if m == "study" or m.startswith("study.")]
     assert not offenders, "packages import one way, sim <- sensors <- fusion <- study: " + "; ".join(offenders)
+
+
+def _module_name(path: Path) -> str:
+    parts = path.relative_to(ROOT).with_suffix("").parts
+    return ".".join(parts[:-1] if parts[-1] == "__init__" else parts)
+
+
+def _import_graph() -> dict[str, set[str]]:
+    """Project module -> the project modules it imports, at the top or inside a function. `import
+    a.b.c` names a.b.c; `from a.b import c` names a.b.c if that is a module, else a.b; a name that is
+    no module names the nearest package above it."""
+    paths = {_module_name(p): p for pkg in PACKAGES for p in _py(ROOT / pkg)}
+    graph = {}
+    for name, path in paths.items():
+        package = name if path.name == "__init__.py" else name.rpartition(".")[0]
+        targets = set()
+        for n in ast.walk(_tree(path)):
+            if isinstance(n, ast.Import):
+                named = [a.name for a in n.names]
+            elif isinstance(n, ast.ImportFrom):
+                base = n.module or ""
+                if n.level:  # relative: the package, then one package up per extra dot
+                    up = package.split(".")[: package.count(".") + 2 - n.level]
+                    base = ".".join([*up, base] if base else up)
+                named = [f"{base}.{a.name}" if f"{base}.{a.name}" in paths else base for a in n.names]
+            else:
+                continue
+            for target in named:
+                while target and target not in paths:
+                    target = target.rpartition(".")[0]
+                if target and target != name:
+                    targets.add(target)
+        graph[name] = targets
+    return graph
+
+
+def _circle_through(graph: dict[str, set[str]], start: str) -> list[str] | None:
+    """The shortest import path start -> ... -> start (breadth first), or None."""
+    prev: dict[str, str] = {}
+    todo = deque([start])
+    while todo:
+        m = todo.popleft()
+        for t in sorted(graph.get(m, ())):
+            if t == start:
+                path = [m]
+                while path[-1] != start:
+                    path.append(prev[path[-1]])
+                return [*reversed(path), start]
+            if t not in prev:
+                prev[t] = m
+                todo.append(t)
+    return None
+
+
+def test_the_circle_finder_finds_circles():
+    assert _circle_through({"a": {"b"}, "b": {"a"}}, "a") == ["a", "b", "a"]
+    assert _circle_through({"a": {"b"}, "b": {"c"}, "c": {"a", "b"}}, "a") == ["a", "b", "c", "a"]
+    assert _circle_through({"a": {"b"}, "b": {"c"}, "c": {"b"}}, "a") is None
+
+
+def test_no_import_circles_among_the_projects_modules():
+    """An import circle (layers <-> profile, detect <-> train) works only while one side imports
+    lazily, and breaks when someone moves that import to the top: the dependency goes one way."""
+    graph = _import_graph()
+    assert "study.run_config" in graph["study.detect"], "the graph must see imports inside functions"
+    circles, seen = [], set()
+    for m in sorted(graph):
+        circle = _circle_through(graph, m)
+        if circle and frozenset(circle) not in seen:
+            seen.add(frozenset(circle))
+            circles.append(" -> ".join(circle))
+    assert not circles, "modules importing each other (make the dependency go one way): " + "; ".join(circles)
 
 
 def _resolves(dotted: str) -> bool:

@@ -80,7 +80,7 @@ def test_changed_model_profile_contents_rerun_train_and_below(fake_stages, tmp_p
     assert _rerun(tmp_path, fake_stages, monkeypatch, changed) == list(STAGES[1:])
 
 
-@pytest.mark.parametrize("module, first", [("study.report", "report"), ("study.gates", "gates"),
+@pytest.mark.parametrize("module, first", [("study.report", "report"), ("study.branch_gate_study", "gates"),
                                            ("study.train", "train"), ("sensors.generate", "generate")])
 def test_changed_code_of_a_module_reruns_the_first_stage_that_runs_it_and_below(fake_stages, tmp_path, monkeypatch,
                                                                               module, first):

@@ -8,6 +8,12 @@ import numpy as np
 import pytest
 import torch
 
+from fusion.eco.config_gates import (
+    CONFIG_GATES,
+    EcoFusionSelector,
+    KnowledgeConfigurationGate,
+    build_config_gate,
+)
 from fusion.eco.configurations import ConfigurationsConfig, build_configurations, load_configurations_config
 from fusion.eco.energy import (
     SENSOR_DEVICES,
@@ -18,12 +24,6 @@ from fusion.eco.energy import (
     power_model,
     sensor_energy,
     total_energy,
-)
-from fusion.eco.gates import (
-    CONFIG_GATES,
-    EcoFusionSelector,
-    KnowledgeConfigurationGate,
-    build_config_gate,
 )
 from fusion.eco.loss import FusedLossSpec, fused_loss, loss_terms, smooth_l1
 from fusion.eco.optimise import (

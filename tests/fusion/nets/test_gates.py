@@ -4,7 +4,7 @@ entry, self-attention, and bad input naming the field."""
 import pytest
 import torch
 
-from fusion.nets.gates import (
+from fusion.nets.branch_gates import (
     GATES,
     KNOWLEDGE_TABLE,
     KnowledgeGate,

@@ -431,7 +431,7 @@ def test_a_context_gate_decides_before_any_stem_runs(model):
     """EcoFusion 4.2.1: the knowledge gate reads external context, so wired into the network it
     decides first and only the stems of the branches it chose run (radar alone in dense fog: the
     radar stem once, no camera or lidar stem); a feature-reading gate still runs every stem."""
-    from fusion.nets.gates import build_gate
+    from fusion.nets.branch_gates import build_gate
 
     inputs = make_inputs(model, 2)
     meta = [{"layout": "motorway", "conditions": ["fog"], "severity": 5}] * 2

@@ -13,9 +13,17 @@ import numpy as np
 
 from fusion.eco.loss import FusedLossSpec
 from sim.errors import UserError
-from study.eco.data import EcoSettings, _setup, _splits
-from study.gate_data import _atomic_text, _atomic_torch_save
-from study.gates import OBJECTIVE_LABEL, GateTrainConfig, _predict, choice_table, fit_gate, mae, validation_split
+from study.branch_gate_study import (
+    OBJECTIVE_LABEL,
+    GateTrainConfig,
+    choice_table,
+    fit_gate,
+    mae,
+    predict_losses,
+    validation_split,
+)
+from study.eco.data import EcoSettings, eco_splits, open_eco_run
+from study.outputs import torch_save_atomic, write_json_atomic
 
 
 def train_eco_gate(run_dir, data, gate: str, cfg: GateTrainConfig, s: EcoSettings = EcoSettings(),
@@ -25,15 +33,15 @@ def train_eco_gate(run_dir, data, gate: str, cfg: GateTrainConfig, s: EcoSetting
     RUN/eco/gates/<gate>/ (resumable, like train-gate)."""
     import torch
 
-    from fusion.eco.gates import CONFIG_GATES, build_config_gate
+    from fusion.eco.config_gates import CONFIG_GATES, build_config_gate
     from sensors.dataset import DatasetReader
 
     cls = CONFIG_GATES.get(gate)
     if not cls.trainable:
         raise UserError(f"--gate {gate}: nothing to train (train deep or attention)")
     run_dir, data = Path(run_dir), Path(data)
-    model, run_cfg, configs, ed = _setup(run_dir, data, s, cfg.threads)
-    train, test = _splits(run_cfg, data, s.max_frames)
+    model, run_cfg, configs, ed = open_eco_run(run_dir, data, s, cfg.threads)
+    train, test = eco_splits(run_cfg, data, s.max_frames)
     ed.ensure(train + test, batch_size=s.batch_size, progress=progress)
     out = s.gate_dir(run_dir, gate)
     loss = dataclasses.asdict(ed.weights)
@@ -64,7 +72,7 @@ def train_eco_gate(run_dir, data, gate: str, cfg: GateTrainConfig, s: EcoSetting
     cfg_named = dataclasses.replace(cfg, gate=gate)
     fitted = fit_gate(g.net, x_fit, y_fit, x_val, y_val, cfg_named, out=out, progress=progress, state=state,
                       extra={"data_key": ed.key, "loss": loss})
-    pred = _predict(g, x_test)
+    pred = predict_losses(g, x_test)
     mean_c = y_fit.mean(axis=0)
     frames = DatasetReader(data).manifest["frames"]
     contexts = [[frames[int(i)]["context"] for i in idx] for idx in (fit_idx, test)]
@@ -86,10 +94,10 @@ def train_eco_gate(run_dir, data, gate: str, cfg: GateTrainConfig, s: EcoSetting
         "test_loss_of_constant_best": round(float(y_test[:, int(np.argmin(mean_c))].mean()), 4),
         "gate_path": str(out / "gate.pt"), "eco_data": str(ed.dir),
     }
-    _atomic_torch_save({"name": gate, "options": {**cfg.gate_options(), "sensors": list(ed.sensors)},
-                        "configurations": [list(m) for m in configs.members], "state": g.state_dict(),
-                        "data_key": ed.key, "loss": loss, "result": result}, out / "gate.pt")
-    _atomic_text(out / "result.json", json.dumps(result, indent=1))
+    torch_save_atomic({"name": gate, "options": {**cfg.gate_options(), "sensors": list(ed.sensors)},
+                      "configurations": [list(m) for m in configs.members], "state": g.state_dict(),
+                      "data_key": ed.key, "loss": loss, "result": result}, out / "gate.pt")
+    write_json_atomic(out / "result.json", result)
     return result
 
 
@@ -97,7 +105,7 @@ def load_eco_gate(run_dir, name: str, model, configs, data_key: str, s: EcoSetti
     """A trained configuration gate from `s.gate_dir(run_dir, name)`/gate.pt (for this configuration
     dataset and this L_f)."""
 
-    from fusion.eco.gates import build_config_gate
+    from fusion.eco.config_gates import build_config_gate
 
     path = s.gate_dir(run_dir, name) / "gate.pt"
     fp = s.fp_flag()

@@ -24,7 +24,6 @@ from __future__ import annotations
 import csv
 import dataclasses
 import json
-import os
 import sys
 from collections import defaultdict
 from dataclasses import dataclass
@@ -34,8 +33,10 @@ from typing import Any
 import numpy as np
 
 from sim.errors import UserError
+from sim.progress import progress as progress_bar
 from study.device import resolve_device
-from study.gate_data import GateData, _atomic_text, _atomic_torch_save, _bar, cached_sha256, checkpoint_path
+from study.gate_data import GateData, cached_sha256, checkpoint_path
+from study.outputs import atomic_path, torch_save_atomic, write_json_atomic
 
 TABLE_KS = (1, 3, 5, "all")
 SELECT_ON = ("regret", "mae")
@@ -45,7 +46,7 @@ FUSION_LABEL = {"nms": "nms", "soft_nms": "soft-nms", "wbf": "wbf"}
 
 def parse_k(text: Any, n_branches: int, field: str = "--k") -> int | str:
     """An int 1..n_branches or "all" (the table's column name); UserError naming `field` otherwise."""
-    from fusion.nets.gates import check_k
+    from fusion.nets.branch_gates import check_k
 
     if isinstance(text, str) and text.strip().lower() == "all":
         return "all"
@@ -73,7 +74,7 @@ class GateTrainConfig:
     """One gate training run.
 
     Fields:
-        gate: "deep" or "attention" (fusion.nets.gates.GATES entries that learn).
+        gate: "deep" or "attention" (fusion.nets.branch_gates.GATES entries that learn).
         epochs: passes over the training frames.
         batch_size: frames per step.
         lr: Adam learning rate (HydraFusion 5.3 trains its gates at 5e-5).
@@ -150,9 +151,11 @@ def mae(pred: np.ndarray, target: np.ndarray) -> float:
     return float(np.abs(np.asarray(pred, np.float64) - np.asarray(target, np.float64)).mean()) if len(target) else float("nan")
 
 
-def _predict(gate, feats: np.ndarray, batch: int = 256) -> np.ndarray:
-    """A gate's predictions (one per branch, or per configuration for EcoFusion's configuration
-    gates) on prepared pooled features, in batches, without gradients."""
+def predict_losses(gate, feats: np.ndarray, batch: int = 256) -> np.ndarray:
+    """A learned gate's predicted losses on prepared pooled features, in batches, without gradients.
+
+    feats: (n, channels, rows, cols) pooled stem features as `GateData` stores them.
+    Returns (n, n_branches) float32, or (n, n_configurations) for EcoFusion's configuration gates."""
     import torch
 
     gate.eval()
@@ -209,7 +212,8 @@ def fit_gate(gate, x_fit: np.ndarray, y_fit: np.ndarray, x_val: np.ndarray, y_va
         order = np.random.default_rng([cfg.seed, epoch]).permutation(len(x_fit))
         total, n = 0.0, 0
         # a live bar on a terminal; in a log file only the per-epoch JSON line below
-        bar = _bar(len(order), f"train-gate {gate.name} epoch {epoch + 1}/{cfg.epochs}", progress and sys.stderr.isatty())
+        bar = progress_bar(total=len(order), desc=f"train-gate {gate.name} epoch {epoch + 1}/{cfg.epochs}",
+                           enabled=progress and sys.stderr.isatty())
         for k in range(0, len(order), cfg.batch_size):
             b = order[k:k + cfg.batch_size]
             pred = gate.predict_prepared(torch.from_numpy(x_fit[b]))
@@ -225,7 +229,7 @@ def fit_gate(gate, x_fit: np.ndarray, y_fit: np.ndarray, x_val: np.ndarray, y_va
         epoch += 1
         row = {"epoch": epoch, f"train_{cfg.objective}": round(total / max(n, 1), 6), "val_mae": "", "val_regret": ""}
         if len(x_val):
-            p_val = _predict(gate, x_val)
+            p_val = predict_losses(gate, x_val)
             row["val_mae"], row["val_regret"] = round(mae(p_val, y_val), 6), round(regret(y_val, choose(p_val)), 6)
             score = [row["val_regret"], row["val_mae"]] if cfg.select_on == "regret" else [row["val_mae"]]
         history.append(row)
@@ -233,8 +237,8 @@ def fit_gate(gate, x_fit: np.ndarray, y_fit: np.ndarray, x_val: np.ndarray, y_va
             best_val, best_epoch = (score if len(x_val) else None), epoch
             best_state = {k: v.detach().clone() for k, v in gate.state_dict().items()}
         if out is not None:
-            _atomic_torch_save({"gate": gate.state_dict(), "optimizer": opt.state_dict(), "epoch": epoch,
-                                "best_val": best_val, "best_epoch": best_epoch, "best_state": best_state,
+            torch_save_atomic({"gate": gate.state_dict(), "optimizer": opt.state_dict(), "epoch": epoch,
+                               "best_val": best_val, "best_epoch": best_epoch, "best_state": best_state,
                                "history": history, "torch_rng": torch.get_rng_state(),
                                "config": dataclasses.asdict(cfg), **(extra or {})}, out / "checkpoint.pt")
             _write_csv(out / "metrics.csv", history)
@@ -268,12 +272,10 @@ def choice_table(pred: np.ndarray, y_fit: np.ndarray, y_test: np.ndarray, contex
 
 
 def _write_csv(path: Path, rows: list[dict]) -> None:
-    tmp = path.with_name(f".{path.name}.tmp-{os.getpid()}")
-    with open(tmp, "w", newline="") as fh:
+    with atomic_path(path) as tmp, open(tmp, "w", newline="") as fh:
         w = csv.DictWriter(fh, fieldnames=list(rows[0]))
         w.writeheader()
         w.writerows(rows)
-    os.replace(tmp, path)
 
 
 def train_gate(run_dir, data, cfg: GateTrainConfig, progress: bool = True, fresh: bool = False, setup=None) -> dict:
@@ -284,7 +286,7 @@ def train_gate(run_dir, data, cfg: GateTrainConfig, progress: bool = True, fresh
     float32). The gate itself, a few small convs on pooled features, trains on the CPU."""
     import torch
 
-    from fusion.nets.gates import GATES, build_gate
+    from fusion.nets.branch_gates import GATES, build_gate
     from sensors.dataset import DatasetReader
     from study.detect import load_run, run_train_test
 
@@ -331,7 +333,7 @@ def train_gate(run_dir, data, cfg: GateTrainConfig, progress: bool = True, fresh
     fitted = fit_gate(gate, x_fit, y_fit, x_val, y_val, cfg, out=out, progress=progress, state=state,
                       extra={"data_key": gd.key})
 
-    pred = _predict(gate, x_test)
+    pred = predict_losses(gate, x_test)
     mean_c, median_c = y_fit.mean(axis=0), np.median(y_fit, axis=0)
     branches = list(model.branches)
     contexts = [[reader.manifest["frames"][int(i)]["context"] for i in idx] for idx in (fit_idx, test_idx)]
@@ -354,11 +356,11 @@ def train_gate(run_dir, data, cfg: GateTrainConfig, progress: bool = True, fresh
         "gate_data": str(gd.dir), "gate_path": str(out / "gate.pt"),
     }
     result["beats_constant"] = result["test_mae"] < result["constant_mean_mae"]
-    _atomic_torch_save({"name": cfg.gate, "options": {**cfg.gate_options(), "sensors": list(gd.sensors)},
-                        "branches": branches, "state": gate.state_dict(), "data_key": gd.key,
-                        "checkpoint": cfg.checkpoint, "checkpoint_sha256": gd.identity["checkpoint_sha256"],
-                        "result": result}, out / "gate.pt")
-    _atomic_text(out / "result.json", json.dumps(result, indent=1))
+    torch_save_atomic({"name": cfg.gate, "options": {**cfg.gate_options(), "sensors": list(gd.sensors)},
+                      "branches": branches, "state": gate.state_dict(), "data_key": gd.key,
+                      "checkpoint": cfg.checkpoint, "checkpoint_sha256": gd.identity["checkpoint_sha256"],
+                      "result": result}, out / "gate.pt")
+    write_json_atomic(out / "result.json", result)
     return result
 
 
@@ -367,7 +369,7 @@ def train_gate(run_dir, data, cfg: GateTrainConfig, progress: bool = True, fresh
 def load_trained_gate(run_dir, name: str, model, checkpoint: str = "latest"):
     """The gate `train_gate` saved in RUN/gates/<name>/gate.pt, for this checkpoint of the run."""
 
-    from fusion.nets.gates import build_gate
+    from fusion.nets.branch_gates import build_gate
 
     run_dir = Path(run_dir)
     path = run_dir / "gates" / name / "gate.pt"
@@ -388,7 +390,7 @@ def load_trained_gate(run_dir, name: str, model, checkpoint: str = "latest"):
 
 def make_gate(name: str, model, run_dir, checkpoint: str = "latest", k: int | str | None = None):
     """A ready gate: trained ones loaded from the run, the others built from the model."""
-    from fusion.nets.gates import GATES, build_gate
+    from fusion.nets.branch_gates import GATES, build_gate
 
     cls = GATES.get(name)
     gate = load_trained_gate(run_dir, name, model, checkpoint) if cls.trainable else build_gate(name, model).eval()
@@ -410,7 +412,7 @@ def _rates_per_context(selections, contexts, branches) -> dict[str, dict[str, fl
 
 
 def _setup(run_dir, data, split, weights, checkpoint, setup=None):
-    from fusion.nets.gates import gate_sensors
+    from fusion.nets.branch_gates import gate_sensors
     from sensors.dataset import DatasetReader
     from study.detect import frames_for, load_run
 
@@ -478,7 +480,7 @@ def evaluate_gate(run_dir, data, gate: str, k=None, fusion: str = "soft-nms", sp
     per_frame = []
     try:
         with torch.no_grad():
-            bar = _bar(len(indices), f"evaluate {gate} k={k}", progress)
+            bar = progress_bar(total=len(indices), desc=f"evaluate {gate} k={k}", enabled=progress)
             for inputs, _targets, metas in _loader(model, data, indices, batch_size):
                 if losses is not None:
                     metas = [dict(m, branch_losses=losses[int(m["dataset_index"])]) for m in metas]
@@ -518,7 +520,7 @@ def evaluate_all_gates(run_dir, data, gates=None, fusions=TABLE_FUSIONS, ks=None
     import torch
 
     from fusion.late import fuse
-    from fusion.nets.gates import GATES, rank_branches
+    from fusion.nets.branch_gates import GATES, rank_branches
     from sensors.rig import Calibration
     from study.detect import score, to_detections
     from study.train import run_protocol
@@ -536,7 +538,7 @@ def evaluate_all_gates(run_dir, data, gates=None, fusions=TABLE_FUSIONS, ks=None
     predicted: dict[str, list] = {g: [] for g in names}
     per_frame = []
     with torch.no_grad():
-        bar = _bar(len(indices), "evaluate all gates", progress)
+        bar = progress_bar(total=len(indices), desc="evaluate all gates", enabled=progress)
         for inputs, _targets, metas in _loader(model, data, indices, batch_size):
             if losses is not None:
                 metas = [dict(m, branch_losses=losses[int(m["dataset_index"])]) for m in metas]
@@ -568,7 +570,7 @@ def evaluate_all_gates(run_dir, data, gates=None, fusions=TABLE_FUSIONS, ks=None
     ctx_table: dict = {}
     rates: dict = {}
     rates_ctx: dict = {}
-    bar = _bar(len(names) * len(ks) * len(fusions), "fuse and score", progress)
+    bar = progress_bar(total=len(names) * len(ks) * len(fusions), desc="fuse and score", enabled=progress)
     for g in names:
         map_table[g], ctx_table[g], rates[g], rates_ctx[g] = {}, {}, {}, {}
         for k in ks:

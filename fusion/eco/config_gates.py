@@ -7,14 +7,14 @@ A configuration gate predicts the fused loss L_f(phi) of every configuration of 
 
 - **knowledge** (4.2.1): external context only (road layout, conditions, severity, lens cover
   from the frame's metadata). HydraFusion's `KNOWLEDGE_TABLE` gives each branch a quality in the
-  context (`fusion.nets.gates.branch_quality`); the configuration for the context is every branch
+  context (`fusion.nets.branch_gates.branch_quality`); the configuration for the context is every branch
   within `KNOWLEDGE_MARGIN` of the best one (the good sensors, late-fused). Its predicted loss is
   the number of branches by which a configuration differs from that set (0 for it), so with
   gamma < 1 the joint optimisation can only return it: static and not tunable by lambda_E, as
   in the paper (Sections 5.1, 5.3). It reads no stem features, so no stem runs before its decision.
 - **deep** / **attention** (4.2.2-4.2.3): HydraFusion's gate architectures
-  (`fusion.nets.gates.DeepGate` / `AttentionGate`: three convs, [SAGAN self-attention], max-pool,
-  MLP) with one output per configuration, regressing L_f (trained by `study.eco.gates`).
+  (`fusion.nets.branch_gates.DeepGate` / `AttentionGate`: three convs, [SAGAN self-attention], max-pool,
+  MLP) with one output per configuration, regressing L_f (trained by `study.eco.config_gate_study`).
 - **loss_based** (4.2.4): the a-posteriori L_f of every configuration on the frame (needs ground
   truth and every branch's output: `meta[i]["config_losses"]`): the oracle.
 
@@ -35,7 +35,7 @@ from torch import Tensor, nn
 
 from fusion.eco.configurations import ConfigurationSet
 from fusion.eco.optimise import DEFAULT_GAMMA, DEFAULT_RULE, select
-from fusion.nets.gates import AttentionGate, DeepGate, branch_quality, sensor_reliability
+from fusion.nets.branch_gates import AttentionGate, DeepGate, branch_quality, sensor_reliability
 from sim.registry import Registry
 
 CONFIG_GATES: Registry = Registry(
@@ -46,7 +46,7 @@ CONFIG_GATES: Registry = Registry(
 
 KNOWLEDGE_MARGIN = 0.1
 """A branch joins the knowledge gate's configuration when its quality is within this of the best
-branch's (qualities are 0..~1.1, `fusion.nets.gates.branch_quality`): the branches the table
+branch's (qualities are 0..~1.1, `fusion.nets.branch_gates.branch_quality`): the branches the table
 rates about as good as the best are late-fused, the clearly weaker ones are left out."""
 
 
@@ -183,7 +183,7 @@ class AttentionConfigurationGate(LearnedConfigurationGate):
 
 def build_config_gate(name: str, model, configurations: ConfigurationSet, **options) -> ConfigurationGate:
     """A configuration gate for `model`'s branches (eval mode). Learned gates read every shared stem."""
-    from fusion.nets.gates import gate_sensors
+    from fusion.nets.branch_gates import gate_sensors
 
     cls = CONFIG_GATES.get(name)
     if issubclass(cls, LearnedConfigurationGate):

@@ -1,19 +1,20 @@
-"""`hydrabench train-gate`: the command line of `study.gates.train_gate` (the gate dataset and the
-training are described in `study.gate_data` and `study.gates`)."""
+"""`hydrabench train-gate`: the command line of `study.branch_gate_study.train_gate` (the gate dataset
+and the training are described in `study.gate_data` and `study.branch_gate_study`)."""
 
 from __future__ import annotations
 
-import argparse
 from pathlib import Path
 
-from study import gates
+from study import branch_gate_study
 from study.cli import (
     Formatter,
     checkpoint_arg,
     dataset_dir,
     emit,
+    holdout_fraction,
     name_arg,
     nonneg_int,
+    pool_grid,
     pos_float,
     pos_int,
     training_run,
@@ -31,28 +32,8 @@ validation share of its sequences, which picks the epoch) and is tested on its t
 """
 
 
-def _grid_arg(text: str) -> tuple[int, int]:
-    try:
-        rows, cols = (int(t) for t in text.lower().split("x"))
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected ROWSxCOLS such as 8x16, got {text!r}") from None
-    if rows < 4 or cols < 4:
-        raise argparse.ArgumentTypeError(f"grid must be at least 4x4, got {text!r}")
-    return rows, cols
-
-
-def _fraction(text: str) -> float:
-    try:
-        v = float(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected a number, got {text!r}") from None
-    if not 0.0 <= v < 1.0:
-        raise argparse.ArgumentTypeError(f"must be in [0, 1), got {v}")
-    return v
-
-
 def add_train_gate(sub, name, help_text):
-    doc = gates.__doc__.split("**train-gate**", 1)[1].split("**Tables.**", 1)[0]
+    doc = branch_gate_study.__doc__.split("**train-gate**", 1)[1].split("**Tables.**", 1)[0]
     p = sub.add_parser(name, help=help_text, description="hydrabench train-gate" + doc.rstrip(), epilog=TRAIN_EPILOG,
                        formatter_class=Formatter)
     p.add_argument("run_dir", metavar="RUN", type=training_run, help="training run directory (hydrabench train --out)")
@@ -61,9 +42,9 @@ def add_train_gate(sub, name, help_text):
     p.add_argument("--epochs", type=pos_int, default=100, help="passes over the training frames (more: continues)")
     p.add_argument("--batch-size", type=pos_int, default=32, help="frames per Adam step")
     p.add_argument("--lr", type=pos_float, default=5e-5, help="Adam learning rate (HydraFusion 5.3)")
-    p.add_argument("--val-fraction", type=_fraction, default=0.15,
+    p.add_argument("--val-fraction", type=holdout_fraction, default=0.15,
                    help="share of the train split's sequences held out to pick the epoch")
-    p.add_argument("--grid", type=_grid_arg, default="8x16", help="ROWSxCOLS the stem features are pooled to")
+    p.add_argument("--grid", type=pool_grid, default="8x16", help="ROWSxCOLS the stem features are pooled to")
     p.add_argument("--seed", type=nonneg_int, default=0, help="initialisation, data order, validation split")
     p.add_argument("--checkpoint", type=checkpoint_arg, default="latest", help="latest, or epoch-NNN")
     p.add_argument("--fresh", action="store_true", help="discard a previous training of this gate")
@@ -74,10 +55,10 @@ def add_train_gate(sub, name, help_text):
 
 def run_train_gate(args) -> int:
     setup = resolve_device(args)
-    cfg = gates.GateTrainConfig(gate=args.gate, epochs=args.epochs, batch_size=args.batch_size, lr=args.lr,
-                          val_fraction=args.val_fraction, seed=args.seed, grid=tuple(args.grid),
-                          checkpoint=args.checkpoint, threads=setup.threads)
-    result = gates.train_gate(Path(args.run_dir), Path(args.data), cfg, fresh=args.fresh, setup=setup)
+    cfg = branch_gate_study.GateTrainConfig(gate=args.gate, epochs=args.epochs, batch_size=args.batch_size,
+                                            lr=args.lr, val_fraction=args.val_fraction, seed=args.seed,
+                                            grid=tuple(args.grid), checkpoint=args.checkpoint, threads=setup.threads)
+    result = branch_gate_study.train_gate(Path(args.run_dir), Path(args.data), cfg, fresh=args.fresh, setup=setup)
 
     def text(r):
         lines = [f"{r['gate']} gate: held-out MAE {r['test_mae']} vs constant predictor {r['constant_mean_mae']} "
