@@ -7,6 +7,8 @@ registry. `scripts/device_kit.toml` lists those packages, pinned to requirements
   download [--dest .whl]   fetches their cp312 manylinux wheels (building a wheel where PyPI has
                            only a source archive) into the ignored folder `.whl/`, keeps one
                            version of each, and prints the kit's size;
+  gl [--dest .gl]          fetches the OpenGL/EGL loader packages (.deb, amd64) the GPU machine
+                           lacks, with apt-get, as the `device` README says (about 0.4 MB);
   check                    imports every third-party module the check can reach and prints ONE
                            line naming the missing ones (exit 3), or nothing (exit 0);
   modules                  prints those modules, one per line.
@@ -180,6 +182,24 @@ def download(dest: Path, kit: dict | None = None, pip: tuple = (sys.executable, 
     return wheels
 
 
+GL_PACKAGES = ("libvulkan1", "libegl1", "libglvnd0", "libopengl0", "libgl1", "libglx0", "libgles2")
+"""The loaders (glvnd's libEGL, libOpenGL, ...) that pyrender's EGL platform opens; the NVIDIA driver
+there brings the vendor library. Unpacked there with `dpkg -x` (docs/gpu.md)."""
+
+
+def download_gl(dest: Path, lists: Path = Path("/tmp/amd64")) -> list[Path]:
+    """Fetch GL_PACKAGES as amd64 .deb files into `dest` with apt-get (its lists kept in `lists`)."""
+    dest.mkdir(parents=True, exist_ok=True)
+    (lists / "partial").mkdir(parents=True, exist_ok=True)
+    opts = ["-oAPT::Architecture=amd64", "-oAPT::Architectures=amd64", f"-oDir::State::Lists={lists}"]
+    for cmd, cwd in ((["apt-get", *opts, "update", "-qq"], None), (["apt-get", *opts, "download", "-qq", *GL_PACKAGES], dest)):
+        r = subprocess.run(cmd, cwd=cwd, capture_output=True, text=True)
+        if r.returncode != 0:
+            lines = (r.stderr + r.stdout).strip().splitlines()
+            raise SystemExit(f"device_kit: {' '.join(cmd[:1] + cmd[-1:])}: {lines[-1] if lines else 'failed'}")
+    return sorted(dest.glob("*.deb"))
+
+
 def main(argv=None) -> int:
     import argparse
 
@@ -187,6 +207,8 @@ def main(argv=None) -> int:
     sub = ap.add_subparsers(dest="command", required=True)
     d = sub.add_parser("download", help="fetch the kit's wheels into --dest")
     d.add_argument("--dest", default=str(ROOT / ".whl"))
+    g = sub.add_parser("gl", help="fetch the EGL/OpenGL loader .debs into --dest")
+    g.add_argument("--dest", default=str(ROOT / ".gl"))
     sub.add_parser("check", help="one line naming what the check cannot import here")
     sub.add_parser("modules", help="the third-party modules the check can import")
     args = ap.parse_args(argv)
@@ -196,6 +218,10 @@ def main(argv=None) -> int:
         for p in wheels:
             sys.stdout.write(f"{p.stat().st_size / 2**20:7.2f} MiB  {p.name}\n")
         sys.stdout.write(f"{total / 2**20:7.2f} MiB  {len(wheels)} wheels in {args.dest}\n")
+        return 0
+    if args.command == "gl":
+        debs = download_gl(Path(args.dest))
+        sys.stdout.write(f"{sum(p.stat().st_size for p in debs) / 2**20:7.2f} MiB  {len(debs)} packages in {args.dest}\n")
         return 0
     if args.command == "check":
         return check()

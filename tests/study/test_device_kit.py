@@ -126,8 +126,9 @@ def test_kit_versions_are_the_locked_ones():
         assert md.version(name) == spec["version"]  # so the Requires-Dist read above is the kit's
 
 
-def test_the_wheels_folder_is_ignored():
-    assert "/.whl/" in (ROOT / ".gitignore").read_text().splitlines()
+def test_the_wheels_and_gl_folders_are_ignored():
+    ignored = (ROOT / ".gitignore").read_text().splitlines()
+    assert "/.whl/" in ignored and "/.gl/" in ignored
 
 
 def test_download_builds_the_pip_commands_and_keeps_one_version_of_each(tmp_path):
