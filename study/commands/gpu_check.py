@@ -78,8 +78,8 @@ def main(argv=None) -> int:
     def on_alarm(signum, frame):
         raise TimeBudgetExceeded(f"the time budget of {args.budget_s:g} s ran out")
 
+    previous = signal.signal(signal.SIGALRM, on_alarm) if args.budget_s > 0 else None
     if args.budget_s > 0:
-        signal.signal(signal.SIGALRM, on_alarm)
         signal.setitimer(signal.ITIMER_REAL, args.budget_s)
     force_cpu = args.cpu or args.device == "cpu"
     try:
@@ -105,6 +105,7 @@ def main(argv=None) -> int:
     finally:
         if args.budget_s > 0:
             signal.setitimer(signal.ITIMER_REAL, 0)
+            signal.signal(signal.SIGALRM, previous)
     _write(out, summary)
     sys.stdout.write(json.dumps(summary) + "\n")
     return 0
