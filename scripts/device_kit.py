@@ -40,8 +40,8 @@ def normalise(name: str) -> str:
 
 
 def load(path: Path = KIT_FILE) -> dict:
-    """The kit file: {"entry", "python", "kit": {name: {"version", "sdist"}}, "lazy": {module: why},
-    "image": set of names}, names normalised."""
+    """The kit file: {"entry", "python", "kit": {name: {"version", "sdist", "imported_by"}},
+    "lazy": {module: why}, "renderer": set of modules, "image": set of names}, names normalised."""
     raw = tomllib.loads(path.read_text())
     kit = {}
     for name, v in raw["kit"].items():
@@ -49,6 +49,7 @@ def load(path: Path = KIT_FILE) -> dict:
         kit[normalise(name)] = {"version": str(entry["version"]), "sdist": bool(entry.get("sdist", False)),
                                 "imported_by": entry.get("imported_by")}
     return {"entry": raw["entry"], "python": raw["python"], "kit": kit, "lazy": dict(raw.get("lazy", {})),
+            "renderer": set(raw.get("renderer", [])),
             "image": {normalise(n) for n in raw["image"]["packages"]}}
 
 
@@ -120,27 +121,39 @@ def needed_modules(root: Path = ROOT, kit: dict | None = None) -> list[str]:
     return sorted((set(eager) | set(lazy)) - set(kit["lazy"]))
 
 
-def missing_modules(modules) -> list[str]:
-    """`module (ExceptionType: first line)` for each module that does not import here."""
-    missing = []
+def failed_imports(modules) -> list[tuple[str, BaseException]]:
+    """(module, exception) for each module that does not import here."""
+    failed = []
     for m in modules:
         try:
             importlib.import_module(m)
         except Exception as exc:  # ImportError, or OSError from a library the wheel's .so needs
-            first = (str(exc).splitlines() or [""])[0]
-            missing.append(f"{m} ({type(exc).__name__}: {first})")
-    return missing
+            failed.append((m, exc))
+    return failed
+
+
+def describe(failed) -> str:
+    """`module (ExceptionType: first line); ...`"""
+    return "; ".join(f"{m} ({type(e).__name__}: {(str(e).splitlines() or [''])[0]})" for m, e in failed)
 
 
 def check(root: Path = ROOT) -> int:
-    """Import what the check needs (torch first, the way the check does); one line and exit 3 when
-    anything is missing."""
-    modules = needed_modules(root)
+    """Import what the check needs (torch first, the way the check does). What is missing: one
+    line on stdout, exit 3. A renderer module (the kit file's `renderer`) that is installed but
+    cannot load its GL libraries does not stop the check, which then trains on synthetic tensors:
+    one line on stderr says so."""
+    kit = load()
+    modules = needed_modules(root, kit)
     ordered = [m for m in ("torch", "torchvision") if m in modules] + [m for m in modules if m not in ("torch", "torchvision")]
-    missing = missing_modules(ordered)
-    if missing:
-        sys.stdout.write(f"gpu_check: missing on this machine ({len(missing)} of {len(modules)} modules): "
-                         f"{'; '.join(missing)}; carry the device kit (python3 scripts/device_kit.py download, "
+    failed = failed_imports(ordered)
+    soft = [(m, e) for m, e in failed if m in kit["renderer"] and not isinstance(e, ModuleNotFoundError)]
+    fatal = [(m, e) for m, e in failed if (m, e) not in soft]
+    if soft:
+        sys.stderr.write(f"gpu_check: the renderer will not start here ({describe(soft)}); the check trains on "
+                         "synthetic tensors (docs/gpu.md: carry .gl)\n")
+    if fatal:
+        sys.stdout.write(f"gpu_check: missing on this machine ({len(fatal)} of {len(modules)} modules): "
+                         f"{describe(fatal)}; carry the device kit (python3 scripts/device_kit.py download, "
                          "carry .whl; docs/gpu.md)\n")
         return 3
     return 0

@@ -169,6 +169,31 @@ def test_check_names_every_missing_module_on_one_line(tmp_path, monkeypatch, cap
     assert kit_script.check() == 0 and capsys.readouterr().out == ""
 
 
+def test_a_renderer_that_cannot_load_its_gl_libraries_does_not_stop_the_check(tmp_path, monkeypatch, capsys):
+    (tmp_path / "hb_gl.py").write_text("raise ImportError('Unable to load EGL library')\n")
+    monkeypatch.syspath_prepend(str(tmp_path))
+    monkeypatch.setattr(kit_script, "load", lambda: {**KIT, "renderer": {"hb_gl", "hb_gl_absent"}})
+    monkeypatch.setattr(kit_script, "needed_modules", lambda root=None, kit=None: ["json", "hb_gl"])
+    assert kit_script.check() == 0
+    out, err = capsys.readouterr()
+    assert out == "" and err.count("\n") == 1
+    assert "the renderer will not start here (hb_gl (ImportError: Unable to load EGL library))" in err
+    # a renderer package that is not there at all is a missing kit, not a missing driver
+    monkeypatch.setattr(kit_script, "needed_modules", lambda root=None, kit=None: ["hb_gl_absent"])
+    assert kit_script.check() == 3 and "hb_gl_absent (ModuleNotFoundError" in capsys.readouterr().out
+
+
+def test_the_renderer_modules_are_the_ones_the_training_path_does_not_import():
+    """Only modules that generation alone needs may fail softly: training and bench must not import them."""
+    eager, lazy, _ = kit_script.import_walk(ROOT, "study.train")
+    for entry in ("study.bench.nets", "fusion.nets.gates", "study.device"):
+        e, lz, _ = kit_script.import_walk(ROOT, entry)
+        eager.update(e)
+        lazy.update(lz)
+    assert KIT["renderer"] and not KIT["renderer"] & (set(eager) | set(lazy))
+    assert KIT["renderer"] <= set(kit_script.needed_modules(ROOT, KIT))
+
+
 @pytest.mark.parametrize("name,expected", [("PyOpenGL", "pyopengl"), ("Farama_Notifications", "farama-notifications"),
                                            ("pygame.ce", "pygame-ce")])
 def test_names_compare_as_pep_503_says(name, expected):

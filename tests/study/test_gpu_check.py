@@ -178,3 +178,38 @@ def test_the_script_names_what_cannot_be_imported_on_one_line(tmp_path):
     assert r.returncode == 3, r.stderr
     assert r.stderr.count("\n") == 1 and r.stdout == ""
     assert "gpu_check: missing on this machine (1 of" in r.stderr and "shapely (ImportError: no shapely" in r.stderr
+
+
+def _stub_wheel(folder: Path, name: str, version: str) -> Path:
+    """A pure-Python wheel of an importable stub package `name`."""
+    import zipfile
+
+    files = {f"{name}/__init__.py": "FROM_THE_KIT = True\n",
+             f"{name}-{version}.dist-info/METADATA": f"Metadata-Version: 2.1\nName: {name}\nVersion: {version}\n",
+             f"{name}-{version}.dist-info/WHEEL": "Wheel-Version: 1.0\nGenerator: test\nRoot-Is-Purelib: true\n"
+                                                  "Tag: py3-none-any\n"}
+    files[f"{name}-{version}.dist-info/RECORD"] = "".join(f"{p},,\n" for p in [*files, f"{name}-{version}.dist-info/RECORD"])
+    path = folder / f"{name}-{version}-py3-none-any.whl"
+    with zipfile.ZipFile(path, "w") as z:
+        for p, text in files.items():
+            z.writestr(p, text)
+    return path
+
+
+def test_the_script_installs_the_kit_where_a_module_is_missing_and_goes_on(tmp_path):
+    """What the GPU machine does: shapely missing, the kit's wheel installed into a scratch site,
+    the imports tried again, then the check itself starts (here it refuses --parts at once)."""
+    fake = tmp_path / "site" / "shapely"
+    fake.mkdir(parents=True)
+    (fake / "__init__.py").write_text("raise ImportError('no shapely on this machine')\n")
+    wheels = tmp_path / "whl"
+    wheels.mkdir()
+    _stub_wheel(wheels, "shapely", "2.2.0")
+    site = tmp_path / "scratch-site"
+    env = {**os.environ, "PYTHONPATH": str(tmp_path / "site"), "PYTHON": sys.executable, "KIT_WHEELS": str(wheels),
+           "KIT_SITE": str(site)}
+    r = subprocess.run([str(ROOT / "scripts" / "gpu_check.sh"), "--parts", "none", "--budget-s", "0"],
+                       capture_output=True, text=True, env=env, timeout=300)
+    assert (site / "shapely" / "__init__.py").read_text() == "FROM_THE_KIT = True\n"
+    assert r.returncode == 2, r.stderr
+    assert r.stderr.count("\n") == 1 and r.stderr.startswith("gpu_check: error: UserError: --parts: unknown none")
