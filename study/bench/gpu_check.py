@@ -240,7 +240,8 @@ def run_check(work: Path, frames_per_context: int | None = None, steps: int | No
                             batches=tuple(p["batches"]), device=setup.device, amp=setup.amp,
                             configurations=p["configurations"], train_branches=p["train_branches"])
         summary["bench_inference"] = {k: b[k] for k in ("latency_ms", "latency_ms_per_frame_batch_8", "peak_rss_mb",
-                                                         "peak_gpu_mb", "energy_j_per_frame", "idle_power_w",
+                                                         "peak_gpu_mb", "energy_j_per_frame", "energy_above_idle_j_per_frame",
+                                                         "power_w", "idle_power_w",
                                                          "energy_source", "ratio_top3_to_all", "gate_overhead_ms",
                                                          "topk_latency_ms")
                                       if k in b}

@@ -213,3 +213,23 @@ def test_the_script_installs_the_kit_where_a_module_is_missing_and_goes_on(tmp_p
     assert (site / "shapely" / "__init__.py").read_text() == "FROM_THE_KIT = True\n"
     assert r.returncode == 2, r.stderr
     assert r.stderr.count("\n") == 1 and r.stderr.startswith("gpu_check: error: UserError: --parts: unknown none")
+
+
+def test_the_bench_step_hands_its_plan_to_bench_inference_and_keeps_the_gpu_figures(tmp_path, monkeypatch):
+    import study.bench.nets
+
+    calls = []
+    fake = {"latency_ms": {"all_branches": 9.0}, "peak_gpu_mb": {"all_branches": 900.0},
+            "energy_j_per_frame": {"all_branches": 0.5}, "energy_above_idle_j_per_frame": {"all_branches": 0.3},
+            "power_w": {"all_branches": 420.0}, "idle_power_w": {"all_branches": 80.0},
+            "energy_source": "measured: NVML", "training_images_per_second": {"radar": 3.0}, "details": {"x": 1}}
+    monkeypatch.setattr(study.bench.nets, "bench_inference", lambda *a, **k: calls.append((a, k)) or dict(fake))
+    s = gpu_check.run_check(tmp_path, force_cpu=True, parts=("bench",))
+    (profile,), kw = calls[0]
+    plan = gpu_check.plan(False)
+    assert profile == "cpu" and kw["device"] == "cpu" and kw["configurations"] == plan["configurations"]
+    assert kw["batches"] == (1,) and kw["train_branches"] == plan["train_branches"]
+    b = s["bench_inference"]
+    assert b["energy_above_idle_j_per_frame"] == {"all_branches": 0.3} and b["idle_power_w"] == {"all_branches": 80.0}
+    assert "details" not in b and s["train_images_per_second_per_branch"] == {"radar": 3.0}
+    assert s["completed"] == ["probe", "bench"]
