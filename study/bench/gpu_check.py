@@ -31,6 +31,10 @@ from pathlib import Path
 PARTS = ("generate", "train", "bench")
 
 
+class TimeBudgetExceeded(Exception):
+    """The check's time budget (`scripts/gpu_check.sh --budget-s`) ran out."""
+
+
 def _log(msg: str) -> None:
     sys.stderr.write(f"[gpu_check {time.strftime('%H:%M:%S')}] {msg}\n")
     sys.stderr.flush()

@@ -17,10 +17,6 @@ from pathlib import Path
 from study.bench import gpu_check
 
 
-class TimeBudgetExceeded(Exception):
-    """--budget-s seconds have passed."""
-
-
 def _write(path: Path | None, summary: dict) -> None:
     if path is None:
         return
@@ -76,7 +72,7 @@ def main(argv=None) -> int:
         _write(out, summary)
 
     def on_alarm(signum, frame):
-        raise TimeBudgetExceeded(f"the time budget of {args.budget_s:g} s ran out")
+        raise gpu_check.TimeBudgetExceeded(f"the time budget of {args.budget_s:g} s ran out")
 
     previous = signal.signal(signal.SIGALRM, on_alarm) if args.budget_s > 0 else None
     if args.budget_s > 0:
@@ -93,7 +89,7 @@ def main(argv=None) -> int:
                 summary = gpu_check.run_check(Path(tmp), args.frames_per_context, args.steps, force_cpu, parts,
                                               args.contexts, on_update=update)
     except Exception as exc:  # one line, never a traceback (UserError, the budget, anything else)
-        code = 2 if isinstance(exc, UserError) else 124 if isinstance(exc, TimeBudgetExceeded) else 1
+        code = 2 if isinstance(exc, UserError) else 124 if isinstance(exc, gpu_check.TimeBudgetExceeded) else 1
         message = (str(exc).splitlines() or [""])[0]
         done = latest.get("completed", [])
         latest["error"] = {"type": type(exc).__name__, "message": message, "where": _where(exc),
