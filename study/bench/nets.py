@@ -5,8 +5,12 @@ Each configuration is measured in a fresh process (spawned), so its peak residen
 (ru_maxrss) belongs to it alone; latency is the median of `repeats` timed forwards after warm-up.
 On a CUDA device (`device`, `study.device`) the forwards run there (bf16 autocast with `amp`), each
 timing waits for the GPU (torch.cuda.synchronize), the peak is the GPU memory torch allocated
-(max_memory_allocated) and the energy is measured with NVML's counter (`fusion.nvml`) over the
-timed forwards: measured, not modelled, and labelled so.
+(max_memory_allocated) and the energy at batch 1 is measured with NVML's counter (`fusion.nvml`, the
+GPU found by its UUID) over at least `energy_window_s` of repeated forwards after `energy_warmup_s`
+of warm-up forwards (the counter moves in 20-100 ms steps and an idle H200 clocks at 345 MHz), with
+the idle power measured beside it (`measure_energy`): measured, not modelled, and labelled so. The
+time per operator kind counts each piece of time once: on the CPU each operator's self time, on a
+GPU the kernel time the profiler attributes to each operator (`op_times_ms`).
 A configuration is a set of branches run in one forward, plus the late-fusion block when it has
 several branches (HydraFusion's Algorithm 1: stems -> selected branches -> fusion block).
 `bench_gates` adds each gate's overhead and the end-to-end latency of top-k HydraFusion with the
@@ -56,6 +60,113 @@ def op_kind(name: str) -> str:
     return "other"
 
 
+def op_times_ms(events, cuda: bool) -> dict:
+    """Milliseconds per operator kind (OP_KINDS) of a profiler table (`prof.key_averages()`), each
+    piece of time counted once.
+
+    On the CPU: each operator row's self CPU time. On a GPU the table holds operator rows (aten::*,
+    torchvision::*, whose self device time is the kernel time the profiler attributes to them) and
+    kernel rows (the kernels themselves, device type CUDA, the same time again): the operator rows
+    are summed by kind, and kernel time no operator claims (copies, kernels launched outside any
+    operator) goes to "other", so the kinds add up to the kernels' total."""
+    from torch.autograd import DeviceType
+
+    ops = dict.fromkeys(OP_KINDS, 0.0)
+    kernels = 0.0
+    for e in events:
+        if not cuda:
+            ops[op_kind(e.key)] += e.self_cpu_time_total / 1000.0
+        elif e.device_type == DeviceType.CUDA:
+            kernels += e.self_device_time_total / 1000.0
+        else:
+            ops[op_kind(e.key)] += e.self_device_time_total / 1000.0
+    if cuda:
+        ops["other"] += max(0.0, kernels - sum(ops.values()))
+    return ops
+
+
+ENERGY_WARMUP_S = 2.0
+"""Seconds of forwards before the energy window, so the GPU's clocks have risen (an idle H200 runs
+its SMs at 345 MHz, 1980 MHz under load)."""
+ENERGY_WINDOW_S = 3.0
+"""The shortest energy window [s]: NVML's counter moves in 20-100 ms steps, so 3 s bounds that
+error to a few per cent."""
+IDLE_WINDOW_S = 1.0
+"""Seconds of idle GPU over which the idle power is measured (same counter)."""
+
+
+def nvml_meter(device: str):
+    """The NVML energy meter of the CUDA device `device` ("cuda:N"), matched by UUID (NVML's device
+    index is not CUDA's in general)."""
+    import torch
+
+    from fusion.nvml import GpuEnergyMeter
+
+    index = torch.device(device).index
+    index = torch.cuda.current_device() if index is None else index
+    return GpuEnergyMeter.for_uuid(str(torch.cuda.get_device_properties(index).uuid))
+
+
+def measure_energy(meter, once, frames_per_call: int, warmup_s: float = ENERGY_WARMUP_S,
+                   window_s: float = ENERGY_WINDOW_S, idle_s: float = IDLE_WINDOW_S,
+                   clock=time.perf_counter, sleep=time.sleep) -> dict:
+    """Energy per frame of `once()` (one finished forward of `frames_per_call` frames; it must wait
+    for the device) from `meter`'s counter (`fusion.nvml.GpuEnergyMeter`): the idle power over
+    `idle_s` of nothing, then `warmup_s` of forwards, then forwards until at least `window_s` has
+    passed, the counter read at the window's two ends. {} where the meter reads nothing.
+
+    energy_mj_per_frame = (E1 - E0) / (calls * frames)                 # the board, idle included
+    energy_above_idle_mj_per_frame = (E1 - E0 - P_idle * (t1 - t0)) / (calls * frames)
+    """
+    if meter is None or not meter.available:
+        return {}
+    e0, t0 = meter.energy_mj(), clock()
+    sleep(idle_s)
+    e1, t1 = meter.energy_mj(), clock()
+    if e0 is None or e1 is None or t1 <= t0:
+        return {}
+    idle_w = (e1 - e0) / (t1 - t0) / 1000.0
+    end = clock() + warmup_s
+    warmup_calls = 0
+    while clock() < end or warmup_calls == 0:
+        once()
+        warmup_calls += 1
+    calls = 0
+    e0, t0 = meter.energy_mj(), clock()
+    while calls == 0 or clock() - t0 < window_s:
+        once()
+        calls += 1
+    e1, t1 = meter.energy_mj(), clock()
+    if e0 is None or e1 is None:
+        return {}
+    frames = calls * frames_per_call
+    return {"energy_mj_per_frame": (e1 - e0) / frames,
+            "energy_above_idle_mj_per_frame": (e1 - e0 - 1000.0 * idle_w * (t1 - t0)) / frames,
+            "power_w": (e1 - e0) / (t1 - t0) / 1000.0, "idle_power_w": idle_w, "energy_window_s": t1 - t0,
+            "energy_calls": calls, "energy_warmup_calls": warmup_calls}
+
+
+def synthetic_batch(model, batch: int, seed: int = 0, device: str = "cpu"):
+    """(inputs, targets) of random images of the model's input sizes and four random boxes per
+    frame in each detection frame (camera_left, camera_right, bev): a training batch without data."""
+    import torch
+
+    inputs = _inputs(model, batch, seed=seed, device=device)
+    rng = np.random.default_rng(seed)
+    targets = []
+    for _ in range(batch):
+        t = {}
+        for frame, size in (("camera_left", model.transform.sizes["camera"]),
+                            ("camera_right", model.transform.sizes["camera"]), ("bev", model.transform.sizes["bev"])):
+            h, w = size
+            xy = rng.uniform(0, [w - 40, h - 30], (4, 2))
+            wh = rng.uniform([8, 8], [40, 30], (4, 2))
+            t[frame] = {"boxes": torch.tensor(np.hstack([xy, xy + wh]), dtype=torch.float32, device=device),
+                        "labels": torch.tensor(rng.integers(1, 9, 4), device=device)}
+        targets.append(t)
+    return inputs, targets
+
+
 def _inputs(model, batch: int, seed: int = 0, device: str = "cpu"):
     import torch
 
@@ -99,8 +210,11 @@ def _load_run_weights(model, run_dir) -> None:
 
 
 def _worker(args) -> dict:
-    """Fresh process: build the configuration, time `repeats` forwards at `batch`, report peak RSS."""
-    profile, set_name, names, batch, repeats, threads, run_dir, device, amp = args
+    """Fresh process: build the configuration, time `repeats` forwards at `batch`, report peak RSS
+    (on a GPU: peak GPU memory, and at batch 1 the energy per frame, `measure_energy`). `args`:
+    (profile, set_name, names, batch, repeats, threads, run_dir, device, amp[, energy keywords])."""
+    profile, set_name, names, batch, repeats, threads, run_dir, device, amp = args[:9]
+    energy_kw = args[9] if len(args) > 9 else {}
     import torch
 
     from fusion.late import fuse
@@ -134,24 +248,18 @@ def _worker(args) -> dict:
         _sync(device)
 
     once()  # warm-up (allocator, first-call overheads)
-    meter = None
     if cuda:
-        from fusion.nvml import GpuEnergyMeter
-
         torch.cuda.reset_peak_memory_stats(device)
-        meter = GpuEnergyMeter(torch.device(device).index or 0)
-    e0 = meter.energy_mj() if meter else None
     times = []
     for _ in range(repeats):
         t = time.perf_counter()
         once()
         times.append(time.perf_counter() - t)
-    e1 = meter.energy_mj() if meter else None
     gpu = {}
     if cuda:
         gpu["peak_gpu_mb"] = torch.cuda.max_memory_allocated(device) / 2**20
-        if e0 is not None and e1 is not None:
-            gpu["energy_mj_per_frame"] = (e1 - e0) / (repeats * batch)
+        if batch == 1:
+            gpu.update(measure_energy(nvml_meter(device), once, batch, **energy_kw))
     peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
     params = sum(p.numel() for p in model.parameters())
     # where the time goes: self CPU time per operator kind of one more forward (profiled, so each
@@ -162,9 +270,7 @@ def _worker(args) -> dict:
     os.environ.setdefault("KINETO_LOG_LEVEL", "6")  # the profiler library's start/stop chatter on stderr
     with profile(activities=[ProfilerActivity.CPU] + ([ProfilerActivity.CUDA] if cuda else [])) as prof:
         once()
-    ops = dict.fromkeys(OP_KINDS, 0.0)
-    for e in prof.key_averages():
-        ops[op_kind(e.key)] += (e.self_device_time_total if cuda else e.self_cpu_time_total) / 1000.0
+    ops = op_times_ms(prof.key_averages(), cuda)
     return {"latency_ms": 1000 * statistics.median(times), "latency_ms_min": 1000 * min(times),
             "peak_rss_mb": peak / 1024, "forward_rss_mb": (peak - base_rss) / 1024, "params_m": params / 1e6,
             **gpu, **{f"ops_ms_per_frame/{k}": v / batch for k, v in ops.items()}}
@@ -182,19 +288,7 @@ def _train_worker(args) -> dict:
     spec = [s for s in branch_set("paper", profile) if s.name == name]
     torch.manual_seed(0)
     model = build_hydrafusion(profile=profile, branches=spec).train().to(device)
-    inputs = _inputs(model, batch, device=device)
-    targets = []
-    rng = np.random.default_rng(0)
-    for _ in range(batch):
-        t = {}
-        for frame, size in (("camera_left", model.transform.sizes["camera"]), ("camera_right", model.transform.sizes["camera"]),
-                            ("bev", model.transform.sizes["bev"])):
-            h, w = size
-            xy = rng.uniform(0, [w - 40, h - 30], (4, 2))
-            wh = rng.uniform([8, 8], [40, 30], (4, 2))
-            t[frame] = {"boxes": torch.tensor(np.hstack([xy, xy + wh]), dtype=torch.float32, device=device),
-                        "labels": torch.tensor(rng.integers(1, 9, 4), device=device)}
-        targets.append(t)
+    inputs, targets = synthetic_batch(model, batch, device=device)
     opt = torch.optim.SGD(model.parameters(), lr=1e-3, momentum=0.9)
     times = []
     for k in range(steps + 1):
@@ -307,9 +401,12 @@ def _gate_worker(args) -> dict:
 
 def bench_inference(profile: str = "cpu", repeats: int = 5, threads: int = 2, run_dir: str | None = None,
                     train_steps: int = 3, batches=(1, 8), device: str = "cpu", amp: bool = False,
-                    configurations=None, train_branches=None) -> dict:
+                    configurations=None, train_branches=None, energy_warmup_s: float = ENERGY_WARMUP_S,
+                    energy_window_s: float = ENERGY_WINDOW_S, idle_s: float = IDLE_WINDOW_S) -> dict:
     """HydraFusion Table 4 on this machine (see the module doc). `configurations` / `train_branches`:
-    subsets of CONFIGURATIONS and of the paper branches to measure (default: all)."""
+    subsets of CONFIGURATIONS and of the paper branches to measure (default: all). `energy_*`,
+    `idle_s`: the energy measurement's windows on a GPU (`measure_energy`)."""
+    energy_kw = {"warmup_s": energy_warmup_s, "window_s": energy_window_s, "idle_s": idle_s}
     if run_dir:  # its weights loaded here first: a damaged run is refused before any worker starts
         from study.detect import load_run
 
@@ -322,8 +419,9 @@ def bench_inference(profile: str = "cpu", repeats: int = 5, threads: int = 2, ru
                 continue
             results[name] = {}
             for b in batches:
-                r = pool.apply(_worker, ((profile, set_name, names, b, repeats, threads, run_dir, device, amp),))
-                results[name][f"batch_{b}"] = {k: round(v, 2) for k, v in r.items()}
+                r = pool.apply(_worker, ((profile, set_name, names, b, repeats, threads, run_dir, device, amp,
+                                          energy_kw),))
+                results[name][f"batch_{b}"] = {k: round(v, 2) if isinstance(v, float) else v for k, v in r.items()}
         training = {}
         from study.train import branch_set
 
@@ -339,8 +437,15 @@ def bench_inference(profile: str = "cpu", repeats: int = 5, threads: int = 2, ru
         gpu["peak_gpu_mb"] = {n: r["batch_1"]["peak_gpu_mb"] for n, r in results.items()}
         measured = {n: r["batch_1"].get("energy_mj_per_frame") for n, r in results.items()}
         gpu["energy_j_per_frame"] = {n: (None if v is None else round(v / 1000, 4)) for n, v in measured.items()}
-        gpu["energy_source"] = ("measured: NVML board energy counter over the timed batch-1 forwards"
-                                if any(v is not None for v in measured.values()) else "none: NVML counter unavailable")
+        gpu["energy_above_idle_j_per_frame"] = {
+            n: (None if r["batch_1"].get("energy_above_idle_mj_per_frame") is None
+                else round(r["batch_1"]["energy_above_idle_mj_per_frame"] / 1000, 4)) for n, r in results.items()}
+        gpu["idle_power_w"] = {n: r["batch_1"].get("idle_power_w") for n, r in results.items()}
+        gpu["power_w"] = {n: r["batch_1"].get("power_w") for n, r in results.items()}
+        gpu["energy_source"] = (f"measured: NVML board energy counter (device matched by UUID) over >= {energy_window_s} s "
+                                f"of repeated batch-1 forwards after {energy_warmup_s} s of warm-up; idle power over "
+                                f"{idle_s} s beside it" if any(v is not None for v in measured.values())
+                                else "none: NVML counter unavailable")
     out = {
         **gpu,
         "latency_ms": lat,

@@ -14,8 +14,10 @@ from study.cli import (
     int_range,
     name_arg,
     name_list,
+    nonneg_float,
     nonneg_int,
     out_file,
+    pos_float,
     pos_int,
     training_run,
 )
@@ -126,6 +128,10 @@ def add_parser(sub, name, help_text):
     n.add_argument("--run", dest="weights", type=training_run, default=None, metavar="RUN",
                    help="load this trained run's weights (default: random initialisation)")
     add_device_args(n, workers=False)
+    n.add_argument("--energy-window-s", type=pos_float, default=3.0, help="on a GPU: the shortest window of repeated "
+                   "batch-1 forwards over which NVML's energy counter is read [s] (it moves in 20-100 ms steps)")
+    n.add_argument("--energy-warmup-s", type=nonneg_float, default=2.0, help="on a GPU: forwards before the energy "
+                   "window, so the clocks have risen [s]")
     n.add_argument("--json", action="store_true", help="print one JSON object on stdout")
     n.set_defaults(run=run_inference)
     f = what.add_parser("lidar-fog", help="lidar fog: our model against Hahner et al. ICCV 2021 on the same clean clouds",
@@ -283,7 +289,8 @@ def run_inference(args) -> int:
 
     load_profile(args.profile)  # an unknown profile is refused before any worker process starts
     setup = resolve_device(args, apply=False)  # each measurement runs in a fresh process, which applies it
-    r = bench_inference(args.profile, args.repeats, setup.threads, args.weights, device=setup.device, amp=setup.amp)
+    r = bench_inference(args.profile, args.repeats, setup.threads, args.weights, device=setup.device, amp=setup.amp,
+                        energy_window_s=args.energy_window_s, energy_warmup_s=args.energy_warmup_s)
     boxes = bench_box_fusion(repeats=10)
     r["fusion_block_vs_ensemble_boxes"] = {m: {"ours_ms": v["ours_ms"], "ensemble_boxes_ms": v["ensemble_boxes_ms"],
                                                "speedup": v["speedup"], "equal_output": v["equal_output"]}

@@ -170,7 +170,7 @@ def test_gpu_check_plans_a_smaller_cpu_run_and_says_so():
     from study.bench.gpu_check import plan
 
     gpu, cpu = plan(True, None, None), plan(False, None, None)
-    assert gpu["profile"] == "paper" and gpu["contexts"] == "all" and gpu["configurations"] is None
+    assert gpu["profile"] == "paper" and gpu["contexts"] == "all" and gpu["batches"] == [1, 8]
     assert cpu["profile"] == "cpu" and cpu["steps"] < gpu["steps"] and len(cpu["configurations"]) == 3
     assert os.access(os.path.join(os.path.dirname(__file__), "..", "..", "scripts", "gpu_check.sh"), os.X_OK)
 

@@ -1,0 +1,184 @@
+"""bench inference's GPU figures on the CPU: the time per operator kind counts each piece once, the
+NVML energy window is seconds long after a warm-up with the idle power beside it, and the NVML
+device is found by UUID, not by index (a fake profiler table, a fake meter, a fake NVML)."""
+
+from __future__ import annotations
+
+import ctypes
+from types import SimpleNamespace
+
+import pytest
+from torch.autograd import DeviceType
+
+import fusion.nvml as nvml
+from study.bench.nets import measure_energy, nvml_meter, op_times_ms
+
+
+def _row(key, device_type, self_device_us=0.0, self_cpu_us=0.0):
+    return SimpleNamespace(key=key, device_type=device_type, self_device_time_total=self_device_us,
+                           self_cpu_time_total=self_cpu_us)
+
+
+TABLE = [  # what key_averages() gives for a conv + linear forward on a GPU (times in microseconds)
+    _row("aten::conv2d", DeviceType.CPU, 0.0, 40.0),  # its child launched the kernel
+    _row("aten::cudnn_convolution", DeviceType.CPU, 3000.0, 60.0),
+    _row("sm90_xmma_fprop_implicit_gemm_bf16", DeviceType.CUDA, 3000.0),  # the same 3 ms, as the kernel
+    _row("aten::addmm", DeviceType.CPU, 1000.0, 20.0),
+    _row("sm90_xmma_gemm_bf16bf16", DeviceType.CUDA, 1000.0),
+    _row("Memcpy HtoD (Pageable -> Device)", DeviceType.CUDA, 500.0),  # launched by no operator
+    _row("cudaLaunchKernel", DeviceType.CPU, 0.0, 30.0),
+]
+
+
+def test_gpu_time_per_operator_kind_counts_each_kernel_once():
+    ops = op_times_ms(TABLE, cuda=True)
+    assert ops["conv"] == pytest.approx(3.0) and ops["linear"] == pytest.approx(1.0)
+    assert ops["other"] == pytest.approx(0.5)  # the copy no operator claims
+    kernels = sum(r.self_device_time_total for r in TABLE if r.device_type == DeviceType.CUDA) / 1000
+    assert sum(ops.values()) == pytest.approx(kernels)  # 4.5 ms, not 9 (op rows + kernel rows)
+
+
+def test_cpu_time_per_operator_kind_is_self_cpu_time():
+    ops = op_times_ms(TABLE, cuda=False)
+    assert ops["conv"] == pytest.approx(0.1) and ops["linear"] == pytest.approx(0.02)
+    assert sum(ops.values()) == pytest.approx(sum(r.self_cpu_time_total for r in TABLE) / 1000)
+
+
+class FakeGpu:
+    """A clock, a board drawing `idle_w` when idle and `busy_w` during forwards of `call_s` each,
+    and an energy counter [mJ] that moves only every `step_s` (NVML's 20-100 ms updates)."""
+
+    def __init__(self, idle_w=100.0, busy_w=400.0, call_s=0.01, step_s=0.1):
+        self.t, self.e = 0.0, 0.0
+        self.idle_w, self.busy_w, self.call_s, self.step_s = idle_w, busy_w, call_s, step_s
+        self.history = [(0.0, 0.0)]  # (time, true energy) after each change
+        self.available = True
+        self.calls = 0
+
+    def _run(self, seconds, watts):
+        self.t += seconds
+        self.e += watts * seconds * 1000
+        self.history.append((self.t, self.e))
+
+    def once(self):
+        self.calls += 1
+        self._run(self.call_s, self.busy_w)
+
+    def sleep(self, seconds):
+        self._run(seconds, self.idle_w)
+
+    def clock(self):
+        return self.t
+
+    def energy_mj(self):
+        """The true energy at the last multiple of step_s (the counter's last update)."""
+        tick = int(self.t / self.step_s + 1e-9) * self.step_s
+        before = [(t, e) for t, e in self.history if t <= tick + 1e-12]
+        (t0, e0), after = before[-1], [h for h in self.history if h[0] > tick + 1e-12]
+        if not after:
+            return int(e0)
+        t1, e1 = after[0]
+        return int(e0 + (e1 - e0) * (tick - t0) / (t1 - t0))
+
+
+def test_energy_is_measured_over_seconds_after_a_warm_up_with_the_idle_power_beside_it():
+    gpu = FakeGpu(idle_w=100.0, busy_w=400.0, call_s=0.01, step_s=0.1)
+    r = measure_energy(gpu, gpu.once, 1, warmup_s=2.0, window_s=3.0, idle_s=1.0, clock=gpu.clock, sleep=gpu.sleep)
+    assert r["energy_window_s"] >= 3.0 and r["energy_calls"] == pytest.approx(300, abs=1)
+    assert r["energy_warmup_calls"] == pytest.approx(200, abs=1)
+    assert r["idle_power_w"] == pytest.approx(100.0, rel=0.05)
+    # 400 W x 10 ms = 4 J per frame; the counter's 100 ms steps cost at most a few per cent over 3 s
+    assert r["energy_mj_per_frame"] == pytest.approx(4000.0, rel=0.04)
+    assert r["power_w"] == pytest.approx(400.0, rel=0.04)
+    assert r["energy_above_idle_mj_per_frame"] == pytest.approx(3000.0, rel=0.06)  # (400 - 100) W x 10 ms
+
+
+def test_five_forwards_are_too_short_for_the_counter():
+    """The old window (5 forwards of ~10 ms) sees no counter step or one holding energy from outside
+    the window: zero, or far from the 4 J per frame, depending on where the counter's period falls."""
+    readings = []
+    for phase in (0.0, 0.095):  # the counter last moved just now / 95 ms ago
+        gpu = FakeGpu(call_s=0.01, step_s=0.1)
+        gpu.sleep(0.1 + phase)
+        e0 = gpu.energy_mj()
+        for _ in range(5):
+            gpu.once()
+        readings.append((gpu.energy_mj() - e0) / 5)
+    assert readings[0] == 0
+    assert abs(readings[1] - 4000) > 0.25 * 4000
+
+
+def test_batch_size_divides_the_energy_and_no_meter_reads_nothing():
+    gpu = FakeGpu(call_s=0.08, step_s=0.02)
+    r = measure_energy(gpu, gpu.once, 8, warmup_s=0.5, window_s=3.0, idle_s=0.5, clock=gpu.clock, sleep=gpu.sleep)
+    assert r["energy_mj_per_frame"] == pytest.approx(400 * 0.08 * 1000 / 8, rel=0.02)
+    assert measure_energy(None, gpu.once, 1) == {}
+    assert measure_energy(SimpleNamespace(available=False), gpu.once, 1) == {}
+
+
+class FakeNvml:
+    """libnvidia-ml's calls as fusion.nvml makes them through ctypes, for GPUs listed in NVML's order."""
+
+    def __init__(self, uuids, energies):
+        self.uuids, self.energies = uuids, energies
+
+    def nvmlDeviceGetCount_v2(self, count):
+        count._obj.value = len(self.uuids)
+        return 0
+
+    def nvmlDeviceGetHandleByIndex_v2(self, index, handle):
+        if index.value >= len(self.uuids):
+            return 2  # NVML_ERROR_INVALID_ARGUMENT
+        handle._obj.value = index.value + 1  # handles are opaque non-null pointers
+        return 0
+
+    def nvmlDeviceGetUUID(self, handle, buf, size):
+        buf.value = self.uuids[handle.value - 1].encode()
+        return 0
+
+    def nvmlDeviceGetTotalEnergyConsumption(self, handle, value):
+        value._obj.value = self.energies[handle.value - 1]
+        return 0
+
+    def nvmlDeviceGetPowerUsage(self, handle, value):
+        value._obj.value = 1000 * (handle.value - 1) + 70_000
+        return 0
+
+
+A = "4a5b6c7d-0000-1111-2222-333344445555"
+B = "99999999-8888-7777-6666-555544443333"
+
+
+def test_uuids_compare_across_torch_and_nvml_spellings():
+    assert nvml.same_gpu(A, "GPU-" + A) and nvml.same_gpu(A.upper(), "gpu-" + A)
+    assert nvml.same_gpu(A.replace("-", ""), "GPU-" + A)
+    assert not nvml.same_gpu(A, "GPU-" + B) and not nvml.same_gpu("", "GPU-")
+
+
+def test_the_meter_is_the_nvml_device_with_the_cuda_devices_uuid():
+    lib = FakeNvml(["GPU-" + B, "GPU-" + A], [111, 222])  # NVML lists cuda:0's GPU second
+    meter = nvml.GpuEnergyMeter.for_uuid(A, lib=lib)
+    assert meter.available and meter.energy_mj() == 222 and meter.power_w() == pytest.approx(71.0)
+    assert nvml.GpuEnergyMeter(0, lib=lib).energy_mj() == 111  # what indexing by CUDA's number read
+    missing = nvml.GpuEnergyMeter.for_uuid("00000000-0000-0000-0000-000000000000", lib=lib)
+    assert not missing.available and missing.energy_mj() is None and missing.power_w() is None
+
+
+def test_bench_takes_the_uuid_of_the_cuda_device_it_runs_on(monkeypatch):
+    import torch
+
+    lib = FakeNvml(["GPU-" + B, "GPU-" + A], [111, 222])
+    monkeypatch.setattr(nvml, "_lib", lambda: lib)
+    props = {0: SimpleNamespace(uuid=A), 1: SimpleNamespace(uuid=B)}
+    monkeypatch.setattr(torch.cuda, "get_device_properties", lambda i: props[i])
+    monkeypatch.setattr(torch.cuda, "current_device", lambda: 1)
+    assert nvml_meter("cuda:0").energy_mj() == 222
+    assert nvml_meter("cuda:1").energy_mj() == 111
+    assert nvml_meter("cuda").energy_mj() == 111  # no index: the current device
+
+
+def test_without_nvml_every_reading_is_none(monkeypatch):
+    monkeypatch.setattr(nvml, "_lib", lambda: None)
+    meter = nvml.GpuEnergyMeter.for_uuid(A)
+    assert not meter.available and meter.energy_mj() is None
+    assert isinstance(ctypes.c_uint(), ctypes.c_uint)  # ctypes only: no pynvml needed
