@@ -13,7 +13,7 @@ from torch.utils.data import DataLoader
 
 from fusion.data import FrameDataset, collate, split_by_sequence
 from fusion.late import Detections, fuse
-from fusion.metrics import ImageMatches, evaluate_detections
+from fusion.metrics import ImageMatches, evaluate_detections, sequence_draws
 from sensors.dataset import DatasetReader
 from sensors.rig import Calibration
 from sim.actors import CLASSES
@@ -330,15 +330,6 @@ def _image_matches(frames: list, keys: list, gts: list, classes) -> ImageMatches
                            gts, classes=classes)
 
 
-def _sequence_draws(by_seq: dict, resamples: int, seed: int):
-    """Yield `resamples` draws of whole sequences with replacement (a cluster bootstrap): each the
-    concatenated members of as many sequences as there are, drawn from `by_seq` {sequence: [items]}."""
-    seqs = sorted(by_seq)
-    rng = np.random.default_rng(seed)
-    for _ in range(resamples):
-        yield [k for j in rng.integers(0, len(seqs), len(seqs)) for k in by_seq[seqs[j]]]
-
-
 def _interval(values: np.ndarray) -> list | None:
     """[2.5th, 97.5th percentile] of the finite values (None when none is)."""
     v = values[np.isfinite(values)]
@@ -380,7 +371,7 @@ def paired_bootstrap(deg_frames: list, clr_frames: list, reader, clear_reader, f
         for k in sorted(subset):
             by_seq[seq_of[k][0]].append(k)
         draws = np.empty((resamples, 3))
-        for r, ks in enumerate(_sequence_draws(by_seq, resamples, seed)):
+        for r, ks in enumerate(sequence_draws(by_seq, resamples, seed)):
             d, c = vmap(deg, ks), vmap(clr, ks)
             draws[r] = (d, c, d / c if c > 0 else np.nan)
             bar.update(1)
@@ -434,7 +425,7 @@ def context_bootstrap(sources: dict, reader, frame: str = "camera_right", protoc
             for k in ks:
                 by_seq[meta_of[k]["sequence_id"]].append(row[k])
             draws = np.empty((resamples, len(names)))
-            for r, picks in enumerate(_sequence_draws(by_seq, resamples, seed)):
+            for r, picks in enumerate(sequence_draws(by_seq, resamples, seed)):
                 draws[r] = [matches[n].mean_ap(picks) for n in names]
                 bar.update(1)
             out["per_context"][g] = {
