@@ -129,6 +129,7 @@ class TwinRatio:
     interval: [2.5th, 97.5th] percentile of the ratio over the draws (None without draws, or when no
         draw had a clear score > 0).
     sequences, frames: how many sequences and frames the estimate stands on.
+    degraded_interval, clear_interval: the same percentiles of the two scores over the same draws.
     """
 
     ra: float
@@ -137,12 +138,21 @@ class TwinRatio:
     interval: tuple[float, float] | None
     sequences: int
     frames: int
+    degraded_interval: tuple[float, float] | None = None
+    clear_interval: tuple[float, float] | None = None
+
+
+def _percentiles(values) -> tuple[float, float] | None:
+    """[2.5th, 97.5th] percentile of the finite values (None when none is)."""
+    v = np.asarray(values, float)
+    v = v[np.isfinite(v)]
+    return (float(np.percentile(v, 2.5)), float(np.percentile(v, 97.5))) if len(v) else None
 
 
 def twin_relative_accuracy(score_degraded: Callable[[Sequence[int]], float],
                            score_clear: Callable[[Sequence[int]], float],
                            sequence_of: Sequence[Hashable], *, resamples: int = 1000,
-                           seed: int = 0) -> TwinRatio:
+                           seed: int = 0, on_draw: Callable[[], object] | None = None) -> TwinRatio:
     """RA = A(degraded frames) / A(their clear twins), paired, with a cluster-bootstrap interval.
 
     Items are 0..n-1; item i is a degraded frame and its twin, `sequence_of[i]` its sequence.
@@ -150,26 +160,28 @@ def twin_relative_accuracy(score_degraded: Callable[[Sequence[int]], float],
     `fusion.metrics.ImageMatches.mean_ap` of the degraded and of the twin frames in the same order.
     Each draw takes whole sequences with replacement (`fusion.metrics.sequence_draws`) and scores
     both on the same items, so the ratio's interval is paired: the scene content the two share
-    cancels, and only the condition's effect varies.
+    cancels, and only the condition's effect varies. `on_draw`: called after each draw (a progress bar).
     """
     by_seq: dict = defaultdict(list)
     for i, q in enumerate(sequence_of):
         by_seq[q].append(i)
     items = list(range(len(sequence_of)))
     d, c = float(score_degraded(items)), float(score_clear(items))
-    ratios = []
-    for draw in sequence_draws(by_seq, resamples, seed):
-        ratios.append(relative_accuracy(score_degraded(draw), score_clear(draw)))
-    r = np.asarray(ratios, float)
-    r = r[np.isfinite(r)]
-    interval = (float(np.percentile(r, 2.5)), float(np.percentile(r, 97.5))) if len(r) else None
-    return TwinRatio(relative_accuracy(d, c), d, c, interval, len(by_seq), len(items))
+    draws = np.empty((resamples, 3))
+    for r, draw in enumerate(sequence_draws(by_seq, resamples, seed)):
+        dd, cc = score_degraded(draw), score_clear(draw)
+        draws[r] = (dd, cc, relative_accuracy(dd, cc))
+        if on_draw is not None:
+            on_draw()
+    return TwinRatio(relative_accuracy(d, c), d, c, _percentiles(draws[:, 2]), len(by_seq), len(items),
+                     _percentiles(draws[:, 0]), _percentiles(draws[:, 1]))
 
 
 def twin_relative_accuracy_by_severity(score_degraded: Callable[[Sequence[int]], float],
                                        score_clear: Callable[[Sequence[int]], float],
                                        sequence_of: Sequence[Hashable], severity_of: Sequence[int], *,
-                                       resamples: int = 1000, seed: int = 0) -> dict[int, TwinRatio]:
+                                       resamples: int = 1000, seed: int = 0,
+                                       on_draw: Callable[[], object] | None = None) -> dict[int, TwinRatio]:
     """`twin_relative_accuracy` per severity: the RA at severity s comes from the frames at s and the
     twins of exactly those frames, its interval from resampling the sequences at s. Items and
     scorers as `twin_relative_accuracy`; `severity_of[i]` is item i's severity."""
@@ -183,7 +195,7 @@ def twin_relative_accuracy_by_severity(score_degraded: Callable[[Sequence[int]],
             return lambda items: score([idx[j] for j in items])
 
         out[s] = twin_relative_accuracy(sub(score_degraded), sub(score_clear), [sequence_of[i] for i in idx],
-                                        resamples=resamples, seed=seed)
+                                        resamples=resamples, seed=seed, on_draw=on_draw)
     return out
 
 

@@ -107,6 +107,21 @@ def test_twin_ra_is_the_ratio_of_exactly_the_paired_frames():
         twin_relative_accuracy_by_severity(_mean_scorer(deg), _mean_scorer(clr), seq, [1, 3])
 
 
+def test_twin_draws_pair_the_scores_and_report_each_draw():
+    # two sequences: every draw is (a, a), (a, b), (b, a) or (b, b), each scored on the same items
+    deg, clr, seq = [0.3, 0.3, 0.6, 0.6], [0.4, 0.4, 0.8, 0.8], ["a", "a", "b", "b"]
+    calls = []
+    r = twin_relative_accuracy(_mean_scorer(deg), _mean_scorer(clr), seq, resamples=40, on_draw=lambda: calls.append(1))
+    assert len(calls) == 40
+    assert 0.3 <= r.degraded_interval[0] < r.degraded_interval[1] <= 0.6
+    assert 0.4 <= r.clear_interval[0] < r.clear_interval[1] <= 0.8
+    # each sequence keeps 3/4 of its twins' score, so every paired draw's ratio is exactly 0.75
+    assert r.interval == pytest.approx((0.75, 0.75))
+    by = twin_relative_accuracy_by_severity(_mean_scorer(deg), _mean_scorer(clr), seq, [1, 1, 2, 2], resamples=5,
+                                            on_draw=lambda: calls.append(1))
+    assert len(calls) == 50 and by[2].sequences == 1 and by[2].degraded_interval == pytest.approx((0.6, 0.6))
+
+
 def _synthetic(n_seq, rng):
     """Sequences of 5 frames; a sequence's clear score varies, the condition keeps about 60 % of it."""
     clr = np.repeat(rng.uniform(0.3, 0.9, n_seq), 5) + rng.normal(0, 0.05, 5 * n_seq)
