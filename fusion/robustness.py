@@ -45,7 +45,7 @@ Scores = Mapping[str, Mapping[int, float | None]]
 
 
 def _finite(v) -> bool:
-    return v is not None and not (isinstance(v, float) and math.isnan(v))
+    return v is not None and not math.isnan(float(v))
 
 
 def _mean(values) -> float:
@@ -54,7 +54,7 @@ def _mean(values) -> float:
 
 
 def _clean_of(clean: float | Scores | None, condition: str, severity: int):
-    return clean[condition].get(severity) if isinstance(clean, Mapping) else clean
+    return clean.get(condition, {}).get(severity) if isinstance(clean, Mapping) else clean
 
 
 def relative_accuracy(score: float | None, clean: float | None) -> float:
@@ -114,7 +114,7 @@ def resilience_rate(scores: Mapping[int, float | None], clean: float | Mapping[i
 
 def mean_resilience_rate(scores: Scores, clean: float | Scores) -> float:
     """mRR = 1/N sum_c RR_c (Robo3D); `clean` as in `relative_accuracies`."""
-    return _mean(resilience_rate(per, clean[c] if isinstance(clean, Mapping) else clean)
+    return _mean(resilience_rate(per, clean.get(c, {}) if isinstance(clean, Mapping) else clean)
                  for c, per in scores.items())
 
 

@@ -73,6 +73,11 @@ def test_clean_score_zero_or_missing_is_nan_and_left_out_of_the_means():
     # a baseline without errors: CE is undefined
     assert math.isnan(corruption_error({1: 0.5}, {1: 1.0}))
     assert math.isnan(mean_relative_accuracy({}))
+    # numpy scalars count as scores; a NaN one is missing; twins of a condition not measured: NaN
+    assert relative_accuracy(np.float32(0.25), np.float32(0.5)) == 0.5
+    assert math.isnan(relative_accuracy(np.float32("nan"), 0.5))
+    assert math.isnan(relative_accuracies({"snow": {1: 0.2}}, {"fog": {1: 0.4}})["snow"][1])
+    assert math.isnan(mean_resilience_rate({"snow": {1: 0.2}}, {"fog": {1: 0.4}}))
 
 
 def test_a_missing_severity_is_skipped_not_counted_as_zero():
