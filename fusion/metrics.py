@@ -276,6 +276,17 @@ MAX_BOOTSTRAP = 100_000
 beyond this, hours of pooling for no visible change."""
 
 
+def sequence_draws(by_seq: Mapping, resamples: int, seed: int):
+    """Yield `resamples` draws of whole sequences with replacement (a cluster bootstrap): each the
+    concatenated members of as many sequences as there are, drawn from `by_seq` {sequence: [items]}.
+    Frames of one sequence share traffic and weather, so the sequence, not the frame, is the unit
+    drawn; the generator is seeded, so the same `seed` gives the same draws."""
+    seqs = sorted(by_seq)
+    rng = np.random.default_rng(seed)
+    for _ in range(resamples):
+        yield [k for j in rng.integers(0, len(seqs), len(seqs)) for k in by_seq[seqs[j]]]
+
+
 @dataclass(frozen=True)
 class ImageMatches:
     """Each image's VOC matching, kept apart so that AP over any multiset of the images (a bootstrap

@@ -2,10 +2,14 @@
 
     python scripts/readme_results.py out/cpu/report.json              (rewrites README.md in place)
     python scripts/readme_results.py out/cpu/report.json --check      (exit 1 when README.md is stale)
+    python scripts/readme_results.py out/cpu/report.json --verdict    (print what the study resolves)
+    python scripts/readme_results.py out/cpu/report.json --figure out/cpu/verdict.png   (its figure)
 
 The block lies between the markers BEGIN and END below; everything outside them is left as it is.
 Every number in it comes from the report (`hydrabench study ... --out DIR` writes DIR/report.json),
 so the README's results can be re-created with two commands and are never copied by hand.
+`--verdict` and `--figure` leave the README alone: they print the sentences and draw the figure of
+`study.verdict` (which orders the study's intervals resolve, overall and per context).
 """
 
 from __future__ import annotations
@@ -94,12 +98,34 @@ def replace_block(readme: str, block: str) -> str:
     return f"{head}{BEGIN}\n{block.strip()}\n{END}{tail}"
 
 
+def _verdict(report_path: str, sentences: bool, figure: str | None) -> int:
+    from study.verdict import verdict_figure, verdict_sentences
+
+    try:
+        report = json.loads(Path(report_path).read_text())
+        if sentences:
+            sys.stdout.write("".join(f"{s}\n" for s in verdict_sentences(report)))
+        if figure and verdict_figure(report, figure) is None:
+            sys.stderr.write("readme_results: no figure: the report has no intervals or no late fusion\n")
+            return 2
+    except (OSError, ValueError, KeyError) as exc:
+        sys.stderr.write(f"readme_results: {exc}\n")
+        return 2
+    return 0
+
+
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("report", help="DIR/report.json of a hydrabench study")
     p.add_argument("--readme", default=str(Path(__file__).resolve().parents[1] / "README.md"), help="README to update")
     p.add_argument("--check", action="store_true", help="exit 1 when the README's block differs, write nothing")
+    p.add_argument("--verdict", action="store_true",
+                   help="print which orders the study resolves (study.verdict), leave the README alone")
+    p.add_argument("--figure", metavar="PNG",
+                   help="write the verdict figure (each method minus late fusion per context), leave the README alone")
     args = p.parse_args(argv)
+    if args.verdict or args.figure:
+        return _verdict(args.report, args.verdict, args.figure)
     try:
         report = json.loads(Path(args.report).read_text())
         readme = Path(args.readme).read_text()

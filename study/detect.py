@@ -13,7 +13,8 @@ from torch.utils.data import DataLoader
 
 from fusion.data import FrameDataset, collate, split_by_sequence
 from fusion.late import Detections, fuse
-from fusion.metrics import ImageMatches, evaluate_detections
+from fusion.metrics import ImageMatches, evaluate_detections, sequence_draws
+from fusion.robustness import twin_relative_accuracy
 from sensors.dataset import DatasetReader
 from sensors.rig import Calibration
 from sim.actors import CLASSES
@@ -330,25 +331,21 @@ def _image_matches(frames: list, keys: list, gts: list, classes) -> ImageMatches
                            gts, classes=classes)
 
 
-def _sequence_draws(by_seq: dict, resamples: int, seed: int):
-    """Yield `resamples` draws of whole sequences with replacement (a cluster bootstrap): each the
-    concatenated members of as many sequences as there are, drawn from `by_seq` {sequence: [items]}."""
-    seqs = sorted(by_seq)
-    rng = np.random.default_rng(seed)
-    for _ in range(resamples):
-        yield [k for j in rng.integers(0, len(seqs), len(seqs)) for k in by_seq[seqs[j]]]
-
-
 def _interval(values: np.ndarray) -> list | None:
     """[2.5th, 97.5th percentile] of the finite values (None when none is)."""
     v = values[np.isfinite(values)]
     return [_round(np.percentile(v, 2.5)), _round(np.percentile(v, 97.5))] if len(v) else None
 
 
+def _rounded(iv) -> list | None:
+    return None if iv is None else [_round(iv[0]), _round(iv[1])]
+
+
 def paired_bootstrap(deg_frames: list, clr_frames: list, reader, clear_reader, frame: str, bev_crop=None,
                      protocol=None, resamples: int = 200, seed: int = 0, severities=None,
                      desc: str = "bootstrap") -> dict:
-    """95 % intervals of the vehicle mAP on degraded frames, on their clear twins, and of their ratio.
+    """95 % intervals of the vehicle mAP on degraded frames, on their clear twins, and of their ratio
+    (MultiCorrupt's RA, here "retained"; `fusion.robustness.twin_relative_accuracy` draws and scores).
 
     Frames of one sequence share their traffic and weather, so whole sequences are drawn with
     replacement (a cluster bootstrap), and each draw is scored degraded and clear on the same
@@ -372,20 +369,14 @@ def paired_bootstrap(deg_frames: list, clr_frames: list, reader, clear_reader, f
     deg, clr = matches(deg_frames, reader), matches(clr_frames, clear_reader)
     seq_of = {meta["dataset_index"]: (meta["sequence_id"], str(meta.get("severity", 0))) for meta, _ in deg_frames}
 
-    def vmap(m: ImageMatches, ks) -> float:
-        return m.mean_ap([row[k] for k in ks])
-
     def interval(subset) -> dict:
-        by_seq = defaultdict(list)
-        for k in sorted(subset):
-            by_seq[seq_of[k][0]].append(k)
-        draws = np.empty((resamples, 3))
-        for r, ks in enumerate(_sequence_draws(by_seq, resamples, seed)):
-            d, c = vmap(deg, ks), vmap(clr, ks)
-            draws[r] = (d, c, d / c if c > 0 else np.nan)
-            bar.update(1)
-        return {"sequences": len(by_seq), "degraded": _interval(draws[:, 0]), "clear": _interval(draws[:, 1]),
-                "retained": _interval(draws[:, 2])}
+        ks = sorted(subset)
+        t = twin_relative_accuracy(lambda items: deg.mean_ap([row[ks[i]] for i in items]),
+                                   lambda items: clr.mean_ap([row[ks[i]] for i in items]),
+                                   [seq_of[k][0] for k in ks], resamples=resamples, seed=seed,
+                                   on_draw=lambda: bar.update(1))
+        return {"sequences": t.sequences, "degraded": _rounded(t.degraded_interval),
+                "clear": _rounded(t.clear_interval), "retained": _rounded(t.interval)}
 
     present = [s for s in severities or () if any(seq_of[k][1] == s for k in keys)]
     with progress_bar(total=resamples * (1 + len(present)), desc=desc, unit="draw") as bar:
@@ -434,7 +425,7 @@ def context_bootstrap(sources: dict, reader, frame: str = "camera_right", protoc
             for k in ks:
                 by_seq[meta_of[k]["sequence_id"]].append(row[k])
             draws = np.empty((resamples, len(names)))
-            for r, picks in enumerate(_sequence_draws(by_seq, resamples, seed)):
+            for r, picks in enumerate(sequence_draws(by_seq, resamples, seed)):
                 draws[r] = [matches[n].mean_ap(picks) for n in names]
                 bar.update(1)
             out["per_context"][g] = {

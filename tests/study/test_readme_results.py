@@ -84,6 +84,24 @@ def test_replacing_keeps_the_rest_and_is_idempotent(tmp_path):
     assert rr.main([str(tmp_path / "missing.json"), "--readme", str(tmp_path / "README.md")]) == 2
 
 
+def test_verdict_and_figure_print_and_draw_and_leave_the_readme_alone(tmp_path, capsys):
+    from study.verdict import verdict_sentences
+
+    report = ROOT / "results" / "study_cpu" / "report.json"
+    readme = tmp_path / "README.md"
+    readme.write_text("no markers\n")  # untouched, so the markers are not needed
+    assert rr.main([str(report), "--readme", str(readme), "--verdict", "--figure", str(tmp_path / "v.png")]) == 0
+    printed = capsys.readouterr().out.splitlines()
+    assert printed == verdict_sentences(json.loads(report.read_text())) and printed[0].startswith("Overall, ")
+    assert (tmp_path / "v.png").read_bytes()[:4] == b"\x89PNG" and readme.read_text() == "no markers\n"
+    # a report without intervals: the sentences say so, and there is no figure to draw
+    (tmp_path / "bare.json").write_text(json.dumps(REPORT))
+    assert rr.main([str(tmp_path / "bare.json"), "--verdict"]) == 0
+    assert "resolves no order" in capsys.readouterr().out
+    assert rr.main([str(tmp_path / "bare.json"), "--figure", str(tmp_path / "b.png")]) == 2
+    assert not (tmp_path / "b.png").exists()
+
+
 def test_the_repository_readme_has_one_block():
     text = (ROOT / "README.md").read_text()
     assert text.count(rr.BEGIN) == 1 and text.count(rr.END) == 1
