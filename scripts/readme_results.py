@@ -20,6 +20,7 @@ import sys
 from pathlib import Path
 
 from study.detect import difference_interval
+from study.verdict import answer_sentences
 
 BEGIN = "<!-- study-results:begin (scripts/readme_results.py writes this block; do not edit by hand) -->"
 END = "<!-- study-results:end -->"
@@ -68,6 +69,10 @@ def results_block(report: dict) -> str:
                      "method scored on each draw (paired); a difference whose interval excludes 0 is an order this "
                      "study resolves.")
         lines.append("")
+        answer = answer_sentences(report)
+        if answer:  # the report's opening answer, generated from the intervals (study.verdict)
+            lines.append("**What it resolves** (generated from the intervals): " + " ".join(answer))
+            lines.append("")
     t4 = r["hydra_table4"]
     eco = f"ecofusion:{r['eco_gate']}"
     if "late" in t4 and eco in t4 and t4["late"]["energy_j"]:

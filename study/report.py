@@ -133,6 +133,7 @@ def build(results: dict, context: dict, work: Path, eval_dir: Path) -> tuple[Doc
     tag = run_tag(r, context["scale"])
     doc = Doc()
     add_intro(doc, r, context, tag)
+    add_verdict(doc, r, tag, work)
     add_hydra_table2(doc, r, tag)
     add_intervals(doc, r, tag)
     add_hydra_table3(doc, r, tag)
@@ -145,6 +146,8 @@ def build(results: dict, context: dict, work: Path, eval_dir: Path) -> tuple[Doc
     add_gate_regret(doc, r, tag)
     add_fusion_regret(doc, r, tag)
     add_gate_picks(doc, r, tag)
+    add_robustness(doc, r, tag)
+    add_stages(doc, context, tag)
     summary = {"scale": context["scale"], "meaningless": bool(context.get("meaningless")), "protocol": r["protocol"],
                "dataset": r["dataset"], "machine": r["machine"], "device": r.get("device"), "tag": tag}
     return doc, summary
@@ -169,10 +172,51 @@ def add_intro(doc: Doc, r: dict, context: dict, tag: str) -> None:
     doc.h(1, f"hydrabench study: selective against fixed fusion (scale {scale})")
     doc.p(f"{tag}. Metric: {r['metric']}. Late fusion method: {r['fusion']}. Every method is scored on the same "
           f"{ds['test_frames']} test frames (contexts: {', '.join(ds['contexts'])}).")
+
+
+def add_verdict(doc: Doc, r: dict, tag: str, work: Path) -> None:
+    """The answer first: what the intervals resolve (`study.verdict`), and each method's mAP minus late
+    fusion's per context with its interval."""
+    from study.verdict import answer_sentences, verdict_figure
+
+    answer = answer_sentences(r)
+    if not answer:
+        return
+    doc.h(2, "The answer")
+    doc.p(" ".join(answer))
+    if verdict_figure(r, work / "verdict.png"):
+        doc.img(f"mAP@0.5 minus late fusion's per context, 95 % intervals; hollow: not resolved ({tag})",
+                work / "verdict.png")
+
+
+def add_stages(doc: Doc, context: dict, tag: str) -> None:
+    """The stages' keys and times (what ran, what was reused)."""
     stages = context.get("stages", {})
     if stages:
+        doc.h(2, "Stages")
         doc.table(f"Stages (seconds when each ran; {tag})", ["stage", "key", "seconds"],
                   [[n, s.get("key"), s.get("seconds")] for n, s in stages.items()])
+
+
+def add_robustness(doc: Doc, r: dict, tag: str) -> None:
+    """The field's robustness metrics (`study.robustness_table`): per method mRA and mRR on the clear
+    twins (MultiCorrupt, Robo3D), mCE against late fusion, and RA per condition."""
+    from study.robustness_table import robustness_table
+
+    table = r.get("robustness") or robustness_table(r)
+    methods = table.get("methods") or {}
+    if not methods:
+        return
+    conds = sorted({c for t in methods.values() for c in t["conditions"]})
+    doc.h(2, "Robustness in the field's metrics")
+    doc.p("RA = mAP under the condition / mAP of the same frames' clear twins, averaged over severities, and mRA its "
+          "mean over conditions (MultiCorrupt); RR = the sum over severities of the degraded mAP / the sum of the "
+          "clear twins', mRR its mean (Robo3D); CE = the sum over severities of (1 - mAP) / the same sum of the "
+          f"baseline's ({table.get('baseline', 'late')}), mCE its mean (Robo3D). Point estimates: each severity "
+          "stands on the test frames of that severity only.")
+    doc.table(f"Robustness per method ({tag})", ["method", "mRA", "mRR", "mCE", *[f"RA {c}" for c in conds]],
+              [[m, _fmt(t.get("mra")), _fmt(t.get("mrr")), _fmt(t.get("mce")),
+                *[_fmt(t["conditions"].get(c, {}).get("ra")) for c in conds]] for m, t in methods.items()])
 
 
 def _gate_ks(r: dict) -> list:
@@ -217,6 +261,10 @@ def add_intervals(doc: Doc, r: dict, tag: str) -> None:
 
         doc.table(f"mAP@0.5: 95 % interval per context ({tag})", ["method", *[f"{g} ({per[g]['sequences']} seq)" for g in groups]],
                   [[n, *[cell(per[g]["map"].get(n)) for g in groups]] for n in r["methods"]])
+        from study.verdict import verdict_sentences
+
+        for sentence in verdict_sentences(r):
+            doc.p(sentence)
         if "late" in r["methods"]:
             doc.table(f"mAP@0.5 minus late fusion's: 95 % interval of the paired difference per context ({tag})",
                       ["method", *groups],

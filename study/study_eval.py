@@ -143,7 +143,7 @@ def evaluate_study(run, run_early, data, cfg, s, work: Path, setup=None, progres
     twins = clear_twins(ev, early.model, data, cfg.train.batch_size) if e.twins else None
     swept = swept_methods(scores, e)
     run_cfg = json.loads((run / "config.json").read_text())
-    return results_record(
+    record = results_record(
         ev, setup, e, method, run_cfg, data, singles, late, kinds, scores, intervals, hydra_tables, eco_tables, work,
         hydra_table2=table2, hydra_table4=cost_table(ev, choices), hydra_table5=table5,
         severity=severity_sweeps(M, ev, scores, choices, early.fused, twins, swept, method, progress),
@@ -152,6 +152,10 @@ def evaluate_study(run, run_early, data, cfg, s, work: Path, setup=None, progres
                 "ecofusion": eco_regret(ev, eco_choice, scores, contexts)},
         fusion_regret=fusion_regret(M, ev, scores, late, contexts), picks=gate_picks(choices, contexts),
         severity_clear_twins=twins is not None)
+    from study.robustness_table import robustness_table
+
+    record["robustness"] = robustness_table(record)  # MultiCorrupt's RA, Robo3D's RR and CE, against late fusion
+    return record
 
 
 def single_and_late(ev) -> tuple[list[str], tuple[str, ...]]:

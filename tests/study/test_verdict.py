@@ -166,3 +166,22 @@ def test_without_intervals_nothing_is_resolved(tmp_path):
 def test_the_figure_is_written(tmp_path):
     out = verdict_figure(SMALL, tmp_path / "verdict.png")
     assert out == tmp_path / "verdict.png" and out.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+
+
+def test_the_report_opens_with_the_answer_and_its_figure_and_ends_with_the_stages(tmp_path):
+    """study.report.build on the stored cpu study: the answer (study.verdict) and the figure come before
+    any table; the robustness table and the stage times follow the papers' tables."""
+    import json
+    from pathlib import Path
+
+    from study.report import build
+    from study.verdict import answer_sentences
+
+    rep = json.loads((Path(__file__).parents[2] / "results/study_cpu/report.json").read_text())
+    doc, _ = build(rep["results"], {"scale": "cpu", "stages": rep["stages"]}, tmp_path, tmp_path)
+    md = doc.markdown(tmp_path)
+    answer = md.index("## The answer")
+    assert answer < md.index("|") and " ".join(answer_sentences(rep["results"])) in md
+    assert (tmp_path / "verdict.png").stat().st_size > 10_000 and md.index("verdict.png") < md.index("|")
+    assert md.index("## Robustness in the field's metrics") < md.index("## Stages")
+    assert "| late | 0.969 | 0.974 | 1.000 |" in md  # late fusion is the mCE baseline: exactly 1
