@@ -13,6 +13,7 @@ from study.cli import (
     emit,
     holdout_fraction,
     name_arg,
+    nonneg_float,
     nonneg_int,
     pool_grid,
     pos_float,
@@ -32,6 +33,37 @@ validation share of its sequences, which picks the epoch) and is tested on its t
 """
 
 
+def add_objective_args(p) -> None:
+    """--objective, --tau and --select-on (train-gate and eco-train-gate; fusion.gate_objectives)."""
+    from fusion.gate_objectives import OBJECTIVES
+
+    p.add_argument("--objective", default="mae", choices=OBJECTIVES.names(),
+                   help="what the gate learns: mae regresses each choice's loss (the papers'); centred its "
+                        "difference from the frame's mean; soft_ce the soft ranking softmax(-L/tau); expected the "
+                        "expected regret of its choice")
+    p.add_argument("--tau", type=nonneg_float, default=0.0,
+                   help="temperature of soft_ce and expected, in loss units (0: the median within-frame spread)")
+    p.add_argument("--select-on", default="regret", choices=list(branch_gate_study.SELECT_ON),
+                   help="what picks the epoch on the validation sequences: the regret of the gate's choice "
+                        "(ties by MAE) or MAE")
+
+
+def objective_fields(args) -> dict:
+    return {"objective": args.objective, "tau": args.tau, "select_on": args.select_on}
+
+
+def choice_lines(r: dict, what: str) -> list[str]:
+    """The gate's choice on the test frames beside the best constant, the per-context constant and the oracle."""
+    c = r.get("choice")
+    if not c:
+        return []
+    return [f"  choice ({r['objective']}, epoch picked on {r['selected_on']}): mean test {what} {c['mean_cost']:.4f}, "
+            f"regret {c['regret']:.4f}; best constant ({c['constant']}) {c['constant_mean_cost']:.4f}, regret "
+            f"{c['constant_regret']:.4f}; per-context constant regret {c.get('context_regret', float('nan')):.4f}; "
+            f"oracle {c['oracle_mean_cost']:.4f}; differs from the constant on {100 * c['differs_from_constant']:.1f} % "
+            "of the frames"]
+
+
 def add_train_gate(sub, name, help_text):
     doc = branch_gate_study.__doc__.split("**train-gate**", 1)[1].split("**Tables.**", 1)[0]
     p = sub.add_parser(name, help=help_text, description="hydrabench train-gate" + doc.rstrip(), epilog=TRAIN_EPILOG,
@@ -47,6 +79,7 @@ def add_train_gate(sub, name, help_text):
     p.add_argument("--grid", type=pool_grid, default="8x16", help="ROWSxCOLS the stem features are pooled to")
     p.add_argument("--seed", type=nonneg_int, default=0, help="initialisation, data order, validation split")
     p.add_argument("--checkpoint", type=checkpoint_arg, default="latest", help="latest, or epoch-NNN")
+    add_objective_args(p)
     p.add_argument("--fresh", action="store_true", help="discard a previous training of this gate")
     add_device_args(p)
     p.add_argument("--json", action="store_true", help="print one JSON object on stdout")
@@ -69,6 +102,7 @@ def run_train_gate(args) -> int:
                  f"{r['top3_overlap_with_optimal']}",
                  "  per branch (gate / constant): " + ", ".join(
                      f"{b} {v}/{r['constant_mean_mae_per_branch'][b]}" for b, v in r["test_mae_per_branch"].items()),
+                 *choice_lines(r, "loss of the chosen branch"),
                  f"  saved {r['gate_path']}"]
         return "\n".join(lines)
 
