@@ -338,7 +338,9 @@ def add_eco_tables(doc: Doc, r: dict, tag: str, eval_dir: Path) -> None:
     else:
         t3e = eco["table3"]
         scenes = sorted({c for v in t3e.values() for c in v})
-        doc.table(f"Platform + sensor energy per frame, clock-gated where unused ({tag})", ["method", *scenes],
+        period = eco.get("table3_period", "each sensor over one measurement at its own rate")
+        doc.table(f"Platform + sensor energy per fused frame, clock-gated where unused; {period} ({tag})",
+                  ["method", *scenes],
                   [[n, *[v.get(c) for c in scenes]] for n, v in t3e.items()])
     figs = r.get("figures", {})
     doc.img(f"EcoFusion Figure 4 analogue: loss against energy per gate, lambda_E colour-coded ({tag})",

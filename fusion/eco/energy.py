@@ -249,11 +249,24 @@ SENSOR_DEVICE_OF = {"camera_left": "zed", "camera_right": "zed", "fwd_lidar": "l
 projected into the camera; both camera inputs come from the one ZED)."""
 
 GATING_MODES = ("clock", "eq11", "off")
+SENSOR_PERIODS = ("frame", "measurement")
+"""What one sensor's energy is charged over (`total_energy`): "frame", one period of the fused output
+at FRAME_HZ for every sensor (EcoFusion Table 3's arithmetic: late fusion 3.798 + (24 + 12 + 1.9) / 4 =
+13.27 J, city 1.379 + (2.4 + 12 + 1.9) / 4 = 5.45 J; and the energy the rig draws per fused frame);
+"measurement", one measurement of that sensor at its own rate f_s (Eq. 10 read literally: a 10 Hz
+lidar's 0.1 s beside a 4 Hz radar's 0.25 s, a sum over different durations)."""
+FRAME_HZ = 4.0
+"""[Hz] the fused output's rate: the radar's scan rate, the slowest sensor (RADIATE; EcoFusion Table 3
+divides every sensor's power by 4)."""
 
 
-def sensor_energy(device: SensorDevice, measuring: bool = True) -> float:
-    """Eq. 10: E_s = (P^meas + P^motor) / f_s [J per measurement]; clock-gated: P^meas = 0."""
-    return ((device.measure_w if measuring else 0.0) + device.motor_w) / device.rate_hz
+def sensor_energy(device: SensorDevice, measuring: bool = True, rate_hz: float | None = None) -> float:
+    """Eq. 10: E_s = (P^meas + P^motor) / f [J]; clock-gated: P^meas = 0. f is the device's own rate
+    f_s, or `rate_hz` (the fused frame rate, for the "frame" period)."""
+    rate = device.rate_hz if rate_hz is None else rate_hz
+    if not rate > 0:
+        raise ValueError(f"rate_hz: must be > 0, got {rate}")
+    return ((device.measure_w if measuring else 0.0) + device.motor_w) / rate
 
 
 def devices_of(sensors: Sequence[str]) -> set[str]:
@@ -261,22 +274,27 @@ def devices_of(sensors: Sequence[str]) -> set[str]:
 
 
 def total_energy(compute_j: float, sensors: Sequence[str], mode: str = "clock",
-                 devices: Mapping[str, SensorDevice] = SENSOR_DEVICES) -> float:
+                 devices: Mapping[str, SensorDevice] = SENSOR_DEVICES, period: str = "frame") -> float:
     """Eq. 11: E_total = E(phi) + sum_s E_s for a configuration consuming `sensors` (network inputs).
 
     mode "clock": every device counts; those phi does not use are clock-gated (motor only, the
     text of 5.5.2); "eq11": only the devices phi uses (Eq. 11 as printed: unused ones cost
     nothing); "off": every device measures (no gating, the late-fusion baseline's rig).
+    period: each sensor's energy over one fused frame at FRAME_HZ ("frame", the paper's Table 3,
+    the default) or over one of its own measurements ("measurement"); see SENSOR_PERIODS.
     """
     if mode not in GATING_MODES:
         raise ValueError(f"mode: expected one of {GATING_MODES}, got {mode!r}")
+    if period not in SENSOR_PERIODS:
+        raise ValueError(f"period: expected one of {SENSOR_PERIODS}, got {period!r}")
+    rate = FRAME_HZ if period == "frame" else None
     used = devices_of(sensors)
     total = float(compute_j)
     for name, dev in devices.items():
         if mode == "off":
-            total += sensor_energy(dev, True)
+            total += sensor_energy(dev, True, rate)
         elif name in used:
-            total += sensor_energy(dev, True)
+            total += sensor_energy(dev, True, rate)
         elif mode == "clock":
-            total += sensor_energy(dev, False)
+            total += sensor_energy(dev, False, rate)
     return total

@@ -121,6 +121,8 @@ class EcoEval:
             measuring = [sorted(set(self.sensors[c]) | r) for c, r in zip(choice, read)]
             sensor_e = np.array([total_energy(ek, ms, "clock") for ek, ms in zip(e, measuring)])
             sensor_off = np.array([total_energy(ek, ms, "off") for ek, ms in zip(e, measuring)])
+            per_meas = np.array([total_energy(ek, ms, "clock", period="measurement") for ek, ms in zip(e, measuring)])
+            per_meas_off = np.array([total_energy(ek, ms, "off", period="measurement") for ek, ms in zip(e, measuring)])
             scenes = {}
             for ctx in sorted(set(self.contexts)):
                 k = np.array([c == ctx for c in self.contexts])
@@ -128,10 +130,14 @@ class EcoEval:
                                "energy": round(float(e[k].mean()), 4),
                                "energy_clock_gated": round(float(sensor_e[k].mean()), 4),
                                "energy_all_sensors_on": round(float(sensor_off[k].mean()), 4),
+                               "energy_clock_gated_per_measurement": round(float(per_meas[k].mean()), 4),
+                               "energy_all_sensors_on_per_measurement": round(float(per_meas_off[k].mean()), 4),
                                "map": sc["map_per_context"].get(ctx)}
             out["per_scene"] = scenes
             out["energy_clock_gated"] = round(float(sensor_e.mean()), 4)
             out["energy_all_sensors_on"] = round(float(sensor_off.mean()), 4)
+            out["energy_clock_gated_per_measurement"] = round(float(per_meas.mean()), 4)
+            out["energy_all_sensors_on_per_measurement"] = round(float(per_meas_off.mean()), 4)
         return out
 
     def fused(self, choice: np.ndarray) -> list:

@@ -199,14 +199,30 @@ def test_eq10_eq11_sensor_energy_and_clock_gating_by_hand():
     assert sensor_energy(radar) == pytest.approx(24 / 4) and sensor_energy(radar, False) == pytest.approx(2.4 / 4)
     assert sensor_energy(lidar) == pytest.approx(12 / 10) and sensor_energy(lidar, False) == pytest.approx(2.4 / 10)
     assert sensor_energy(zed) == pytest.approx(1.9 / 15) and sensor_energy(zed, False) == 0.0
-    # camera only: ZED measures, radar and lidar keep spinning (clock gated)
-    assert total_energy(1.0, ["camera_right"], "clock") == pytest.approx(1.0 + 1.9 / 15 + 0.6 + 0.24)
-    assert total_energy(1.0, ["camera_right"], "eq11") == pytest.approx(1.0 + 1.9 / 15)
+    # per measurement at each sensor's own rate: camera only: ZED measures, radar and lidar keep spinning
+    m = {"period": "measurement"}
+    assert total_energy(1.0, ["camera_right"], "clock", **m) == pytest.approx(1.0 + 1.9 / 15 + 0.6 + 0.24)
+    assert total_energy(1.0, ["camera_right"], "eq11", **m) == pytest.approx(1.0 + 1.9 / 15)
     # late fusion (C_L, C_R, L, R): every sensor measures; fwd_lidar is the lidar
     late = 3.798 + 6.0 + 1.2 + 1.9 / 15
-    assert total_energy(3.798, ["camera_left", "camera_right", "lidar", "radar"], "clock") == pytest.approx(late)
-    assert total_energy(3.798, ["camera_right"], "off") == pytest.approx(late)
-    assert total_energy(0.5, ["fwd_lidar", "camera_left"], "clock") == pytest.approx(0.5 + 1.2 + 1.9 / 15 + 0.6)
+    assert total_energy(3.798, ["camera_left", "camera_right", "lidar", "radar"], "clock", **m) == pytest.approx(late)
+    assert total_energy(3.798, ["camera_right"], "off", **m) == pytest.approx(late)
+    assert total_energy(0.5, ["fwd_lidar", "camera_left"], "clock", **m) == pytest.approx(0.5 + 1.2 + 1.9 / 15 + 0.6)
+
+
+def test_table3_reproduces_the_papers_13_27_and_5_45_joules_from_its_inputs():
+    """EcoFusion Table 3 charges every sensor one 4 Hz frame: late fusion 3.798 + (24 + 12 + 1.9) / 4 =
+    13.27 J; city (camera and lidar, radar clock-gated) 1.379 + (2.4 + 12 + 1.9) / 4 = 5.45 J. The
+    default period is that frame; per measurement the same inputs give other numbers."""
+    assert round(total_energy(3.798, ["camera_left", "camera_right", "lidar", "radar"], "clock"), 2) == 13.27
+    assert round(total_energy(3.798, ["camera_right"], "off"), 2) == 13.27
+    assert round(total_energy(1.379, ["camera_right", "lidar"], "clock"), 2) == 5.45
+    assert round(total_energy(1.379, ["camera_right", "lidar"], "clock", period="measurement"), 2) != 5.45
+    assert sensor_energy(SENSOR_DEVICES["lidar"], True, 4.0) == pytest.approx(3.0)
+    with pytest.raises(ValueError, match="period"):
+        total_energy(1.0, ["radar"], period="second")
+    with pytest.raises(ValueError, match="rate_hz"):
+        sensor_energy(SENSOR_DEVICES["radar"], True, 0.0)
 
 
 # ----- gates ------------------------------------------------------------------------------------
