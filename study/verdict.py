@@ -26,10 +26,12 @@ from pathlib import Path
 from study.detect import difference_interval
 
 LATE = "late"
-ORACLES = ("hydrafusion:optimal", "ecofusion:loss_based")
-"""Methods that choose with the ground truth (the k lowest a-posteriori branch losses; the
-configuration of lowest loss): bounds on what a gate could reach, not methods a car can run, so a
-sentence never counts them as a win and names them "(oracle)"."""
+ORACLES = ("hydrafusion:optimal", "ecofusion:loss_based", "hydrafusion:knowledge_informed",
+           "ecofusion:knowledge_informed")
+"""Methods that choose with what a car cannot know (the ground truth: the k lowest a-posteriori branch
+losses, the configuration of lowest loss; the simulator's severity and lens cover): bounds on what a
+gate could reach, not methods a car can run, so a sentence never counts them as a win and names them
+"(oracle)"."""
 FEW_SEQUENCES = 8
 """Below this many test sequences a group's intervals are flagged: n sequences drawn with
 replacement give only comb(2n - 1, n) distinct draws (10 for n = 3, 6435 for n = 8), so a

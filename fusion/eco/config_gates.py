@@ -99,6 +99,7 @@ class KnowledgeConfigurationGate(ConfigurationGate):
 
     name = "knowledge"
     reads = "context"
+    informed = False  # the context label only (fusion.nets.branch_gates.sensor_reliability)
 
     def __init__(self, *, margin: float = KNOWLEDGE_MARGIN, **kw) -> None:
         super().__init__(**kw)
@@ -108,7 +109,7 @@ class KnowledgeConfigurationGate(ConfigurationGate):
         self._mask = np.array(self.configurations.mask(), bool)
 
     def chosen_branches(self, m: Mapping[str, Any], field: str = "meta") -> tuple[str, ...]:
-        rel = sensor_reliability(m, field)
+        rel = sensor_reliability(m, field, self.informed)
         q = {b: branch_quality(rel, s, self.branch_frames[b]) for b, s in self.branch_sensors.items()}
         best = max(q.values())
         return tuple(b for b in self.configurations.branches if q[b] >= best - self.margin)
@@ -121,6 +122,14 @@ class KnowledgeConfigurationGate(ConfigurationGate):
             want = np.array([b in chosen for b in self.configurations.branches])
             rows.append((self._mask != want[None, :]).sum(axis=1))  # branches that differ from the chosen set
         return torch.tensor(np.array(rows), dtype=torch.float32)
+
+
+@CONFIG_GATES.register("knowledge_informed")
+class InformedKnowledgeConfigurationGate(KnowledgeConfigurationGate):
+    """Knowledge gating told each frame's severity and lens coverage: an oracle (simulator knowledge)."""
+
+    name = "knowledge_informed"
+    informed = True
 
 
 @CONFIG_GATES.register("loss_based")

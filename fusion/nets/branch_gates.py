@@ -241,9 +241,17 @@ none for the right camera, a little for the left one (flat-ground stereo dispari
 (Appendix A assumes a height per class). Also breaks the tie between the two cameras."""
 
 
-def context_of(m: Mapping[str, Any], field: str = "meta") -> tuple[str, tuple[str, ...], int]:
+CONTEXT_SEVERITY = 3
+"""The severity the context-only knowledge gate assumes for every condition its label names: the
+label ("city+rain") says which conditions hold, not how strong they are, so the gate takes the middle
+of the 1..5 scale (the informed variant reads each frame's own severity)."""
+
+
+def context_of(m: Mapping[str, Any], field: str = "meta",
+               severity_required: bool = True) -> tuple[str, tuple[str, ...], int]:
     """(layout, conditions, severity) of a frame's meta: keys "layout", "conditions", "severity"
-    (as FrameDataset gives them), or a "context" name such as "city+night+rain" plus "severity"."""
+    (as FrameDataset gives them), or a "context" name such as "city+night+rain" plus "severity".
+    Without `severity_required` a missing severity reads as CONTEXT_SEVERITY (0 without conditions)."""
     from sim.scenario import LAYOUT_NAMES, Context
 
     if "layout" in m and "conditions" in m:
@@ -260,16 +268,23 @@ def context_of(m: Mapping[str, Any], field: str = "meta") -> tuple[str, tuple[st
     for c in conditions:
         if c not in CONDITIONS:
             raise ValueError(f"{field}['conditions']: unknown condition {c!r} (known: {', '.join(CONDITIONS)})")
-    severity = m.get("severity", 0 if not conditions else None)
+    default = None if severity_required else CONTEXT_SEVERITY
+    severity = m.get("severity", 0 if not conditions else default)
     if isinstance(severity, bool) or not isinstance(severity, int | float) or not 0 <= severity <= 5:
         raise ValueError(f"{field}['severity']: expected a number 0..5, got {severity!r}")
     return layout, conditions, int(severity)
 
 
-def sensor_reliability(m: Mapping[str, Any], field: str = "meta") -> dict[str, float]:
-    """Reliability 0..1 of every sensor in the frame's context (KNOWLEDGE_TABLE; lens coverage of
-    each camera from meta["weather"]["lens_coverage_pct"] when present)."""
-    layout, conditions, severity = context_of(m, field)
+def sensor_reliability(m: Mapping[str, Any], field: str = "meta", informed: bool = False) -> dict[str, float]:
+    """Reliability 0..1 of every sensor in the frame's context (KNOWLEDGE_TABLE).
+
+    From the context label alone (layout and conditions, each condition at CONTEXT_SEVERITY): what a
+    car can know (a map, a rain sensor, a clock), and what HydraFusion's knowledge gate reads. With
+    `informed`, the frame's own severity and each camera's lens coverage
+    (meta["weather"]["lens_coverage_pct"]) too: what only the simulator knows, an oracle."""
+    layout, conditions, severity = context_of(m, field, severity_required=informed)
+    if not informed:
+        severity = CONTEXT_SEVERITY if conditions else 0
     factor = {mod: getattr(KNOWLEDGE_TABLE[layout], mod) for mod in ("camera", "lidar", "radar")}
     for c in conditions:
         row = KNOWLEDGE_TABLE[c]
@@ -277,7 +292,7 @@ def sensor_reliability(m: Mapping[str, Any], field: str = "meta") -> dict[str, f
             factor[mod] *= 1.0 - (1.0 - getattr(row, mod)) * severity / 5.0
     out = {s: factor[mod] for s, mod in MODALITY.items()}
     weather = m.get("weather")
-    lens = weather.get("lens_coverage_pct") if isinstance(weather, Mapping) else None
+    lens = weather.get("lens_coverage_pct") if informed and isinstance(weather, Mapping) else None
     if lens is not None:
         for cam, pct in zip(("camera_left", "camera_right"), lens):
             out[cam] *= 1.0 - min(max(float(pct), 0.0), 100.0) / 100.0  # that share of the image is covered
@@ -296,28 +311,32 @@ def branch_quality(reliability: Mapping[str, float], sensors: Sequence[str], fra
 @GATES.register("knowledge")
 class KnowledgeGate(Gate):
     """Knowledge gating (HydraFusion 4.2, "Rigid Knowledge-Based Gating"): ranks branches from the
-    frame's external context with `KNOWLEDGE_TABLE`; predicted loss = 1 - branch quality.
+    frame's context label with `KNOWLEDGE_TABLE`; predicted loss = 1 - branch quality.
 
-    Handles any combination of one layout and several conditions at any severity: condition
-    factors multiply. `features` is not read (only its batch size); `meta` is required.
+    Handles any combination of one layout and several conditions: condition factors multiply, each
+    at CONTEXT_SEVERITY (the label names conditions, not their strength). `features` is not read
+    (only its batch size); `meta` is required. `knowledge_informed` is the same table reading each
+    frame's severity and lens coverage, which only the simulator knows: an oracle.
     """
 
     name = "knowledge"
     reads = "context"
+    informed = False
 
     def predict(self, features, meta) -> Tensor:
         batch = _batch(features, meta)
         meta = _meta_list(meta, batch, self.name)
         rows = []
         for i, m in enumerate(meta):
-            rel = sensor_reliability(m, f"meta[{i}]")
+            rel = sensor_reliability(m, f"meta[{i}]", self.informed)
             rows.append([1.0 - branch_quality(rel, self.branch_sensors[b], self.branch_frames[b]) for b in self.branches])
         return torch.tensor(rows, dtype=torch.float32)
 
     def explain(self, m: Mapping[str, Any]) -> dict[str, Any]:
         """Why a frame gets its ranking: the table rows used, sensor reliabilities, branch qualities."""
-        layout, conditions, severity = context_of(m)
-        rel = sensor_reliability(m)
+        layout, conditions, severity = context_of(m, severity_required=self.informed)
+        severity = severity if self.informed else (CONTEXT_SEVERITY if conditions else 0)
+        rel = sensor_reliability(m, informed=self.informed)
         quality = {b: round(branch_quality(rel, self.branch_sensors[b], self.branch_frames[b]), 4) for b in self.branches}
         return {
             "rows": {c: KNOWLEDGE_TABLE[c].reason for c in (layout, *conditions)},
@@ -326,6 +345,15 @@ class KnowledgeGate(Gate):
             "branch_quality": quality,
             "ranking": sorted(self.branches, key=lambda b: -quality[b]),
         }
+
+
+@GATES.register("knowledge_informed")
+class InformedKnowledgeGate(KnowledgeGate):
+    """The knowledge gate told each frame's severity and lens coverage (simulator knowledge a car does
+    not have): an oracle, shown beside the context-only gate to say what that knowledge is worth."""
+
+    name = "knowledge_informed"
+    informed = True
 
 
 # ----- optimal gate ---------------------------------------------------------------------------
@@ -582,10 +610,12 @@ def build_gate(name: str, model, k: int | str | None = None, **options: Any) -> 
 
 
 __all__ = [
+    "CONTEXT_SEVERITY",
     "DEFAULT_GRID",
     "EARLY_FUSION_FLOOR",
     "EARLY_FUSION_GAIN",
     "GATES",
+    "InformedKnowledgeGate",
     "KNOWLEDGE_TABLE",
     "MAPPING_PENALTY",
     "AttentionGate",

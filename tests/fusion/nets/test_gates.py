@@ -88,8 +88,10 @@ def test_top_k_refuses_wrong_shapes_and_nan():
 # ----- knowledge gate ---------------------------------------------------------------------------
 
 
-def _knowledge(model, k=None):
-    return build_gate("knowledge", model, k=k)
+def _knowledge(model, k=None, name="knowledge_informed"):
+    """The knowledge gate that reads each frame's severity and lens coverage (the context-only one,
+    `knowledge`, is tested against it below)."""
+    return build_gate(name, model, k=k)
 
 
 @pytest.mark.parametrize("context, severities", [("fog", range(1, 6)), ("snow", range(3, 6)),
@@ -122,13 +124,13 @@ def test_knowledge_gate_handles_combined_contexts_severities_and_lens_cover(mode
     b = gate.predict(None, [{"layout": "city", "conditions": ["rain", "night"], "severity": 4}])
     assert torch.equal(a, b)
     # each condition adds its factor: city+night+rain is worse for the camera than either alone
-    cam = {c: sensor_reliability({"context": c, "severity": 4})["camera_right"]
+    cam = {c: sensor_reliability({"context": c, "severity": 4}, informed=True)["camera_right"]
            for c in ("city", "city+night", "city+rain", "city+night+rain")}
     assert cam["city+night+rain"] < min(cam["city+night"], cam["city+rain"]) < cam["city"]
     assert cam["city+night+rain"] == pytest.approx(cam["city+night"] * cam["city+rain"] / cam["city"])
     # night is no business of the active sensors
-    assert sensor_reliability({"context": "city+night", "severity": 5})["lidar"] == sensor_reliability(
-        {"context": "city", "severity": 0})["lidar"]
+    assert sensor_reliability({"context": "city+night", "severity": 5}, informed=True)["lidar"] == sensor_reliability(
+        {"context": "city", "severity": 0}, informed=True)["lidar"]
     # drops on the right lens move the right camera down the ranking, not the left one
     clear = {"context": "city", "severity": 0}
     covered = {**clear, "weather": {"lens_coverage_pct": [0.0, 60.0]}}
@@ -293,7 +295,26 @@ def test_untrained_conv_gates_predict_the_constant_centre(model):
         build_gate("deep", model).predict_prepared(x)
 
 
-def test_registry_names_are_the_four_gates():
-    assert set(GATES.names()) == {"knowledge", "deep", "attention", "optimal"}
+def test_the_default_knowledge_gate_reads_the_context_label_only(model):
+    """HydraFusion's knowledge gate knows the context, not the frame's severity or the drops on a lens:
+    its ranking is the informed gate's at CONTEXT_SEVERITY without lens cover, whatever the frame says."""
+    from fusion.nets.branch_gates import CONTEXT_SEVERITY
+
+    plain, informed = _knowledge(model, name="knowledge"), _knowledge(model)
+    frames = [{"context": "city+rain", "severity": s, "weather": {"lens_coverage_pct": [0.0, c]}}
+              for s in (1, 3, 5) for c in (0.0, 60.0)]
+    pred = plain.predict(None, frames)
+    assert all(torch.equal(pred[0], row) for row in pred)  # severity and lens cover change nothing
+    assert torch.equal(pred[0], informed.predict(None, [{"context": "city+rain", "severity": CONTEXT_SEVERITY}])[0])
+    assert not torch.equal(informed.predict(None, frames[:1]), informed.predict(None, frames[-1:]))
+    # a label without a severity is enough for it, not for the informed gate
+    assert torch.equal(plain.predict(None, [{"context": "city+rain"}]), pred[:1])
+    with pytest.raises(ValueError, match="severity"):
+        informed.predict(None, [{"context": "city+rain"}])
+    assert plain.explain({"context": "fog"})["severity"] == CONTEXT_SEVERITY
+
+
+def test_registry_names_are_the_five_gates():
+    assert set(GATES.names()) == {"knowledge", "knowledge_informed", "deep", "attention", "optimal"}
     assert GATES.get("knowledge") is KnowledgeGate and GATES.get("optimal").reads == "losses"
     assert {n for n in GATES.names() if GATES.get(n).trainable} == {"deep", "attention"}
