@@ -66,3 +66,23 @@ def cache_lock(shared_cache):
                 fcntl.flock(fh, fcntl.LOCK_UN)
 
     return hold
+
+
+@pytest.fixture(scope="session")
+def shared_dataset(cache_lock):
+    """`shared_dataset(GenerateConfig(...))`: that dataset, generated once per session (workers=1) by
+    whichever test asks first and read by every other file that asks for the same config, on any
+    xdist worker. Tests read it and never change it: one that damages or extends a dataset copies it."""
+    import hashlib
+    import json
+
+    def get(config) -> Path:
+        from sensors.generate import generate
+
+        key = hashlib.sha256(json.dumps(config.to_dict(), sort_keys=True).encode()).hexdigest()[:16]
+        with cache_lock(f"dataset-{key}") as out:
+            if not (out / "manifest.json").exists():
+                generate(config, out, workers=1, progress=False)
+        return out
+
+    return get

@@ -21,11 +21,8 @@ BRANCHES = ("camera_right", "radar")
 
 
 @pytest.fixture(scope="module")
-def data(tmp_path_factory):
-    out = tmp_path_factory.mktemp("data")
-    generate(GenerateConfig(contexts=("junction", "fog"), frames_per_context=4, sequence_length=2, seed=9),
-             out, workers=1, progress=False)
-    return out
+def data(shared_dataset):  # the dataset of tests/study/test_distributed.py: generated once per session
+    return shared_dataset(GenerateConfig(contexts=("junction", "fog"), frames_per_context=4, sequence_length=2, seed=9))
 
 
 def _cfg(data, **kw):
