@@ -36,6 +36,37 @@ _pin_xdist_worker()
 
 
 # ------------------------------------------------------------------------------------------------
+# `make test` hands whole files to its workers (--dist loadfile) in collection order
+# (--no-loadscope-reorder: xdist would otherwise start with the files that have the most tests, and
+# the few-test files below, which take most of the time, came last). These files go first, heaviest
+# first (the sum of their tests' durations in a `make test` on the 2-core EPYC: each 1-5 minutes),
+# so that the many short files fill in at the end and both workers finish at about the same time.
+# The two that compute the session caches come early: test_study_runner (the tiny study, read by the
+# notebook test) and test_theory_measured (the theory cells, read by test_theory_cli and a notebook),
+# so that no reader waits on the lock while a writer runs on the other worker. A file missing here
+# just runs later; the order changes no result.
+SLOW_FILES_FIRST = (
+    "tests/study/test_train.py",
+    "tests/study/test_study_runner.py",
+    "tests/study/test_theory_measured.py",
+    "tests/study/test_bench_generate.py",
+    "tests/study/test_distributed.py",
+    "tests/study/test_bench_generate_against.py",
+    "tests/study/test_ecofusion.py",
+    "tests/study/test_fuzz.py",
+    "tests/study/test_bench_scale.py",
+    "tests/notebooks/test_notebooks.py",
+    "tests/sensors/test_ray_backend.py",
+    "tests/study/test_gates.py",
+)
+
+
+def pytest_collection_modifyitems(config, items):
+    rank = {name: i for i, name in enumerate(SLOW_FILES_FIRST)}
+    items.sort(key=lambda item: rank.get(item.nodeid.split("::")[0], len(rank)))  # stable: files stay whole
+
+
+# ------------------------------------------------------------------------------------------------
 # One cache for the whole session, shared by the xdist workers: the theory measurements and the
 # tiny study are computed once (by whichever test needs them first) and read by the others. A file
 # lock makes a second worker wait for the first instead of computing the same thing beside it.
@@ -66,3 +97,23 @@ def cache_lock(shared_cache):
                 fcntl.flock(fh, fcntl.LOCK_UN)
 
     return hold
+
+
+@pytest.fixture(scope="session")
+def shared_dataset(cache_lock):
+    """`shared_dataset(GenerateConfig(...))`: that dataset, generated once per session (workers=1) by
+    whichever test asks first and read by every other file that asks for the same config, on any
+    xdist worker. Tests read it and never change it: one that damages or extends a dataset copies it."""
+    import hashlib
+    import json
+
+    def get(config) -> Path:
+        from sensors.generate import generate
+
+        key = hashlib.sha256(json.dumps(config.to_dict(), sort_keys=True).encode()).hexdigest()[:16]
+        with cache_lock(f"dataset-{key}") as out:
+            if not (out / "manifest.json").exists():
+                generate(config, out, workers=1, progress=False)
+        return out
+
+    return get

@@ -18,7 +18,7 @@ import time
 import pytest
 import torch
 
-from sensors.generate import GenerateConfig, generate
+from sensors.generate import GenerateConfig
 from study.cli import main
 from study.train import TrainConfig, train
 
@@ -26,11 +26,8 @@ ARGS = dict(branches=("radar",), epochs=2, batch_size=2, warmup_steps=2, lr=2e-3
 
 
 @pytest.fixture(scope="module")
-def data(tmp_path_factory):
-    out = tmp_path_factory.mktemp("ddp_data")
-    generate(GenerateConfig(contexts=("junction", "fog"), frames_per_context=4, sequence_length=2, seed=9),
-             out, workers=1, progress=False)
-    return out
+def data(shared_dataset):  # the dataset of tests/study/test_train.py: generated once per session
+    return shared_dataset(GenerateConfig(contexts=("junction", "fog"), frames_per_context=4, sequence_length=2, seed=9))
 
 
 @pytest.fixture(scope="module")

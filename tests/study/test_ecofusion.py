@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 import torch
 
-from sensors.generate import GenerateConfig, generate
+from sensors.generate import GenerateConfig
 from study.cli import main
 from study.train import TrainConfig, train
 
@@ -25,11 +25,8 @@ def _restore_threads():
 
 
 @pytest.fixture(scope="module")
-def data(tmp_path_factory):
-    out = tmp_path_factory.mktemp("data")
-    generate(GenerateConfig(contexts=("city", "fog"), frames_per_context=4, sequence_length=2, seed=4),
-             out, workers=1, progress=False)
-    return out
+def data(shared_dataset):  # the dataset of tests/study/test_gates.py: generated once per session
+    return shared_dataset(GenerateConfig(contexts=("city", "fog"), frames_per_context=4, sequence_length=2, seed=4))
 
 
 @pytest.fixture(scope="module")

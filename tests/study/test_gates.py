@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 import torch
 
-from sensors.generate import GenerateConfig, generate
+from sensors.generate import GenerateConfig
 from study.cli import main
 from study.detect import load_run
 from study.gate_data import GateData
@@ -35,18 +35,15 @@ def _linked_copy(run, dst):
 
 
 @pytest.fixture(scope="module")
-def data(tmp_path_factory):
-    out = tmp_path_factory.mktemp("data")
-    generate(GenerateConfig(contexts=("city", "fog"), frames_per_context=4, sequence_length=2, seed=4),
-             out, workers=1, progress=False)
-    return out
+def data(shared_dataset):  # the dataset of tests/study/test_ecofusion.py: generated once per session
+    return shared_dataset(GenerateConfig(contexts=("city", "fog"), frames_per_context=4, sequence_length=2, seed=4))
 
 
 @pytest.fixture(scope="module")
 def run(data, tmp_path_factory):
     out = tmp_path_factory.mktemp("run")
     train(TrainConfig(data=str(data), branches=BRANCHES, epochs=1, batch_size=4, warmup_steps=1, lr=1e-3,
-                      threads=2), out, progress=False)
+                      threads=2, eval_frames=1), out, progress=False)  # (no test reads the epoch's mAPs)
     return out
 
 

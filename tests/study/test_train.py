@@ -21,11 +21,8 @@ BRANCHES = ("camera_right", "radar")
 
 
 @pytest.fixture(scope="module")
-def data(tmp_path_factory):
-    out = tmp_path_factory.mktemp("data")
-    generate(GenerateConfig(contexts=("junction", "fog"), frames_per_context=4, sequence_length=2, seed=9),
-             out, workers=1, progress=False)
-    return out
+def data(shared_dataset):  # the dataset of tests/study/test_distributed.py: generated once per session
+    return shared_dataset(GenerateConfig(contexts=("junction", "fog"), frames_per_context=4, sequence_length=2, seed=9))
 
 
 def _cfg(data, **kw):
@@ -38,8 +35,24 @@ def _cfg(data, **kw):
 @pytest.fixture(scope="module")
 def reference_run(data, tmp_path_factory):
     out = tmp_path_factory.mktemp("ref_run")
-    result = train(_cfg(data), out, progress=False)
+    # one test frame scored per epoch (metrics.csv's mAP columns; no test reads their values)
+    result = train(_cfg(data, eval_frames=1), out, progress=False)
     return out, result
+
+
+# The resume and checkpoint tests train several runs each (kill -9, time-based checkpoints, more
+# epochs), and what they test (the state a checkpoint carries, where it is taken) does not depend on
+# how many branches train: one branch (measured: 0.6 of the CPU time of two, camera or lidar) and
+# one evaluation frame per epoch (free on resume: it changes no weight).
+RESUME = dict(branches=("radar",), eval_frames=1)
+
+
+@pytest.fixture(scope="module")
+def resume_reference(data, tmp_path_factory):
+    """The uninterrupted run the resume tests compare with: _cfg(data, **RESUME)."""
+    out = tmp_path_factory.mktemp("resume_ref")
+    train(_cfg(data, **RESUME), out, progress=False)
+    return out
 
 
 def test_a_run_writes_config_checkpoints_and_metrics(reference_run):
@@ -80,10 +93,11 @@ def test_a_run_records_its_model_profile_and_is_loaded_with_it(reference_run, tm
     assert load_run(copy)[0].branches["camera_right"].output_stride == other
 
 
-def test_kill_9_mid_training_then_rerun_gives_the_same_weights(data, reference_run, tmp_path):
-    ref, _ = reference_run
+def test_kill_9_mid_training_then_rerun_gives_the_same_weights(data, resume_reference, tmp_path):
+    ref = resume_reference
     out = tmp_path / "run"
-    cmd = [sys.executable, "-m", "study.cli", "train", str(data), "--out", str(out), "--branches", ",".join(BRANCHES),
+    cmd = [sys.executable, "-m", "study.cli", "train", str(data), "--out", str(out), "--branches",
+           ",".join(RESUME["branches"]), "--eval-frames", str(RESUME["eval_frames"]),
            "--epochs", "2", "--batch-size", "2", "--warmup-steps", "2", "--lr", "2e-3", "--threads", "2",
            "--checkpoint-steps", "1"]  # checkpoint after every step: the kill lands after a mid-epoch checkpoint
     env = dict(os.environ)
@@ -114,7 +128,7 @@ def test_a_resumed_epoch_reports_the_mean_loss_of_the_whole_epoch(data, referenc
     as the uninterrupted run (the running sums travel in the checkpoint), not the mean of the rest."""
     import study.train as st
 
-    ref, _ = reference_run
+    ref, _ = reference_run  # two branches: each branch's running sum travels
     out = tmp_path / "run"
     real = st._atomic_save
 
@@ -125,10 +139,10 @@ def test_a_resumed_epoch_reports_the_mean_loss_of_the_whole_epoch(data, referenc
 
     monkeypatch.setattr(st, "_atomic_save", save_then_stop)
     with pytest.raises(KeyboardInterrupt):
-        train(_cfg(data), out, progress=False)
+        train(_cfg(data, eval_frames=1), out, progress=False)
     monkeypatch.setattr(st, "_atomic_save", real)
     assert [int(r["epoch"]) for r in csv.DictReader(open(out / "metrics.csv"))] == [1]
-    train(_cfg(data), out, progress=False)
+    train(_cfg(data, eval_frames=1), out, progress=False)
     rows = list(csv.DictReader(open(out / "metrics.csv")))
     ref_rows = list(csv.DictReader(open(ref / "metrics.csv")))
     losses = [k for k in ref_rows[0] if k.startswith("loss_")]
@@ -138,13 +152,13 @@ def test_a_resumed_epoch_reports_the_mean_loss_of_the_whole_epoch(data, referenc
 
 
 @pytest.mark.parametrize("seconds, mid_epoch", [(1e-9, True), (0.0, False)])
-def test_time_based_checkpoints_land_mid_epoch_and_do_not_change_the_weights(data, reference_run, tmp_path,
+def test_time_based_checkpoints_land_mid_epoch_and_do_not_change_the_weights(data, resume_reference, tmp_path,
                                                                             monkeypatch, seconds, mid_epoch):
     """On a loaded machine 100 steps can take hours: `checkpoint_seconds` also checkpoints when that
     much time passed since the last save (0 = off), and where a run checkpoints changes nothing."""
     import study.train as st
 
-    ref, _ = reference_run
+    ref = resume_reference
     real, saves = st._atomic_save, []
 
     def record(obj, path):
@@ -153,7 +167,7 @@ def test_time_based_checkpoints_land_mid_epoch_and_do_not_change_the_weights(dat
         real(obj, path)
 
     monkeypatch.setattr(st, "_atomic_save", record)
-    train(_cfg(data, checkpoint_steps=1000, checkpoint_seconds=seconds), tmp_path / "run", progress=False)
+    train(_cfg(data, checkpoint_steps=1000, checkpoint_seconds=seconds, **RESUME), tmp_path / "run", progress=False)
     # 4 training frames in batches of 2: two steps per epoch, a mid-epoch save after the first
     assert saves == ([(0, 1), (1, 0), (1, 1), (2, 0)] if mid_epoch else [(1, 0), (2, 0)])
     a = torch.load(ref / "checkpoint.pt", weights_only=False)["model"]
@@ -168,13 +182,13 @@ def test_checkpoint_seconds_must_be_finite_and_not_negative(data, tmp_path, caps
     assert code == 2 and "checkpoint-seconds" in capsys.readouterr().err
 
 
-def test_more_epochs_extend_a_finished_run_and_other_configs_are_refused(data, reference_run, tmp_path, capsys):
-    ref, _ = reference_run
+def test_more_epochs_extend_a_finished_run_and_other_configs_are_refused(data, resume_reference, tmp_path, capsys):
+    ref = resume_reference
     import shutil
 
     copy = tmp_path / "copy"
     shutil.copytree(ref, copy)
-    result = train(_cfg(data, epochs=3), copy, progress=False)
+    result = train(_cfg(data, epochs=3, **RESUME), copy, progress=False)
     assert result["last"]["epoch"] == 3
     code = main(["train", str(data), "--out", str(copy), "--branches", "camera_right", "--epochs", "3"])
     assert code == 2 and "different config" in capsys.readouterr().err
@@ -389,21 +403,21 @@ def test_hflip_mirrors_inputs_and_boxes_together(data):
     assert checked > 10
 
 
-def test_training_with_hflip_records_it_resumes_old_runs_and_refuses_stereo_branches(data, reference_run, tmp_path,
+def test_training_with_hflip_records_it_resumes_old_runs_and_refuses_stereo_branches(data, resume_reference, tmp_path,
                                                                                     capsys):
     import shutil
 
     run = tmp_path / "flip"
-    result = train(_cfg(data, epochs=1, hflip=0.5), run, progress=False)
+    result = train(_cfg(data, epochs=1, hflip=0.5, eval_frames=1), run, progress=False)
     assert result["last"]["epoch"] == 1 and json.loads((run / "config.json").read_text())["hflip"] == 0.5
     # a run made before --hflip existed has no such key: it resumes as hflip 0
-    ref, _ = reference_run
+    ref = resume_reference
     old = tmp_path / "old"
     shutil.copytree(ref, old)
     cfg = json.loads((old / "config.json").read_text())
     del cfg["hflip"]
     (old / "config.json").write_text(json.dumps(cfg))
-    assert train(_cfg(data, epochs=3), old, progress=False)["last"]["epoch"] == 3
+    assert train(_cfg(data, epochs=3, **RESUME), old, progress=False)["last"]["epoch"] == 3
     code = main(["train", str(data), "--out", str(tmp_path / "stereo"), "--branches", "camera_both", "--hflip", "0.5"])
     assert code == 2 and "camera_both" in capsys.readouterr().err
     code = main(["train", str(data), "--out", str(tmp_path / "p"), "--branches", "radar", "--hflip", "1.5"])
