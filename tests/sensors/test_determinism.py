@@ -34,6 +34,10 @@ RECORDED = {
     "x86_64 Intel(R) Xeon(R) Processor [sse4_2 avx avx2 fma avx512f avx512_bf16 amx_bf16] | llvmpipe "
     "(LLVM 15.0.6, 256 bits), 4.5 (Core Profile) Mesa 22.3.6 | numpy 2.4.6, numba 0.68.1, embreex 4.4.0.post1, "
     "pyrender 0.1.45": "ab6c736568d223ea966b8fe10dc35fd3b6c00ed106369e43ea2e45fa33f630d5",
+    # an AMD EPYC with AVX-512 (2026-12-03): the same bytes as the Xeon's
+    "x86_64 AMD EPYC [sse4_2 avx avx2 fma avx512f avx512_bf16] | llvmpipe (LLVM 15.0.6, 256 bits), 4.5 (Core "
+    "Profile) Mesa 22.3.6 | numpy 2.4.6, numba 0.68.1, embreex 4.4.0.post1, pyrender 0.1.45":
+        "ab6c736568d223ea966b8fe10dc35fd3b6c00ed106369e43ea2e45fa33f630d5",
 }
 
 
