@@ -125,7 +125,16 @@ def test_two_gloo_processes_killed_with_sigkill_resume_and_train_the_weights_of_
     first = torch.load(single / "epoch-001.pt", weights_only=False)["model"]
     assert sum(not torch.equal(ref[k], first[k]) for k in ref) > 10, "training changed the weights"
     for k in ref:
-        torch.testing.assert_close(ddp[k], ref[k], rtol=1e-4, atol=1e-5, msg=k)
+        if not ref[k].is_floating_point():
+            assert torch.equal(ddp[k], ref[k]), k
+            continue
+        # equal in exact arithmetic; in floating point the sums run in another order, and a proposal that
+        # crosses the RPN's top-k or NMS threshold changes a loss term, so the two paths part by a few %
+        # of an epoch's update (5 % at most, 1.5e-5 per weight, on an AMD EPYC with AVX-512; less on an
+        # AVX2 one). A wrong share of the batch or gradient weighting parts them by 50 % or more.
+        step = float((ref[k].double() - first[k].double()).norm())
+        gap = float((ddp[k].double() - ref[k].double()).norm())
+        assert gap <= 0.2 * step + 1e-7, (k, gap, step)
 
 
 def test_per_frame_sampling_changes_nothing_but_the_draws_and_global_stays_the_default(data, single, tmp_path):
