@@ -110,7 +110,7 @@ def run_branches(model, data, indices, branches, batch_size: int = 4, progress: 
     ds = FrameDataset(data, indices, sensors=need, clear=clear, bev_size=model.transform.image_size("radar"))
     loader = DataLoader(ds, batch_size=batch_size, shuffle=False, collate_fn=collate, num_workers=workers,
                         pin_memory=device.type == "cuda")
-    autocast = DeviceSetup(str(device), 0, amp and device.type == "cuda").autocast
+    autocast = DeviceSetup(str(device), 0, bool(amp)).autocast
     from sim.progress import progress as progress_bar
 
     out = []

@@ -242,7 +242,7 @@ def train_gate(run_dir, data, cfg: GateTrainConfig, progress: bool = True, fresh
         what = ("ranks by the a-posteriori losses, which need ground truth" if cfg.gate == "optimal"
                 else "ranks from its knowledge table")
         raise UserError(f"--gate {cfg.gate}: nothing to train, the {cfg.gate} gate {what} (train deep or attention)")
-    setup = setup or resolve_device(threads=cfg.threads)
+    setup = setup or resolve_device(threads=cfg.threads, purpose="eval")
     run_dir, data = Path(run_dir), Path(data)
     model, run_cfg = load_run(run_dir, cfg.checkpoint, device=setup.device)
     reader = DatasetReader(data)
@@ -360,7 +360,7 @@ def _setup(run_dir, data, split, weights, checkpoint, setup=None):
     from sensors.dataset import DatasetReader
     from study.detect import frames_for, load_run
 
-    setup = setup or resolve_device()
+    setup = setup or resolve_device(purpose="eval")
     model, cfg = load_run(run_dir, checkpoint, device=setup.device)
     model.device_setup = setup  # read by _loader, _gate_on_device and the autocast of the gated forwards
     if not gate_sensors(model):

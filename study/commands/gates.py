@@ -67,13 +67,13 @@ def add_train_gate(sub, name, help_text):
     p.add_argument("--seed", type=nonneg_int, default=0, help="initialisation, data order, validation split")
     p.add_argument("--checkpoint", type=checkpoint_arg, default="latest", help="latest, or epoch-NNN")
     p.add_argument("--fresh", action="store_true", help="discard a previous training of this gate")
-    add_device_args(p)
+    add_device_args(p, purpose="eval")
     p.add_argument("--json", action="store_true", help="print one JSON object on stdout")
     p.set_defaults(run=run_train_gate)
 
 
 def run_train_gate(args) -> int:
-    setup = resolve_device(args)
+    setup = resolve_device(args, purpose="eval")
     cfg = gates.GateTrainConfig(gate=args.gate, epochs=args.epochs, batch_size=args.batch_size, lr=args.lr,
                           val_fraction=args.val_fraction, seed=args.seed, grid=tuple(args.grid),
                           checkpoint=args.checkpoint, threads=setup.threads)

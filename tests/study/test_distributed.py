@@ -154,7 +154,8 @@ def test_device_options_refuse_what_this_machine_cannot_do(data, single, tmp_pat
         err = capsys.readouterr().err
         assert code == 2 and "no CUDA GPU" in err and len(err.strip().splitlines()) == 1
         assert not (tmp_path / "gpu" / "checkpoint.pt").exists()
-    code = main(["train", str(data), "--out", str(tmp_path / "amp"), "--branches", "radar", "--device", "cpu", "--amp"])
+    code = main(["train", str(data), "--out", str(tmp_path / "amp"), "--branches", "radar", "--device", "cpu",
+                 "--amp", "fp16"])
     err = capsys.readouterr().err
     assert code == 2 and "--amp" in err and len(err.strip().splitlines()) == 1
     assert main(["train", str(data), "--out", str(tmp_path / "x"), "--device", "tpu"]) == 2
