@@ -275,11 +275,14 @@ def resolve_device(args=None, *, device: str | None = None, threads: int | None 
 
 
 def to_device(inputs: dict, targets, device):
-    """Batched inputs (sensor -> tensor) and per-frame targets (frame -> {boxes, labels}) on `device`.
-    On the CPU the same objects come back (no copies)."""
+    """Batched inputs (sensor -> tensor) and per-frame targets (frame -> {boxes, labels}) on `device`;
+    uint8 inputs (`fusion.data.frame_inputs(..., uint8=True)`) travel as uint8 and become float32
+    there (`fusion.data.as_model_input`). On the CPU float inputs and the targets come back as they are."""
+    from fusion.data import as_model_input
+
     if str(device) == "cpu":
-        return inputs, targets
-    inputs = {k: v.to(device, non_blocking=True) for k, v in inputs.items()}
+        return {k: as_model_input(v) for k, v in inputs.items()}, targets
+    inputs = {k: as_model_input(v.to(device, non_blocking=True)) for k, v in inputs.items()}
     if targets is not None:
         targets = [{f: {k: v.to(device, non_blocking=True) for k, v in t.items()} for f, t in per.items()}
                    for per in targets]

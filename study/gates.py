@@ -383,7 +383,8 @@ def _loader(model, data, indices, batch_size):
     from study.device import to_device
 
     setup = model.device_setup
-    ds = FrameDataset(data, indices, sensors=model.sensors, bev_size=model.transform.image_size("radar"))
+    ds = FrameDataset(data, indices, sensors=model.sensors, bev_size=model.transform.image_size("radar"),
+                      uint8=setup.is_cuda)  # uint8 to a GPU, float32 there (`to_device`)
     for inputs, targets, metas in DataLoader(ds, batch_size=batch_size, shuffle=False, collate_fn=collate,
                                              num_workers=setup.workers, pin_memory=setup.is_cuda):
         yield to_device(inputs, None, setup.device)[0], targets, metas

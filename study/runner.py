@@ -488,7 +488,7 @@ def gatedata_stage(work: Path, run_paper: Path, data: Path, settings, batch_size
     test_idx, _ = frames_for(run_cfg, data, "test")
     gd = GateData(run, data, model)
     gd.ensure(train_idx + test_idx, batch_size=batch_size, progress=progress)
-    eco = build_eco_data(run, data, settings, progress=progress)
+    eco = build_eco_data(run, data, settings, progress=progress, device=setup.device)
     return _digest({"gate_data": gd.key, "eco_data": Path(eco["eco_data"]).name}), {
         "gate_data_key": gd.key, "eco_data": eco}
 

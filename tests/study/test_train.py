@@ -456,3 +456,28 @@ def test_only_the_main_rank_judges_the_run_directory(tmp_path):
     (out / "config.json").write_text("{}")
     check_run_dir(out, main_rank=True)
     check_run_dir(tmp_path / "new", main_rank=True)  # a new directory is fine
+
+
+def test_a_checkpoint_holds_the_rng_states_and_config_json_the_device_and_precision(reference_run):
+    ref, result = reference_run
+    state = torch.load(ref / "checkpoint.pt", weights_only=False)
+    assert torch.equal(state["torch_rng"], state["torch_rng"]) and state["torch_rng"].dtype == torch.uint8
+    assert "cuda_rng" in state and state["cuda_rng"] is None  # a CPU run: the GPUs' generators play no part
+    cfg = json.loads((ref / "config.json").read_text())
+    assert cfg["compute"] == {"device": "cpu", "precision": "fp32"}
+    assert (result["device"]["device_type"], result["device"]["precision"]) == ("cpu", "fp32")
+
+
+def test_frames_as_uint8_become_the_same_float_inputs_where_they_are_used(data):
+    from fusion.data import FrameDataset, collate
+    from study.device import to_device
+
+    f32 = FrameDataset(data, [0, 3], bev_size=(128, 256))
+    u8 = FrameDataset(data, [0, 3], bev_size=(128, 256), uint8=True)
+    for flip in (False, True):
+        a, ta, _ = collate([f32.item(k, flip=flip) for k in range(2)])
+        b, tb, _ = collate([u8.item(k, flip=flip) for k in range(2)])
+        assert all(v.dtype == torch.uint8 for v in b.values())
+        assert sum(v.nbytes for v in b.values()) * 4 == sum(v.nbytes for v in a.values())
+        b, _ = to_device(b, tb, "cpu")
+        assert a.keys() == b.keys() and all(torch.equal(a[s], b[s]) for s in a)
