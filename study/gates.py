@@ -298,6 +298,8 @@ def train_gate(run_dir, data, cfg: GateTrainConfig, progress: bool = True, fresh
         "top3_overlap_with_optimal": round(ranking_agreement(pred, y_test, min(3, len(branches))), 4),
         "mean_test_loss_per_branch": {b: round(float(y_test[:, j].mean()), 6) for j, b in enumerate(branches)},
         "gate_data": str(gd.dir), "gate_path": str(out / "gate.pt"),
+        # where and in which precision the gate data was computed (the gate itself trains in fp32)
+        "compute": {k: gd.identity[k] for k in ("device", "precision")},
     }
     result["beats_constant"] = result["test_mae"] < result["constant_mean_mae"]
     _atomic_torch_save({"name": cfg.gate, "options": {**cfg.gate_options(), "sensors": list(gd.sensors)},
