@@ -229,7 +229,7 @@ def evaluate_epoch(model, cfg: TrainConfig, reader, test_idx, branches, setup=No
         return {**{f"map_{b}": None for b in branches}, "map_fused": None}
     model.eval()
     per_frame = run_branches(model, cfg.data, idx, branches, batch_size=cfg.batch_size, progress="evaluate",
-                             workers=setup.workers if setup else 0, amp=bool(setup and setup.amp))
+                             workers=setup.workers if setup else 0)  # fp32: evaluation is not what --amp asks for
     out = {}
     frames = model.branch_frames
     crop = bev_crop_of(model, reader)
