@@ -191,7 +191,7 @@ class GateData:
         model = self.model.eval()
         device = model_device(model)  # the network runs where it is (`study.device`), in float32
         ds = FrameDataset(self.data, todo, sensors=model.sensors, bev_size=model.transform.image_size("radar"),
-                          protocol=self.protocol, uint8=device.type == "cuda")  # float32 on the GPU (`to_device`)
+                          protocol=self.protocol, uint8=str(device).startswith("cuda"))  # float32 on the GPU (`to_device`)
         n_chunk = len(self._chunks())
         bar = _bar(len(todo), self.subdir.replace("_", " "), progress)
         pending: dict[str, list] = defaultdict(list)
