@@ -64,8 +64,8 @@ def checkpoint_path(run_dir: Path, checkpoint: str = "latest") -> Path:
 def _atomic_torch_save(obj, path: Path) -> None:
     import torch
 
-    with atomic_path(path) as tmp:
-        torch.save(obj, tmp)
+    with atomic_path(path) as tmp, open(tmp, "wb") as fh:  # a file object: records not named after tmp
+        torch.save(obj, fh)
 
 
 def _atomic_text(path: Path, text: str) -> None:

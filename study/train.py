@@ -208,9 +208,11 @@ def branch_set(name: str, profile: str):
 
 
 def _atomic_save(obj, path: Path) -> None:
-    """torch.save through a temporary file renamed over `path` (`study.outputs.atomic_path`)."""
-    with atomic_path(path) as tmp:
-        torch.save(obj, tmp)
+    """torch.save through a temporary file renamed over `path` (`study.outputs.atomic_path`). Saved
+    through a file object: given a path, torch names the zip's records after the (random) temporary
+    file, and the same checkpoint would differ in bytes from run to run (the study keys on them)."""
+    with atomic_path(path) as tmp, open(tmp, "wb") as fh:
+        torch.save(obj, fh)
 
 
 def _lr_at(cfg: TrainConfig, epoch: int, step: int) -> float:

@@ -125,3 +125,14 @@ def test_loss_sums_stay_on_the_device_and_equal_float_sums():
         ref["total"] = ref.get("total", 0.0) + float(total)
     assert all(isinstance(v, torch.Tensor) and v.dtype == torch.float64 for v in sums.values())
     assert st.sums_as_floats(sums) == ref and list(sums) == list(ref)
+
+
+def test_a_checkpoint_saved_twice_has_the_same_bytes(tmp_path):
+    """The study keys on checkpoint bytes: saving through a random temporary name must not leak the name."""
+    import study.train as st
+
+    obj = {"model": {"w": torch.arange(6.0)}, "epoch": 1}
+    st._atomic_save(obj, tmp_path / "a.pt")
+    st._atomic_save(obj, tmp_path / "b" / "checkpoint.pt")
+    assert (tmp_path / "a.pt").read_bytes() == (tmp_path / "b" / "checkpoint.pt").read_bytes()
+    assert torch.equal(torch.load(tmp_path / "a.pt")["model"]["w"], obj["model"]["w"])
