@@ -295,7 +295,7 @@ def train_gate(run_dir, data, cfg: GateTrainConfig, progress: bool = True, fresh
         what = ("ranks by the a-posteriori losses, which need ground truth" if cfg.gate == "optimal"
                 else "ranks from its knowledge table")
         raise UserError(f"--gate {cfg.gate}: nothing to train, the {cfg.gate} gate {what} (train deep or attention)")
-    setup = setup or resolve_device(threads=cfg.threads)
+    setup = setup or resolve_device(threads=cfg.threads, purpose="eval")
     run_dir, data = Path(run_dir), Path(data)
     model, run_cfg = load_run(run_dir, cfg.checkpoint, device=setup.device)
     reader = DatasetReader(data)
@@ -354,6 +354,8 @@ def train_gate(run_dir, data, cfg: GateTrainConfig, progress: bool = True, fresh
         "top3_overlap_with_optimal": round(ranking_agreement(pred, y_test, min(3, len(branches))), 4),
         "mean_test_loss_per_branch": {b: round(float(y_test[:, j].mean()), 6) for j, b in enumerate(branches)},
         "gate_data": str(gd.dir), "gate_path": str(out / "gate.pt"),
+        # where and in which precision the gate data was computed (the gate itself trains in fp32)
+        "compute": {k: gd.identity[k] for k in ("device", "precision")},
     }
     result["beats_constant"] = result["test_mae"] < result["constant_mean_mae"]
     torch_save_atomic({"name": cfg.gate, "options": {**cfg.gate_options(), "sensors": list(gd.sensors)},
@@ -416,7 +418,7 @@ def _setup(run_dir, data, split, weights, checkpoint, setup=None):
     from sensors.dataset import DatasetReader
     from study.detect import frames_for, load_run
 
-    setup = setup or resolve_device()
+    setup = setup or resolve_device(purpose="eval")
     model, cfg = load_run(run_dir, checkpoint, device=setup.device)
     model.device_setup = setup  # read by _loader, _gate_on_device and the autocast of the gated forwards
     if not gate_sensors(model):
@@ -439,7 +441,8 @@ def _loader(model, data, indices, batch_size):
     from study.device import to_device
 
     setup = model.device_setup
-    ds = FrameDataset(data, indices, sensors=model.sensors, bev_size=model.transform.image_size("radar"))
+    ds = FrameDataset(data, indices, sensors=model.sensors, bev_size=model.transform.image_size("radar"),
+                      uint8=setup.is_cuda)  # uint8 to a GPU, float32 there (`to_device`)
     for inputs, targets, metas in DataLoader(ds, batch_size=batch_size, shuffle=False, collate_fn=collate,
                                              num_workers=setup.workers, pin_memory=setup.is_cuda):
         yield to_device(inputs, None, setup.device)[0], targets, metas

@@ -108,10 +108,11 @@ def run_branches(model, data, indices, branches, batch_size: int = 4, progress: 
 
     need = sensors or model.sensors_for(list(branches))
     device = next(model.parameters()).device
-    ds = FrameDataset(data, indices, sensors=need, clear=clear, bev_size=model.transform.image_size("radar"))
+    ds = FrameDataset(data, indices, sensors=need, clear=clear, bev_size=model.transform.image_size("radar"),
+                      uint8=device.type == "cuda")  # uint8 to a GPU, float32 there (`to_device`)
     loader = DataLoader(ds, batch_size=batch_size, shuffle=False, collate_fn=collate, num_workers=workers,
                         pin_memory=device.type == "cuda")
-    autocast = DeviceSetup(str(device), 0, amp and device.type == "cuda").autocast
+    autocast = DeviceSetup(str(device), 0, bool(amp)).autocast
     from sim.progress import progress as progress_bar
 
     out = []

@@ -51,7 +51,7 @@ def evaluate(run_dir, data, branches="all", fusion="soft-nms", split="auto", wei
     )
     from study.train import run_protocol
 
-    setup = setup or resolve_device()
+    setup = setup or resolve_device(purpose="eval")
     method = fusion_method(fusion)
     if not 0 <= bootstrap <= MAX_BOOTSTRAP:
         raise UserError(f"--bootstrap must be 0..{MAX_BOOTSTRAP} draws, got {bootstrap}")

@@ -172,7 +172,7 @@ class GateData:
         model = self.model.eval()
         device = model_device(model)  # the network runs where it is (`study.device`), in float32
         ds = FrameDataset(self.data, todo, sensors=model.sensors, bev_size=model.transform.image_size("radar"),
-                          protocol=self.protocol)
+                          protocol=self.protocol, uint8=str(device).startswith("cuda"))  # float32 on the GPU (`to_device`)
         n_chunk = len(self._chunks())
         bar = progress_bar(total=len(todo), desc=self.subdir.replace("_", " "), enabled=progress)
         pending: dict[str, list] = defaultdict(list)

@@ -146,8 +146,10 @@ def torch_save_atomic(obj, path: str | Path) -> None:
     """`torch.save(obj)` to `path` atomically (`atomic_path`): an interrupted save leaves the old file."""
     import torch
 
-    with atomic_path(path) as tmp:
-        torch.save(obj, tmp)
+    # through a file object: torch.save to a path names the archive's records after that path (the
+    # temporary name), so the same object would give other bytes on every save
+    with atomic_path(path) as tmp, open(tmp, "wb") as fh:
+        torch.save(obj, fh)
 
 
 def savefig_atomic(fig, path: str | Path, **kw) -> None:

@@ -414,9 +414,18 @@ class Study:
 
 
 def _device_setup(cfg: StudyConfig):
+    """The training stage's device choice (bf16 autocast on CUDA by default, fp32 on the CPU); the
+    stages after it run their networks in fp32 (`_eval_setup`)."""
     from study.device import resolve_device
 
     return resolve_device(device=cfg.run.device, threads=cfg.run.threads)
+
+
+def _eval_setup(setup):
+    """The same device without autocast: gate data, gates and evaluation are fp32 numbers."""
+    import dataclasses
+
+    return dataclasses.replace(setup, amp=False)
 
 
 def eco_settings(cfg: StudyConfig):
@@ -454,7 +463,7 @@ def train_stage(work: Path, data: Path, train_cfg: TrainSection, profile: str, s
                          branches=tuple(branches), epochs=t.epochs, batch_size=t.batch_size, lr=t.lr,
                          warmup_steps=t.warmup_steps, clip_grad=t.clip_grad, seed=t.seed,
                          checkpoint_steps=t.checkpoint_steps, eval_frames=t.eval_frames, threads=setup.threads,
-                         protocol=t.protocol, device=setup.device, amp=setup.amp)
+                         protocol=t.protocol, device=setup.device, amp=setup.amp, workers=setup.workers)
         train(tc, work / name, progress=progress)
         digests[name] = file_sha256(work / name / "checkpoint.pt")
     return _digest(digests), {"checkpoints_sha256": digests}
@@ -474,7 +483,7 @@ def gatedata_stage(work: Path, run_paper: Path, data: Path, settings, batch_size
     test_idx, _ = frames_for(run_cfg, data, "test")
     gd = GateData(run, data, model)
     gd.ensure(train_idx + test_idx, batch_size=batch_size, progress=progress)
-    eco = build_eco_data(run, data, settings, progress=progress)
+    eco = build_eco_data(run, data, settings, progress=progress, device=setup.device)
     return _digest({"gate_data": gd.key, "eco_data": Path(eco["eco_data"]).name}), {
         "gate_data_key": gd.key, "eco_data": eco}
 
@@ -581,8 +590,10 @@ def run_study(cfg: StudyConfig, out: str | Path, until: str = "report", progress
     last = STAGES.index(until)
     result: dict = {"out": str(study.out)}
 
+    eval_setup = _eval_setup(setup)
+
     def ident(name: str) -> dict:
-        return stage_identity(name, cfg, setup)
+        return stage_identity(name, cfg, setup if name == "train" else eval_setup)
 
     gcfg = cfg.data.generate_config(cfg.profile)
     gen = study.stage("generate", {"data": gcfg.to_dict(), **ident("generate")}, (), generate_stage,
@@ -602,19 +613,19 @@ def run_study(cfg: StudyConfig, out: str | Path, until: str = "report", progress
     gdr = study.stage("gatedata", {"eco_max_frames": cfg.gates.eco_max_frames, "fusion": cfg.gates.fusion,
                                    "batch_size": cfg.train.batch_size, **ident("gatedata")}, (tr,),
                       gatedata_stage, run_paper=tr.dir / "paper", data=data, settings=settings,
-                      batch_size=cfg.train.batch_size, setup=setup, progress=progress)
+                      batch_size=cfg.train.batch_size, setup=eval_setup, progress=progress)
     if last < 3:
         return _finish(study, result, t_start)
 
     gt = study.stage("gates", {"gates": to_dict(cfg.gates), **ident("gates")}, (gdr,), gates_stage,
-                     gatedata_run=gdr.dir / "run", data=data, gates=cfg.gates, settings=settings, setup=setup,
+                     gatedata_run=gdr.dir / "run", data=data, gates=cfg.gates, settings=settings, setup=eval_setup,
                      say=study.say, progress=progress)
     if last < 4:
         return _finish(study, result, t_start)
 
     ev = study.stage("evaluate", {"evaluate": to_dict(cfg.evaluate), **ident("evaluate")}, (gt, tr),
                      evaluate_stage, gates_run=gt.dir / "run", run_early=run_early, data=data, cfg=cfg,
-                     settings=settings, setup=setup, progress=progress)
+                     settings=settings, setup=eval_setup, progress=progress)
     if last < 5:
         return _finish(study, result, t_start)
 

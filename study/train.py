@@ -24,7 +24,6 @@ import csv
 import dataclasses
 import json
 import math
-import os
 import sys
 import time
 from dataclasses import dataclass
@@ -40,7 +39,8 @@ from sensors.dataset import check as check_dataset
 from sim.config import to_dict
 from sim.errors import UserError
 from study.checkpoints import load_checkpoint, load_weights
-from study.device import resolve_device, to_device
+from study.device import rank_device, resolve_device, to_device
+from study.outputs import atomic_path, torch_save_atomic
 from study.run_config import run_profile
 
 
@@ -69,8 +69,11 @@ class TrainConfig:
         threads: torch CPU threads (0: the cores available).
         device: auto | cpu | cuda | cuda:N (`study.device`); under torchrun each process takes the
             GPU of its LOCAL_RANK.
-        amp: bf16 autocast of the forward passes (None: on for CUDA, off on the CPU).
-        workers: DataLoader processes decoding frames (0: in the main process).
+        amp: bf16 autocast of the backbones (`study.device.resolve_amp`: None = bf16 on CUDA, fp32 on
+            the CPU; "auto" = bf16 where the device has native bf16; True / "bf16"; False / "off").
+            The resolved device type and precision are recorded in config.json ("compute").
+        workers: DataLoader processes decoding frames (0: in the main process; None: 0 on the CPU,
+            `study.device.DEFAULT_CUDA_WORKERS` on CUDA).
         sampling: how the RPN and RoI heads draw the anchors and RoIs of their losses: "global"
             (torch's global generator, one image after the other, as torchvision does) or
             "per-frame" (`fusion.nets.sampling`: each frame's draw seeded by (seed, step, frame),
@@ -106,8 +109,8 @@ class TrainConfig:
     hflip: float = 0.0
     protocol: str = "reference"
     device: str = "auto"
-    amp: bool | None = None
-    workers: int = 0
+    amp: bool | str | None = None
+    workers: int | None = None
     sampling: str = "global"
 
 
@@ -205,12 +208,6 @@ def branch_set(name: str, profile: str):
     raise UserError(f"unknown branch set {name!r} (choose from: paper, single, early_fusion, late_fusion)")
 
 
-def _atomic_save(obj, path: Path) -> None:
-    tmp = path.with_name(f".{path.name}.tmp-{os.getpid()}")
-    torch.save(obj, tmp)
-    os.replace(tmp, path)
-
-
 def _lr_at(cfg: TrainConfig, epoch: int, step: int) -> float:
     drop = cfg.lr_drop_epoch or max(1, int(round(0.75 * cfg.epochs)))
     lr = cfg.lr * (0.1 if epoch >= drop else 1.0)
@@ -227,7 +224,7 @@ def evaluate_epoch(model, cfg: TrainConfig, reader, test_idx, branches, setup=No
         return {**{f"map_{b}": None for b in branches}, "map_fused": None}
     model.eval()
     per_frame = run_branches(model, cfg.data, idx, branches, batch_size=cfg.batch_size, progress="evaluate",
-                             workers=setup.workers if setup else 0, amp=bool(setup and setup.amp))
+                             workers=setup.workers if setup else 0)  # fp32: evaluation is not what --amp asks for
     out = {}
     frames = model.branch_frames
     crop = bev_crop_of(model, reader)
@@ -243,7 +240,7 @@ def evaluate_epoch(model, cfg: TrainConfig, reader, test_idx, branches, setup=No
 RESUME_KEYS = ("model", "optimizer", "epoch", "step_in_epoch", "global_step", "torch_rng")
 """What a run's checkpoint.pt must hold to be resumed."""
 FREE_ON_RESUME = ("epochs", "lr_drop_epoch", "eval_frames", "threads", "checkpoint_steps", "checkpoint_seconds", "device",
-                  "amp", "workers")
+                  "amp", "workers", "compute")
 
 
 class _Batches(torch.utils.data.Dataset):
@@ -291,22 +288,49 @@ def check_run_dir(out: Path, main_rank: bool = True) -> None:
         raise UserError(f"{out} is not empty and holds no training run (no config.json); use a new or empty --out")
 
 
-def train(cfg: TrainConfig, out: Path, progress: bool = True) -> dict:
-    """Train (or resume) the run in `out`. Launched by torchrun (WORLD_SIZE > 1), each process
-    trains on its share of every batch (`DistributedDataParallel`, gloo on the CPU, NCCL on GPUs)
-    and rank 0 alone writes the run directory; `batch_size` stays the global batch."""
+LOG_EVERY_CUDA = 25
+"""On CUDA the loss is read back (progress bar, non-finite check) every this many steps and before
+each checkpoint: each read waits for the GPU. On the CPU it is read every step (it costs nothing)."""
 
-    from fusion.nets import build_hydrafusion
-    from sim.progress import progress as progress_bar
-    from study import distributed as dist
-    from study.plots import plot_training_curves
 
-    ddp = dist.from_env()
-    device = cfg.device
-    if ddp.world > 1 and device in ("auto", "cuda"):
-        device = f"cuda:{ddp.local_rank}" if torch.cuda.is_available() else ("cpu" if device == "auto" else device)
-    setup = resolve_device(device=device, threads=cfg.threads, amp=cfg.amp, workers=cfg.workers)
-    ddp.init(setup.device)
+def rng_state(cuda: bool) -> dict:
+    """The random state a resumed run must continue from: torch's CPU generator and, when the run
+    trains on CUDA (`cuda`), every GPU's generator (torchvision's anchor / RoI samplers draw from the
+    generator of the device their tensors are on). "cuda_rng" is None on the CPU."""
+    return {"torch_rng": torch.get_rng_state(),
+            "cuda_rng": torch.cuda.get_rng_state_all() if cuda and torch.cuda.is_available() else None}
+
+
+def restore_rng(state: dict) -> None:
+    """Set the generators `rng_state` saved: the CPU's always, the GPUs' where the checkpoint holds
+    them and this machine has GPUs (as many as both have)."""
+    torch.set_rng_state(state["torch_rng"])
+    cuda = state.get("cuda_rng")
+    if cuda and torch.cuda.is_available():
+        for index, s in enumerate(cuda[: torch.cuda.device_count()]):
+            torch.cuda.set_rng_state(s, index)
+
+
+def checkpoint_state(model, opt, epoch: int, step_in_epoch: int, global_step: int, cuda: bool,
+                     epoch_sums: dict | None = None) -> dict:
+    """What RUN/checkpoint.pt holds (RESUME_KEYS, the RNG states, and mid-epoch the running sums)."""
+    state = {"model": model.state_dict(), "optimizer": opt.state_dict(), "epoch": epoch,
+             "step_in_epoch": step_in_epoch, "global_step": global_step, **rng_state(cuda)}
+    if epoch_sums is not None:
+        state["epoch_sums"] = epoch_sums
+    return state
+
+
+def training_setup(cfg: TrainConfig, ddp):
+    """The DeviceSetup of this process: under torchrun the GPU of its LOCAL_RANK (cuda:N refused),
+    its share of the cores; the precision `cfg.amp` asks for (None: bf16 on CUDA, fp32 on the CPU)."""
+    device = rank_device(cfg.device, ddp.world, ddp.local_rank)
+    return resolve_device(device=device, threads=cfg.threads, amp=cfg.amp, workers=cfg.workers)
+
+
+def check_config(cfg: TrainConfig, reader, ddp, out: Path) -> tuple[list, list[str]]:
+    """Refuse (UserError) what cannot be trained; returns the BranchSpecs of the chosen branches (in
+    the set's order) and their names as chosen (in --branches order)."""
     if cfg.sampling not in ("global", "per-frame"):
         raise UserError(f"--sampling {cfg.sampling!r}: choose from global, per-frame")
     if ddp.world > 1 and cfg.sampling != "per-frame":
@@ -315,10 +339,6 @@ def train(cfg: TrainConfig, out: Path, progress: bool = True) -> dict:
     if ddp.world > 1 and cfg.batch_size < ddp.world:
         raise UserError(f"--batch-size {cfg.batch_size} is the global batch: it needs at least one frame per process "
                         f"({ddp.world} processes)")
-    main_rank = ddp.rank == 0
-    progress = progress and main_rank
-    check_dataset(cfg.data)  # every shard readable before RUN/ exists
-    reader = DatasetReader(cfg.data)
     specs = branch_set(cfg.branch_set, cfg.model_profile)
     names = [s.name for s in specs]
     chosen = list(cfg.branches) or names
@@ -343,36 +363,208 @@ def train(cfg: TrainConfig, out: Path, progress: bool = True) -> dict:
         raise UserError(f"--protocol: unknown protocol {cfg.protocol!r} (choose from: {', '.join(PROTOCOLS)})")
     if reader.manifest["profile"] != cfg.model_profile:
         raise UserError(f"dataset profile {reader.manifest['profile']!r} does not match model profile {cfg.model_profile!r}")
-    # The resolved model profile is part of the run: a later edit of configs/model/<profile>.yaml
-    # (strides, anchors, head sizes) must not change what `load_run` builds for these weights.
-    run_cfg = {**dataclasses.asdict(cfg), "branches": chosen, "branch_specs": [dataclasses.asdict(s) for s in specs],
-               "data_config": reader.manifest["config"], "profile_fields": to_dict(load_profile(cfg.model_profile))}
-    run_cfg = json.loads(json.dumps(run_cfg))  # the form it has on disk (tuples become lists)
-    srcs = [Path(r) / "checkpoint.pt" for r in cfg.init_from.split(",")] if cfg.init_from else []
-    missing = [str(s.parent) for s in srcs if not s.exists()]
-    if missing:
-        raise UserError(f"--init-from {missing[0]}: no checkpoint.pt there")
-    check_run_dir(out, main_rank)
-    cfg_path = out / "config.json"
-    if main_rank and cfg_path.exists():
-        old = json.loads(cfg_path.read_text())
-        # fields added after a run was made hold their default in it (LEGACY_DEFAULTS: what it meant then)
-        old = {**{f.name: LEGACY_DEFAULTS.get(f.name, f.default) for f in dataclasses.fields(TrainConfig)
-                  if f.name not in old}, **old}
-        old = json.loads(json.dumps(old))
-        comparable = {k: v for k, v in old.items() if k not in FREE_ON_RESUME}
-        now = {k: v for k, v in run_cfg.items() if k not in FREE_ON_RESUME}
-        if comparable != now:
-            diff = sorted(k for k in now if comparable.get(k) != now.get(k))
-            raise UserError(f"{out} holds a run with a different config ({', '.join(diff)}); use another --out")
+    return specs, chosen
 
-    train_idx, test_idx = split_by_sequence(reader, cfg.train_fraction, cfg.split_seed)
+
+def run_config(cfg: TrainConfig, reader, specs, chosen: list[str], setup) -> dict:
+    """RUN/config.json: the config, the branches, the dataset's generation config, the resolved
+    model profile (a later edit of configs/model/<profile>.yaml must not change what `load_run`
+    builds for these weights) and `compute`, the device type and precision this run trains in."""
+    from study.device import compute_identity
+
+    run_cfg = {**dataclasses.asdict(cfg), "branches": chosen,
+               "branch_specs": [dataclasses.asdict(s) for s in specs],
+               "data_config": reader.manifest["config"], "profile_fields": to_dict(load_profile(cfg.model_profile)),
+               "compute": compute_identity(setup)}
+    return json.loads(json.dumps(run_cfg))  # the form it has on disk (tuples become lists)
+
+
+def check_same_run(out: Path, run_cfg: dict) -> None:
+    """Refuse an --out whose config.json describes another run (FREE_ON_RESUME fields may differ)."""
+    cfg_path = out / "config.json"
+    if not cfg_path.exists():
+        return
+    old = json.loads(cfg_path.read_text())
+    # fields added after a run was made hold their default in it (LEGACY_DEFAULTS: what it meant then)
+    old = {**{f.name: LEGACY_DEFAULTS.get(f.name, f.default) for f in dataclasses.fields(TrainConfig)
+              if f.name not in old}, **old}
+    old = json.loads(json.dumps(old))
+    comparable = {k: v for k, v in old.items() if k not in FREE_ON_RESUME}
+    now = {k: v for k, v in run_cfg.items() if k not in FREE_ON_RESUME}
+    if comparable != now:
+        diff = sorted(k for k in now if comparable.get(k) != now.get(k))
+        raise UserError(f"{out} holds a run with a different config ({', '.join(diff)}); use another --out")
+
+
+def build_model(cfg: TrainConfig, run_cfg: dict, specs, out: Path):
+    """The network of this run, initialised from `cfg.seed` (per-frame sampling installed if asked)."""
+    from fusion.nets import build_hydrafusion
+
     torch.manual_seed(cfg.seed)
     model = build_hydrafusion(profile=run_profile(run_cfg, out), branches=specs)
     if cfg.sampling == "per-frame":
         from fusion.nets.sampling import use_frame_seeded_sampling
 
         use_frame_seeded_sampling(model)
+    return model
+
+
+def write_config(out: Path, run_cfg: dict) -> None:
+    out.mkdir(parents=True, exist_ok=True)
+    with atomic_path(out / "config.json") as tmp:
+        tmp.write_text(json.dumps(run_cfg, indent=1))
+
+
+def apply_warm_start(model, sources: list, srcs: list[Path], out: Path, main_rank: bool, progress: bool) -> None:
+    """`warm_start` from the --init-from runs' weights, reported in RUN/warm_start.json."""
+    report = warm_start(model, sources)
+    if main_rank:
+        (out / "warm_start.json").write_text(json.dumps({"sources": [str(s) for s in srcs], **report}, indent=1))
+    if progress:
+        sys.stderr.write(f"warm start from {', '.join(map(str, srcs))}: {report['copied']} tensors copied, "
+                         f"{len(report['kept'])} fresh\n")
+
+
+def epoch_plan(cfg: TrainConfig, n_frames: int, epoch: int, rank: int, world: int):
+    """(shares, weights, flips) of an epoch: the frames of each step this process trains on (its share
+    of the global batch under torchrun), the share's weight in the batch mean, and which frames are
+    mirrored. A rank left without a frame (a last batch smaller than the world) runs one frame with
+    weight 0 to join the all-reduce."""
+    order = np.random.default_rng([cfg.seed, epoch]).permutation(n_frames)
+    flips = np.random.default_rng([cfg.seed, epoch, 1]).random(n_frames) < cfg.hflip
+    batches = [order[k:k + cfg.batch_size] for k in range(0, len(order), cfg.batch_size)]
+    shares = [_rank_share(b, rank, world) for b in batches] if world > 1 else batches
+    weights = [len(s) / len(b) for s, b in zip(shares, batches)]
+    shares = [s if len(s) else b[:1] for s, b in zip(shares, batches)]
+    return shares, weights, flips
+
+
+def train_step(net, model, opt, params, cfg: TrainConfig, setup, inputs, targets, metas, lr: float,
+               global_step: int, weight: float, world: int):
+    """One SGD step on a batch already on the device -> the model's losses (tensors, not read back)."""
+    for g in opt.param_groups:
+        g["lr"] = lr
+    if cfg.sampling == "per-frame":
+        from fusion.nets.sampling import set_sample_keys
+
+        set_sample_keys(model, [(cfg.seed, global_step, m["dataset_index"]) for m in metas])
+    with setup.autocast():
+        losses = net(inputs, targets)
+    total = losses["total"]
+    opt.zero_grad(set_to_none=True)
+    if world > 1:
+        # DDP averages gradients over the processes; weighting each process's mean loss by its share
+        # of the batch makes that the mean over the batch's frames
+        (total * (weight * world)).backward()
+    else:
+        total.backward()
+    if cfg.clip_grad > 0:
+        torch.nn.utils.clip_grad_norm_(params, cfg.clip_grad)
+    opt.step()
+    return losses
+
+
+def add_losses(sums: dict, losses: dict, weight: float, world: int) -> None:
+    """Running per-branch and total loss sums, as float64 tensors on the losses' device (no host
+    sync); the same sums a Python float accumulation gives (float32 losses added in float64)."""
+    terms = {b: sum(v.detach() for v in ld.values()) for b, ld in losses["branches"].items()}
+    terms["total"] = losses["total"].detach()
+    for b, v in terms.items():
+        v = v.double() if world == 1 else weight * v.double()
+        sums[b] = v if b not in sums else sums[b] + v
+
+
+def sums_as_floats(sums: dict) -> dict[str, float]:
+    return {k: float(v) for k, v in sums.items()}
+
+
+def train_epoch(net, model, opt, params, cfg: TrainConfig, setup, ddp, dataset, epoch: int, step_in_epoch: int,
+                global_step: int, resumed: dict, ckpt_path: Path, last_save: float, progress: bool):
+    """Steps `step_in_epoch`.. of `epoch`, with mid-epoch checkpoints (rank 0). Returns
+    (global_step, the epoch's loss sums as floats, steps counted, seconds of the steps, last_save)."""
+    from sim.progress import progress as progress_bar
+
+    shares, weights, flips = epoch_plan(cfg, len(dataset), epoch, ddp.rank, ddp.world)
+    sums: dict = {k: torch.tensor(v, dtype=torch.float64, device=setup.device)
+                  for k, v in resumed.get("sums", {}).items()}
+    counts = resumed.get("steps", 0)
+    t0 = time.perf_counter() - resumed.get("seconds", 0.0)
+    log_every = LOG_EVERY_CUDA if setup.is_cuda else 1
+    finite = torch.ones((), dtype=torch.bool, device=setup.device)
+    steps_per_epoch = (len(dataset) + cfg.batch_size - 1) // cfg.batch_size
+    # on a terminal a live bar; in a log file (nohup, CI) a line every few seconds (sim.progress)
+    bar = progress_bar(total=steps_per_epoch, initial=step_in_epoch, desc=f"epoch {epoch + 1}/{cfg.epochs}",
+                       unit="step", enabled=progress)
+    for k, (inputs, targets, metas) in _batch_stream(dataset, shares, flips, step_in_epoch, setup.workers,
+                                                      setup.is_cuda):
+        if setup.is_cuda:  # checked here, on the CPU: inside the model each check would wait for the GPU
+            model.check_targets(targets)
+        inputs, targets = to_device(inputs, targets, setup.device)
+        losses = train_step(net, model, opt, params, cfg, setup, inputs, targets, metas,
+                            _lr_at(cfg, epoch, global_step), global_step, weights[k], ddp.world)
+        finite &= torch.isfinite(losses["total"].detach())
+        global_step += 1
+        counts += 1
+        add_losses(sums, losses, weights[k], ddp.world)
+        bar.update(1)
+        due = (k + 1) % cfg.checkpoint_steps == 0 or (
+            cfg.checkpoint_seconds > 0 and time.perf_counter() - last_save >= cfg.checkpoint_seconds)
+        save = due and k + 1 < len(shares) and ddp.rank == 0
+        if counts % log_every == 0 or save or k + 1 == len(shares):
+            if not bool(finite):
+                raise RuntimeError(f"non-finite loss at epoch {epoch + 1} step {k} (lower --lr?)")
+            bar.set_postfix(loss=f"{losses['total'].item():.3f}", lr=f"{opt.param_groups[0]['lr']:.2e}")
+        if save:
+            last_save = time.perf_counter()
+            torch_save_atomic(checkpoint_state(model, opt, epoch, k + 1, global_step, setup.is_cuda,
+                                          {"sums": sums_as_floats(sums), "steps": counts,
+                                           "seconds": time.perf_counter() - t0}), ckpt_path)
+    bar.close()
+    return global_step, sums_as_floats(sums), counts, time.perf_counter() - t0, last_save
+
+
+def finish_epoch(model, opt, cfg: TrainConfig, setup, reader, test_idx, chosen, out: Path, epoch: int,
+                 global_step: int, sums: dict, counts: int, t0: float, train_seconds: float) -> dict:
+    """Rank 0 at an epoch's end: RUN/epoch-XXX.pt, the test evaluation, the metrics row and plot, the
+    checkpoint. Returns the row."""
+    from study.plots import plot_training_curves
+
+    torch_save_atomic({"model": model.state_dict()}, out / f"epoch-{epoch:03d}.pt")
+    evals = evaluate_epoch(model, cfg, reader, test_idx, chosen, setup)
+    row = {"epoch": epoch, "steps": global_step, "lr": opt.param_groups[0]["lr"],
+           **{f"loss_{b}": round(v / max(counts, 1), 4) for b, v in sums.items()}, **evals,
+           "seconds": round(time.perf_counter() - t0, 1), "train_seconds": round(train_seconds, 2)}
+    _append_row(out / "metrics.csv", row)
+    plot_training_curves(out / "metrics.csv", out / "curves.png")
+    torch_save_atomic(checkpoint_state(model, opt, epoch, 0, global_step, setup.is_cuda), out / "checkpoint.pt")
+    return row
+
+
+def train(cfg: TrainConfig, out: Path, progress: bool = True) -> dict:
+    """Train (or resume) the run in `out`. Launched by torchrun (WORLD_SIZE > 1), each process
+    trains on its share of every batch (`DistributedDataParallel`, gloo on the CPU, NCCL on GPUs)
+    and rank 0 alone writes the run directory; `batch_size` stays the global batch."""
+    from study import distributed as dist
+
+    ddp = dist.from_env()
+    setup = training_setup(cfg, ddp)
+    ddp.init(setup.device)
+    main_rank = ddp.rank == 0
+    progress = progress and main_rank
+    check_dataset(cfg.data)  # every shard readable before RUN/ exists
+    reader = DatasetReader(cfg.data)
+    specs, chosen = check_config(cfg, reader, ddp, out)
+    run_cfg = run_config(cfg, reader, specs, chosen, setup)
+    srcs = [Path(r) / "checkpoint.pt" for r in cfg.init_from.split(",")] if cfg.init_from else []
+    missing = [str(s.parent) for s in srcs if not s.exists()]
+    if missing:
+        raise UserError(f"--init-from {missing[0]}: no checkpoint.pt there")
+    check_run_dir(out, main_rank)
+    if main_rank:
+        check_same_run(out, run_cfg)
+
+    train_idx, test_idx = split_by_sequence(reader, cfg.train_fraction, cfg.split_seed)
+    model = build_model(cfg, run_cfg, specs, out)
     # Every checkpoint the run reads is read (and its weights loaded) before RUN/ is created or its
     # config.json rewritten: a truncated or foreign checkpoint is refused with nothing changed.
     ckpt_path = out / "checkpoint.pt"
@@ -382,18 +574,10 @@ def train(cfg: TrainConfig, out: Path, progress: bool = True) -> dict:
         load_weights(model, state["model"], ckpt_path)
     sources = [load_checkpoint(s)["model"] for s in srcs] if cfg.init_from and not resuming else []
     if main_rank:
-        out.mkdir(parents=True, exist_ok=True)
-        tmp = cfg_path.with_name(".config.json.tmp")
-        tmp.write_text(json.dumps(run_cfg, indent=1))
-        os.replace(tmp, cfg_path)
+        write_config(out, run_cfg)
     ddp.barrier()  # rank 0 has checked and written config.json; no checkpoint is written before this
     if sources:
-        report = warm_start(model, sources)
-        if main_rank:
-            (out / "warm_start.json").write_text(json.dumps({"sources": [str(s) for s in srcs], **report}, indent=1))
-        if progress:
-            sys.stderr.write(f"warm start from {', '.join(map(str, srcs))}: {report['copied']} tensors copied, "
-                             f"{len(report['kept'])} fresh\n")
+        apply_warm_start(model, sources, srcs, out, main_rank, progress)
     model.train()
     if setup.is_cuda:
         model.to(setup.torch_device())
@@ -404,99 +588,35 @@ def train(cfg: TrainConfig, out: Path, progress: bool = True) -> dict:
     if state is not None:
         opt.load_state_dict(state["optimizer"])
         epoch, step_in_epoch, global_step = state["epoch"], state["step_in_epoch"], state["global_step"]
-        torch.set_rng_state(state["torch_rng"])
+        restore_rng(state)
         resumed = state.get("epoch_sums", {}) if step_in_epoch else {}
         if progress:
             sys.stderr.write(f"resuming {out} at epoch {epoch + 1}, step {step_in_epoch}\n")
     net = ddp.wrap(model, setup)  # DistributedDataParallel under torchrun, the model itself otherwise
     if progress and ddp.world > 1:
         sys.stderr.write(f"data-parallel: {ddp.world} processes ({ddp.backend}), global batch {cfg.batch_size}\n")
-    sensors = model.sensors_for(None)
-    dataset = FrameDataset(cfg.data, train_idx, sensors=sensors, bev_size=model.transform.image_size("radar"),
-                           protocol=cfg.protocol)
-    steps_per_epoch = (len(dataset) + cfg.batch_size - 1) // cfg.batch_size
-    metrics_path = out / "metrics.csv"
+    # frames travel to a GPU as the uint8 they are on disk and become float there (4x fewer bytes)
+    dataset = FrameDataset(cfg.data, train_idx, sensors=model.sensors_for(None),
+                           bev_size=model.transform.image_size("radar"), protocol=cfg.protocol, uint8=setup.is_cuda)
     result = {}
     last_save = time.perf_counter()  # the time-based checkpoints count from here (and each save)
     while epoch < cfg.epochs:
-        order = np.random.default_rng([cfg.seed, epoch]).permutation(len(dataset))
-        flips = np.random.default_rng([cfg.seed, epoch, 1]).random(len(dataset)) < cfg.hflip
-        batches = [order[k:k + cfg.batch_size] for k in range(0, len(order), cfg.batch_size)]
-        # under torchrun: this rank's share of each global batch; a rank left without a frame (a
-        # last batch smaller than the world) runs one frame with weight 0 to join the all-reduce
-        shares = [_rank_share(b, ddp.rank, ddp.world) for b in batches] if ddp.world > 1 else batches
-        weights = [len(s) / len(b) for s, b in zip(shares, batches)]
-        shares = [s if len(s) else b[:1] for s, b in zip(shares, batches)]
-        sums: dict[str, float] = dict(resumed.get("sums", {}))
-        counts = resumed.get("steps", 0)
-        t0 = time.perf_counter() - resumed.get("seconds", 0.0)
+        t_epoch = time.perf_counter() - resumed.get("seconds", 0.0)
+        global_step, sums, counts, train_seconds, last_save = train_epoch(
+            net, model, opt, params, cfg, setup, ddp, dataset, epoch, step_in_epoch, global_step, resumed,
+            ckpt_path, last_save, progress)
         resumed = {}
-        # on a terminal a live bar; in a log file (nohup, CI) a line every few seconds (sim.progress)
-        bar = progress_bar(total=steps_per_epoch, initial=step_in_epoch, desc=f"epoch {epoch + 1}/{cfg.epochs}",
-                           unit="step", enabled=progress)
-        for k, (inputs, targets, metas) in _batch_stream(dataset, shares, flips, step_in_epoch, setup.workers,
-                                                          setup.is_cuda):
-            inputs, targets = to_device(inputs, targets, setup.device)
-            for g in opt.param_groups:
-                g["lr"] = _lr_at(cfg, epoch, global_step)
-            if cfg.sampling == "per-frame":
-                from fusion.nets.sampling import set_sample_keys
-
-                set_sample_keys(model, [(cfg.seed, global_step, m["dataset_index"]) for m in metas])
-            with setup.autocast():
-                losses = net(inputs, targets)
-            total = losses["total"]
-            if not torch.isfinite(total):
-                raise RuntimeError(f"non-finite loss at epoch {epoch + 1} step {k} (lower --lr?)")
-            opt.zero_grad(set_to_none=True)
-            if ddp.world > 1:
-                # DDP averages gradients over the processes; weighting each process's mean loss by
-                # its share of the batch makes that the mean over the batch's frames
-                (total * (weights[k] * ddp.world)).backward()
-            else:
-                total.backward()
-            if cfg.clip_grad > 0:
-                torch.nn.utils.clip_grad_norm_(params, cfg.clip_grad)
-            opt.step()
-            global_step += 1
-            counts += 1
-            w = weights[k]
-            for b, ld in losses["branches"].items():
-                v = float(sum(v.detach() for v in ld.values()))
-                sums[b] = sums.get(b, 0.0) + (v if ddp.world == 1 else w * v)
-            sums["total"] = sums.get("total", 0.0) + (float(total.detach()) if ddp.world == 1 else w * float(total.detach()))
-            bar.set_postfix(loss=f"{total.item():.3f}", lr=f"{opt.param_groups[0]['lr']:.2e}")
-            bar.update(1)
-            due = (k + 1) % cfg.checkpoint_steps == 0 or (
-                cfg.checkpoint_seconds > 0 and time.perf_counter() - last_save >= cfg.checkpoint_seconds)
-            if due and k + 1 < len(batches) and main_rank:
-                last_save = time.perf_counter()
-                _atomic_save({"model": model.state_dict(), "optimizer": opt.state_dict(), "epoch": epoch,
-                              "step_in_epoch": k + 1, "global_step": global_step,
-                              "torch_rng": torch.get_rng_state(),
-                              "epoch_sums": {"sums": sums, "steps": counts, "seconds": time.perf_counter() - t0}},
-                             ckpt_path)
-        bar.close()
-        train_seconds = time.perf_counter() - t0  # the steps alone, before the epoch's evaluation
         sums = ddp.sum_dict(sums)  # the batch-mean losses of every process added up (one process: as is)
         epoch += 1
         step_in_epoch = 0
         if main_rank:
-            _atomic_save({"model": model.state_dict()}, out / f"epoch-{epoch:03d}.pt")
-            evals = evaluate_epoch(model, cfg, reader, test_idx, chosen, setup)
-            row = {"epoch": epoch, "steps": global_step, "lr": opt.param_groups[0]["lr"],
-                   **{f"loss_{b}": round(v / max(counts, 1), 4) for b, v in sums.items()}, **evals,
-                   "seconds": round(time.perf_counter() - t0, 1), "train_seconds": round(train_seconds, 2)}
-            _append_row(metrics_path, row)
-            plot_training_curves(metrics_path, out / "curves.png")
-            _atomic_save({"model": model.state_dict(), "optimizer": opt.state_dict(), "epoch": epoch,
-                          "step_in_epoch": 0, "global_step": global_step, "torch_rng": torch.get_rng_state()},
-                         ckpt_path)
+            result = finish_epoch(model, opt, cfg, setup, reader, test_idx, chosen, out, epoch, global_step, sums,
+                                  counts, t_epoch, train_seconds)
             last_save = time.perf_counter()
             if progress:
-                sys.stderr.write(json.dumps(row) + "\n")
-            result = row
+                sys.stderr.write(json.dumps(result) + "\n")
         ddp.barrier()  # the others wait for rank 0's evaluation and checkpoint
+    metrics_path = out / "metrics.csv"
     if not result and metrics_path.exists():
         with open(metrics_path) as fh:
             rows = list(csv.DictReader(fh))
@@ -513,9 +633,7 @@ def _append_row(path: Path, row: dict) -> None:
             rows = list(csv.DictReader(fh))
     rows = [r for r in rows if int(r["epoch"]) < row["epoch"]] + [{k: str(v) for k, v in row.items()}]
     keys = list(dict.fromkeys(k for r in rows for k in r))
-    tmp = path.with_name(f".{path.name}.tmp")
-    with open(tmp, "w", newline="") as fh:
+    with atomic_path(path) as tmp, open(tmp, "w", newline="") as fh:
         w = csv.DictWriter(fh, fieldnames=keys)
         w.writeheader()
         w.writerows(rows)
-    os.replace(tmp, path)

@@ -40,7 +40,7 @@ import torch
 from torch import Tensor, nn
 from torch.nn import functional as F
 
-from fusion.nets.layers import STEM_CHANNELS
+from fusion.nets.layers import STEM_CHANNELS, full_precision
 from fusion.nets.profile import FRAMES, SENSORS
 from sim.registry import Registry
 from sim.weather import CONDITIONS
@@ -539,11 +539,12 @@ class ConvGate(Gate):
         c = self.input_mean.numel()
         if not isinstance(x, Tensor) or x.dim() != 4 or x.shape[1] != c or tuple(x.shape[2:]) != self.grid:
             raise ValueError(f"x: expected pooled features (B, {c}, {self.grid[0]}, {self.grid[1]}), got {_describe(x)}")
-        x = (x.float() - self.input_mean.view(1, -1, 1, 1)) / self.input_std.view(1, -1, 1, 1)
-        x = self.convs(x)
-        if self.attn is not None:
-            x = self.attn(x)
-        return self.target_center + self.target_scale * self.mlp(self.pool(x))
+        with full_precision(x):  # a gate's ranking in fp32 even under autocast (its losses differ by little)
+            x = (x.float() - self.input_mean.view(1, -1, 1, 1)) / self.input_std.view(1, -1, 1, 1)
+            x = self.convs(x)
+            if self.attn is not None:
+                x = self.attn(x)
+            return self.target_center + self.target_scale * self.mlp(self.pool(x))
 
     def predict(self, features, meta=None) -> Tensor:
         return self.predict_prepared(self.prepare(features))

@@ -319,7 +319,7 @@ class HydraFusion(nn.Module):
                     needs.setdefault(s, set()).update(idx)
         return groups, {s: sorted(v) for s, v in needs.items()}
 
-    def _check_targets(self, targets: Any, per_sample: list[tuple[str, ...]]) -> None:
+    def _check_targets(self, targets: Any, per_sample: list[tuple[str, ...]], values: bool | None = None) -> None:
         batch = len(per_sample)
         if not isinstance(targets, Sequence) or isinstance(targets, str | Mapping):
             raise ValueError(
@@ -341,9 +341,18 @@ class HydraFusion(nn.Module):
                 if frame not in t:
                     raise ValueError(f"targets[{i}]: no {frame!r} entry, needed by branch {name!r}")
             for frame in {self.branches[n].frame for n in chosen}:
-                self._check_target(f"targets[{i}][{frame!r}]", t[frame], frame, num_classes)
+                self._check_target(f"targets[{i}][{frame!r}]", t[frame], frame, num_classes, values)
 
-    def _check_target(self, field: str, t: Any, frame: str, num_classes: int) -> None:
+    def check_targets(self, targets: Any, selection: Any = None) -> None:
+        """Check training targets (as `forward` describes them) for the branches `selection` picks
+        (None: every branch), values included; ValueError naming the field. `forward` checks the
+        values of targets on the CPU itself; on a GPU each such check would wait for the device
+        (about a hundred waits a step), so there it checks shapes and dtypes only, and a training
+        loop calls this on the CPU before moving the targets."""
+        batch = len(targets) if isinstance(targets, Sequence) and not isinstance(targets, str) else 1
+        self._check_targets(targets, self.expand_selection(selection, batch), values=True)
+
+    def _check_target(self, field: str, t: Any, frame: str, num_classes: int, values: bool | None = None) -> None:
         if not isinstance(t, Mapping) or "boxes" not in t or "labels" not in t:
             raise ValueError(f"{field}: expected a dict with 'boxes' and 'labels'")
         boxes, labels = t["boxes"], t["labels"]
@@ -358,6 +367,10 @@ class HydraFusion(nn.Module):
             raise ValueError(f"{field}['labels']: expected an int64 tensor (N,), got {_describe(labels)}")
         if labels.shape[0] != boxes.shape[0]:
             raise ValueError(f"{field}: {boxes.shape[0]} boxes but {labels.shape[0]} labels")
+        if values is None:  # the values where reading them costs no device sync (`check_targets`)
+            values = boxes.device.type == "cpu" and labels.device.type == "cpu"
+        if not values:
+            return
         if labels.numel() and (labels.min() < 1 or labels.max() >= num_classes):
             raise ValueError(
                 f"{field}['labels']: labels must be in 1..{num_classes - 1} (0 is background), "

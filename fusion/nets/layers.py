@@ -29,6 +29,18 @@ STEM_CHANNELS = 64
 """Channels of every stem output (ResNet-18 layer1)."""
 
 
+def full_precision(like: Tensor):
+    """Autocast off for the region (a no-op outside autocast): what runs inside computes in the
+    dtype of its inputs, which the caller makes float32.
+
+    Under bf16 autocast (8 mantissa bits) torchvision's anchors take the feature dtype and box
+    decoding casts to it: on the 1152-px BEV grid a decoded 10 x 26 px car box moves by pixels
+    (2.7 px on average, 10.4 px at most, emulated CUDA autocast), so anchors, box coding, the RPN
+    and RoI heads and the gates run in fp32 while the backbones may run in bf16.
+    """
+    return torch.autocast(device_type=like.device.type, enabled=False)
+
+
 def _resnet18(norm: str) -> torchvision.models.ResNet:
     return torchvision.models.resnet18(weights=None, norm_layer=NORM_LAYERS.get(norm))
 
@@ -78,6 +90,9 @@ class Branch(nn.Module):
         layer2, layer3, layer4: ResNet-18 stages (strides already set).
         neck: 1x1 conv to the channels seen by the RPN and RoIAlign, or None (512 channels).
         rpn, roi_heads: torchvision modules, on feature map "0".
+
+    Precision: `features` (merge, layer2..4, neck) follows autocast; the heads always run in fp32
+    (`full_precision`).
 
     `forward(xs, targets=None)`:
         xs: list with one (N, 64, h, w) stem-feature tensor per sensor, in `sensors` order, where
@@ -143,10 +158,14 @@ class Branch(nn.Module):
         return ImageList(dummy, [self.image_size] * n)
 
     def _heads(self, feats: Tensor, targets: list[dict[str, Tensor]] | None):
-        fmap = OrderedDict([("0", feats)])
-        images = self._images(feats.shape[0], feats)
-        proposals, rpn_losses = self.rpn(images, fmap, targets)
-        detections, roi_losses = self.roi_heads(fmap, proposals, images.image_sizes, targets)
+        # fp32 from here on whatever the backbone ran in (`full_precision`): anchors, box coding,
+        # RPN, RoIAlign and the box head; a float32 map passes through unchanged
+        with full_precision(feats):
+            feats = feats.float()
+            fmap = OrderedDict([("0", feats)])
+            images = self._images(feats.shape[0], feats)
+            proposals, rpn_losses = self.rpn(images, fmap, targets)
+            detections, roi_losses = self.roi_heads(fmap, proposals, images.image_sizes, targets)
         return detections, {**roi_losses, **rpn_losses}
 
     def forward(self, xs: list[Tensor], targets: list[dict[str, Tensor]] | None = None):

@@ -134,6 +134,23 @@ def add_parser(sub, name, help_text):
                    "window, so the clocks have risen [s]")
     n.add_argument("--json", action="store_true", help="print one JSON object on stdout")
     n.set_defaults(run=run_inference)
+    a = what.add_parser("amp", help="training step time fp32 against bf16 autocast on this CPU, side by side",
+                        description="Two copies of one network (same profile, branches, initial weights and frames) "
+                        "train a few SGD steps, fp32 and bf16 autocast interleaved step by step; reports the median "
+                        "step time of each, the speed-up, the losses after the same steps, and whether this CPU has "
+                        "native bf16 (AMX-BF16 / AVX512-BF16), which is what --amp auto picks by.",
+                        formatter_class=Formatter)
+    a.add_argument("--profile", type=name_arg, default="cpu", help="model profile")
+    a.add_argument("--branches", type=name_list, default=(), help="comma-separated branches (default: the profile's)")
+    a.add_argument("--batch-size", type=int_range(1, 64, "batch-size"), default=4, help="frames per step")
+    a.add_argument("--steps", type=int_range(1, 1000, "steps"), default=3, help="timed steps of each precision")
+    a.add_argument("--warmup", type=int_range(0, 100, "warmup"), default=1, help="untimed steps first")
+    a.add_argument("--threads", type=nonneg_int, default=0, help="torch CPU threads (0: the cores available)")
+    a.add_argument("--seed", type=nonneg_int, default=0, help="initial weights, frames and sampling")
+    a.add_argument("--data", type=dataset_dir, default=None, metavar="DATASET",
+                   help="train on this dataset's first frames (default: synthetic frames)")
+    a.add_argument("--json", action="store_true", help="print one JSON object on stdout")
+    a.set_defaults(run=run_amp)
     f = what.add_parser("lidar-fog", help="lidar fog: our model against Hahner et al. ICCV 2021 on the same clean clouds",
                         description="Render clear frames (one short sequence per layout), apply the lidar fog "
                         "models under pure fog at each visibility with the same random streams, and report per "
@@ -278,6 +295,23 @@ def run_boxes(args) -> int:
         return "\n".join(lines)
 
     emit(result, args.json, text)
+    return 0
+
+
+def run_amp(args) -> int:
+    from study.bench.amp import bench_amp
+
+    r = bench_amp(args.profile, tuple(args.branches), batch=args.batch_size, steps=args.steps, warmup=args.warmup,
+                  threads=args.threads, seed=args.seed, data=str(args.data) if args.data else None)
+    r.update(machine())
+    emit(r, args.json, lambda r: "\n".join([
+        f"{r['cpu'] or 'CPU'}, {r['threads']} threads; {r['profile']} profile, {', '.join(r['branches'])} "
+        f"({r['parameters_m']} M parameters), batch {r['batch']}, {r['frames']} frames",
+        f"native bf16: {r['native_bf16']} ({r['native_bf16_reason']}); --amp auto picks {r['amp_auto_picks']}",
+        f"step time fp32 {r['step_s']['fp32']} s, bf16 {r['step_s']['bf16']} s: x{r['speedup_bf16']} "
+        f"(median of {r['steps']} steps each, interleaved)",
+        "loss per step fp32 " + ", ".join(map(str, r["loss_per_step"]["fp32"]))
+        + "; bf16 " + ", ".join(map(str, r["loss_per_step"]["bf16"]))]))
     return 0
 
 

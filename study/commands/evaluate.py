@@ -62,7 +62,7 @@ def add_parser(sub, name, help_text):
                    "(default 3, or all when the run has fewer)")
     p.add_argument("--all-gates", action="store_true",
                    help="Tables 6 and 7: every gate x nms/soft-nms/wbf x k in 1, 3, 5, all")
-    add_device_args(p)
+    add_device_args(p, purpose="eval")
     p.add_argument("--json", action="store_true", help="print one JSON object on stdout")
     p.set_defaults(run=run)
 
@@ -104,12 +104,12 @@ def run_gates(args) -> int:
             raise UserError("--k is for --gate; --all-gates evaluates k = 1, 3, 5 and all")
         result = branch_gate_study.evaluate_all_gates(Path(args.run_dir), Path(args.data), split=args.split,
                                                       weights=weights, checkpoint=args.checkpoint,
-                                                      batch_size=args.batch_size, setup=resolve_device(args))
+                                                      batch_size=args.batch_size, setup=resolve_device(args, purpose="eval"))
         emit(result, args.json, format_tables)
         return 0
     result = branch_gate_study.evaluate_gate(Path(args.run_dir), Path(args.data), args.gate, args.k, args.fusion,
                                              args.split, weights, args.checkpoint, args.batch_size,
-                                             setup=resolve_device(args))
+                                             setup=resolve_device(args, purpose="eval"))
 
     def text(r):
         k = str(r["k"])
@@ -135,7 +135,7 @@ def run(args) -> int:
     branches = args.branches if isinstance(args.branches, str) else ",".join(args.branches)
     result = evaluation.evaluate(Path(args.run_dir), Path(args.data), branches, args.fusion, args.split,
                       parse_weights(args.weights), args.checkpoint, args.batch_size, contexts, args.twins,
-                      args.protocol, setup=resolve_device(args), bootstrap=args.bootstrap)
+                      args.protocol, setup=resolve_device(args, purpose="eval"), bootstrap=args.bootstrap)
 
     if "warning" in result.get("twins", {}):
         print(f"warning: {result['twins']['warning']}", file=sys.stderr)

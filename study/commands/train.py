@@ -21,7 +21,7 @@ from study.cli import (
     probability,
 )
 from study.commands.device import add_device_args
-from study.device import resolve_device
+from study.device import rank_device, resolve_device
 
 EPILOG = """\
 examples:
@@ -76,8 +76,11 @@ def add_parser(sub, name, help_text):
 
 def run(args) -> int:
     from study import train as training
+    from study.distributed import from_env
 
-    resolve_device(args, apply=False)  # a device this machine does not have: refused before anything is written
+    job = from_env()
+    # cuda:N under torchrun, or a device this machine does not have: refused before anything is written
+    resolve_device(args, device=rank_device(args.device, job.world, job.local_rank), apply=False)
     cfg = training.TrainConfig(
         data=str(Path(args.data).resolve()), model_profile=args.profile, branch_set=args.branch_set,
         branches=tuple(args.branches or ()), epochs=args.epochs,
@@ -89,9 +92,7 @@ def run(args) -> int:
         sampling=_resolve_sampling(args.sampling, Path(args.out)),
     )
     result = training.train(cfg, Path(args.out))
-    from study.distributed import from_env
-
-    if from_env().rank == 0:  # one JSON object, from one process
+    if job.rank == 0:  # one JSON object, from one process
         emit(result, args.json, lambda r: f"run {r['run']}: {r['epochs']} epochs, last epoch {r['last']}")
     return 0
 

@@ -81,16 +81,17 @@ def add_train_gate(sub, name, help_text):
     p.add_argument("--checkpoint", type=checkpoint_arg, default="latest", help="latest, or epoch-NNN")
     add_objective_args(p)
     p.add_argument("--fresh", action="store_true", help="discard a previous training of this gate")
-    add_device_args(p)
+    add_device_args(p, purpose="eval")
     p.add_argument("--json", action="store_true", help="print one JSON object on stdout")
     p.set_defaults(run=run_train_gate)
 
 
 def run_train_gate(args) -> int:
-    setup = resolve_device(args)
+    setup = resolve_device(args, purpose="eval")
     cfg = branch_gate_study.GateTrainConfig(gate=args.gate, epochs=args.epochs, batch_size=args.batch_size,
                                             lr=args.lr, val_fraction=args.val_fraction, seed=args.seed,
-                                            grid=tuple(args.grid), checkpoint=args.checkpoint, threads=setup.threads)
+                                            grid=tuple(args.grid), checkpoint=args.checkpoint, threads=setup.threads,
+                                            **objective_fields(args))
     result = branch_gate_study.train_gate(Path(args.run_dir), Path(args.data), cfg, fresh=args.fresh, setup=setup)
 
     def text(r):

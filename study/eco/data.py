@@ -214,12 +214,14 @@ class EcoSettings:
         return Path(run_dir) / "eco" / "gates" / name
 
 
-def open_eco_run(run_dir, data, s: EcoSettings, threads: int = 2):
+def open_eco_run(run_dir, data, s: EcoSettings, threads: int = 2, device: str = "cpu"):
     """A trained run ready for EcoFusion: (model, run config, configurations, EcoData).
 
     Loads the run's network at `s.checkpoint`, builds the configuration set of `s.configurations`
     over its branches, and the configuration dataset (`EcoData`) of `data` under `s`'s loss and
-    fusion method. UserError if the run's branches share no stems (the learned gates read them)."""
+    fusion method, the model on `device` (the configuration dataset is computed where the model is;
+    its cache key names the device type, `study.gate_data`). UserError if the run's branches share no
+    stems (the learned gates read them)."""
     import torch
 
     from fusion.eco.configurations import build_configurations, load_configurations_config
@@ -228,7 +230,7 @@ def open_eco_run(run_dir, data, s: EcoSettings, threads: int = 2):
 
     torch.set_num_threads(threads)
     method = fusion_method(s.fusion)
-    model, cfg = load_run(run_dir, s.checkpoint)
+    model, cfg = load_run(run_dir, s.checkpoint, device=device)
     if not gate_sensors(model):
         raise UserError("EcoFusion's learned gates read the shared stems; this run's branches have none")
     ccfg = load_configurations_config(s.configurations or None)
@@ -253,13 +255,14 @@ def eco_splits(cfg, data, max_frames: int = 0) -> tuple[list[int], list[int]]:
     return _subsample(train, max_frames), _subsample(test, max_frames)
 
 
-def build_eco_data(run_dir, data, s: EcoSettings = EcoSettings(), progress: bool = True) -> dict:
+def build_eco_data(run_dir, data, s: EcoSettings = EcoSettings(), progress: bool = True, device: str = "cpu") -> dict:
     """`hydrabench eco-data`: build (or complete) the configuration dataset and report how well
-    L_f ranks configurations by per-frame AP (rank correlation, per definition variant)."""
+    L_f ranks configurations by per-frame AP (rank correlation, per definition variant). The
+    network runs on `device` (a torch device string, `study.device`), in fp32."""
     from fusion.eco.loss import FusedLossSpec
 
     run_dir, data = Path(run_dir), Path(data)
-    model, cfg, configs, ed = open_eco_run(run_dir, data, s)
+    model, cfg, configs, ed = open_eco_run(run_dir, data, s, device=device)
     train, test = eco_splits(cfg, data, s.max_frames)
     t0 = time.perf_counter()
     computed = ed.ensure(train + test, batch_size=s.batch_size, progress=progress)

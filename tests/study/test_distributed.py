@@ -160,9 +160,19 @@ def test_device_options_refuse_what_this_machine_cannot_do(data, single, tmp_pat
         err = capsys.readouterr().err
         assert code == 2 and "no CUDA GPU" in err and len(err.strip().splitlines()) == 1
         assert not (tmp_path / "gpu" / "checkpoint.pt").exists()
-    code = main(["train", str(data), "--out", str(tmp_path / "amp"), "--branches", "radar", "--device", "cpu", "--amp"])
+    code = main(["train", str(data), "--out", str(tmp_path / "amp"), "--branches", "radar", "--device", "cpu",
+                 "--amp", "fp16"])
     err = capsys.readouterr().err
     assert code == 2 and "--amp" in err and len(err.strip().splitlines()) == 1
+    assert main(["train", str(data), "--out", str(tmp_path / "x"), "--device", "tpu"]) == 2
+    assert "--device: expected auto, cpu, cuda or cuda:N" in capsys.readouterr().err
+    with pytest.MonkeyPatch.context() as m:  # a rank of torchrun (its variables faked) asking for cuda:N
+        for k, v in {"WORLD_SIZE": "2", "RANK": "0", "LOCAL_RANK": "0", "LOCAL_WORLD_SIZE": "2"}.items():
+            m.setenv(k, v)
+        code = main(["train", str(data), "--out", str(tmp_path / "one-gpu"), "--device", "cuda:1"])
+    err = capsys.readouterr().err
+    assert code == 2 and "under torchrun" in err and len(err.strip().splitlines()) == 1
+    assert not (tmp_path / "one-gpu").exists()
     assert main(["train", str(data), "--out", str(tmp_path / "x"), "--device", "tpu"]) == 2
     assert "--device: expected auto, cpu, cuda or cuda:N" in capsys.readouterr().err
     if not torch.cuda.is_available():  # every network command shares the same options and refusal

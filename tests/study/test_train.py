@@ -130,17 +130,17 @@ def test_a_resumed_epoch_reports_the_mean_loss_of_the_whole_epoch(data, referenc
 
     ref, _ = reference_run  # two branches: each branch's running sum travels
     out = tmp_path / "run"
-    real = st._atomic_save
+    real = st.torch_save_atomic
 
     def save_then_stop(obj, path):
         real(obj, path)
         if obj.get("epoch") == 1 and obj.get("step_in_epoch") == 1:
             raise KeyboardInterrupt
 
-    monkeypatch.setattr(st, "_atomic_save", save_then_stop)
+    monkeypatch.setattr(st, "torch_save_atomic", save_then_stop)
     with pytest.raises(KeyboardInterrupt):
         train(_cfg(data, eval_frames=1), out, progress=False)
-    monkeypatch.setattr(st, "_atomic_save", real)
+    monkeypatch.setattr(st, "torch_save_atomic", real)
     assert [int(r["epoch"]) for r in csv.DictReader(open(out / "metrics.csv"))] == [1]
     train(_cfg(data, eval_frames=1), out, progress=False)
     rows = list(csv.DictReader(open(out / "metrics.csv")))
@@ -159,14 +159,14 @@ def test_time_based_checkpoints_land_mid_epoch_and_do_not_change_the_weights(dat
     import study.train as st
 
     ref = resume_reference
-    real, saves = st._atomic_save, []
+    real, saves = st.torch_save_atomic, []
 
     def record(obj, path):
         if "step_in_epoch" in obj:
             saves.append((obj["epoch"], obj["step_in_epoch"]))
         real(obj, path)
 
-    monkeypatch.setattr(st, "_atomic_save", record)
+    monkeypatch.setattr(st, "torch_save_atomic", record)
     train(_cfg(data, checkpoint_steps=1000, checkpoint_seconds=seconds, **RESUME), tmp_path / "run", progress=False)
     # 4 training frames in batches of 2: two steps per epoch, a mid-epoch save after the first
     assert saves == ([(0, 1), (1, 0), (1, 1), (2, 0)] if mid_epoch else [(1, 0), (2, 0)])
@@ -470,3 +470,28 @@ def test_only_the_main_rank_judges_the_run_directory(tmp_path):
     (out / "config.json").write_text("{}")
     check_run_dir(out, main_rank=True)
     check_run_dir(tmp_path / "new", main_rank=True)  # a new directory is fine
+
+
+def test_a_checkpoint_holds_the_rng_states_and_config_json_the_device_and_precision(reference_run):
+    ref, result = reference_run
+    state = torch.load(ref / "checkpoint.pt", weights_only=False)
+    assert torch.equal(state["torch_rng"], state["torch_rng"]) and state["torch_rng"].dtype == torch.uint8
+    assert "cuda_rng" in state and state["cuda_rng"] is None  # a CPU run: the GPUs' generators play no part
+    cfg = json.loads((ref / "config.json").read_text())
+    assert cfg["compute"] == {"device": "cpu", "precision": "fp32"}
+    assert (result["device"]["device_type"], result["device"]["precision"]) == ("cpu", "fp32")
+
+
+def test_frames_as_uint8_become_the_same_float_inputs_where_they_are_used(data):
+    from fusion.data import FrameDataset, collate
+    from study.device import to_device
+
+    f32 = FrameDataset(data, [0, 3], bev_size=(128, 256))
+    u8 = FrameDataset(data, [0, 3], bev_size=(128, 256), uint8=True)
+    for flip in (False, True):
+        a, ta, _ = collate([f32.item(k, flip=flip) for k in range(2)])
+        b, tb, _ = collate([u8.item(k, flip=flip) for k in range(2)])
+        assert all(v.dtype == torch.uint8 for v in b.values())
+        assert sum(v.nbytes for v in b.values()) * 4 == sum(v.nbytes for v in a.values())
+        b, _ = to_device(b, tb, "cpu")
+        assert a.keys() == b.keys() and all(torch.equal(a[s], b[s]) for s in a)
