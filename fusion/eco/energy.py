@@ -99,20 +99,32 @@ class RaplCounter:
 
 
 class NvmlCounter:
-    """Energy of NVIDIA GPU `index` from NVML's total-energy counter (mJ since the driver loaded)."""
+    """Energy of the NVIDIA GPU torch calls `device` from NVML's total-energy counter (mJ since the
+    driver loaded), through `fusion.nvml.GpuEnergyMeter`: the NVML device is found by the CUDA
+    device's UUID (NVML numbers devices its own way). OSError where it cannot be read."""
 
     name = "NVML"
 
-    def __init__(self, index: int = 0) -> None:
-        import pynvml  # nvidia-ml-py; optional
+    def __init__(self, device: str = "cuda", meter=None) -> None:
+        if meter is None:
+            import torch
 
-        pynvml.nvmlInit()
-        self._nvml = pynvml
-        self.handle = pynvml.nvmlDeviceGetHandleByIndex(index)
-        pynvml.nvmlDeviceGetTotalEnergyConsumption(self.handle)  # raises where unsupported
+            from fusion.nvml import GpuEnergyMeter
+
+            if not torch.cuda.is_available():
+                raise OSError("no CUDA GPU")
+            dev = torch.device(device)
+            index = dev.index if dev.index is not None else torch.cuda.current_device()
+            meter = GpuEnergyMeter.for_uuid(str(torch.cuda.get_device_properties(index).uuid))
+        if not meter.available:
+            raise OSError("NVML has no energy counter for this GPU")
+        self.meter = meter
 
     def read(self) -> int:
-        return int(self._nvml.nvmlDeviceGetTotalEnergyConsumption(self.handle))
+        value = self.meter.energy_mj()
+        if value is None:
+            raise OSError("the NVML energy counter stopped answering")
+        return value
 
     def joules(self, before: int, after: int) -> float:
         return (after - before) / 1e3
@@ -126,7 +138,7 @@ def open_counter(kind: str = "auto", device: str = "cpu", rapl_root: str = "/sys
         return None
     want = kind if kind != "auto" else ("nvml" if device.startswith("cuda") else "rapl")
     try:
-        return NvmlCounter() if want == "nvml" else RaplCounter(rapl_root)
+        return NvmlCounter(device if device.startswith("cuda") else "cuda") if want == "nvml" else RaplCounter(rapl_root)
     except Exception as exc:  # missing module, no GPU, no sysfs, permission denied
         if kind != "auto":
             raise OSError(f"cannot read the {want.upper()} energy counter: {exc}") from None

@@ -182,3 +182,21 @@ def test_without_nvml_every_reading_is_none(monkeypatch):
     meter = nvml.GpuEnergyMeter.for_uuid(A)
     assert not meter.available and meter.energy_mj() is None
     assert isinstance(ctypes.c_uint(), ctypes.c_uint)  # ctypes only: no pynvml needed
+
+
+def test_ecofusion_energy_counter_reads_the_nvml_device_of_its_cuda_device(monkeypatch):
+    """eco-energy's NVML counter (fusion.eco.energy.NvmlCounter) goes through the same UUID match."""
+    import torch
+
+    from fusion.eco.energy import NvmlCounter
+
+    lib = FakeNvml(["GPU-" + B, "GPU-" + A], [111_000, 222_000])
+    monkeypatch.setattr(nvml, "_lib", lambda: lib)
+    monkeypatch.setattr(torch.cuda, "is_available", lambda: True)
+    props = {0: SimpleNamespace(uuid=A), 1: SimpleNamespace(uuid=B)}
+    monkeypatch.setattr(torch.cuda, "get_device_properties", lambda i: props[i])
+    counter = NvmlCounter("cuda:0")
+    assert counter.read() == 222_000 and counter.joules(111_000, 222_000) == pytest.approx(111.0)
+    assert NvmlCounter("cuda:1").read() == 111_000
+    with pytest.raises(OSError, match="no energy counter"):
+        NvmlCounter(meter=nvml.GpuEnergyMeter(None, lib=lib))
