@@ -28,7 +28,7 @@ from study.cli import (
     pos_int,
     training_run,
 )
-from study.commands.train_gate import add_objective_args, choice_lines, objective_fields
+from study.commands.train_gate import add_objective_args, format_choice_lines, parse_objective_fields
 from study.eco.config_gate_study import train_eco_gate
 from study.eco.data import EcoSettings, build_eco_data
 from study.eco.energy import energy_table
@@ -270,7 +270,7 @@ def run_eco_train_gate(args) -> int:
         raise UserError(f"--lr must be > 0, got {args.lr}")
     cfg = GateTrainConfig(gate=args.gate, epochs=args.epochs, batch_size=args.gate_batch_size, lr=args.lr,
                           val_fraction=args.val_fraction, seed=args.seed, grid=tuple(args.grid),
-                          checkpoint=args.checkpoint, threads=args.threads, **objective_fields(args))
+                          checkpoint=args.checkpoint, threads=args.threads, **parse_objective_fields(args))
     r = train_eco_gate(Path(args.run_dir), Path(args.data), args.gate, cfg, _settings(args), fresh=args.fresh)
 
     def text(r):
@@ -279,7 +279,7 @@ def run_eco_train_gate(args) -> int:
             f"{r['constant_mean_mae']} on {r['test_frames']} test frames (best epoch {r['best_epoch']} of {r['epochs']})",
             f"  mean L_f of its lowest-predicted configuration {r['test_loss_of_predicted_best']}, of the best "
             f"constant configuration {r['test_loss_of_constant_best']}, oracle {r['test_loss_of_oracle_best']}",
-            *choice_lines(r, "L_f of the chosen configuration"),
+            *format_choice_lines(r, "L_f of the chosen configuration"),
             f"  saved {r['gate_path']}"])
 
     emit(r, args.json, text)

@@ -48,11 +48,11 @@ def add_objective_args(p) -> None:
                         "(ties by MAE) or MAE")
 
 
-def objective_fields(args) -> dict:
+def parse_objective_fields(args) -> dict:
     return {"objective": args.objective, "tau": args.tau, "select_on": args.select_on}
 
 
-def choice_lines(r: dict, what: str) -> list[str]:
+def format_choice_lines(r: dict, what: str) -> list[str]:
     """The gate's choice on the test frames beside the best constant, the per-context constant and the oracle."""
     c = r.get("choice")
     if not c:
@@ -91,7 +91,7 @@ def run_train_gate(args) -> int:
     cfg = branch_gate_study.GateTrainConfig(gate=args.gate, epochs=args.epochs, batch_size=args.batch_size,
                                             lr=args.lr, val_fraction=args.val_fraction, seed=args.seed,
                                             grid=tuple(args.grid), checkpoint=args.checkpoint, threads=setup.threads,
-                                            **objective_fields(args))
+                                            **parse_objective_fields(args))
     result = branch_gate_study.train_gate(Path(args.run_dir), Path(args.data), cfg, fresh=args.fresh, setup=setup)
 
     def text(r):
@@ -103,7 +103,7 @@ def run_train_gate(args) -> int:
                  f"{r['top3_overlap_with_optimal']}",
                  "  per branch (gate / constant): " + ", ".join(
                      f"{b} {v}/{r['constant_mean_mae_per_branch'][b]}" for b, v in r["test_mae_per_branch"].items()),
-                 *choice_lines(r, "loss of the chosen branch"),
+                 *format_choice_lines(r, "loss of the chosen branch"),
                  f"  saved {r['gate_path']}"]
         return "\n".join(lines)
 

@@ -140,7 +140,8 @@ def test_selective_fusion_notebook_reads_a_tiny_study_and_answers_its_three_ques
     text = "".join(o.get("text", "") for o in outputs if o.get("output_type") == "stream")
     assert "THESE NUMBERS MEAN NOTHING" in text and "scale tiny" in text
     assert "hydrafusion / optimal" in text and "ecofusion / loss_based" in text  # what each gate picks
-    assert "fog (severity 4): ranking" in text  # why: the knowledge gate's table rows
+    # why: the knowledge gate's table rows; it reads the context label, each condition at severity 3
+    assert "fog (severity 4; the gate reads the label, at severity 3): ranking" in text
     assert "lambda_E 0 -> 1" in text and "selection - late" in text and "hurts in" in text
 
 

@@ -132,7 +132,7 @@ def test_gate_dataset_is_cached_keyed_and_resumable(run, data, trained, tmp_path
 def test_evaluate_all_gates_gives_tables_6_and_7_equal_to_the_wired_gates(trained, data, capsys):
     assert main(["evaluate", str(trained), str(data), "--all-gates", "--json"]) == 0
     r = _json(capsys)
-    gates = {"knowledge", "deep", "attention", "optimal"}
+    gates = {"knowledge", "knowledge_informed", "deep", "attention", "optimal"}
     assert set(r["map_table"]) == gates and set(r["selection_rate"]) == gates
     for g in gates:
         assert set(r["map_table"][g]) == {"nms", "soft-nms", "wbf"}

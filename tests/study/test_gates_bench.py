@@ -16,9 +16,9 @@ def _restore_threads():
 
 def test_bench_gates_reports_overhead_per_gate_and_topk_latency():
     r = bench_gates("cpu", repeats=1, threads=1, overrides=TINY, ks=(1, 3, 5))
-    assert set(r["gate_overhead_ms"]) == {"knowledge", "deep", "attention", "optimal"}
+    assert set(r["gate_overhead_ms"]) == {"knowledge", "knowledge_informed", "deep", "attention", "optimal"}
     assert r["gate_overhead_ms"]["optimal"] is None  # needs ground truth
-    for g in ("knowledge", "deep", "attention"):
+    for g in ("knowledge", "knowledge_informed", "deep", "attention"):
         assert r["gate_overhead_ms"][g] > 0
         assert set(r["topk_latency_ms"][g]) == {"1", "3", "5"} and all(v > 0 for v in r["topk_latency_ms"][g].values())
         for k in (1, 3, 5):

@@ -428,9 +428,10 @@ def test_input_level_early_fusion_branch_has_its_own_stem_and_trains():
 
 
 def test_a_context_gate_decides_before_any_stem_runs(model):
-    """EcoFusion 4.2.1: the knowledge gate reads external context, so wired into the network it
-    decides first and only the stems of the branches it chose run (radar alone in dense fog: the
-    radar stem once, no camera or lidar stem); a feature-reading gate still runs every stem."""
+    """EcoFusion 4.2.1: a knowledge gate reads external context, so wired into the network it
+    decides first and only the stems of the branches it chose run (the informed one, told the fog's
+    severity 5, picks radar alone: the radar stem once, no camera or lidar stem); a feature-reading
+    gate still runs every stem."""
     from fusion.nets.branch_gates import build_gate
 
     inputs = make_inputs(model, 2)
@@ -439,7 +440,7 @@ def test_a_context_gate_decides_before_any_stem_runs(model):
     hooks = [m.register_forward_hook(lambda mod, a, o, n=n: calls.__setitem__(n, calls.get(n, 0) + 1))
              for n, m in model.stems.items()]
     try:
-        model.gate = build_gate("knowledge", model, k=1)
+        model.gate = build_gate("knowledge_informed", model, k=1)
         with torch.no_grad():
             out = model(inputs, meta=meta)
         assert [list(o) for o in out] == [["radar"], ["radar"]]
