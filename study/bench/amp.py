@@ -21,17 +21,7 @@ import time
 
 import numpy as np
 
-
-def cpu_name() -> str:
-    """The CPU's model name from /proc/cpuinfo ("" where there is none): figures name their CPU."""
-    try:
-        with open("/proc/cpuinfo") as fh:
-            for line in fh:
-                if line.startswith("model name"):
-                    return line.split(":", 1)[1].strip()
-    except OSError:
-        pass
-    return ""
+from study.bench.scale import cpu_model
 
 
 def synthetic_batch(model, batch: int, seed: int) -> tuple[dict, list]:
@@ -135,7 +125,7 @@ def bench_amp(profile: str = "cpu", branches: tuple[str, ...] = (), batch: int =
     native, why = native_bf16("cpu")
     median = {p: statistics.median(v) for p, v in seconds.items()}
     return {
-        "cpu": cpu_name(), "threads": n_threads, "profile": profile, "branches": [b.name for b in specs],
+        "cpu": cpu_model(), "threads": n_threads, "profile": profile, "branches": [b.name for b in specs],
         "parameters_m": round(sum(p.numel() for p in model.parameters()) / 1e6, 1), "batch": batch,
         "frames": "dataset " + str(data) if data else "synthetic", "steps": steps, "warmup_steps": warmup,
         "native_bf16": native, "native_bf16_reason": why, "amp_auto_picks": "bf16" if native else "fp32",
