@@ -3,14 +3,18 @@ Tables 3, 6 and 7). The gate dataset they read (pooled stem features, per-branch
 `study.gate_data.GateData`.
 
 **train-gate** trains the deep or attention gate on the run's train split (minus a validation
-share of its sequences, which picks the epoch) by regression of the per-branch loss with mean
-absolute error, Adam at lr 5e-5 (Section 5.3 gives the rate; the optimiser is ours), and reports
-the test split's MAE against constant predictors (per-branch training mean and median).
+share of its sequences, which picks the epoch), Adam at lr 5e-5 (Section 5.3 gives the rate; the
+optimiser is ours), on an objective of `fusion.gate_objectives`: by default the paper's regression
+of the per-branch loss with mean absolute error, or one that targets the choice (the within-frame
+differences, a soft ranking, the expected regret). The epoch is picked by the regret of the gate's
+choice on the validation sequences (ties by MAE). It reports the test split's MAE against constant
+predictors (per-branch training mean and median) and the gate's choice against the best constant
+branch, the per-context constant and the oracle.
 
     RUN/gates/<gate>/checkpoint.pt   latest state (gate, optimiser, epoch, RNG), every epoch
     RUN/gates/<gate>/gate.pt         the gate of the best validation epoch (what evaluate loads)
-    RUN/gates/<gate>/metrics.csv     per epoch: train and validation MAE
-    RUN/gates/<gate>/result.json     held-out MAE against the constant predictors
+    RUN/gates/<gate>/metrics.csv     per epoch: the training objective, validation MAE and regret
+    RUN/gates/<gate>/result.json     held-out MAE against the constant predictors, and the choice
 
 **Tables.** `evaluate_gate` wires one gate into the network (`model.gate`), so only the branches
 it selects run, and fuses them. `evaluate_all_gates` runs every branch once per frame and selects
