@@ -320,7 +320,7 @@ def add_eco_tables(doc: Doc, r: dict, tag: str, eval_dir: Path) -> None:
     """EcoFusion Tables 1-3 and Figures 4-5 (the figures read from `eval_dir`)."""
     eco = r["eco"]
     doc.h(2, "EcoFusion Table 1 analogue: energy and performance")
-    doc.p(f"Energy: {r['energy_unit']}; gamma {r['gamma']}, Eq. 7 rule {r['rule']}.")
+    doc.p(f"Energy: {r['energy_unit']}; loss: {r.get('loss_unit', 'L_f as computed (raw)')}; gamma {r['gamma']}, Eq. 7 rule {r['rule']}.")
     doc.table(f"mAP, energy and latency ({tag})", ["model", "configuration", "mAP", "energy", "energy [J]", "latency [ms]"],
               [[n, v.get("configuration", ""), v.get("map"), v.get("energy"), v.get("energy_j"), v.get("latency_ms")]
                for n, v in eco["table1"].items()])

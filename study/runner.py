@@ -190,6 +190,7 @@ class EvaluateSection:
         rule: Eq. 7 as "prose" (within gamma of the best) or "equation" (as printed).
         power: P of Eq. 6 where no counter exists: "px2" (45.4 W) or watts as a string.
         energy_scale: px2 | late | joules (`fusion.eco.optimise.normalise_energy`).
+        loss_scale: late | raw: the L_f lambda_E and gamma weigh (`fusion.eco.optimise.normalise_loss`).
         twins: score the clear-weather twins of the test frames too (severity sweeps).
         bootstrap: draws of whole test sequences for 95 % intervals of every method's mAP, overall
             and per context, and of every paired difference (`study.detect.context_bootstrap`;
@@ -204,6 +205,7 @@ class EvaluateSection:
     rule: str = "prose"
     power: str = "px2"
     energy_scale: str = "px2"
+    loss_scale: str = "late"
     twins: bool = True
     bootstrap: int = 0
 
@@ -224,6 +226,8 @@ class EvaluateSection:
             raise UserError(f"evaluate.rule must be prose or equation, got {self.rule!r}")
         if self.energy_scale not in ("px2", "late", "joules"):
             raise UserError(f"evaluate.energy_scale must be px2, late or joules, got {self.energy_scale!r}")
+        if self.loss_scale not in ("late", "raw"):
+            raise UserError(f"evaluate.loss_scale must be late or raw, got {self.loss_scale!r}")
         from fusion.eco.energy import power_model
 
         try:
@@ -431,7 +435,7 @@ def _eval_setup(setup):
 def eco_settings(cfg: StudyConfig):
     from study.eco.data import EcoSettings
 
-    return EcoSettings(fusion=cfg.gates.fusion, power=cfg.evaluate.power, energy_scale=cfg.evaluate.energy_scale,
+    return EcoSettings(fusion=cfg.gates.fusion, power=cfg.evaluate.power, energy_scale=cfg.evaluate.energy_scale, loss_scale=cfg.evaluate.loss_scale,
                        rule=cfg.evaluate.rule, batch_size=cfg.train.batch_size, max_frames=cfg.gates.eco_max_frames)
 
 

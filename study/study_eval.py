@@ -485,7 +485,7 @@ def results_record(ev, setup, e, method: str, run_cfg: dict, data, singles, late
         "hydra_loss_mae": hydra_tables.get("loss_mae"),
         "eco": {k: v for k, v in eco_tables.items() if k not in ("curve",)},
         "eco_curve": eco_tables["curve"],
-        "energy_unit": ev.energy_label(),
+        "energy_unit": ev.energy_label(), "loss_unit": ev.loss_label(),
         "severity": measured["severity"], "severity_clear_twins": measured["severity_clear_twins"],
         "range_per_context": measured["range_per_context"],
         "regret": measured["regret"], "fusion_regret": measured["fusion_regret"], "picks": measured["picks"],

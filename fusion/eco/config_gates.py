@@ -210,14 +210,19 @@ class EcoFusionSelector(nn.Module):
         lambda_e: Eq. 8 weight in [0, 1].
         gamma: Eq. 7 tolerance.
         rule: "prose" or "equation" (`fusion.eco.optimise.candidates`).
+        loss_unit: the predicted losses are divided by it before Eq. 7-9
+            (`fusion.eco.optimise.normalise_loss`; 1: as predicted).
 
     `forward(features, meta)` -> B tuples of branch names (the chosen configurations);
     `last_choice` holds their indices into the configuration set.
     """
 
     def __init__(self, gate: ConfigurationGate, energy, lambda_e: float, gamma: float = DEFAULT_GAMMA,
-                 rule: str = DEFAULT_RULE) -> None:
+                 rule: str = DEFAULT_RULE, loss_unit: float = 1.0) -> None:
         super().__init__()
+        if not loss_unit > 0:
+            raise ValueError(f"loss_unit: must be > 0, got {loss_unit}")
+        self.loss_unit = float(loss_unit)
         energy = np.asarray(energy, np.float64)
         if energy.shape != (len(gate.configurations),):
             raise ValueError(f"energy: expected ({len(gate.configurations)},) energies, got {energy.shape}")
@@ -228,6 +233,6 @@ class EcoFusionSelector(nn.Module):
 
     def forward(self, features, meta=None) -> list[tuple[str, ...]]:
         pred = self.gate.predict(features if self.reads == "features" else None, meta)
-        idx = select(pred.detach().cpu().numpy(), self.energy, self.lambda_e, self.gamma, self.rule)
+        idx = select(pred.detach().cpu().numpy() / self.loss_unit, self.energy, self.lambda_e, self.gamma, self.rule)
         self.last_choice = idx
         return [self.gate.configurations.members[i] for i in idx]

@@ -20,6 +20,16 @@ same on every machine, `normalise_energy` expresses E relative to the late-fusio
 measured on the same machine and scales it to the paper's late-fusion energy:
 E_hat(phi) = E(phi) / E(late) * 3.798 J ("px2": PX2-equivalent joules, Table 1), or leaves the
 ratio E(phi) / E(late) ("late"). Either way the machine's power and speed cancel.
+
+Loss units. L_f is the sum of detection loss terms, whose size depends on the dataset, the
+detectors and how hard the frames are (the paper's is about 1, Table 2 and Figure 4; ours 0.8-4.5
+per context). Left raw, the same lambda_E and gamma mean different trade-offs on every dataset.
+`normalise_loss` divides L_f by late fusion's mean L_f over the training frames ("late", the
+default): late fusion sits at 1 on the loss axis as on the paper's (0.9 for its attention gate at
+lambda_E 0), and gamma is a share of late fusion's loss: gamma 0.5 admits every configuration whose
+predicted loss is within half of late fusion's mean loss of the best one, the paper's gamma 0.5 on
+its losses of about 1. "raw" keeps L_f as it is. With E on the "px2" scale (late fusion at 3.798)
+and L on the "late" scale (late fusion at 1), lambda_E weighs the two in the paper's proportions.
 """
 
 from __future__ import annotations
@@ -33,6 +43,7 @@ DEFAULT_GAMMA = 0.5
 PAPER_LATE_ENERGY_J = 3.798
 """EcoFusion Table 1: late fusion (C_L + C_R + L + R) on the Drive PX2, 3.798 J."""
 ENERGY_SCALES = ("px2", "late", "joules")
+LOSS_SCALES = ("late", "raw")
 
 
 def candidates(losses, gamma: float = DEFAULT_GAMMA, rule: str = DEFAULT_RULE) -> np.ndarray:
@@ -85,6 +96,27 @@ def normalise_energy(energy, late_energy: float, scale: str = "px2") -> np.ndarr
         raise ValueError(f"late_energy: must be > 0, got {late_energy}")
     ratio = energy / late_energy
     return ratio * PAPER_LATE_ENERGY_J if scale == "px2" else ratio
+
+
+def loss_unit(train_late_losses, scale: str = "late") -> float:
+    """What `normalise_loss` divides by: the mean L_f of late fusion over the training frames
+    ("late"), or 1 ("raw")."""
+    if scale not in LOSS_SCALES:
+        raise ValueError(f"scale: expected one of {LOSS_SCALES}, got {scale!r}")
+    if scale == "raw":
+        return 1.0
+    late = np.asarray(train_late_losses, np.float64)
+    unit = float(late.mean()) if late.size else float("nan")
+    if not unit > 0:
+        raise ValueError(f"late fusion's mean training L_f must be > 0, got {unit}")
+    return unit
+
+
+def normalise_loss(losses, unit: float) -> np.ndarray:
+    """L_f on the scale lambda_E and gamma weigh (module docstring): L_f / unit (`loss_unit`)."""
+    if not unit > 0:
+        raise ValueError(f"unit: must be > 0, got {unit}")
+    return np.asarray(losses, np.float64) / unit
 
 
 def pareto_front(loss, energy) -> np.ndarray:

@@ -70,6 +70,9 @@ def _common(p, energy: bool = True) -> None:
         p.add_argument("--energy-scale", default="px2", choices=["px2", "late", "joules"],
                        help="what lambda_E weighs: px2 = E / E(late) x 3.798 J (PX2-equivalent joules), late = "
                        "E / E(late), joules = this machine's J (machine-dependent lambda_E)")
+        p.add_argument("--loss-scale", default="late", choices=["late", "raw"],
+                       help="the L_f that lambda_E and gamma weigh: late = L_f / late fusion's mean training L_f "
+                       "(late fusion at 1, as on the paper's scale; gamma a share of it), raw = L_f as computed")
         p.add_argument("--rule", default="prose", choices=["prose", "equation"],
                        help="Eq. 7 candidates: prose = within gamma of the best loss; equation = as printed, "
                        "L - L* <= L* + gamma")
@@ -82,6 +85,7 @@ _fp_weight = float_range(0.0, 100.0, "fp_weight")
 def _settings(args) -> EcoSettings:
     return EcoSettings(configurations=args.configurations or "", fusion=args.fusion, checkpoint=args.checkpoint,
                        power=getattr(args, "power", "px2"), energy_scale=getattr(args, "energy_scale", "px2"),
+                       loss_scale=getattr(args, "loss_scale", "late"),
                        rule=getattr(args, "rule", "prose"), batch_size=args.batch_size, max_frames=args.max_frames,
                        fp_weight=args.fp_weight)
 

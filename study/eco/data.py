@@ -175,6 +175,8 @@ class EcoSettings:
         checkpoint: the run's checkpoint ("latest" or "epoch-NNN").
         power: "px2" (45.4 W) or watts: P of Eq. 6 where no energy counter exists.
         energy_scale: "px2" (E / E_late x 3.798 J), "late" (E / E_late) or "joules" (`fusion.eco.optimise`).
+        loss_scale: "late" (L_f / late fusion's mean training L_f) or "raw": the L_f that lambda_E and
+            gamma weigh (`fusion.eco.optimise.normalise_loss`).
         rule: candidate rule of Eq. 7, "prose" or "equation".
         batch_size: frames per forward when building the dataset.
         max_frames: at most this many frames of each split (evenly spaced over the split, so every
@@ -192,6 +194,7 @@ class EcoSettings:
     checkpoint: str = "latest"
     power: str = "px2"
     energy_scale: str = "px2"
+    loss_scale: str = "late"
     rule: str = "prose"
     batch_size: int = 4
     max_frames: int = 0

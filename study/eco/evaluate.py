@@ -45,6 +45,7 @@ class EcoEval:
             m["dataset_index"] = int(i)
         arr = self.ed.arrays(self.test, ["features", "detections", "terms", "ap"])
         self.features = arr["features"]
+        self.loss_unit = self._loss_unit(train)
         self.dets = [detections_from_array(a, self.ed.branches) for a in arr["detections"]]
         self.terms = arr["terms"]
         self.losses = self.ed.weights.combine(self.terms)
@@ -72,10 +73,31 @@ class EcoEval:
                 gate = load_eco_gate(self.run_dir, g, self.model, self.configs, self.ed.key, s)
                 self.predicted[g] = predict_losses(gate, self.features)
 
-    def choose(self, gate: str, lambda_e: float, gamma: float) -> np.ndarray:
-        from fusion.eco.optimise import select
+    def _loss_unit(self, train) -> float:
+        """Late fusion's mean L_f over the training frames ("late" loss scale; every configuration's
+        where the set has no late fusion, as energy falls back to the largest), or 1 ("raw")."""
+        from fusion.eco.optimise import LOSS_SCALES, loss_unit
 
-        return select(self.predicted[gate], self.e, lambda_e, gamma, self.s.rule)
+        if self.s.loss_scale not in LOSS_SCALES:
+            raise UserError(f"--loss-scale: expected one of {', '.join(LOSS_SCALES)}, got {self.s.loss_scale!r}")
+        if self.s.loss_scale == "raw":
+            return 1.0
+        late = self.configs.baselines.get("late")
+        losses = self.ed.losses(train)
+        try:
+            return loss_unit(losses[:, late] if late is not None else losses, "late")
+        except ValueError as exc:
+            raise UserError(f"--loss-scale: {exc}") from None
+
+    def unit_of(self, gate: str) -> float:
+        """What `gate`'s predictions are divided by before Eq. 7-9: the loss unit for the gates that
+        predict L_f; 1 for the knowledge gate, whose scores count branches (static, as in the paper)."""
+        return 1.0 if gate.startswith("knowledge") else self.loss_unit
+
+    def choose(self, gate: str, lambda_e: float, gamma: float) -> np.ndarray:
+        from fusion.eco.optimise import normalise_loss, select
+
+        return select(normalise_loss(self.predicted[gate], self.unit_of(gate)), self.e, lambda_e, gamma, self.s.rule)
 
     def fixed(self, name: str) -> np.ndarray:
         return np.full(len(self.test), self.configs.index(name))
@@ -153,6 +175,11 @@ class EcoEval:
         order = np.argsort(-counts)[:top]
         return {self.configs.names[names[i]]: round(100.0 * counts[i] / len(choice), 1) for i in order}
 
+    def loss_label(self) -> str:
+        if self.s.loss_scale == "raw":
+            return "L_f as computed (raw)"
+        return f"L_f / {self.loss_unit:.4f} (late fusion's mean training L_f)"
+
     def energy_label(self) -> str:
         scale = {"px2": "PX2-equivalent J: E / E(late) x 3.798 J (EcoFusion Table 1's late fusion)",
                  "late": "E / E(late), dimensionless", "joules": "J on this machine"}[self.s.energy_scale]
@@ -205,7 +232,7 @@ def evaluate_eco(run_dir, data, lambda_e: float = 0.01, gamma: float = 0.5, s: E
             ratios[g]["map_minus_late_ci95"] = ci["per_context"]["all"]["difference"].get(f"{g} - late")
     return {"lambda_e": lambda_e, "gamma": gamma, "rule": s.rule, "fp_weight": s.fp_weight, "gates": rows, "baselines": base,
             "against_late": ratios, **({"ci95": ci} if ci else {}), "frames": len(ev.test), "configurations": len(ev.configs),
-            "energy_unit": ev.energy_label(), "latency": "additive model of measured component latencies, "
+            "energy_unit": ev.energy_label(), "loss_unit": ev.loss_label(), "latency": "additive model of measured component latencies, "
             "this machine", "metric": METRIC, "run": str(run_dir), "data": str(data)}
 
 
@@ -232,7 +259,7 @@ def execute_ecofusion(run_dir, data, gate: str, lambda_e: float, gamma: float, s
         g = build_config_gate(gate, model, ev.configs)
     else:
         g = load_eco_gate(run_dir, gate, model, ev.configs, ev.ed.key)
-    selector = EcoFusionSelector(g, ev.e, lambda_e, gamma, s.rule)
+    selector = EcoFusionSelector(g, ev.e, lambda_e, gamma, s.rule, loss_unit=ev.unit_of(gate))
     idx = list(range(len(ev.test)))[: frames or None]
     ds = FrameDataset(data, [ev.test[i] for i in idx], sensors=model.sensors,
                       bev_size=model.transform.image_size("radar"))

@@ -93,7 +93,7 @@ def sweep(run_dir, data, out: Path, gamma: float = 0.5, lambdas=SWEEP_LAMBDAS, s
         "curve": {g: {f"{lam:g}": {k: v for k, v in curve[g][lam].items() if k != "per_scene"} for lam in lambdas}
                   for g in gates},
         "figures": [str(fig4), str(fig5)], "gamma": gamma, "rule": s.rule, "fp_weight": s.fp_weight, "figure_gate": eco_gate,
-        "energy_unit": ev.energy_label(), "additive_check": ev.energy_info["additive_check"],
+        "energy_unit": ev.energy_label(), "loss_unit": ev.loss_label(), "additive_check": ev.energy_info["additive_check"],
         "frames": len(ev.test), "configurations": len(ev.configs), "metric": METRIC,
         "run": str(run_dir), "data": str(data),
     }

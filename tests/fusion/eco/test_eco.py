@@ -30,7 +30,9 @@ from fusion.eco.optimise import (
     PAPER_LATE_ENERGY_J,
     candidates,
     joint_loss,
+    loss_unit,
     normalise_energy,
+    normalise_loss,
     pareto_front,
     select,
 )
@@ -285,3 +287,42 @@ def test_late_fusion_of_the_single_sensor_branches_a_network_has():
     b = named_baselines(three)
     assert b["late"] == ("radar", "camera_right", "lidar") and "early" not in b
     assert "late" not in named_baselines({"radar": ("radar",), "radar_lidar": ("radar", "lidar")})  # one single
+
+
+def test_loss_scale_puts_late_fusion_at_one_and_makes_gamma_a_share_of_its_loss():
+    """normalise_loss: L_f / late fusion's mean training L_f. The same lambda_E and gamma then give the
+    same choice on a dataset whose losses are three times larger (ours against the paper's): raw,
+    they do not."""
+    late_train = np.array([2.7, 3.3, 3.0])
+    assert loss_unit(late_train) == pytest.approx(3.0) and loss_unit(late_train, "raw") == 1.0
+    paper = np.array([[0.90, 1.20, 1.05]])  # predicted L_f of three configurations, the paper's scale
+    ours = 3.0 * paper  # the same frame with losses three times larger
+    energy = np.array([3.798, 0.9, 2.0])  # px2 scale: late fusion first
+    for lam in (0.0, 0.01, 0.5):
+        want = select(normalise_loss(paper, loss_unit([1.0])), energy, lam, 0.5)
+        assert select(normalise_loss(ours, loss_unit(3.0 * np.ones(3))), energy, lam, 0.5) == want
+    # raw, gamma 0.5 leaves the cheapest configuration (1.2 -> 3.6, 0.9 above the best) out on the larger
+    # scale, and lambda_E 0.5 picks another configuration there than on the paper's
+    assert select(paper, energy, 0.5, 0.5)[0] == 1 and select(ours, energy, 0.5, 0.5)[0] == 2
+    with pytest.raises(ValueError, match="scale"):
+        loss_unit(late_train, "percent")
+    with pytest.raises(ValueError, match="> 0"):
+        loss_unit(np.zeros(3))
+    with pytest.raises(ValueError, match="unit"):
+        normalise_loss(paper, 0.0)
+
+
+def test_the_wired_selector_divides_by_the_same_loss_unit():
+    from fusion.eco.config_gates import EcoFusionSelector
+
+    g, configs = _gate("loss_based")
+    rng = np.random.default_rng(0)
+    losses = rng.uniform(1.0, 4.0, (6, len(configs)))
+    energy = rng.uniform(0.5, 3.8, len(configs))
+    meta = [{"config_losses": row.tolist()} for row in losses]
+    for unit in (1.0, 3.0):
+        sel = EcoFusionSelector(g, energy, 0.3, 0.5, loss_unit=unit)
+        sel(None, meta)
+        assert (sel.last_choice == select(losses / unit, energy, 0.3, 0.5)).all()
+    with pytest.raises(ValueError, match="loss_unit"):
+        EcoFusionSelector(g, energy, 0.3, 0.5, loss_unit=0.0)
