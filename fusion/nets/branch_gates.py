@@ -275,6 +275,13 @@ def context_of(m: Mapping[str, Any], field: str = "meta",
     return layout, conditions, int(severity)
 
 
+def gate_context(m: Mapping[str, Any], field: str = "meta", informed: bool = False) -> tuple[str, tuple[str, ...], int]:
+    """(layout, conditions, severity) as a knowledge gate reads them: the frame's own severity when
+    `informed`, else CONTEXT_SEVERITY for a label with conditions (0 without)."""
+    layout, conditions, severity = context_of(m, field, severity_required=informed)
+    return layout, conditions, severity if informed else (CONTEXT_SEVERITY if conditions else 0)
+
+
 def sensor_reliability(m: Mapping[str, Any], field: str = "meta", informed: bool = False) -> dict[str, float]:
     """Reliability 0..1 of every sensor in the frame's context (KNOWLEDGE_TABLE).
 
@@ -282,9 +289,7 @@ def sensor_reliability(m: Mapping[str, Any], field: str = "meta", informed: bool
     car can know (a map, a rain sensor, a clock), and what HydraFusion's knowledge gate reads. With
     `informed`, the frame's own severity and each camera's lens coverage
     (meta["weather"]["lens_coverage_pct"]) too: what only the simulator knows, an oracle."""
-    layout, conditions, severity = context_of(m, field, severity_required=informed)
-    if not informed:
-        severity = CONTEXT_SEVERITY if conditions else 0
+    layout, conditions, severity = gate_context(m, field, informed)
     factor = {mod: getattr(KNOWLEDGE_TABLE[layout], mod) for mod in ("camera", "lidar", "radar")}
     for c in conditions:
         row = KNOWLEDGE_TABLE[c]
@@ -334,8 +339,7 @@ class KnowledgeGate(Gate):
 
     def explain(self, m: Mapping[str, Any]) -> dict[str, Any]:
         """Why a frame gets its ranking: the table rows used, sensor reliabilities, branch qualities."""
-        layout, conditions, severity = context_of(m, severity_required=self.informed)
-        severity = severity if self.informed else (CONTEXT_SEVERITY if conditions else 0)
+        layout, conditions, severity = gate_context(m, informed=self.informed)
         rel = sensor_reliability(m, informed=self.informed)
         quality = {b: round(branch_quality(rel, self.branch_sensors[b], self.branch_frames[b]), 4) for b in self.branches}
         return {
