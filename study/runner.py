@@ -246,14 +246,24 @@ class RunSection:
         threads: torch CPU threads (0: the cores available).
         workers: generation processes (and Ray CPUs with backend ray).
         backend: local | ray (generation: one Ray task per shard).
+        amp: precision of the train stage (`study.device.resolve_amp`): "default" (bf16 autocast
+            on CUDA, fp32 on the CPU), "auto" (bf16 where the device computes it natively: a GPU, or
+            a CPU with AMX-BF16 or AVX512-BF16, `study.device.native_bf16`), "bf16" or "off". The
+            backbones only: anchors, box coding and the heads stay fp32. The stages after train
+            always run in fp32.
     """
 
     device: str = "auto"
     threads: int = 0
     workers: int = 1
     backend: str = "local"
+    amp: str = "default"
 
     def __post_init__(self) -> None:
+        if isinstance(self.amp, bool):  # YAML 1.1 reads a bare `off` / `on` as a boolean
+            object.__setattr__(self, "amp", "bf16" if self.amp else "off")
+        if self.amp not in ("default", "auto", "bf16", "off"):
+            raise UserError(f"run.amp must be default, auto, bf16 or off, got {self.amp!r}")
         _positive("run.threads", self.threads, 0)
         _positive("run.workers", self.workers)
         if self.backend not in ("local", "ray"):
@@ -418,11 +428,12 @@ class Study:
 
 
 def _device_setup(cfg: StudyConfig):
-    """The training stage's device choice (bf16 autocast on CUDA by default, fp32 on the CPU); the
-    stages after it run their networks in fp32 (`_eval_setup`)."""
+    """The training stage's device choice (`run.amp`; by default bf16 autocast on CUDA, fp32 on the
+    CPU); the stages after it run their networks in fp32 (`_eval_setup`)."""
     from study.device import resolve_device
 
-    return resolve_device(device=cfg.run.device, threads=cfg.run.threads)
+    return resolve_device(device=cfg.run.device, threads=cfg.run.threads,
+                          amp=None if cfg.run.amp == "default" else cfg.run.amp)
 
 
 def _eval_setup(setup):
