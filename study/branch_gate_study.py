@@ -4,9 +4,10 @@ Tables 3, 6 and 7). The gate dataset they read (pooled stem features, per-branch
 
 **train-gate** trains the deep or attention gate on the run's train split (minus a validation
 share of its sequences, which picks the epoch), Adam at lr 5e-5 (Section 5.3 gives the rate; the
-optimiser is ours), on an objective of `fusion.gate_objectives`: by default the paper's regression
-of the per-branch loss with mean absolute error, or one that targets the choice (the within-frame
-differences, a soft ranking, the expected regret). The epoch is picked by the regret of the gate's
+optimiser is ours), on an objective of `fusion.gate_objectives`: the paper's regression of the per-branch loss with
+mean absolute error, or one that targets the choice (the within-frame differences, a soft ranking,
+the expected regret); by default ("auto") one gate per objective, keeping the lowest regret on the
+validation sequences. The epoch is picked by the regret of the gate's
 choice on the validation sequences (ties by MAE). It reports the test split's MAE against constant
 predictors (per-branch training mean and median) and the gate's choice against the best constant
 branch, the per-context constant and the oracle.
@@ -14,6 +15,8 @@ branch, the per-context constant and the oracle.
     RUN/gates/<gate>/checkpoint.pt   latest state (gate, optimiser, epoch, RNG), every epoch
     RUN/gates/<gate>/gate.pt         the gate of the best validation epoch (what evaluate loads)
     RUN/gates/<gate>/metrics.csv     per epoch: the training objective, validation MAE and regret
+    RUN/gates/<gate>/objectives/<objective>/   with --objective auto (the default): one gate per
+                                     objective; the lowest validation regret is kept in gate.pt
     RUN/gates/<gate>/result.json     held-out MAE against the constant predictors, and the choice
 
 **Tables.** `evaluate_gate` wires one gate into the network (`model.gate`), so only the branches
@@ -44,6 +47,8 @@ from study.outputs import atomic_path, torch_save_atomic, write_json_atomic
 
 TABLE_KS = (1, 3, 5, "all")
 SELECT_ON = ("regret", "mae")
+AUTO = "auto"
+"""GateTrainConfig.objective: every objective, the best on validation regret kept."""
 TABLE_FUSIONS = ("nms", "soft_nms", "wbf")
 FUSION_LABEL = {"nms": "nms", "soft_nms": "soft-nms", "wbf": "wbf"}
 
@@ -93,7 +98,9 @@ class GateTrainConfig:
         threads: torch CPU threads (0: the cores available).
         objective: what the gate is trained on (`fusion.gate_objectives.OBJECTIVES`): "mae" (the
             papers' regression of each choice's loss), "centred", "soft_ce" or "expected" (the
-            decision: see that module).
+            decision: see that module); "auto" (the default) trains one gate per objective and
+            keeps the one with the lowest validation regret (`fit_objectives`), so the objective is
+            chosen on validation frames, never on test frames.
         tau: temperature of "soft_ce" and "expected", in loss units (0: `default_tau` of the
             fitting frames' losses, recorded in the result).
         select_on: what picks the epoch on the validation frames: "regret" (the mean loss of the
@@ -113,14 +120,15 @@ class GateTrainConfig:
     dropout: float = 0.2
     checkpoint: str = "latest"
     threads: int = 0
-    objective: str = "mae"
+    objective: str = "auto"
     tau: float = 0.0
     select_on: str = "regret"
 
     def __post_init__(self) -> None:
         from fusion.gate_objectives import OBJECTIVES
 
-        OBJECTIVES.get(self.objective)  # UserError naming the choices
+        if self.objective != AUTO:
+            OBJECTIVES.get(self.objective)  # UserError naming the choices
         if not self.tau >= 0:
             raise UserError(f"tau: must be >= 0 (0: the default temperature), got {self.tau}")
         if self.select_on not in SELECT_ON:
@@ -197,6 +205,8 @@ def fit_gate(gate, x_fit: np.ndarray, y_fit: np.ndarray, x_val: np.ndarray, y_va
 
     from fusion.gate_objectives import OBJECTIVES, choose, default_tau, regret
 
+    if cfg.objective == AUTO:
+        raise ValueError("fit_gate trains one objective; fit_objectives chooses among them (objective 'auto')")
     torch.manual_seed(cfg.seed)
     objective = OBJECTIVES.get(cfg.objective)
     tau = float(cfg.tau) if cfg.tau > 0 else default_tau(y_fit)
@@ -257,6 +267,74 @@ def fit_gate(gate, x_fit: np.ndarray, y_fit: np.ndarray, x_val: np.ndarray, y_va
             "tau": round(tau, 6), "history": history}
 
 
+def _indices_digest(indices) -> str:
+    """SHA-256 (16 hex digits) of the sorted dataset indices: which frames a choice was made on."""
+    import hashlib
+
+    return hashlib.sha256(",".join(str(int(i)) for i in sorted(indices)).encode()).hexdigest()[:16]
+
+
+def resume_state(ckpt: Path, settings: dict, fresh: bool, what: str, progress: bool) -> dict | None:
+    """The checkpoint dict at `ckpt` to resume from, None to start afresh (no checkpoint, or
+    `fresh`); UserError when it was trained with other `settings` (epochs and threads may differ)."""
+    if not ckpt.exists() or fresh:
+        return None
+    from study.checkpoints import load_checkpoint
+
+    state = load_checkpoint(ckpt, ("config", "epoch", "gate", "optimizer", "best_state", "history", "torch_rng"))
+    settings = {k: v for k, v in settings.items() if k not in ("epochs", "threads")}
+    old = {**state["config"], **{k: state.get(k) for k in settings if k not in state["config"]}}
+    old.pop("epochs", None)
+    old.pop("threads", None)
+    if "gate" in settings:
+        old["gate"] = settings["gate"]
+    if json.loads(json.dumps(old)) != json.loads(json.dumps(settings)):
+        diff = sorted(k for k in settings if json.loads(json.dumps(old.get(k))) != json.loads(json.dumps(settings[k])))
+        raise UserError(f"{ckpt.parent} holds a {what} trained with other settings or on another checkpoint or "
+                        f"dataset ({', '.join(diff)}); pass --fresh to train it again")
+    if progress:
+        sys.stderr.write(f"resuming {ckpt.parent} at epoch {state['epoch'] + 1}\n")
+    return state
+
+
+def fit_objectives(build, x_fit, y_fit, x_val, y_val, cfg: GateTrainConfig, out: Path, settings: dict, fresh: bool,
+                   what: str, progress: bool = True, extra: dict | None = None, net=lambda g: g):
+    """Fit a gate from `build()` on `cfg.objective`, or with "auto" one per objective (each in
+    out/objectives/<name>/, resumable; the kept one's metrics.csv copied to out/), keeping the lowest
+    validation regret (ties: the first in `OBJECTIVES` order). Without validation frames "auto" has
+    nothing to choose on and trains "mae", the papers', in out/. `net(gate)` is the module
+    `fit_gate` trains. Returns (gate, fit_gate's result of the kept one, {objective: its
+    validation regret, MAE, epoch and tau}, the kept objective)."""
+    import torch
+
+    from fusion.gate_objectives import OBJECTIVES
+
+    several = cfg.objective == AUTO and len(x_val) > 0
+    names = list(OBJECTIVES.names()) if several else ["mae" if cfg.objective == AUTO else cfg.objective]
+    fits, gates = {}, {}
+    for name in names:
+        sub = out / "objectives" / name if several else out
+        sub.mkdir(parents=True, exist_ok=True)
+        c = dataclasses.replace(cfg, objective=name)
+        state = resume_state(sub / "checkpoint.pt", {**settings, "objective": name}, fresh, what, progress)
+        torch.manual_seed(cfg.seed)
+        gate = build()
+        if progress and len(names) > 1:
+            sys.stderr.write(f"{what}: objective {name}\n")
+        fits[name] = fit_gate(net(gate), x_fit, y_fit, x_val, y_val, c, out=sub, progress=progress, state=state,
+                              extra=extra)
+        gates[name] = gate
+    scored = {n: f["best_val_regret"] for n, f in fits.items() if f["best_val_regret"] is not None}
+    kept = min(scored, key=scored.get) if scored else names[0]
+    if several:
+        import shutil
+
+        shutil.copyfile(out / "objectives" / kept / "metrics.csv", out / "metrics.csv")
+    table = {n: {"val_regret": f["best_val_regret"], "val_mae": f["best_val_mae"], "best_epoch": f["best_epoch"],
+                 "tau": f["tau"]} for n, f in fits.items()}
+    return gates[kept], fits[kept], table, kept
+
+
 OBJECTIVE_LABEL = {"mae": "mean absolute error", "centred": "mean absolute error of the within-frame differences",
                    "soft_ce": "cross entropy against softmax(-L / tau)", "expected": "expected regret under softmax(-s / tau)"}
 
@@ -288,7 +366,6 @@ def train_gate(run_dir, data, cfg: GateTrainConfig, progress: bool = True, fresh
     `setup` (`study.device.DeviceSetup`; default: --device auto with `cfg.threads`): where the run's
     network computes the gate dataset (stem features and per-sample losses, the expensive part, in
     float32). The gate itself, a few small convs on pooled features, trains on the CPU."""
-    import torch
 
     from fusion.nets.branch_gates import GATES, build_gate
     from sensors.dataset import DatasetReader
@@ -306,36 +383,21 @@ def train_gate(run_dir, data, cfg: GateTrainConfig, progress: bool = True, fresh
     train_idx, test_idx = run_train_test(run_cfg, data, "train-gate")
     gd = GateData(run_dir, data, model, cfg.checkpoint, cfg.grid)
     out = run_dir / "gates" / cfg.gate
-    state = None
-    ckpt = out / "checkpoint.pt"
     settings = {**dataclasses.asdict(cfg), "data_key": gd.key}
     settings.pop("epochs")
     settings.pop("threads")
-    if ckpt.exists() and not fresh:
-        from study.checkpoints import load_checkpoint
-
-        state = load_checkpoint(ckpt, ("config", "epoch", "gate", "optimizer", "best_state", "history", "torch_rng"))
-        old = {**state["config"], "data_key": state.get("data_key")}
-        old.pop("epochs", None)
-        old.pop("threads", None)
-        if json.loads(json.dumps(old)) != json.loads(json.dumps(settings)):
-            diff = sorted(k for k in settings if json.loads(json.dumps(old.get(k))) != json.loads(json.dumps(settings[k])))
-            raise UserError(f"{out} holds a {cfg.gate} gate trained with other settings or on another checkpoint or "
-                            f"dataset ({', '.join(diff)}); pass --fresh to train it again")
-        if progress:
-            sys.stderr.write(f"resuming {out} at epoch {state['epoch'] + 1}\n")
     gd.ensure(train_idx + test_idx, progress=progress)
     fit_idx, val_idx = validation_split(reader, train_idx, cfg.val_fraction, cfg.seed)
     x_fit, y_fit = gd.load(fit_idx)
     x_val, y_val = gd.load(val_idx)
     x_test, y_test = gd.load(test_idx)
     out.mkdir(parents=True, exist_ok=True)
-    torch.manual_seed(cfg.seed)
     if setup.is_cuda:
         model.cpu()  # build_gate reads the model's layout; the gate trains on the CPU
-    gate = build_gate(cfg.gate, model, sensors=list(gd.sensors), **cfg.gate_options())
-    fitted = fit_gate(gate, x_fit, y_fit, x_val, y_val, cfg, out=out, progress=progress, state=state,
-                      extra={"data_key": gd.key})
+    gate, fitted, objectives, objective = fit_objectives(
+        lambda: build_gate(cfg.gate, model, sensors=list(gd.sensors), **cfg.gate_options()),
+        x_fit, y_fit, x_val, y_val, cfg, out, settings, fresh, f"{cfg.gate} gate", progress,
+        extra={"data_key": gd.key})
 
     pred = predict_losses(gate, x_test)
     mean_c, median_c = y_fit.mean(axis=0), np.median(y_fit, axis=0)
@@ -343,11 +405,13 @@ def train_gate(run_dir, data, cfg: GateTrainConfig, progress: bool = True, fresh
     contexts = [[reader.manifest["frames"][int(i)]["context"] for i in idx] for idx in (fit_idx, test_idx)]
     result = {
         "gate": cfg.gate, "run": str(run_dir), "data": str(data), "checkpoint": cfg.checkpoint,
-        "optimizer": "Adam", "lr": cfg.lr, "loss": OBJECTIVE_LABEL[cfg.objective], "objective": cfg.objective,
+        "optimizer": "Adam", "lr": cfg.lr, "loss": OBJECTIVE_LABEL[objective], "objective": objective,
+        "objective_requested": cfg.objective, "objectives": objectives,
         "tau": fitted["tau"], "selected_on": f"validation {cfg.select_on}", "epochs": cfg.epochs,
         "best_epoch": fitted["best_epoch"], "val_mae": fitted["best_val_mae"], "val_regret": fitted["best_val_regret"],
         "choice": choice_table(pred, y_fit, y_test, contexts[0], contexts[1], branches),
         "train_frames": len(fit_idx), "val_frames": len(val_idx), "test_frames": len(test_idx),
+        "val_indices_sha256": _indices_digest(val_idx),
         "test_mae": round(mae(pred, y_test), 6),
         "constant_mean_mae": round(mae(np.broadcast_to(mean_c, y_test.shape), y_test), 6),
         "constant_median_mae": round(mae(np.broadcast_to(median_c, y_test.shape), y_test), 6),

@@ -37,10 +37,11 @@ def add_objective_args(p) -> None:
     """--objective, --tau and --select-on (train-gate and eco-train-gate; fusion.gate_objectives)."""
     from fusion.gate_objectives import OBJECTIVES
 
-    p.add_argument("--objective", default="mae", choices=OBJECTIVES.names(),
+    p.add_argument("--objective", default=branch_gate_study.AUTO, choices=[branch_gate_study.AUTO, *OBJECTIVES.names()],
                    help="what the gate learns: mae regresses each choice's loss (the papers'); centred its "
                         "difference from the frame's mean; soft_ce the soft ranking softmax(-L/tau); expected the "
-                        "expected regret of its choice")
+                        "expected regret of its choice; auto (default) trains one gate per objective and keeps the "
+                        "lowest regret on the validation sequences")
     p.add_argument("--tau", type=nonneg_float, default=0.0,
                    help="temperature of soft_ce and expected, in loss units (0: the median within-frame spread)")
     p.add_argument("--select-on", default="regret", choices=list(branch_gate_study.SELECT_ON),
@@ -57,7 +58,11 @@ def format_choice_lines(r: dict, what: str) -> list[str]:
     c = r.get("choice")
     if not c:
         return []
-    return [f"  choice ({r['objective']}, epoch picked on {r['selected_on']}): mean test {what} {c['mean_cost']:.4f}, "
+    lines = []
+    if len(r.get("objectives") or {}) > 1:
+        lines.append("  objectives (validation regret, the lowest kept): " + ", ".join(
+            f"{n} {v['val_regret']}" for n, v in r["objectives"].items()) + f" -> {r['objective']}")
+    return lines + [f"  choice ({r['objective']}, epoch picked on {r['selected_on']}): mean test {what} {c['mean_cost']:.4f}, "
             f"regret {c['regret']:.4f}; best constant ({c['constant']}) {c['constant_mean_cost']:.4f}, regret "
             f"{c['constant_regret']:.4f}; per-context constant regret {c.get('context_regret', float('nan')):.4f}; "
             f"oracle {c['oracle_mean_cost']:.4f}; differs from the constant on {100 * c['differs_from_constant']:.1f} % "

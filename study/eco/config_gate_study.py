@@ -5,8 +5,6 @@ pooled stem features (`train_eco_gate`, `hydrabench eco-train-gate`) and loaded 
 from __future__ import annotations
 
 import dataclasses
-import json
-import sys
 from pathlib import Path
 
 import numpy as np
@@ -17,7 +15,7 @@ from study.branch_gate_study import (
     OBJECTIVE_LABEL,
     GateTrainConfig,
     choice_table,
-    fit_gate,
+    fit_objectives,
     mae,
     predict_losses,
     validation_split,
@@ -28,11 +26,10 @@ from study.outputs import torch_save_atomic, write_json_atomic
 
 def train_eco_gate(run_dir, data, gate: str, cfg: GateTrainConfig, s: EcoSettings = EcoSettings(),
                    progress: bool = True, fresh: bool = False) -> dict:
-    """`hydrabench eco-train-gate`: the deep or attention configuration gate, regressing L_f of
-    every configuration (mean absolute error, Adam), on the run's train split; saved in
-    RUN/eco/gates/<gate>/ (resumable, like train-gate)."""
-    import torch
-
+    """`hydrabench eco-train-gate`: the deep or attention configuration gate, trained on L_f of
+    every configuration with `cfg.objective` (Adam; "auto": every objective, the lowest validation
+    regret kept), on the run's train split; saved in RUN/eco/gates/<gate>/ (resumable, like
+    train-gate)."""
     from fusion.eco.config_gates import CONFIG_GATES, build_config_gate
     from sensors.dataset import DatasetReader
 
@@ -48,30 +45,14 @@ def train_eco_gate(run_dir, data, gate: str, cfg: GateTrainConfig, s: EcoSetting
     settings = {**dataclasses.asdict(cfg), "gate": gate, "data_key": ed.key, "loss": loss}
     for k in ("epochs", "threads"):
         settings.pop(k)
-    state = None
-    if (out / "checkpoint.pt").exists() and not fresh:
-        from study.checkpoints import load_checkpoint
-
-        state = load_checkpoint(out / "checkpoint.pt", ("config", "epoch", "gate", "optimizer", "best_state", "history", "torch_rng"))
-        old = {**state["config"], "gate": gate, "data_key": state.get("data_key"),
-               "loss": state.get("loss", dataclasses.asdict(FusedLossSpec()))}
-        for k in ("epochs", "threads"):
-            old.pop(k, None)
-        if json.loads(json.dumps(old)) != json.loads(json.dumps(settings)):
-            diff = sorted(k for k in settings if json.loads(json.dumps(old.get(k))) != json.loads(json.dumps(settings[k])))
-            raise UserError(f"{out} holds a {gate} gate trained with other settings or data ({', '.join(diff)}); "
-                            "pass --fresh to train it again")
-        if progress:
-            sys.stderr.write(f"resuming {out} at epoch {state['epoch'] + 1}\n")
     fit_idx, val_idx = validation_split(DatasetReader(data), train, cfg.val_fraction, cfg.seed)
     x_fit, x_val, x_test = (ed.arrays(i, ["features"])["features"] for i in (fit_idx, val_idx, test))
     y_fit, y_val, y_test = (ed.losses(i).astype(np.float32) for i in (fit_idx, val_idx, test))
     out.mkdir(parents=True, exist_ok=True)
-    torch.manual_seed(cfg.seed)
-    g = build_config_gate(gate, model, configs, sensors=list(ed.sensors), **cfg.gate_options())
-    cfg_named = dataclasses.replace(cfg, gate=gate)
-    fitted = fit_gate(g.net, x_fit, y_fit, x_val, y_val, cfg_named, out=out, progress=progress, state=state,
-                      extra={"data_key": ed.key, "loss": loss})
+    g, fitted, objectives, objective = fit_objectives(
+        lambda: build_config_gate(gate, model, configs, sensors=list(ed.sensors), **cfg.gate_options()),
+        x_fit, y_fit, x_val, y_val, dataclasses.replace(cfg, gate=gate), out, settings, fresh,
+        f"{gate} configuration gate", progress, extra={"data_key": ed.key, "loss": loss}, net=lambda c: c.net)
     pred = predict_losses(g, x_test)
     mean_c = y_fit.mean(axis=0)
     frames = DatasetReader(data).manifest["frames"]
@@ -82,8 +63,9 @@ def train_eco_gate(run_dir, data, gate: str, cfg: GateTrainConfig, s: EcoSetting
     pick = select(pred, zero, 0.0, 0.0, "prose")
     result = {
         "gate": gate, "run": str(run_dir), "data": str(data), "configurations": len(configs), "optimizer": "Adam",
-        "lr": cfg.lr, "loss": f"{OBJECTIVE_LABEL[cfg.objective]} of L_f per configuration", "loss_definition": loss,
-        "objective": cfg.objective, "tau": fitted["tau"], "selected_on": f"validation {cfg.select_on}",
+        "lr": cfg.lr, "loss": f"{OBJECTIVE_LABEL[objective]} of L_f per configuration", "loss_definition": loss,
+        "objective": objective, "objective_requested": cfg.objective, "objectives": objectives,
+        "tau": fitted["tau"], "selected_on": f"validation {cfg.select_on}",
         "epochs": cfg.epochs, "choice": choice_table(pred, y_fit, y_test, *contexts, configs.names),
         "best_epoch": fitted["best_epoch"], "val_mae": fitted["best_val_mae"], "val_regret": fitted["best_val_regret"],
         "train_frames": len(fit_idx),

@@ -8,7 +8,7 @@ import pytest
 import torch
 
 from fusion.nets.branch_gates import GATES
-from study.branch_gate_study import GateTrainConfig, fit_gate, mae, predict_losses, ranking_agreement
+from study.branch_gate_study import GateTrainConfig, fit_gate, fit_objectives, mae, predict_losses, ranking_agreement
 
 
 @pytest.fixture(autouse=True, scope="module")
@@ -47,7 +47,7 @@ def data():
 
 
 # lr 1e-3 keeps the test short; the command trains at the paper's 5e-5 (same code path)
-CFG = GateTrainConfig(gate="deep", epochs=12, batch_size=32, lr=1e-3, seed=0)
+CFG = GateTrainConfig(gate="deep", epochs=12, batch_size=32, lr=1e-3, seed=0, objective="mae")
 
 
 @pytest.mark.parametrize("name", ["deep", "attention"])
@@ -128,3 +128,29 @@ def test_gate_config_refuses_an_unknown_objective_and_a_negative_tau():
         GateTrainConfig(tau=-1.0)
     with pytest.raises(UserError, match="select_on"):
         GateTrainConfig(select_on="test")
+
+
+def test_auto_objective_keeps_the_lowest_validation_regret_and_never_reads_the_test_frames(data, tmp_path):
+    """--objective auto: one gate per objective, the kept one has the lowest validation regret; the
+    test frames are not passed in at all (fit_objectives sees fit and validation frames only)."""
+    from fusion.gate_objectives import OBJECTIVES, choose, regret
+
+    (xf, yf), (xv, yv), _ = (with_difficulty(d, s) for d, s in zip(data, (11, 12, 13)))
+    cfg = dataclasses.replace(CFG, objective="auto", epochs=4)
+    settings = {**dataclasses.asdict(cfg), "data_key": "synthetic"}
+    gate, fitted, table, kept = fit_objectives(lambda: gate_of("deep"), xf, yf, xv, yv, cfg, tmp_path, settings,
+                                               False, "deep gate", progress=False, extra={"data_key": "synthetic"})
+    assert list(table) == list(OBJECTIVES.names())
+    assert kept == min(table, key=lambda n: table[n]["val_regret"])
+    assert fitted["best_val_regret"] == table[kept]["val_regret"]
+    assert regret(yv, choose(predict_losses(gate, xv))) == pytest.approx(table[kept]["val_regret"], abs=1e-5)
+    assert (tmp_path / "metrics.csv").read_text() == (tmp_path / "objectives" / kept / "metrics.csv").read_text()
+    # a second call resumes every objective's checkpoint and keeps the same one
+    again = fit_objectives(lambda: gate_of("deep"), xf, yf, xv, yv, cfg, tmp_path, settings, False, "deep gate",
+                           progress=False, extra={"data_key": "synthetic"})
+    assert again[3] == kept and again[2] == table
+    # without validation frames there is nothing to choose on: the papers' MAE, in out/
+    _, _, alone, kept0 = fit_objectives(lambda: gate_of("deep"), xf, yf, xv[:0], yv[:0],
+                                        dataclasses.replace(cfg, epochs=1), tmp_path / "noval", settings, False,
+                                        "deep gate", progress=False)
+    assert kept0 == "mae" and list(alone) == ["mae"] and (tmp_path / "noval" / "metrics.csv").exists()

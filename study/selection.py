@@ -1,0 +1,74 @@
+"""Choices made on validation frames only, and the guard that refuses a choice reading test frames.
+
+Every choice the study makes from data (a gate's training epoch and objective, the late-fusion
+method of the fixed methods, HydraFusion Table 3's fusion per gate, L_f's weights) is made on the
+validation frames: whole sequences carved from the run's training split, per context
+(`study.branch_gate_study.validation_split`, the frames the gates pick their epoch on). The
+detectors trained on these frames too (the run has one training split), so they flatter the
+branches a little; they are never test frames.
+
+`SelectionLog` is the guard: it is built from the run's test indices, and every choice goes through
+`choose(what, candidates, indices, ...)`, which raises `TestSplitLeak` when any index it is handed is
+a test frame, and records what was chosen, among what, on how many frames and sequences. The
+study's report prints that record ("What was chosen where").
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterable, Mapping, Sequence
+from dataclasses import dataclass, field
+
+
+class TestSplitLeak(RuntimeError):
+    """A choice was about to read test frames."""
+
+
+@dataclass
+class SelectionLog:
+    """The run's test frames and every choice made so far (see the module docstring)."""
+
+    test: frozenset[int]
+    choices: list[dict] = field(default_factory=list)
+
+    @classmethod
+    def of(cls, test_indices: Iterable[int]) -> SelectionLog:
+        return cls(frozenset(int(i) for i in test_indices))
+
+    def check(self, indices: Iterable[int], what: str) -> list[int]:
+        """`indices` as a list; TestSplitLeak when one of them is a test frame."""
+        out = [int(i) for i in indices]
+        leaked = sorted(self.test.intersection(out))
+        if leaked:
+            raise TestSplitLeak(f"{what}: {len(leaked)} of the {len(out)} frames it would be chosen on are test "
+                                f"frames (first: dataset index {leaked[0]}); choices are made on validation frames")
+        if not out:
+            raise TestSplitLeak(f"{what}: no validation frames to choose on")
+        return out
+
+    def choose(self, what: str, candidates: Mapping[str, float], indices: Sequence[int], *, lower_is_better: bool,
+               measure: str, sequences: int | None = None) -> str:
+        """The best of `candidates` ({name: value measured on `indices`}), recorded. Ties go to the
+        first candidate in order; a candidate whose value is None never wins."""
+        idx = self.check(indices, what)
+        valid = {k: v for k, v in candidates.items() if v is not None}
+        if not valid:
+            raise ValueError(f"{what}: no candidate has a value")
+        pick = (min if lower_is_better else max)(valid, key=valid.get)
+        self.choices.append({"what": what, "chosen": pick, "measure": measure, "on": "validation",
+                             "frames": len(idx), "sequences": sequences,
+                             "candidates": {k: (None if v is None else round(float(v), 6)) for k, v in candidates.items()}})
+        return pick
+
+    def record(self, what: str, chosen, indices: Sequence[int], measure: str, candidates: Mapping | None = None,
+               sequences: int | None = None) -> None:
+        """Record a choice made elsewhere (a gate's epoch and objective) on `indices`, after the check."""
+        idx = self.check(indices, what)
+        self.choices.append({"what": what, "chosen": chosen, "measure": measure, "on": "validation",
+                             "frames": len(idx), "sequences": sequences, "candidates": dict(candidates or {})})
+
+
+def sequences_of(reader, indices: Iterable[int]) -> int:
+    """How many sequences (shards) `indices` come from."""
+    frames = reader.manifest["frames"]
+    return len({frames[int(i)]["shard"] for i in indices})
+
