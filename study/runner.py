@@ -485,7 +485,7 @@ def train_stage(work: Path, data: Path, train_cfg: TrainSection, profile: str, s
 
 
 def gatedata_stage(work: Path, run_paper: Path, data: Path, settings, batch_size: int, setup,
-                   progress: bool) -> tuple[str, dict]:
+                   progress: bool, val_fraction: float = 0.15, seed: int = 0) -> tuple[str, dict]:
     """HydraFusion's gate dataset and EcoFusion's, cached under work/run (a farm of the paper run)."""
     from study.detect import frames_for, load_run
     from study.eco.data import build_eco_data
@@ -498,7 +498,8 @@ def gatedata_stage(work: Path, run_paper: Path, data: Path, settings, batch_size
     test_idx, _ = frames_for(run_cfg, data, "test")
     gd = GateData(run, data, model)
     gd.ensure(train_idx + test_idx, batch_size=batch_size, progress=progress)
-    eco = build_eco_data(run, data, settings, progress=progress, device=setup.device)
+    eco = build_eco_data(run, data, settings, progress=progress, device=setup.device, val_fraction=val_fraction,
+                         seed=seed)
     return _digest({"gate_data": gd.key, "eco_data": Path(eco["eco_data"]).name}), {
         "gate_data_key": gd.key, "eco_data": eco}
 
@@ -626,9 +627,11 @@ def run_study(cfg: StudyConfig, out: str | Path, until: str = "report", progress
 
     settings = eco_settings(cfg)
     gdr = study.stage("gatedata", {"eco_max_frames": cfg.gates.eco_max_frames, "fusion": cfg.gates.fusion,
-                                   "batch_size": cfg.train.batch_size, **ident("gatedata")}, (tr,),
+                                   "batch_size": cfg.train.batch_size, "val_fraction": cfg.gates.val_fraction,
+                                   "seed": cfg.gates.seed, **ident("gatedata")}, (tr,),
                       gatedata_stage, run_paper=tr.dir / "paper", data=data, settings=settings,
-                      batch_size=cfg.train.batch_size, setup=eval_setup, progress=progress)
+                      batch_size=cfg.train.batch_size, setup=eval_setup, progress=progress,
+                      val_fraction=cfg.gates.val_fraction, seed=cfg.gates.seed)
     if last < 3:
         return _finish(study, result, t_start)
 

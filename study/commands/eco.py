@@ -198,11 +198,12 @@ def run_eco_data(args) -> int:
     def text(r):
         lines = [f"{r['configurations']} configurations, {r['frames']['train']} train / {r['frames']['test']} test frames "
                  f"({r['computed_frames']} computed now, {r['seconds']} s); cache {r['eco_data']}",
-                 "L_f vs per-frame AP@0.5 on the test split (rank correlation across configurations, mean over frames):"]
-        for k, v in r["loss_vs_ap_test"].items():
+                 f"L_f vs per-frame AP@0.5 on the {r['loss_vs_ap_on']} (rank correlation across configurations, "
+                 "mean over frames):"]
+        for k, v in r["loss_vs_ap_validation"].items():
             lines.append(f"  {k:24s} Spearman {v['spearman_mean']}  Kendall {v['kendall_mean']}  lowest loss has the best "
                          f"AP in {v['lowest_loss_has_best_ap']} of {v['frames']} frames")
-        lines.append(f"mean L_f per configuration (fp weight {r['loss_definition']['fp_weight']:g}): "
+        lines.append(f"mean L_f per configuration on the test split (fp weight {r['loss_definition']['fp_weight']:g}): "
                      + ", ".join(f"{k} {v}" for k, v in r["mean_loss_test"].items())
                      + f"; lowest: {r['lowest_mean_loss_test']}")
         return "\n".join(lines)

@@ -258,11 +258,17 @@ def eco_splits(cfg, data, max_frames: int = 0) -> tuple[list[int], list[int]]:
     return _subsample(train, max_frames), _subsample(test, max_frames)
 
 
-def build_eco_data(run_dir, data, s: EcoSettings = EcoSettings(), progress: bool = True, device: str = "cpu") -> dict:
+def build_eco_data(run_dir, data, s: EcoSettings = EcoSettings(), progress: bool = True, device: str = "cpu",
+                   val_fraction: float = 0.15, seed: int = 0) -> dict:
     """`hydrabench eco-data`: build (or complete) the configuration dataset and report how well
-    L_f ranks configurations by per-frame AP (rank correlation, per definition variant). The
-    network runs on `device` (a torch device string, `study.device`), in fp32."""
+    L_f ranks configurations by per-frame AP (rank correlation, per definition variant) on the
+    validation sequences carved from the training split (`val_fraction`, `seed`: the gates'
+    validation frames, `study.branch_gate_study.validation_split`), so a choice of L_f's weights
+    made from it reads no test frame; on every training frame when there are too few sequences
+    to carve any. The network runs on `device` (a torch device string, `study.device`), in fp32."""
     from fusion.eco.loss import FusedLossSpec
+    from sensors.dataset import DatasetReader
+    from study.branch_gate_study import validation_split
 
     run_dir, data = Path(run_dir), Path(data)
     model, cfg, configs, ed = open_eco_run(run_dir, data, s, device=device)
@@ -270,20 +276,23 @@ def build_eco_data(run_dir, data, s: EcoSettings = EcoSettings(), progress: bool
     t0 = time.perf_counter()
     computed = ed.ensure(train + test, batch_size=s.batch_size, progress=progress)
     seconds = time.perf_counter() - t0
-    arr = ed.arrays(test, ["terms", "ap"])
+    _, val = validation_split(DatasetReader(data), train, val_fraction, seed)
+    on = val or train
+    arr = ed.arrays(on, ["terms", "ap"])
     corr = {}
     for name, kw in LOSS_VARIANTS.items():
         spec = dataclasses.replace(FusedLossSpec(), **kw)
         corr[name] = rank_correlation(spec.combine(arr["terms"]), arr["ap"])
     if ed.weights != FusedLossSpec():
         corr[f"fp_weight_{ed.weights.fp_weight:g}"] = rank_correlation(ed.weights.combine(arr["terms"]), arr["ap"])
-    lf = ed.weights.combine(arr["terms"])
+    lf = ed.weights.combine(ed.arrays(test, ["terms"])["terms"])
     return {
         "run": str(run_dir), "data": str(data), "eco_data": str(ed.dir), "configurations": len(configs),
         "baselines": {k: configs.names[v] for k, v in configs.baselines.items()},
         "frames": {"train": len(train), "test": len(test)}, "computed_frames": computed,
         "seconds": round(seconds, 1), "fusion": ed.fusion, "loss_definition": dataclasses.asdict(ed.weights),
-        "loss_vs_ap_test": corr,
+        "loss_vs_ap_validation": corr,
+        "loss_vs_ap_on": f"{'validation' if val else 'training'} frames of the train split ({len(on)}), never test frames",
         "mean_loss_test": {configs.names[i]: round(float(lf[:, i].mean()), 4) for i in range(len(configs))},
         "lowest_mean_loss_test": configs.names[int(np.argmin(lf.mean(axis=0)))] if len(lf) else None,
         "note": "rank correlation per frame across configurations between L_f and the frame's AP@0.5 "

@@ -70,7 +70,7 @@ def test_eco_data_reports_loss_ap_rank_correlation_and_subsets_fused_afterwards_
     r = _json(capsys)
     assert r["configurations"] == 31 and r["computed_frames"] == 0  # cached by the fixture
     assert r["baselines"]["late"] == "radar+camera_left+camera_right+lidar" and r["baselines"]["early"] == "camera_lidar"
-    assert set(r["loss_vs_ap_test"]) >= {"default", "no_false_positive_term", "no_miss_term"}
+    assert set(r["loss_vs_ap_validation"]) >= {"default", "no_false_positive_term", "no_miss_term"}
     model, _ = load_run(eco)
     configs = build_configurations(model.branch_sensors)
     ed = EcoData(eco, data, model, configs, "soft_nms")
@@ -192,7 +192,7 @@ def test_fp_weight_reweights_cached_terms_and_keeps_its_gates_apart(eco, data, c
     assert main(["eco-data", str(eco), str(data), "--fp-weight", "0.25", "--json"]) == 0
     r = _json(capsys)
     assert r["computed_frames"] == 0 and r["loss_definition"]["fp_weight"] == 0.25
-    assert "fp_weight_0.25" in r["loss_vs_ap_test"]
+    assert "fp_weight_0.25" in r["loss_vs_ap_validation"]
     model, cfg = load_run(eco)
     configs = build_configurations(model.branch_sensors)
     ed = EcoData(eco, data, model, configs, "soft_nms")
