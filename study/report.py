@@ -16,7 +16,7 @@ from pathlib import Path
 
 from study.outputs import write_text_atomic
 
-REPORT_VERSION = 1
+REPORT_VERSION = 2
 
 
 def _fmt(v) -> str:
@@ -144,9 +144,11 @@ def build(results: dict, context: dict, work: Path, eval_dir: Path) -> tuple[Doc
     add_severity(doc, r, tag, work)
     add_range_bins(doc, r, tag)
     add_gate_regret(doc, r, tag)
+    add_gate_training(doc, r, tag)
     add_fusion_regret(doc, r, tag)
     add_gate_picks(doc, r, tag)
     add_robustness(doc, r, tag)
+    add_choices(doc, r, tag)
     add_stages(doc, context, tag)
     summary = {"scale": context["scale"], "meaningless": bool(context.get("meaningless")), "protocol": r["protocol"],
                "dataset": r["dataset"], "machine": r["machine"], "device": r.get("device"), "tag": tag}
@@ -275,7 +277,9 @@ def add_hydra_table3(doc: Doc, r: dict, tag: str) -> None:
     """HydraFusion Table 3: each gate's best fusion method per k."""
     t3, ks = r["hydra_table3"], _gate_ks(r)
     doc.h(2, "HydraFusion Table 3 analogue: best fusion per gate and k")
-    doc.table(f"mAP@0.5 of each gate's best fusion method ({tag})", ["gate", "fusion", *[f"k={k}" for k in ks]],
+    chosen = "chosen on the validation frames at k = " + str(r["k"]) if any(
+        v.get("chosen_on") == "validation" for v in t3.values()) else "best on the test frames"
+    doc.table(f"mAP@0.5 on the test frames of each gate's fusion method, {chosen} ({tag})", ["gate", "fusion", *[f"k={k}" for k in ks]],
               [[g, v["fusion"], *[v["map"].get(k) for k in ks]] for g, v in t3.items()])
 
 
@@ -284,9 +288,12 @@ def add_hydra_table4(doc: Doc, r: dict, tag: str) -> None:
     doc.h(2, "HydraFusion Table 4 analogue: latency and energy per model")
     doc.p(f"Latency: the additive model of measured stem, branch and fusion latencies on this machine (batch 1); "
           f"energy: {r['energy_unit']}. Gated methods: the mean over frames of the chosen branches.")
-    doc.table(f"Latency and energy ({tag})", ["method", "branches run", "latency [ms]", "energy [J]",
+    doc.p("A learned gate (deep, attention) is charged the stems it reads that its chosen branches do not need "
+          "(gate stems), as EcoFusion Table 1 charges them.")
+    doc.table(f"Latency and energy ({tag})", ["method", "branches run", "latency [ms]", "gate stems [ms]", "energy [J]",
                                               "energy (lambda_E scale)"],
-              [[n, v["branches"], v["latency_ms"], v["energy_j"], v["energy"]] for n, v in r["hydra_table4"].items()])
+              [[n, v["branches"], v["latency_ms"], v.get("gate_stems_ms", 0.0), v["energy_j"], v["energy"]]
+               for n, v in r["hydra_table4"].items()])
 
 
 def add_hydra_table5(doc: Doc, r: dict, tag: str) -> None:
@@ -345,7 +352,65 @@ def add_eco_tables(doc: Doc, r: dict, tag: str, eval_dir: Path) -> None:
     figs = r.get("figures", {})
     doc.img(f"EcoFusion Figure 4 analogue: loss against energy per gate, lambda_E colour-coded ({tag})",
             eval_dir / figs.get("figure4", "missing.png"))
+    front = r.get("lambda_front")
+    if front:
+        doc.p(f"How far lambda_E moves each gate: its mean energy from lambda_E {_lam_range(front)}, as a share of "
+              f"the range between the cheapest single sensor ({front['cheapest_single_energy']}) and late fusion "
+              f"({front['late_energy']}). L_f is {front['loss_unit']}, so lambda_E and gamma ({r['gamma']}) weigh "
+              f"the same L_f on every dataset: gamma {r['gamma']} admits configurations whose predicted L_f is within "
+              f"{r['gamma']} x late fusion's mean training L_f of the best one.")
+        doc.table(f"lambda_E front per EcoFusion gate ({tag})",
+                  ["gate", "energy at the first lambda_E", "energy at the last", "span [% of single..late]",
+                   "lambdas on the Pareto front"],
+                  [[g, v["energy_from"], v["energy_to"], v["span_pct"], " ".join(v.get("pareto_lambdas") or [])]
+                   for g, v in front["gates"].items()])
     doc.img(f"EcoFusion Figure 5 analogue: loss and energy per scene ({tag})", eval_dir / figs.get("figure5", "missing.png"))
+
+
+def _lam_range(front: dict) -> str:
+    g = next(iter(front["gates"].values()), {})
+    return f"{g.get('lambda_from')} to {g.get('lambda_to')}"
+
+
+def add_gate_training(doc: Doc, r: dict, tag: str) -> None:
+    """What each learned gate adds beyond a constant choice and beyond the context (`gate_training`)."""
+    gt = r.get("gate_training")
+    if not gt:
+        return
+    doc.h(2, "Learned gates against the best constant and the per-context constant")
+    doc.p("Each learned gate was trained with every objective (`fusion.gate_objectives`); the one with the lowest "
+          "regret on the validation sequences was kept, its epoch picked the same way. On the test frames: the mean "
+          "cost (per-branch loss for HydraFusion, L_f for EcoFusion) of the gate's one choice per frame minus the "
+          "oracle's (regret), beside the best constant choice and the per-context constant (one choice per context, "
+          "both fitted on the training frames), and how often the gate's choice differs from the constant's. "
+          "A gate adds something when its regret is below both.")
+    rows = []
+    for name, v in gt.items():
+        c = v.get("choice") or {}
+        objectives = v.get("objectives") or {}
+        rows.append([name, v.get("objective"), " ".join(f"{o} {x.get('val_regret')}" for o, x in objectives.items()),
+                     c.get("regret"), c.get("constant_regret"), c.get("context_regret"), c.get("constant"),
+                     None if c.get("differs_from_constant") is None else round(100 * c["differs_from_constant"], 1)])
+    doc.table(f"Learned gates: objective kept (validation regret of each), test regret against the oracle ({tag})",
+              ["gate", "objective", "validation regret per objective", "test regret", "best constant's",
+               "per-context constant's", "best constant", "differs from it [%]"], rows)
+
+
+def add_choices(doc: Doc, r: dict, tag: str) -> None:
+    """Every choice the study made from data, and where (`study.selection.SelectionLog`)."""
+    ch = r.get("choices")
+    if not ch:
+        return
+    doc.h(2, "What was chosen where")
+    v = r.get("validation") or {}
+    doc.p(f"Every choice below was made on the validation frames ({v.get('frames')} frames of {v.get('sequences')} "
+          f"sequences: {v.get('what', '')}); none reads a test frame (`study.selection` refuses it). Gate epochs and "
+          "objectives: see the learned-gates table. Fixed in advance, not chosen: the fusion thresholds "
+          "(`fusion.late`), L_f's weights (`fusion.eco.loss.FusedLossSpec`, EcoFusion 3.3; `eco-data` reports "
+          "their rank correlation with AP on the validation frames), k, lambda_E and gamma (the papers').")
+    doc.table(f"Choices made on validation frames ({tag})", ["what", "chosen", "measure", "candidates"],
+              [[c["what"], c["chosen"], c["measure"],
+                ", ".join(f"{k} {_fmt(x)}" for k, x in (c.get("candidates") or {}).items())] for c in ch])
 
 
 def add_severity(doc: Doc, r: dict, tag: str, work: Path) -> None:

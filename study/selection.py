@@ -22,6 +22,8 @@ from dataclasses import dataclass, field
 class TestSplitLeak(RuntimeError):
     """A choice was about to read test frames."""
 
+    __test__ = False  # not a pytest test class
+
 
 @dataclass
 class SelectionLog:

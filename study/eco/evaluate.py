@@ -38,6 +38,7 @@ class EcoEval:
         self.run_dir, self.data, self.s = Path(run_dir), Path(data), s
         self.model, cfg, self.configs, self.ed = open_eco_run(self.run_dir, self.data, s, threads)
         train, self.test = eco_splits(cfg, self.data, s.max_frames)
+        self.train = train
         self.ed.ensure(train + self.test, batch_size=s.batch_size, progress=progress)
         self.reader = DatasetReader(self.data)
         self.metas = [self.reader.meta(i) for i in self.test]

@@ -8,7 +8,14 @@ import pytest
 import torch
 
 from fusion.nets.branch_gates import GATES
-from study.branch_gate_study import GateTrainConfig, fit_gate, fit_objectives, mae, predict_losses, ranking_agreement
+from study.branch_gate_study import (
+    GateTrainConfig,
+    fit_gate,
+    fit_objectives,
+    mae,
+    predict_losses,
+    ranking_agreement,
+)
 
 
 @pytest.fixture(autouse=True, scope="module")

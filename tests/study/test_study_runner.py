@@ -77,6 +77,21 @@ def test_every_stage_runs_and_writes_the_report_with_its_tables(tiny):
     rep = json.loads((out / "report.json").read_text())
     assert rep["scale"] == "tiny" and rep["meaningless"] and rep["protocol"] == "reference"
     assert rep["results"]["dataset"]["test_frames"] == 2
+    # every choice from data was made on non-test frames and is in the report (issue 26)
+    res = rep["results"]
+    whats = [c["what"] for c in res["choices"]]
+    assert any(w.startswith("late-fusion method") for w in whats)
+    assert sum(w.startswith("HydraFusion Table 3") for w in whats) == len(res["hydra_table3"])
+    assert all(c["on"] == "validation" and c["frames"] == res["validation"]["frames"] for c in res["choices"])
+    assert res["fusion"] == res["choices"][0]["chosen"]
+    assert all(v["chosen_on"] == "validation" for v in res["hydra_table3"].values())
+    assert set(res["gate_training"]) == {f"{f}:{g}" for f in ("hydrafusion", "ecofusion") for g in tiny["cfg"].gates.gates}
+    assert "What was chosen where" in md and "Learned gates against the best constant" in md
+    # a learned gate pays for the stems it reads (Table 4 as EcoFusion Table 1)
+    t4 = res["hydra_table4"]
+    assert t4["late"]["gate_stems_ms"] == 0 and all(t4[f"ecofusion:{g}"]["gate_stems_ms"] >= 0 for g in ("deep",))
+    for g, v in res["lambda_front"]["gates"].items():
+        assert v["span_pct"] is None or -100 <= v["span_pct"] <= 100, (g, v)
 
 
 def test_report_numbers_follow_their_definitions(tiny):
