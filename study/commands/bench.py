@@ -151,6 +151,21 @@ def add_parser(sub, name, help_text):
                    help="train on this dataset's first frames (default: synthetic frames)")
     a.add_argument("--json", action="store_true", help="print one JSON object on stdout")
     a.set_defaults(run=run_amp)
+    pr = what.add_parser("profile", help="where one training step's time goes: stems, layer2-4, RPN, RoIAlign, box head, "
+                         "backward, optimiser", description=_doc("study.bench.profile"), formatter_class=Formatter)
+    pr.add_argument("--profile", type=name_arg, default="cpu", help="model profile")
+    pr.add_argument("--branches", type=name_list, default=(), help="comma-separated branches (default: the profile's)")
+    pr.add_argument("--batch-size", type=int_range(1, 64, "batch-size"), default=4, help="frames per step")
+    pr.add_argument("--steps", type=int_range(1, 1000, "steps"), default=3, help="timed steps")
+    pr.add_argument("--warmup", type=int_range(0, 100, "warmup"), default=1, help="untimed steps first")
+    pr.add_argument("--precision", choices=("fp32", "bf16"), default="fp32",
+                    help="fp32, or bf16 autocast of the backbones (as train --amp)")
+    pr.add_argument("--threads", type=nonneg_int, default=0, help="torch CPU threads (0: the cores available)")
+    pr.add_argument("--seed", type=nonneg_int, default=0, help="initial weights, frames and sampling")
+    pr.add_argument("--data", type=dataset_dir, default=None, metavar="DATASET",
+                    help="train on this dataset's first frames and time reading them (default: synthetic frames)")
+    pr.add_argument("--json", action="store_true", help="print one JSON object on stdout")
+    pr.set_defaults(run=run_profile)
     f = what.add_parser("lidar-fog", help="lidar fog: our model against Hahner et al. ICCV 2021 on the same clean clouds",
                         description="Render clear frames (one short sequence per layout), apply the lidar fog "
                         "models under pure fog at each visibility with the same random streams, and report per "
@@ -312,6 +327,37 @@ def run_amp(args) -> int:
         f"(median of {r['steps']} steps each, interleaved)",
         "loss per step fp32 " + ", ".join(map(str, r["loss_per_step"]["fp32"]))
         + "; bf16 " + ", ".join(map(str, r["loss_per_step"]["bf16"]))]))
+    return 0
+
+
+def _doc(module: str) -> str:
+    import importlib
+
+    return importlib.import_module(module).__doc__
+
+
+def run_profile(args) -> int:
+    from study.bench.profile import bench_profile
+
+    r = bench_profile(args.profile, tuple(args.branches), batch=args.batch_size, steps=args.steps, warmup=args.warmup,
+                      threads=args.threads, seed=args.seed, precision=args.precision,
+                      data=str(args.data) if args.data else None)
+    r.update(machine())
+
+    def text(r):
+        lines = [f"{r['cpu'] or 'CPU'}, {r['threads']} threads; {r['profile']} profile, {', '.join(r['branches'])}, "
+                 f"batch {r['batch']}, {r['precision']}, {r['frames']} frames: step {r['step_ms']} ms "
+                 f"(median of {r['steps']})"]
+        for p, ms in r["parts_ms"].items():
+            lines.append(f"  {p:16s} {ms:9.1f} ms  {r['parts_pct'][p]:5.1f} %")
+        lines.append("  backward by kind: " + ", ".join(f"{k} {v} %" for k, v in r["backward_by_kind_pct"].items()))
+        if r["data_ms"] is not None:
+            lines.append(f"  data (read + collate, outside the step) {r['data_ms']} ms")
+        lines.append("  layer2/3/4 feature maps (H, W): " + "; ".join(
+            f"{b} " + " ".join(f"{k} {v[0]}x{v[1]}" for k, v in s.items()) for b, s in r["feature_map_hw"].items()))
+        return "\n".join(lines)
+
+    emit(r, args.json, text)
     return 0
 
 
