@@ -145,7 +145,7 @@ class GatesSection:
         gates: the learned gates to train (deep, attention); knowledge and the oracles need none.
         epochs, batch_size, lr, val_fraction, seed: as GateTrainConfig (HydraFusion 5.3: lr 5e-5).
         eco_max_frames: at most this many frames of each split for EcoFusion (0 = all).
-        fusion: late fusion of a configuration (nms | soft-nms | wbf).
+        fusion: late fusion of an EcoFusion configuration (nms | soft-nms | wbf; EcoFusion 4.4: wbf).
         energy_frames, energy_repeats, energy_check: the latency measurement (eco-energy).
     """
 
@@ -156,7 +156,7 @@ class GatesSection:
     val_fraction: float = 0.15
     seed: int = 0
     eco_max_frames: int = 0
-    fusion: str = "soft-nms"
+    fusion: str = "wbf"
     energy_frames: int = 3
     energy_repeats: int = 3
     energy_check: int = 12

@@ -52,8 +52,8 @@ def _common(p, energy: bool = True) -> None:
     p.add_argument("data", type=dataset_dir, help="the run's training dataset")
     p.add_argument("--configurations", type=_configurations_file, default=None, help="YAML file of the configuration set (keys: subsets all|listed, "
                    "max_branches, configurations, baselines); default: every non-empty subset of the branches")
-    p.add_argument("--fusion", default="soft-nms", choices=["nms", "soft-nms", "wbf"],
-                   help="late fusion of a configuration's branches")
+    p.add_argument("--fusion", default="wbf", choices=["nms", "soft-nms", "wbf"],
+                   help="late fusion of a configuration's branches (EcoFusion 4.4: WBF)")
     p.add_argument("--checkpoint", type=checkpoint_arg, default="latest", help="latest, or epoch-NNN")
     p.add_argument("--batch-size", type=pos_int, default=4, help="frames per forward when building the dataset")
     p.add_argument("--max-frames", type=nonneg_int, default=0, help="use at most this many frames of each split "

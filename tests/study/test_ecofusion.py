@@ -73,7 +73,7 @@ def test_eco_data_reports_loss_ap_rank_correlation_and_subsets_fused_afterwards_
     assert set(r["loss_vs_ap_validation"]) >= {"default", "no_false_positive_term", "no_miss_term"}
     model, _ = load_run(eco)
     configs = build_configurations(model.branch_sensors)
-    ed = EcoData(eco, data, model, configs, "soft_nms")
+    ed = EcoData(eco, data, model, configs, "wbf")
     assert ed.dir.parent == eco / "eco_data" and ed.missing(range(8)) == []
     arr = ed.arrays([1, 6], ["features", "detections", "terms", "ap"])
     from fusion.nets.branch_gates import gate_sensors
@@ -91,7 +91,7 @@ def test_eco_data_reports_loss_ap_rank_correlation_and_subsets_fused_afterwards_
         with torch.no_grad():
             dets = model(inputs, selection=list(members))[0]
         f = fuse({b: to_detections(d) for b, d in dets.items()}, model.branch_frames,
-                 Calibration.from_dict(metas[0]["calibration"]), method="soft_nms")
+                 Calibration.from_dict(metas[0]["calibration"]), method="wbf")
         direct = loss_terms(f.boxes, f.scores, f.labels, gt["boxes"], gt["labels"], gt["difficult"])
         assert np.allclose(direct, arr["terms"][1, configs.index(name)], rtol=1e-4, atol=1e-4), name
     # resumable: a run directory without the cache rebuilds it, with the same numbers
@@ -100,7 +100,7 @@ def test_eco_data_reports_loss_ap_rank_correlation_and_subsets_fused_afterwards_
     for f in eco.iterdir():
         if f.is_file():
             os.symlink(f, copy / f.name)
-    ed2 = EcoData(copy, data, model, configs, "soft_nms")
+    ed2 = EcoData(copy, data, model, configs, "wbf")
     assert ed2.key == ed.key and ed2.ensure([1, 6], progress=False) == 2
     assert np.allclose(ed2.arrays([1, 6], ["terms"])["terms"], arr["terms"], rtol=1e-4, atol=1e-4)
 
@@ -195,7 +195,7 @@ def test_fp_weight_reweights_cached_terms_and_keeps_its_gates_apart(eco, data, c
     assert "fp_weight_0.25" in r["loss_vs_ap_validation"]
     model, cfg = load_run(eco)
     configs = build_configurations(model.branch_sensors)
-    ed = EcoData(eco, data, model, configs, "soft_nms")
+    ed = EcoData(eco, data, model, configs, "wbf")
     _, test = eco_splits(cfg, data)
     t = ed.arrays(test, ["terms"])["terms"]
     law = (t[..., 0] + t[..., 1] + 0.25 * t[..., 2] + FusedLossSpec().miss_cost * t[..., 3]) / np.maximum(t[..., 4], 1)
