@@ -44,6 +44,7 @@ from sim.progress import progress as progress_bar
 from study.device import resolve_device
 from study.gate_data import GateData, cached_sha256, checkpoint_path
 from study.outputs import atomic_path, torch_save_atomic, write_json_atomic
+from study.selection import validation_split
 
 TABLE_KS = (1, 3, 5, "all")
 SELECT_ON = ("regret", "mae")
@@ -137,26 +138,6 @@ class GateTrainConfig:
     def gate_options(self) -> dict:
         return {"grid": list(self.grid), "channels": list(self.channels), "hidden": self.hidden,
                 "dropout": self.dropout}
-
-
-def validation_split(reader, indices, fraction: float, seed: int) -> tuple[list[int], list[int]]:
-    """Split frames into (fit, validation) by sequence (shard), per context, deterministic in seed.
-    A context with fewer than 3 sequences keeps them all for fitting."""
-    shards: dict[str, dict[str, list[int]]] = defaultdict(lambda: defaultdict(list))
-    for i in indices:
-        f = reader.manifest["frames"][int(i)]
-        shards[f["context"]][f["shard"]].append(int(i))
-    rng = np.random.default_rng([seed, 7])
-    fit, val = [], []
-    for ctx in sorted(shards):
-        names = sorted(shards[ctx])
-        rng.shuffle(names)
-        n_val = int(round(fraction * len(names))) if len(names) >= 3 else 0
-        if len(names) >= 3 and fraction > 0:
-            n_val = max(1, n_val)
-        for j, name in enumerate(names):
-            (val if j < n_val else fit).extend(shards[ctx][name])
-    return sorted(fit), sorted(val)
 
 
 def mae(pred: np.ndarray, target: np.ndarray) -> float:

@@ -3,7 +3,7 @@
 Every choice the study makes from data (a gate's training epoch and objective, the late-fusion
 method of the fixed methods, HydraFusion Table 3's fusion per gate, L_f's weights) is made on the
 validation frames: whole sequences carved from the run's training split, per context
-(`study.branch_gate_study.validation_split`, the frames the gates pick their epoch on). The
+(`validation_split`, the frames the gates pick their epoch on). The
 detectors trained on these frames too (the run has one training split), so they flatter the
 branches a little; they are never test frames.
 
@@ -15,8 +15,11 @@ study's report prints that record ("What was chosen where").
 
 from __future__ import annotations
 
+from collections import defaultdict
 from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass, field
+
+import numpy as np
 
 
 class TestSplitLeak(RuntimeError):
@@ -74,3 +77,22 @@ def sequences_of(reader, indices: Iterable[int]) -> int:
     frames = reader.manifest["frames"]
     return len({frames[int(i)]["shard"] for i in indices})
 
+
+def validation_split(reader, indices, fraction: float, seed: int) -> tuple[list[int], list[int]]:
+    """Split frames into (fit, validation) by sequence (shard), per context, deterministic in seed.
+    A context with fewer than 3 sequences keeps them all for fitting."""
+    shards: dict[str, dict[str, list[int]]] = defaultdict(lambda: defaultdict(list))
+    for i in indices:
+        f = reader.manifest["frames"][int(i)]
+        shards[f["context"]][f["shard"]].append(int(i))
+    rng = np.random.default_rng([seed, 7])
+    fit, val = [], []
+    for ctx in sorted(shards):
+        names = sorted(shards[ctx])
+        rng.shuffle(names)
+        n_val = int(round(fraction * len(names))) if len(names) >= 3 else 0
+        if len(names) >= 3 and fraction > 0:
+            n_val = max(1, n_val)
+        for j, name in enumerate(names):
+            (val if j < n_val else fit).extend(shards[ctx][name])
+    return sorted(fit), sorted(val)

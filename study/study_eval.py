@@ -183,9 +183,8 @@ class ValidationFrames:
     guard (`study.selection.SelectionLog.check`) before anything is read."""
 
     def __init__(self, ev, fraction: float, seed: int, log) -> None:
-        from study.branch_gate_study import validation_split
         from study.eco.data import detections_from_array
-        from study.selection import sequences_of
+        from study.selection import sequences_of, validation_split
 
         _, val = validation_split(ev.reader, ev.train, fraction, seed)
         self.carved = bool(val)

@@ -271,7 +271,7 @@ def build_eco_data(run_dir, data, s: EcoSettings = EcoSettings(), progress: bool
     to carve any. The network runs on `device` (a torch device string, `study.device`), in fp32."""
     from fusion.eco.loss import FusedLossSpec
     from sensors.dataset import DatasetReader
-    from study.branch_gate_study import validation_split
+    from study.selection import validation_split
 
     run_dir, data = Path(run_dir), Path(data)
     model, cfg, configs, ed = open_eco_run(run_dir, data, s, device=device)
