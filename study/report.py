@@ -27,6 +27,13 @@ def _fmt(v) -> str:
     return str(v)
 
 
+def settled(path: Path) -> Path:
+    """Where a file written inside a stage's work directory (`<stage>-<key>.partial`, renamed to
+    `<stage>-<key>` when the stage ends, `study.runner.Study.stage`) will be: the Markdown links to
+    that, not to the directory that is gone by the time anyone reads the report."""
+    return Path(*[part.removesuffix(".partial") for part in Path(path).parts])
+
+
 class Doc:
     def __init__(self) -> None:
         self.blocks: list[tuple] = []
@@ -58,7 +65,7 @@ class Doc:
                 out.append("|" + "|".join("---" for _ in header) + "|")
                 out.extend("| " + " | ".join(r) + " |" for r in rows)
             elif b[0] == "img":
-                out.append(f"![{b[1]}]({os.path.relpath(b[2], rel_to)})\n\n*{b[1]}*")
+                out.append(f"![{b[1]}]({os.path.relpath(settled(b[2]), rel_to)})\n\n*{b[1]}*")
             out.append("")
         return "\n".join(out)
 

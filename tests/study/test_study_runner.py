@@ -12,6 +12,7 @@ from __future__ import annotations
 import dataclasses
 import json
 import os
+import re
 import signal
 import subprocess
 import sys
@@ -56,6 +57,9 @@ def test_every_stage_runs_and_writes_the_report_with_its_tables(tiny):
         assert not Path(str(d) + ".partial").exists()
     md = (out / "report.md").read_text()
     assert md.splitlines()[0].startswith("**These numbers mean nothing**")
+    # every picture report.md links to is there (the report stage writes them in its .partial directory)
+    links = re.findall(r"!\[[^\]]*\]\(([^)]+)\)", md)
+    assert len(links) >= 3 and all((out / link).is_file() for link in links), links
     for title in ("HydraFusion Table 2", "HydraFusion Table 3", "HydraFusion Table 4", "HydraFusion Table 5",
                   "HydraFusion Tables 6 and 7", "EcoFusion Table 1", "EcoFusion Table 2", "EcoFusion Table 3",
                   "mAP against severity per condition", "mAP per range bin per context",
