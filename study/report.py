@@ -239,7 +239,7 @@ def add_hydra_table2(doc: Doc, r: dict, tag: str) -> None:
     t2 = r["hydra_table2"]
     rows = []
     for group, label in (("single_sensors", "(i) single sensor"), ("early_fusion", "(ii) early fusion"),
-                         ("late_fusion", "(iii) late fusion (best of nms, soft-nms, wbf)"),
+                         ("late_fusion", "(iii) late fusion (method chosen on validation)"),
                          ("hydrafusion", "(iv) HydraFusion"), ("ecofusion", "EcoFusion")):
         for name, v in t2.get(group, {}).items():
             rows.append([label, name, v])
