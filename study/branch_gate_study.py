@@ -248,13 +248,6 @@ def fit_gate(gate, x_fit: np.ndarray, y_fit: np.ndarray, x_val: np.ndarray, y_va
             "tau": round(tau, 6), "history": history}
 
 
-def _indices_digest(indices) -> str:
-    """SHA-256 (16 hex digits) of the sorted dataset indices: which frames a choice was made on."""
-    import hashlib
-
-    return hashlib.sha256(",".join(str(int(i)) for i in sorted(indices)).encode()).hexdigest()[:16]
-
-
 def resume_state(ckpt: Path, settings: dict, fresh: bool, what: str, progress: bool) -> dict | None:
     """The checkpoint dict at `ckpt` to resume from, None to start afresh (no checkpoint, or
     `fresh`); UserError when it was trained with other `settings` (epochs and threads may differ)."""
@@ -263,12 +256,10 @@ def resume_state(ckpt: Path, settings: dict, fresh: bool, what: str, progress: b
     from study.checkpoints import load_checkpoint
 
     state = load_checkpoint(ckpt, ("config", "epoch", "gate", "optimizer", "best_state", "history", "torch_rng"))
-    settings = {k: v for k, v in settings.items() if k not in ("epochs", "threads")}
-    old = {**state["config"], **{k: state.get(k) for k in settings if k not in state["config"]}}
-    old.pop("epochs", None)
-    old.pop("threads", None)
-    if "gate" in settings:
-        old["gate"] = settings["gate"]
+    skip = ("epochs", "threads")
+    settings = {k: v for k, v in settings.items() if k not in skip}
+    old = {k: v for k, v in {**state["config"], **{k: state.get(k) for k in settings if k not in state["config"]}}.items()
+           if k not in skip}
     if json.loads(json.dumps(old)) != json.loads(json.dumps(settings)):
         diff = sorted(k for k in settings if json.loads(json.dumps(old.get(k))) != json.loads(json.dumps(settings[k])))
         raise UserError(f"{ckpt.parent} holds a {what} trained with other settings or on another checkpoint or "
@@ -365,8 +356,6 @@ def train_gate(run_dir, data, cfg: GateTrainConfig, progress: bool = True, fresh
     gd = GateData(run_dir, data, model, cfg.checkpoint, cfg.grid)
     out = run_dir / "gates" / cfg.gate
     settings = {**dataclasses.asdict(cfg), "data_key": gd.key}
-    settings.pop("epochs")
-    settings.pop("threads")
     gd.ensure(train_idx + test_idx, progress=progress)
     fit_idx, val_idx = validation_split(reader, train_idx, cfg.val_fraction, cfg.seed)
     x_fit, y_fit = gd.load(fit_idx)
@@ -392,7 +381,6 @@ def train_gate(run_dir, data, cfg: GateTrainConfig, progress: bool = True, fresh
         "best_epoch": fitted["best_epoch"], "val_mae": fitted["best_val_mae"], "val_regret": fitted["best_val_regret"],
         "choice": choice_table(pred, y_fit, y_test, contexts[0], contexts[1], branches),
         "train_frames": len(fit_idx), "val_frames": len(val_idx), "test_frames": len(test_idx),
-        "val_indices_sha256": _indices_digest(val_idx),
         "test_mae": round(mae(pred, y_test), 6),
         "constant_mean_mae": round(mae(np.broadcast_to(mean_c, y_test.shape), y_test), 6),
         "constant_median_mae": round(mae(np.broadcast_to(median_c, y_test.shape), y_test), 6),

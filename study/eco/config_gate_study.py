@@ -43,8 +43,6 @@ def train_eco_gate(run_dir, data, gate: str, cfg: GateTrainConfig, s: EcoSetting
     out = s.gate_dir(run_dir, gate)
     loss = dataclasses.asdict(ed.weights)
     settings = {**dataclasses.asdict(cfg), "gate": gate, "data_key": ed.key, "loss": loss}
-    for k in ("epochs", "threads"):
-        settings.pop(k)
     fit_idx, val_idx = validation_split(DatasetReader(data), train, cfg.val_fraction, cfg.seed)
     x_fit, x_val, x_test = (ed.arrays(i, ["features"])["features"] for i in (fit_idx, val_idx, test))
     y_fit, y_val, y_test = (ed.losses(i).astype(np.float32) for i in (fit_idx, val_idx, test))
