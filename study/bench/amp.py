@@ -58,6 +58,22 @@ def dataset_batch(model, data: str, batch: int) -> tuple[dict, list]:
     return inputs, targets
 
 
+def bench_setup(what: str, profile: str, branches, steps: int, warmup: int, batch: int, overrides=None):
+    """The checks and the network specification the training benches share: (model profile, the
+    branch specs of `branches` (empty: all)); UserError for bad counts or an unknown branch."""
+    from fusion.nets import load_profile
+    from sim.errors import UserError
+
+    if steps < 1 or warmup < 0 or batch < 1:
+        raise UserError(f"bench {what}: needs steps >= 1, warmup >= 0, batch >= 1 (got {steps}, {warmup}, {batch})")
+    prof = load_profile(profile, **(overrides or {}))
+    names = [b.name for b in prof.branches]
+    bad = [b for b in branches if b not in names]
+    if bad:
+        raise UserError(f"--branches: unknown branch {bad[0]!r} (choose from: {', '.join(names)})")
+    return prof, [b for b in prof.branches if not branches or b.name in branches]
+
+
 def _step(model, opt, inputs, targets, precision: str, seed: int) -> tuple[float, float]:
     """One SGD step on the CPU in `precision` ("fp32" or "bf16") -> (seconds, loss)."""
     import torch
@@ -87,18 +103,11 @@ def bench_amp(profile: str = "cpu", branches: tuple[str, ...] = (), batch: int =
     """
     import torch
 
-    from fusion.nets import build_hydrafusion, load_profile
+    from fusion.nets import build_hydrafusion
     from sim.errors import UserError
     from study.device import default_threads, native_bf16
 
-    if steps < 1 or warmup < 0 or batch < 1:
-        raise UserError(f"bench amp: needs steps >= 1, warmup >= 0, batch >= 1 (got {steps}, {warmup}, {batch})")
-    prof = load_profile(profile, **(overrides or {}))
-    names = [b.name for b in prof.branches]
-    bad = [b for b in branches if b not in names]
-    if bad:
-        raise UserError(f"--branches: unknown branch {bad[0]!r} (choose from: {', '.join(names)})")
-    specs = [b for b in prof.branches if not branches or b.name in branches]
+    prof, specs = bench_setup("amp", profile, branches, steps, warmup, batch, overrides)
     before = torch.get_num_threads()
     n_threads = threads or default_threads()
     torch.set_num_threads(n_threads)

@@ -26,7 +26,7 @@ import statistics
 import time
 from collections import defaultdict
 
-from study.bench.amp import dataset_batch, synthetic_batch
+from study.bench.amp import bench_setup, dataset_batch, synthetic_batch
 from study.bench.scale import cpu_model
 
 PARTS = ("stems", "merge", "layer2", "layer3", "layer4", "neck", "rpn", "roi_align", "box_head", "box_predictor",
@@ -102,20 +102,13 @@ def bench_profile(profile: str = "cpu", branches: tuple[str, ...] = (), batch: i
     "bf16" (autocast of the backbones, as `hydrabench train --amp`)."""
     import torch
 
-    from fusion.nets import build_hydrafusion, load_profile
+    from fusion.nets import build_hydrafusion
     from sim.errors import UserError
     from study.device import DeviceSetup, default_threads
 
-    if steps < 1 or warmup < 0 or batch < 1:
-        raise UserError(f"bench profile: needs steps >= 1, warmup >= 0, batch >= 1 (got {steps}, {warmup}, {batch})")
     if precision not in ("fp32", "bf16"):
         raise UserError(f"--precision must be fp32 or bf16, got {precision!r}")
-    prof = load_profile(profile, **(overrides or {}))
-    names = [b.name for b in prof.branches]
-    bad = [b for b in branches if b not in names]
-    if bad:
-        raise UserError(f"--branches: unknown branch {bad[0]!r} (choose from: {', '.join(names)})")
-    specs = [b for b in prof.branches if not branches or b.name in branches]
+    prof, specs = bench_setup("profile", profile, branches, steps, warmup, batch, overrides)
     before = torch.get_num_threads()
     n_threads = threads or default_threads()
     torch.set_num_threads(n_threads)

@@ -140,31 +140,15 @@ def add_parser(sub, name, help_text):
                         "step time of each, the speed-up, the losses after the same steps, and whether this CPU has "
                         "native bf16 (AMX-BF16 / AVX512-BF16), which is what --amp auto picks by.",
                         formatter_class=Formatter)
-    a.add_argument("--profile", type=name_arg, default="cpu", help="model profile")
-    a.add_argument("--branches", type=name_list, default=(), help="comma-separated branches (default: the profile's)")
-    a.add_argument("--batch-size", type=int_range(1, 64, "batch-size"), default=4, help="frames per step")
-    a.add_argument("--steps", type=int_range(1, 1000, "steps"), default=3, help="timed steps of each precision")
-    a.add_argument("--warmup", type=int_range(0, 100, "warmup"), default=1, help="untimed steps first")
-    a.add_argument("--threads", type=nonneg_int, default=0, help="torch CPU threads (0: the cores available)")
-    a.add_argument("--seed", type=nonneg_int, default=0, help="initial weights, frames and sampling")
-    a.add_argument("--data", type=dataset_dir, default=None, metavar="DATASET",
-                   help="train on this dataset's first frames (default: synthetic frames)")
-    a.add_argument("--json", action="store_true", help="print one JSON object on stdout")
+    _training_bench_args(a, "timed steps of each precision", "train on this dataset's first frames (default: "
+                         "synthetic frames)")
     a.set_defaults(run=run_amp)
     pr = what.add_parser("profile", help="where one training step's time goes: stems, layer2-4, RPN, RoIAlign, box head, "
                          "backward, optimiser", description=_doc("study.bench.profile"), formatter_class=Formatter)
-    pr.add_argument("--profile", type=name_arg, default="cpu", help="model profile")
-    pr.add_argument("--branches", type=name_list, default=(), help="comma-separated branches (default: the profile's)")
-    pr.add_argument("--batch-size", type=int_range(1, 64, "batch-size"), default=4, help="frames per step")
-    pr.add_argument("--steps", type=int_range(1, 1000, "steps"), default=3, help="timed steps")
-    pr.add_argument("--warmup", type=int_range(0, 100, "warmup"), default=1, help="untimed steps first")
+    _training_bench_args(pr, "timed steps", "train on this dataset's first frames and time reading them (default: "
+                         "synthetic frames)")
     pr.add_argument("--precision", choices=("fp32", "bf16"), default="fp32",
                     help="fp32, or bf16 autocast of the backbones (as train --amp)")
-    pr.add_argument("--threads", type=nonneg_int, default=0, help="torch CPU threads (0: the cores available)")
-    pr.add_argument("--seed", type=nonneg_int, default=0, help="initial weights, frames and sampling")
-    pr.add_argument("--data", type=dataset_dir, default=None, metavar="DATASET",
-                    help="train on this dataset's first frames and time reading them (default: synthetic frames)")
-    pr.add_argument("--json", action="store_true", help="print one JSON object on stdout")
     pr.set_defaults(run=run_profile)
     f = what.add_parser("lidar-fog", help="lidar fog: our model against Hahner et al. ICCV 2021 on the same clean clouds",
                         description="Render clear frames (one short sequence per layout), apply the lidar fog "
@@ -328,6 +312,19 @@ def run_amp(args) -> int:
         "loss per step fp32 " + ", ".join(map(str, r["loss_per_step"]["fp32"]))
         + "; bf16 " + ", ".join(map(str, r["loss_per_step"]["bf16"]))]))
     return 0
+
+
+def _training_bench_args(p, steps_help: str, data_help: str) -> None:
+    """The options `bench amp` and `bench profile` share: the network, the frames, the steps."""
+    p.add_argument("--profile", type=name_arg, default="cpu", help="model profile")
+    p.add_argument("--branches", type=name_list, default=(), help="comma-separated branches (default: the profile's)")
+    p.add_argument("--batch-size", type=int_range(1, 64, "batch-size"), default=4, help="frames per step")
+    p.add_argument("--steps", type=int_range(1, 1000, "steps"), default=3, help=steps_help)
+    p.add_argument("--warmup", type=int_range(0, 100, "warmup"), default=1, help="untimed steps first")
+    p.add_argument("--threads", type=nonneg_int, default=0, help="torch CPU threads (0: the cores available)")
+    p.add_argument("--seed", type=nonneg_int, default=0, help="initial weights, frames and sampling")
+    p.add_argument("--data", type=dataset_dir, default=None, metavar="DATASET", help=data_help)
+    p.add_argument("--json", action="store_true", help="print one JSON object on stdout")
 
 
 def _doc(module: str) -> str:
