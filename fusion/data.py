@@ -53,6 +53,31 @@ def split_by_sequence(reader: DatasetReader, train_fraction: float = 0.7, seed: 
     return sorted(train), sorted(test)
 
 
+def hold_out_sequences(reader: DatasetReader, indices, fraction: float, seed: int = 0) -> tuple[list[int], list[int]]:
+    """Split frames into (kept, held out) by whole sequence (shard), per context, deterministic in
+    `seed`: the gate split of a run (`study.train.TrainConfig.gate_holdout`), sequences the detectors
+    never train on, whose per-branch losses are what the gates learn from.
+
+    `fraction` of each context's sequences (rounded, at least one when `fraction` > 0) is held out;
+    a context keeps at least one sequence. `fraction` 0 holds out nothing.
+    """
+    if not 0 <= fraction < 1:
+        raise ValueError(f"the held-out fraction must be in [0, 1), got {fraction}")
+    shards: dict[str, dict[str, list[int]]] = defaultdict(lambda: defaultdict(list))
+    for i in indices:
+        f = reader.manifest["frames"][int(i)]
+        shards[f["context"]][f["shard"]].append(int(i))
+    rng = np.random.default_rng([seed, 11])  # not the validation carve's stream (`study.selection`)
+    kept, held = [], []
+    for context in sorted(shards):
+        names = sorted(shards[context])
+        rng.shuffle(names)
+        n_held = min(max(int(round(fraction * len(names))), 1), len(names) - 1) if fraction > 0 else 0
+        for k, name in enumerate(names):
+            (held if k < n_held else kept).extend(shards[context][name])
+    return sorted(kept), sorted(held)
+
+
 def crop_bev_labels(lab: dict, size: tuple[int, int], full: int) -> dict:
     """BEV labels of the crop a model sees: rows [0, H) from the top (forward) and W columns centred.
 

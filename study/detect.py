@@ -11,7 +11,7 @@ import numpy as np
 import torch
 from torch.utils.data import DataLoader
 
-from fusion.data import FrameDataset, collate, split_by_sequence
+from fusion.data import FrameDataset, collate, hold_out_sequences, split_by_sequence
 from fusion.late import Detections, fuse
 from fusion.metrics import ImageMatches, evaluate_detections, sequence_draws
 from fusion.robustness import twin_relative_accuracy
@@ -73,11 +73,13 @@ def run_train_test(run_cfg: dict, data: str | Path, who: str) -> tuple[list[int]
 
 def frames_for(run_cfg: dict, data: str | Path, split: str = "auto") -> tuple[list[int], str]:
     """Which frames of `data` to evaluate: the run's test split when `data` is its training dataset
-    (same generation config), every frame otherwise; `split` = "test" | "train" | "all" forces it.
+    (same generation config), every frame otherwise; `split` = "test" | "train" | "gate" | "all"
+    forces it. "train" is the frames the detectors trained on; "gate" the run's gate split
+    (`TrainConfig.gate_holdout`: training sequences the detectors never saw; empty without one).
     "data-test": `data`'s own by-sequence test split with the run's split settings, on any dataset
     (the frames a run trained on `data` is tested on: two runs compared on the same frames)."""
-    if split not in ("auto", "test", "train", "all", "data-test"):
-        raise UserError(f"unknown split {split!r} (choose from: auto, test, train, all, data-test)")
+    if split not in ("auto", "test", "train", "gate", "all", "data-test"):
+        raise UserError(f"unknown split {split!r} (choose from: auto, test, train, gate, all, data-test)")
     reader = DatasetReader(data)
     if split == "data-test":
         return split_by_sequence(reader, run_cfg["train_fraction"], run_cfg["split_seed"])[1], split
@@ -89,7 +91,10 @@ def frames_for(run_cfg: dict, data: str | Path, split: str = "auto") -> tuple[li
     if not same:
         raise UserError(f"--split {split} needs the run's training dataset ({run_cfg.get('data')})")
     train, test = split_by_sequence(reader, run_cfg["train_fraction"], run_cfg["split_seed"])
-    return (test if split == "test" else train), split
+    if split == "test":
+        return test, split
+    train, gate = hold_out_sequences(reader, train, run_cfg.get("gate_holdout", 0.0), run_cfg["split_seed"])
+    return (train if split == "train" else gate), split
 
 
 def to_detections(d: dict) -> Detections:

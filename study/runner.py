@@ -103,6 +103,10 @@ class TrainSection:
         epochs, batch_size, lr, warmup_steps, clip_grad, seed, checkpoint_steps: as TrainConfig.
         eval_frames: test frames scored after each epoch (0 = all).
         protocol: ground truth to train on and score against (reference | visible | bev-free).
+        gate_holdout: share of the train split's sequences, per context, the detectors never train
+            on: the gate split the gates learn from and every choice is made on (0 = none: the
+            gates learn from the detectors' training frames, the choices are made on validation
+            sequences carved from them).
     """
 
     branches: tuple[str, ...] = ()
@@ -117,8 +121,11 @@ class TrainSection:
     checkpoint_steps: int = 100
     eval_frames: int = 0
     protocol: str = "reference"
+    gate_holdout: float = 0.0
 
     def __post_init__(self) -> None:
+        if not 0 <= self.gate_holdout < 1:
+            raise UserError(f"train.gate_holdout must be in [0, 1), got {self.gate_holdout}")
         for name in ("epochs", "batch_size", "checkpoint_steps"):
             _positive(f"train.{name}", getattr(self, name))
         for name in ("warmup_steps", "eval_frames", "seed"):
@@ -478,7 +485,8 @@ def train_stage(work: Path, data: Path, train_cfg: TrainSection, profile: str, s
                          branches=tuple(branches), epochs=t.epochs, batch_size=t.batch_size, lr=t.lr,
                          warmup_steps=t.warmup_steps, clip_grad=t.clip_grad, seed=t.seed,
                          checkpoint_steps=t.checkpoint_steps, eval_frames=t.eval_frames, threads=setup.threads,
-                         protocol=t.protocol, device=setup.device, amp=setup.amp, workers=setup.workers)
+                         protocol=t.protocol, device=setup.device, amp=setup.amp, workers=setup.workers,
+                         gate_holdout=t.gate_holdout)
         train(tc, work / name, progress=progress)
         digests[name] = file_sha256(work / name / "checkpoint.pt")
     return _digest(digests), {"checkpoints_sha256": digests}

@@ -32,7 +32,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from fusion.data import FrameDataset, collate, split_by_sequence
+from fusion.data import FrameDataset, collate, hold_out_sequences, split_by_sequence
 from fusion.nets.profile import load_profile
 from sensors.dataset import DatasetReader
 from sensors.dataset import check as check_dataset
@@ -60,6 +60,10 @@ class TrainConfig:
         lr_drop_epoch: lr x 0.1 from this epoch on (0 = 3/4 of `epochs`).
         clip_grad: gradient-norm clipping (0 = off).
         train_fraction, split_seed: the by-sequence split.
+        gate_holdout: share of the train split's sequences, per context, the detectors do not train
+            on (`fusion.data.hold_out_sequences`): the run's gate split, where the gates learn each
+            branch's loss on frames its detector never saw (0 = none: the gates learn from the
+            detectors' own training frames).
         seed: model initialisation and data order.
         checkpoint_steps: also checkpoint every this many steps within an epoch.
         checkpoint_seconds: also checkpoint when this many seconds passed since the last checkpoint
@@ -100,6 +104,7 @@ class TrainConfig:
     clip_grad: float = 10.0
     train_fraction: float = 0.7
     split_seed: int = 0
+    gate_holdout: float = 0.0
     seed: int = 0
     checkpoint_steps: int = 100
     checkpoint_seconds: float = 600.0
@@ -349,6 +354,8 @@ def check_config(cfg: TrainConfig, reader, ddp, out: Path) -> tuple[list, list[s
     if bad:
         raise UserError(f"unknown branch {bad[0]!r} in set {cfg.branch_set!r} (choose from: {', '.join(names)})")
     specs = [s for s in specs if s.name in chosen]
+    if not 0.0 <= cfg.gate_holdout < 1.0:
+        raise UserError(f"--gate-holdout is a share of the train split's sequences in [0, 1), got {cfg.gate_holdout}")
     if not 0.0 <= cfg.hflip <= 1.0:
         raise UserError(f"--hflip is a probability in [0, 1], got {cfg.hflip}")
     if not (cfg.checkpoint_seconds >= 0 and math.isfinite(cfg.checkpoint_seconds)):
@@ -564,6 +571,7 @@ def train(cfg: TrainConfig, out: Path, progress: bool = True) -> dict:
         check_same_run(out, run_cfg)
 
     train_idx, test_idx = split_by_sequence(reader, cfg.train_fraction, cfg.split_seed)
+    train_idx, _gate_idx = hold_out_sequences(reader, train_idx, cfg.gate_holdout, cfg.split_seed)
     model = build_model(cfg, run_cfg, specs, out)
     # Every checkpoint the run reads is read (and its weights loaded) before RUN/ is created or its
     # config.json rewritten: a truncated or foreign checkpoint is refused with nothing changed.

@@ -10,6 +10,7 @@ from study.cli import (
     count_int,
     dataset_dir,
     emit,
+    holdout_fraction,
     module_doc,
     name_arg,
     name_list,
@@ -60,6 +61,10 @@ def add_parser(sub, name, help_text):
                    "branches from camera_right, BEV ones from radar)")
     p.add_argument("--hflip", type=probability, default=0.0, help="probability of mirroring a training frame left-right "
                    "(all sensors and labels together; not with branches that fuse both cameras)")
+    p.add_argument("--gate-holdout", type=holdout_fraction, default=0.0,
+                   help="share of the train split's sequences, per context, the detectors do not train on: the run's "
+                   "gate split, where train-gate and eco-train-gate learn each branch's loss on unseen frames "
+                   "(default 0: none)")
     p.add_argument("--protocol", default="reference", choices=("reference", "visible", "bev"),
                    help="ground truth to train on and test against (README, 'Evaluation protocols'): reference = "
                    "the projected 3D box of every actor within range that some sensor observes (world truth); "
@@ -88,7 +93,7 @@ def run(args) -> int:
         clip_grad=args.clip_grad, seed=args.seed, eval_frames=args.eval_frames, threads=args.threads,
         checkpoint_steps=args.checkpoint_steps,
         checkpoint_seconds=args.checkpoint_seconds, init_from=",".join(str(Path(r).resolve()) for r in args.init_from or ()),
-        hflip=args.hflip, protocol=args.protocol, device=args.device, amp=args.amp, workers=args.workers,
+        hflip=args.hflip, gate_holdout=args.gate_holdout, protocol=args.protocol, device=args.device, amp=args.amp, workers=args.workers,
         sampling=_resolve_sampling(args.sampling, Path(args.out)),
     )
     result = training.train(cfg, Path(args.out))
