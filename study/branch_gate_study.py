@@ -44,7 +44,6 @@ from sim.progress import progress as progress_bar
 from study.device import resolve_device
 from study.gate_data import GateData, cached_sha256, checkpoint_path
 from study.outputs import atomic_path, torch_save_atomic, write_json_atomic
-from study.selection import validation_split
 
 TABLE_KS = (1, 3, 5, "all")
 SELECT_ON = ("regret", "mae")
@@ -89,7 +88,11 @@ class GateTrainConfig:
         batch_size: frames per step.
         lr: Adam learning rate (HydraFusion 5.3 trains its gates at 5e-5).
         weight_decay: Adam L2 penalty.
-        val_fraction: share of the train split's sequences (per context) held out to pick the epoch.
+        val_fraction: share of the gate split's sequences (per context; of the train split's when the
+            run has no gate split) the epoch and objective are picked on (`study.selection.gate_frames`).
+        targets: where the per-branch losses the gate learns come from (`study.selection.gate_frames`):
+            "holdout" (the run's gate split: frames the detectors never saw), "train" (the detectors'
+            own training frames) or "auto" (holdout when the run has a gate split).
         seed: initialisation, data order and validation split.
         grid: pooling grid (rows, columns) of the stem features.
         channels: widths of the three convs.
@@ -114,6 +117,7 @@ class GateTrainConfig:
     lr: float = 5e-5
     weight_decay: float = 0.0
     val_fraction: float = 0.15
+    targets: str = "auto"
     seed: int = 0
     grid: tuple[int, int] = (8, 16)
     channels: tuple[int, int, int] = (64, 32, 16)
@@ -130,6 +134,10 @@ class GateTrainConfig:
 
         if self.objective != AUTO:
             OBJECTIVES.get(self.objective)  # UserError naming the choices
+        from study.selection import TARGETS
+
+        if self.targets not in TARGETS:
+            raise UserError(f"targets: expected one of {', '.join(TARGETS)}, got {self.targets!r}")
         if not self.tau >= 0:
             raise UserError(f"tau: must be >= 0 (0: the default temperature), got {self.tau}")
         if self.select_on not in SELECT_ON:
@@ -332,16 +340,19 @@ def _write_csv(path: Path, rows: list[dict]) -> None:
         w.writerows(rows)
 
 
-def train_gate(run_dir, data, cfg: GateTrainConfig, progress: bool = True, fresh: bool = False, setup=None) -> dict:
+def train_gate(run_dir, data, cfg: GateTrainConfig, progress: bool = True, fresh: bool = False, setup=None,
+               out: Path | None = None) -> dict:
     """Build the gate dataset when missing, train the gate, report held-out MAE (see module doc).
 
     `setup` (`study.device.DeviceSetup`; default: --device auto with `cfg.threads`): where the run's
     network computes the gate dataset (stem features and per-sample losses, the expensive part, in
-    float32). The gate itself, a few small convs on pooled features, trains on the CPU."""
+    float32). The gate itself, a few small convs on pooled features, trains on the CPU. `out`: where
+    it is saved (default RUN/gates/<gate>; the study puts the in-sample comparison elsewhere)."""
 
     from fusion.nets.branch_gates import GATES, build_gate
     from sensors.dataset import DatasetReader
-    from study.detect import load_run, run_train_test
+    from study.detect import load_run
+    from study.selection import gate_frames
 
     cls = GATES.get(cfg.gate)
     if not cls.trainable:
@@ -352,12 +363,12 @@ def train_gate(run_dir, data, cfg: GateTrainConfig, progress: bool = True, fresh
     run_dir, data = Path(run_dir), Path(data)
     model, run_cfg = load_run(run_dir, cfg.checkpoint, device=setup.device)
     reader = DatasetReader(data)
-    train_idx, test_idx = run_train_test(run_cfg, data, "train-gate")
+    frames = gate_frames(run_cfg, data, cfg.targets, cfg.val_fraction, cfg.seed, "train-gate")
+    fit_idx, val_idx, test_idx = frames.fit, frames.val, frames.test
     gd = GateData(run_dir, data, model, cfg.checkpoint, cfg.grid)
-    out = run_dir / "gates" / cfg.gate
-    settings = {**dataclasses.asdict(cfg), "data_key": gd.key}
-    gd.ensure(train_idx + test_idx, progress=progress)
-    fit_idx, val_idx = validation_split(reader, train_idx, cfg.val_fraction, cfg.seed)
+    out = Path(out) if out is not None else run_dir / "gates" / cfg.gate
+    settings = {**dataclasses.asdict(cfg), "targets": frames.targets, "data_key": gd.key}
+    gd.ensure(fit_idx + val_idx + test_idx, progress=progress)
     x_fit, y_fit = gd.load(fit_idx)
     x_val, y_val = gd.load(val_idx)
     x_test, y_test = gd.load(test_idx)
@@ -376,6 +387,7 @@ def train_gate(run_dir, data, cfg: GateTrainConfig, progress: bool = True, fresh
     result = {
         "gate": cfg.gate, "run": str(run_dir), "data": str(data), "checkpoint": cfg.checkpoint,
         "optimizer": "Adam", "lr": cfg.lr, "loss": OBJECTIVE_LABEL[objective], "objective": objective,
+        "targets": frames.targets, "gate_split": frames.holdout,
         "objective_requested": cfg.objective, "objectives": objectives,
         "tau": fitted["tau"], "selected_on": f"validation {cfg.select_on}", "epochs": cfg.epochs,
         "best_epoch": fitted["best_epoch"], "val_mae": fitted["best_val_mae"], "val_regret": fitted["best_val_regret"],

@@ -150,7 +150,11 @@ class GatesSection:
 
     Fields:
         gates: the learned gates to train (deep, attention); knowledge and the oracles need none.
-        epochs, batch_size, lr, val_fraction, seed: as GateTrainConfig (HydraFusion 5.3: lr 5e-5).
+        epochs, batch_size, lr, val_fraction, seed, targets: as GateTrainConfig (HydraFusion 5.3:
+            lr 5e-5; targets "auto": the gate split when train.gate_holdout > 0).
+        compare_targets: with a gate split, also train every gate on the detectors' own training
+            frames (validated on the same gate-split frames), so the report measures what held-out
+            targets change (under RUN/gates/<gate>/in_sample/ and RUN/eco/gates/<gate>/in_sample/).
         eco_max_frames: at most this many frames of each split for EcoFusion (0 = all).
         fusion: late fusion of an EcoFusion configuration (nms | soft-nms | wbf; EcoFusion 4.4: wbf).
         energy_frames, energy_repeats, energy_check: the latency measurement (eco-energy).
@@ -162,6 +166,8 @@ class GatesSection:
     lr: float = 5e-5
     val_fraction: float = 0.15
     seed: int = 0
+    targets: str = "auto"
+    compare_targets: bool = True
     eco_max_frames: int = 0
     fusion: str = "wbf"
     energy_frames: int = 3
@@ -182,6 +188,8 @@ class GatesSection:
             raise UserError(f"gates.val_fraction must be in [0, 1), got {self.val_fraction}")
         if self.fusion not in ("nms", "soft-nms", "wbf"):
             raise UserError(f"gates.fusion must be nms, soft-nms or wbf, got {self.fusion!r}")
+        if self.targets not in ("auto", "holdout", "train"):
+            raise UserError(f"gates.targets must be auto, holdout or train, got {self.targets!r}")
 
 
 @dataclass(frozen=True)
@@ -503,9 +511,10 @@ def gatedata_stage(work: Path, run_paper: Path, data: Path, settings, batch_size
     link_farm(run_paper, run)
     model, run_cfg = load_run(run, "latest", device=setup.device)
     train_idx, _ = frames_for(run_cfg, data, "train")
+    gate_idx, _ = frames_for(run_cfg, data, "gate")
     test_idx, _ = frames_for(run_cfg, data, "test")
     gd = GateData(run, data, model)
-    gd.ensure(train_idx + test_idx, batch_size=batch_size, progress=progress)
+    gd.ensure(sorted(train_idx + gate_idx + test_idx), batch_size=batch_size, progress=progress)
     eco = build_eco_data(run, data, settings, progress=progress, device=setup.device, val_fraction=val_fraction,
                          seed=seed)
     return _digest({"gate_data": gd.key, "eco_data": Path(eco["eco_data"]).name}), {
@@ -515,6 +524,8 @@ def gatedata_stage(work: Path, run_paper: Path, data: Path, settings, batch_size
 def gates_stage(work: Path, gatedata_run: Path, data: Path, gates: GatesSection, settings, setup, say,
                 progress: bool) -> tuple[str, dict]:
     """The learned HydraFusion and EcoFusion gates and the latency table, under work/run."""
+    import dataclasses
+
     from study.branch_gate_study import GateTrainConfig, train_gate
     from study.eco.config_gate_study import train_eco_gate
     from study.eco.energy import energy_table
@@ -522,16 +533,33 @@ def gates_stage(work: Path, gatedata_run: Path, data: Path, gates: GatesSection,
     g = gates
     run = work / "run"
     link_farm(gatedata_run, run)
+    from study.detect import frames_for
+    from study.study_eval import IN_SAMPLE
+
+    run_cfg = json.loads((run / "config.json").read_text())
+    compare = g.compare_targets and g.targets != "train" and bool(frames_for(run_cfg, data, "gate")[0])
     out, digests = {}, {}
     for gate in g.gates:
         gate_cfg = GateTrainConfig(gate=gate, epochs=g.epochs, batch_size=g.batch_size, lr=g.lr,
-                                   val_fraction=g.val_fraction, seed=g.seed, threads=setup.threads)
+                                   val_fraction=g.val_fraction, seed=g.seed, threads=setup.threads, targets=g.targets)
+        in_sample = dataclasses.replace(gate_cfg, targets="train")
         say(f"gates: HydraFusion {gate} gate")
         out[f"hydra_{gate}"] = train_gate(run, data, gate_cfg, progress=progress, setup=setup)
         digests[f"hydra_{gate}"] = file_sha256(run / "gates" / gate / "gate.pt")
+        if compare:
+            say(f"gates: HydraFusion {gate} gate on the detectors' training frames (the comparison)")
+            d = run / "gates" / gate / IN_SAMPLE
+            out[f"hydra_{gate}_{IN_SAMPLE}"] = train_gate(run, data, in_sample, progress=progress, setup=setup, out=d)
+            digests[f"hydra_{gate}_{IN_SAMPLE}"] = file_sha256(d / "gate.pt")
         say(f"gates: EcoFusion {gate} gate")
         out[f"eco_{gate}"] = train_eco_gate(run, data, gate, gate_cfg, settings, progress=progress)
         digests[f"eco_{gate}"] = file_sha256(run / "eco" / "gates" / gate / "gate.pt")
+        if compare:
+            say(f"gates: EcoFusion {gate} gate on the detectors' training frames (the comparison)")
+            d = settings.gate_dir(run, gate) / IN_SAMPLE
+            out[f"eco_{gate}_{IN_SAMPLE}"] = train_eco_gate(run, data, gate, in_sample, settings, progress=progress,
+                                                          out=d)
+            digests[f"eco_{gate}_{IN_SAMPLE}"] = file_sha256(d / "gate.pt")
     say("gates: latency and energy of every configuration")
     energy = energy_table(run, data, settings, threads=1, repeats=g.energy_repeats, frames=g.energy_frames,
                           progress=progress, n_check=g.energy_check)

@@ -2,10 +2,16 @@
 
 Every choice the study makes from data (a gate's training epoch and objective, the late-fusion
 method of the fixed methods, HydraFusion Table 3's fusion per gate, L_f's weights) is made on the
-validation frames: whole sequences carved from the run's training split, per context
-(`validation_split`, the frames the gates pick their epoch on). The
-detectors trained on these frames too (the run has one training split), so they flatter the
-branches a little; they are never test frames.
+validation frames (`gate_frames`): whole sequences, per context, carved (`validation_split`) from
+the run's gate split when it has one (`study.train.TrainConfig.gate_holdout`: training sequences the
+detectors never saw), else from the frames the detectors trained on, which flatter the branches a
+little. They are never test frames.
+
+What a gate learns from (`gate_frames`' `targets`): "holdout", the gate split's other sequences, so
+each branch's loss is the loss it has on frames it never saw, as on test frames; or "train", the
+detectors' own training frames, where a branch that overfits looks better than it will be ("auto":
+holdout when the run has a gate split). Either way the validation frames are the same, so the two
+are compared on the same frames.
 
 `SelectionLog` is the guard: it is built from the run's test indices, and every choice goes through
 `choose(what, candidates, indices, ...)`, which raises `TestSplitLeak` when any index it is handed is
@@ -20,6 +26,9 @@ from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass, field
 
 import numpy as np
+
+TARGETS = ("auto", "holdout", "train")
+"""Where a gate's per-branch targets come from (`gate_frames`)."""
 
 
 class TestSplitLeak(RuntimeError):
@@ -96,3 +105,48 @@ def validation_split(reader, indices, fraction: float, seed: int) -> tuple[list[
         for j, name in enumerate(names):
             (val if j < n_val else fit).extend(shards[ctx][name])
     return sorted(fit), sorted(val)
+
+
+@dataclass(frozen=True)
+class GateFrames:
+    """A run's frames as its gates use them: `fit` (what a gate learns from), `val` (what its epoch,
+    its objective and the study's fusion methods are chosen on), `test`; `targets` resolved
+    ("holdout" | "train") and `holdout` (whether the run has a gate split)."""
+
+    targets: str
+    holdout: bool
+    fit: list[int]
+    val: list[int]
+    test: list[int]
+
+
+def gate_frames(run_cfg: dict, data, targets: str = "auto", val_fraction: float = 0.15, seed: int = 0,
+                who: str = "train-gate") -> GateFrames:
+    """The fitting, validation and test frames of a run's gates (see the module docstring).
+
+    With a gate split, the validation frames are `val_fraction` of its sequences per context
+    (`validation_split`), whatever `targets`; "holdout" fits on the rest of the gate split, "train"
+    on every frame the detectors trained on. Without one, "train" (and "auto") carve the validation
+    frames from the detectors' training frames as before, and "holdout" is refused."""
+    from sensors.dataset import DatasetReader
+    from sim.errors import UserError
+    from study.detect import frames_for, run_train_test
+
+    if targets not in TARGETS:
+        raise UserError(f"targets: expected one of {', '.join(TARGETS)}, got {targets!r}")
+    train, test = run_train_test(run_cfg, data, who)
+    gate, _ = frames_for(run_cfg, data, "gate")
+    reader = DatasetReader(data)
+    if targets == "auto":
+        targets = "holdout" if gate else "train"
+    if not gate:
+        if targets == "holdout":
+            raise UserError(f"{who}: targets 'holdout' need a gate split, and this run has none (train it with "
+                            "--gate-holdout, or study train.gate_holdout > 0)")
+        fit, val = validation_split(reader, train, val_fraction, seed)
+        return GateFrames("train", False, fit, val, test)
+    rest, val = validation_split(reader, gate, val_fraction, seed)
+    fit = rest if targets == "holdout" else list(train)
+    if not fit:
+        raise UserError(f"{who}: val_fraction {val_fraction:g} leaves no gate-split sequence to fit on; lower it")
+    return GateFrames(targets, True, fit, val, test)

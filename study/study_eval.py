@@ -164,12 +164,16 @@ def evaluate_study(run, run_early, data, cfg, s, work: Path, setup=None, progres
     record["gate_training"] = gate_training(run, s, learned)
     record["lambda_front"] = lambda_front(eco_tables, ev)
     record["choices"] = log.choices
+    split = "gate split" if val.holdout else "train split"
     record["validation"] = {"frames": len(val.indices), "sequences": val.sequences, "carved": val.carved,
-                            "what": (f"{cfg.gates.val_fraction:g} of the train split's sequences per context (seed "
+                            "holdout": val.holdout,
+                            "what": (f"{cfg.gates.val_fraction:g} of the {split}'s sequences per context (seed "
                                      f"{cfg.gates.seed}): the frames every learned gate picks its epoch and objective "
-                                     "on; the detectors trained on them too") if val.carved else
-                            ("every frame of the train split: too few sequences per context to carve a validation "
-                             "share, so the choices read training frames (never test frames)")}
+                                     "on; " + ("sequences the detectors never trained on (train.gate_holdout "
+                                               f"{cfg.train.gate_holdout:g})" if val.holdout else
+                                               "the detectors trained on them too")) if val.carved else
+                            (f"every fitting frame of the {split}: too few sequences per context to carve a "
+                             "validation share, so the choices read the gates' fitting frames (never test frames)")}
     from study.robustness_table import robustness_table
 
     record["robustness"] = robustness_table(record)  # MultiCorrupt's RA, Robo3D's RR and CE, against late fusion
@@ -177,19 +181,21 @@ def evaluate_study(run, run_early, data, cfg, s, work: Path, setup=None, progres
 
 
 class ValidationFrames:
-    """The validation frames of the study (whole sequences of the train split, per context, the ones
-    the gates pick their epoch on, `study.branch_gate_study.validation_split`): each branch's cached
-    detections there (`study.eco.data.EcoData`), fused and scored on demand. Every index passes the
-    guard (`study.selection.SelectionLog.check`) before anything is read."""
+    """The validation frames of the study (`study.selection.gate_frames`: whole sequences per context
+    of the run's gate split, or of its train split when it has none; the ones the gates pick their
+    epoch and objective on): each branch's cached detections there (`study.eco.data.EcoData`),
+    fused and scored on demand. Every index passes the guard
+    (`study.selection.SelectionLog.check`) before anything is read."""
 
     def __init__(self, ev, fraction: float, seed: int, log) -> None:
-        from study.eco.data import detections_from_array
-        from study.selection import sequences_of, validation_split
+        from study.eco.data import detections_from_array, eco_gate_frames
+        from study.selection import sequences_of
 
-        _, val = validation_split(ev.reader, ev.train, fraction, seed)
-        self.carved = bool(val)
-        if not val:  # too few sequences per context to carve any: choose on the training frames
-            val = list(ev.train)
+        frames = eco_gate_frames(ev.run_cfg, ev.data, 0, "auto", fraction, seed)
+        val = frames.val
+        self.carved, self.holdout = bool(val), frames.holdout
+        if not val:  # too few sequences per context to carve any: choose on the fitting frames
+            val = list(frames.fit)
         self.ev, self.indices = ev, log.check(val, "validation frames")
         self.sequences = sequences_of(ev.reader, self.indices)
         ev.ed.ensure(self.indices, progress=False)
@@ -231,18 +237,29 @@ def table3_on_validation(run, data, ev, val: ValidationFrames, hydra_tables: dic
 
 def gate_training(run, s, learned) -> dict:
     """What each learned gate was trained on and how its choice compares on the test frames (the
-    gates stage's result.json): the objective kept and every objective's validation regret, the
-    epoch, and the choice beside the best constant, the per-context constant and the oracle."""
-    keys = ("objective", "objectives", "best_epoch", "val_regret", "val_mae", "tau", "choice", "train_frames",
-            "val_frames", "test_frames", "selected_on")
+    gates stage's result.json): the targets and objective kept and every objective's validation
+    regret, the epoch, and the choice beside the best constant, the per-context constant and the
+    oracle; under "in_sample", the same gate trained on the detectors' own training frames
+    (`GatesSection.compare_targets`), validated on the same frames: what held-out targets change."""
+    keys = ("targets", "objective", "objectives", "best_epoch", "val_regret", "val_mae", "tau", "choice",
+            "train_frames", "val_frames", "test_frames", "selected_on")
     out = {}
     for g in learned:
-        for fam, path in (("hydrafusion", Path(run) / "gates" / g / "result.json"),
-                          ("ecofusion", s.gate_dir(run, g) / "result.json")):
+        for fam, d in (("hydrafusion", Path(run) / "gates" / g), ("ecofusion", s.gate_dir(run, g))):
+            path = d / "result.json"
             if path.exists():
                 r = json.loads(path.read_text())
                 out[f"{fam}:{g}"] = {k: r.get(k) for k in keys}
+                other = d / IN_SAMPLE / "result.json"
+                if other.exists():
+                    r = json.loads(other.read_text())
+                    out[f"{fam}:{g}"]["in_sample"] = {k: r.get(k) for k in keys}
     return out
+
+
+IN_SAMPLE = "in_sample"
+"""Where (under a gate's directory) the study saves the same gate trained on the detectors' own
+training frames, beside the one trained on the gate split."""
 
 
 def lambda_front(eco_tables: dict, ev) -> dict:
@@ -584,13 +601,15 @@ def results_record(ev, setup, e, method: str, run_cfg: dict, data, singles, late
     contexts = [m["context"] for m in ev.metas]
     ctx_list = sorted(set(contexts))
     train_idx, _ = frames_for(run_cfg, data, "train")
+    gate_idx, _ = frames_for(run_cfg, data, "gate")
     branches = list(ev.ed.branches)
     return {
         "protocol": ev.ed.protocol,
         "metric": "VOC all-point AP at IoU 0.5 in the right camera, difficult ground truth ignored; "
                   "vehicle mAP = mean over car, van, truck, bus",
         "fusion": method,
-        "dataset": {"frames": len(ev.reader), "train_frames": len(train_idx), "test_frames": len(ev.test),
+        "dataset": {"frames": len(ev.reader), "train_frames": len(train_idx), "gate_frames": len(gate_idx),
+                    "test_frames": len(ev.test),
                     "contexts": ctx_list, "twins": bool(ev.reader.manifest["config"].get("twins")),
                     "frames_per_context_test": {c: contexts.count(c) for c in ctx_list}},
         "machine": machine_description(setup.threads if setup else 1),

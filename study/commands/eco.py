@@ -261,7 +261,7 @@ def add_eco_train_gate(sub, name, help_text):
     p.add_argument("--epochs", type=pos_int, default=100, help="passes over the training frames (more: continues)")
     p.add_argument("--gate-batch-size", type=pos_int, default=32, help="frames per Adam step")
     p.add_argument("--lr", type=pos_float, default=5e-5, help="Adam learning rate (HydraFusion 5.3's gate rate)")
-    p.add_argument("--val-fraction", type=holdout_fraction, default=0.15, help="share of train sequences held out to pick the epoch")
+    p.add_argument("--val-fraction", type=holdout_fraction, default=0.15, help="share of the gate split's sequences (the train split's when the run has none) held out to pick the epoch")
     p.add_argument("--grid", type=pool_grid, default="8x16", help="ROWSxCOLS the stem features are pooled to")
     p.add_argument("--seed", type=nonneg_int, default=0, help="initialisation, data order, validation split")
     p.add_argument("--threads", type=pos_int, default=2, help="torch CPU threads")

@@ -44,13 +44,18 @@ def add_objective_args(p) -> None:
                         "lowest regret on the validation sequences")
     p.add_argument("--tau", type=nonneg_float, default=0.0,
                    help="temperature of soft_ce and expected, in loss units (0: the median within-frame spread)")
+    p.add_argument("--targets", default="auto", choices=["auto", "holdout", "train"],
+                   help="which frames' per-branch losses the gate learns: holdout, the run's gate split (trained with "
+                        "train --gate-holdout: frames the detectors never saw); train, the detectors' own training "
+                        "frames (where overfitting branches look better than they are); auto (default): holdout when "
+                        "the run has a gate split. Both are validated on the same gate-split sequences")
     p.add_argument("--select-on", default="regret", choices=list(branch_gate_study.SELECT_ON),
                    help="what picks the epoch on the validation sequences: the regret of the gate's choice "
                         "(ties by MAE) or MAE")
 
 
 def parse_objective_fields(args) -> dict:
-    return {"objective": args.objective, "tau": args.tau, "select_on": args.select_on}
+    return {"objective": args.objective, "tau": args.tau, "select_on": args.select_on, "targets": args.targets}
 
 
 def format_choice_lines(r: dict, what: str) -> list[str]:
@@ -59,6 +64,10 @@ def format_choice_lines(r: dict, what: str) -> list[str]:
     if not c:
         return []
     lines = []
+    if r.get("targets"):
+        lines.append(f"  targets: {r['targets']} ({r.get('train_frames')} frames: "
+                     + ("the gate split, never seen by the detectors" if r["targets"] == "holdout"
+                        else "the detectors' own training frames") + f"); validation {r.get('val_frames')} frames")
     if len(r.get("objectives") or {}) > 1:
         lines.append("  objectives (validation regret, the lowest kept): " + ", ".join(
             f"{n} {v['val_regret']}" for n, v in r["objectives"].items()) + f" -> {r['objective']}")
@@ -80,7 +89,8 @@ def add_train_gate(sub, name, help_text):
     p.add_argument("--batch-size", type=pos_int, default=32, help="frames per Adam step")
     p.add_argument("--lr", type=pos_float, default=5e-5, help="Adam learning rate (HydraFusion 5.3)")
     p.add_argument("--val-fraction", type=holdout_fraction, default=0.15,
-                   help="share of the train split's sequences held out to pick the epoch")
+                   help="share of the gate split's sequences (the train split's when the run has none), per "
+                        "context, held out to pick the epoch and objective")
     p.add_argument("--grid", type=pool_grid, default="8x16", help="ROWSxCOLS the stem features are pooled to")
     p.add_argument("--seed", type=nonneg_int, default=0, help="initialisation, data order, validation split")
     p.add_argument("--checkpoint", type=checkpoint_arg, default="latest", help="latest, or epoch-NNN")

@@ -18,18 +18,17 @@ from study.branch_gate_study import (
     fit_objectives,
     mae,
     predict_losses,
-    validation_split,
 )
-from study.eco.data import EcoSettings, eco_splits, open_eco_run
+from study.eco.data import EcoSettings, eco_gate_frames, open_eco_run
 from study.outputs import torch_save_atomic, write_json_atomic
 
 
 def train_eco_gate(run_dir, data, gate: str, cfg: GateTrainConfig, s: EcoSettings = EcoSettings(),
-                   progress: bool = True, fresh: bool = False) -> dict:
+                   progress: bool = True, fresh: bool = False, out: Path | None = None) -> dict:
     """`hydrabench eco-train-gate`: the deep or attention configuration gate, trained on L_f of
     every configuration with `cfg.objective` (Adam; "auto": every objective, the lowest validation
-    regret kept), on the run's train split; saved in RUN/eco/gates/<gate>/ (resumable, like
-    train-gate)."""
+    regret kept), on the run's gate split (`cfg.targets`, `study.selection.gate_frames`); saved in
+    `out` (default RUN/eco/gates/<gate>/; resumable, like train-gate)."""
     from fusion.eco.config_gates import CONFIG_GATES, build_config_gate
     from sensors.dataset import DatasetReader
 
@@ -38,12 +37,12 @@ def train_eco_gate(run_dir, data, gate: str, cfg: GateTrainConfig, s: EcoSetting
         raise UserError(f"--gate {gate}: nothing to train (train deep or attention)")
     run_dir, data = Path(run_dir), Path(data)
     model, run_cfg, configs, ed = open_eco_run(run_dir, data, s, cfg.threads)
-    train, test = eco_splits(run_cfg, data, s.max_frames)
-    ed.ensure(train + test, batch_size=s.batch_size, progress=progress)
-    out = s.gate_dir(run_dir, gate)
+    frames = eco_gate_frames(run_cfg, data, s.max_frames, cfg.targets, cfg.val_fraction, cfg.seed, "eco-train-gate")
+    fit_idx, val_idx, test = frames.fit, frames.val, frames.test
+    ed.ensure(fit_idx + val_idx + test, batch_size=s.batch_size, progress=progress)
+    out = Path(out) if out is not None else s.gate_dir(run_dir, gate)
     loss = dataclasses.asdict(ed.weights)
-    settings = {**dataclasses.asdict(cfg), "gate": gate, "data_key": ed.key, "loss": loss}
-    fit_idx, val_idx = validation_split(DatasetReader(data), train, cfg.val_fraction, cfg.seed)
+    settings = {**dataclasses.asdict(cfg), "gate": gate, "targets": frames.targets, "data_key": ed.key, "loss": loss}
     x_fit, x_val, x_test = (ed.arrays(i, ["features"])["features"] for i in (fit_idx, val_idx, test))
     y_fit, y_val, y_test = (ed.losses(i).astype(np.float32) for i in (fit_idx, val_idx, test))
     out.mkdir(parents=True, exist_ok=True)
@@ -53,8 +52,8 @@ def train_eco_gate(run_dir, data, gate: str, cfg: GateTrainConfig, s: EcoSetting
         f"{gate} configuration gate", progress, extra={"data_key": ed.key, "loss": loss}, net=lambda c: c.net)
     pred = predict_losses(g, x_test)
     mean_c = y_fit.mean(axis=0)
-    frames = DatasetReader(data).manifest["frames"]
-    contexts = [[frames[int(i)]["context"] for i in idx] for idx in (fit_idx, test)]
+    meta = DatasetReader(data).manifest["frames"]
+    contexts = [[meta[int(i)]["context"] for i in idx] for idx in (fit_idx, test)]
     from fusion.eco.optimise import select
 
     zero = np.zeros(len(configs))
@@ -63,6 +62,7 @@ def train_eco_gate(run_dir, data, gate: str, cfg: GateTrainConfig, s: EcoSetting
         "gate": gate, "run": str(run_dir), "data": str(data), "configurations": len(configs), "optimizer": "Adam",
         "lr": cfg.lr, "loss": f"{OBJECTIVE_LABEL[objective]} of L_f per configuration", "loss_definition": loss,
         "objective": objective, "objective_requested": cfg.objective, "objectives": objectives,
+        "targets": frames.targets, "gate_split": frames.holdout,
         "tau": fitted["tau"], "selected_on": f"validation {cfg.select_on}",
         "epochs": cfg.epochs, "choice": choice_table(pred, y_fit, y_test, *contexts, configs.names),
         "best_epoch": fitted["best_epoch"], "val_mae": fitted["best_val_mae"], "val_regret": fitted["best_val_regret"],

@@ -261,26 +261,40 @@ def eco_splits(cfg, data, max_frames: int = 0) -> tuple[list[int], list[int]]:
     return _subsample(train, max_frames), _subsample(test, max_frames)
 
 
+def eco_gate_frames(cfg, data, max_frames: int = 0, targets: str = "auto", val_fraction: float = 0.15,
+                    seed: int = 0, who: str = "EcoFusion"):
+    """`study.selection.gate_frames` of an EcoFusion run, its fitting and test frames cut to at most
+    `max_frames` evenly spaced ones (0 = all)."""
+    import dataclasses as dc
+
+    from study.selection import gate_frames
+
+    f = gate_frames(cfg, data, targets, val_fraction, seed, who)
+    return dc.replace(f, fit=_subsample(f.fit, max_frames), test=_subsample(f.test, max_frames))
+
+
 def build_eco_data(run_dir, data, s: EcoSettings = EcoSettings(), progress: bool = True, device: str = "cpu",
                    val_fraction: float = 0.15, seed: int = 0) -> dict:
-    """`hydrabench eco-data`: build (or complete) the configuration dataset and report how well
-    L_f ranks configurations by per-frame AP (rank correlation, per definition variant) on the
-    validation sequences carved from the training split (`val_fraction`, `seed`: the gates'
-    validation frames, `study.branch_gate_study.validation_split`), so a choice of L_f's weights
-    made from it reads no test frame; on every training frame when there are too few sequences
-    to carve any. The network runs on `device` (a torch device string, `study.device`), in fp32."""
+    """`hydrabench eco-data`: build (or complete) the configuration dataset (the run's training,
+    gate-split and test frames) and report how well L_f ranks configurations by per-frame AP (rank
+    correlation, per definition variant) on the gates' validation frames (`val_fraction`, `seed`:
+    `study.selection.gate_frames`, from the gate split when the run has one), so a choice of L_f's
+    weights made from it reads no test frame; on every fitting frame when there are too few
+    sequences to carve any. The network runs on `device` (a torch device string, `study.device`),
+    in fp32."""
     from fusion.eco.loss import FusedLossSpec
-    from sensors.dataset import DatasetReader
-    from study.selection import validation_split
+    from study.detect import frames_for
 
     run_dir, data = Path(run_dir), Path(data)
     model, cfg, configs, ed = open_eco_run(run_dir, data, s, device=device)
     train, test = eco_splits(cfg, data, s.max_frames)
+    frames = eco_gate_frames(cfg, data, s.max_frames, "auto", val_fraction, seed)
+    gate, _ = frames_for(cfg, data, "gate")
     t0 = time.perf_counter()
-    computed = ed.ensure(train + test, batch_size=s.batch_size, progress=progress)
+    computed = ed.ensure(sorted(set(train) | set(gate) | set(test)), batch_size=s.batch_size, progress=progress)
     seconds = time.perf_counter() - t0
-    _, val = validation_split(DatasetReader(data), train, val_fraction, seed)
-    on = val or train
+    val = frames.val
+    on = val or frames.fit
     arr = ed.arrays(on, ["terms", "ap"])
     corr = {}
     for name, kw in LOSS_VARIANTS.items():
@@ -292,10 +306,11 @@ def build_eco_data(run_dir, data, s: EcoSettings = EcoSettings(), progress: bool
     return {
         "run": str(run_dir), "data": str(data), "eco_data": str(ed.dir), "configurations": len(configs),
         "baselines": {k: configs.names[v] for k, v in configs.baselines.items()},
-        "frames": {"train": len(train), "test": len(test)}, "computed_frames": computed,
+        "frames": {"train": len(train), "gate": len(gate), "test": len(test)}, "computed_frames": computed,
         "seconds": round(seconds, 1), "fusion": ed.fusion, "loss_definition": dataclasses.asdict(ed.weights),
         "loss_vs_ap_validation": corr,
-        "loss_vs_ap_on": f"{'validation' if val else 'training'} frames of the train split ({len(on)}), never test frames",
+        "loss_vs_ap_on": f"{'validation' if val else 'fitting'} frames of the "
+                         f"{'gate' if frames.holdout else 'train'} split ({len(on)}), never test frames",
         "mean_loss_test": {configs.names[i]: round(float(lf[:, i].mean()), 4) for i in range(len(configs))},
         "lowest_mean_loss_test": configs.names[int(np.argmin(lf.mean(axis=0)))] if len(lf) else None,
         "note": "rank correlation per frame across configurations between L_f and the frame's AP@0.5 "

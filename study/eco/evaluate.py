@@ -16,7 +16,14 @@ from sim.errors import UserError
 from sim.progress import progress as progress_bar
 from study.branch_gate_study import predict_losses
 from study.eco.config_gate_study import load_eco_gate
-from study.eco.data import EcoSettings, detections_from_array, eco_splits, fuse_choice, open_eco_run
+from study.eco.data import (
+    EcoSettings,
+    detections_from_array,
+    eco_gate_frames,
+    eco_splits,
+    fuse_choice,
+    open_eco_run,
+)
 from study.eco.energy import energy_table
 
 GATE_ORDER = ("knowledge", "deep", "attention", "loss_based")
@@ -37,8 +44,12 @@ class EcoEval:
 
         self.run_dir, self.data, self.s = Path(run_dir), Path(data), s
         self.model, cfg, self.configs, self.ed = open_eco_run(self.run_dir, self.data, s, threads)
+        self.run_cfg = cfg
         train, self.test = eco_splits(cfg, self.data, s.max_frames)
-        self.train = train
+        # the frames the gates learn from: the gate split's when the run has one (L_f there is L_f on
+        # unseen frames, as on the test frames), else the detectors' training frames
+        frames = eco_gate_frames(cfg, self.data, s.max_frames, "auto", 0.0)
+        self.train = train = frames.fit
         self.ed.ensure(train + self.test, batch_size=s.batch_size, progress=progress)
         self.reader = DatasetReader(self.data)
         self.metas = [self.reader.meta(i) for i in self.test]
@@ -75,7 +86,7 @@ class EcoEval:
                 self.predicted[g] = predict_losses(gate, self.features)
 
     def _loss_unit(self, train) -> float:
-        """Late fusion's mean L_f over the training frames ("late" loss scale; every configuration's
+        """Late fusion's mean L_f over the frames the gates learn from ("late" loss scale; every configuration's
         where the set has no late fusion, as energy falls back to the largest), or 1 ("raw")."""
         from fusion.eco.optimise import LOSS_SCALES, loss_unit
 

@@ -1,7 +1,7 @@
 import numpy as np
 import pytest
 
-from fusion.data import crop_bev_labels, split_by_sequence
+from fusion.data import crop_bev_labels, hold_out_sequences, split_by_sequence
 
 
 def test_bev_crop_keeps_pixel_coordinates_and_drops_mostly_hidden_boxes():
@@ -36,3 +36,25 @@ def test_split_is_by_sequence_and_stratified():
     with pytest.raises(ValueError):
         split_by_sequence(r, 1.0)
     assert np.isclose(len(train) / 30, 0.7, atol=0.1)
+
+
+def test_the_gate_split_holds_out_whole_sequences_per_context():
+    shards = [(f"s{i}", "fog" if i < 6 else "city", 4) for i in range(10)]  # 6 fog, 4 city sequences
+    r = FakeReader(shards)
+    frames = r.manifest["frames"]
+    kept, held = hold_out_sequences(r, range(40), 0.3, seed=2)
+    assert sorted(kept + held) == list(range(40)) and not set(kept) & set(held)
+    shard = lambda idx: {frames[i]["shard"] for i in idx}  # noqa: E731
+    assert not shard(kept) & shard(held)  # whole sequences
+    per_ctx = lambda idx, c: len({frames[i]["shard"] for i in idx if frames[i]["context"] == c})  # noqa: E731
+    assert per_ctx(held, "fog") == 2 and per_ctx(held, "city") == 1  # round(0.3 * 6), round(0.3 * 4)
+    assert (kept, held) == hold_out_sequences(r, range(40), 0.3, seed=2)
+    assert (kept, held) != hold_out_sequences(r, range(40), 0.3, seed=3)
+    # a subset (the train split) is carved from its own sequences only; 0 holds out nothing
+    sub = [i for i in range(40) if frames[i]["shard"] in ("s0", "s1", "s6")]
+    k2, h2 = hold_out_sequences(r, sub, 0.5, seed=0)
+    assert sorted(k2 + h2) == sub and per_ctx(h2, "fog") == 1 and per_ctx(h2, "city") == 0  # one left: kept
+    assert hold_out_sequences(r, range(40), 0.0) == (list(range(40)), [])
+    assert per_ctx(hold_out_sequences(r, range(40), 0.01)[1], "city") == 1  # any share holds out one sequence
+    with pytest.raises(ValueError, match=r"\[0, 1\)"):
+        hold_out_sequences(r, range(40), 1.0)

@@ -238,6 +238,7 @@ def test_fp_weight_reweights_cached_terms_and_keeps_its_gates_apart(eco, data, c
     (["eco-evaluate", "--gates", "magic"], "unknown gate 'magic'"),
     (["eco-evaluate", "--fusion", "max"], "--fusion: invalid choice: 'max'"),
     (["eco-train-gate", "--gate", "knowledge"], "nothing to train"),
+    (["eco-train-gate", "--gate", "deep", "--targets", "holdout"], "need a gate split, and this run has none"),
     (["eco-sweep", "--out", "/proc/no/such", "--gates", "knowledge"], "/proc is not writable"),
     (["eco-energy", "--power", "-4"], "--power"),
     (["eco-train-gate", "--gate", "deep", "--fp-weight", "-1"], "--fp-weight: must be >= 0"),

@@ -183,6 +183,8 @@ def test_evaluate_bad_gate_input_exits_2_with_one_line(run, data, argv, needle, 
     (["--gate", "magic"], "unknown gate 'magic'"),
     (["--gate", "deep", "--grid", "2x2"], "grid must be at least 4x4"),
     (["--gate", "deep", "--val-fraction", "1.5"], "must be in [0, 1)"),
+    (["--gate", "deep", "--targets", "holdout"], "targets 'holdout' need a gate split, and this run has none"),
+    (["--gate", "deep", "--targets", "test"], "--targets: invalid choice: 'test'"),
 ])
 def test_train_gate_bad_input_exits_2_with_one_line(run, data, argv, needle, capsys):
     assert main(["train-gate", str(run), str(data), *argv]) == 2

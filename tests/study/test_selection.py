@@ -41,12 +41,87 @@ def test_no_frames_and_no_values_are_errors_not_silent_choices():
 def test_the_study_validation_frames_pass_the_guard(monkeypatch):
     """study_eval.ValidationFrames reads the validation split through the guard: a split that hands
     it a test frame (a bug in the carve) stops the evaluation before anything is scored."""
-    import study.selection as selection
+    import study.eco.data as eco_data
+    from study.selection import GateFrames
     from study.study_eval import ValidationFrames
 
     manifest = {"frames": [{"context": "fog", "shard": f"s{i // 2}"} for i in range(12)]}
-    ev = SimpleNamespace(reader=SimpleNamespace(manifest=manifest), train=list(range(8)), test=[8, 9, 10, 11])
+    ev = SimpleNamespace(reader=SimpleNamespace(manifest=manifest), train=list(range(8)), test=[8, 9, 10, 11],
+                         run_cfg={}, data="data")
     log = SelectionLog.of(ev.test)
-    monkeypatch.setattr(selection, "validation_split", lambda reader, idx, fraction, seed: (list(idx), [7, 8]))
+    monkeypatch.setattr(eco_data, "eco_gate_frames",
+                        lambda *a, **k: GateFrames("holdout", True, list(range(6)), [7, 8], ev.test))
     with pytest.raises(TestSplitLeak, match="validation frames"):
         ValidationFrames(ev, 0.15, 0, log)
+
+
+@pytest.fixture(scope="module")
+def split_data(shared_dataset):
+    from sensors.generate import GenerateConfig
+
+    # 10 one-frame sequences per context: 70:30 -> 7 train (4 of them the gate split at 0.5), 3 test
+    return shared_dataset(GenerateConfig(contexts=("city", "fog"), frames_per_context=10, sequence_length=1,
+                                         seed=3, twins=False))
+
+
+def _run_cfg(data, holdout):
+    from sensors.dataset import DatasetReader
+
+    return {"data_config": DatasetReader(data).manifest["config"], "train_fraction": 0.7, "split_seed": 0,
+            "gate_holdout": holdout, "data": str(data)}
+
+
+def test_gate_frames_split_train_gate_and_test_and_validate_both_targets_on_the_same_frames(split_data):
+    from sim.errors import UserError
+    from study.detect import frames_for
+    from study.selection import gate_frames
+
+    cfg = _run_cfg(split_data, 0.5)
+    train, gate, test = (frames_for(cfg, split_data, s)[0] for s in ("train", "gate", "test"))
+    assert len(train) == 6 and len(gate) == 8 and len(test) == 6  # per context: 3 detector, 4 gate, 3 test
+    assert not (set(train) & set(gate)) and not (set(gate) | set(train)) & set(test)
+    held = gate_frames(cfg, split_data, "auto", 0.5, 0)
+    assert held.targets == "holdout" and held.holdout and held.test == test
+    assert set(held.fit) | set(held.val) == set(gate) and not set(held.fit) & set(held.val) and held.val
+    insample = gate_frames(cfg, split_data, "train", 0.5, 0)
+    assert insample.fit == train and insample.val == held.val  # the same validation frames: a fair comparison
+    # without a gate split: the detectors' frames, validation carved from them; "holdout" is refused
+    none = _run_cfg(split_data, 0.0)
+    assert frames_for(none, split_data, "gate")[0] == []
+    plain = gate_frames(none, split_data, "auto", 0.5, 0)
+    assert plain.targets == "train" and not plain.holdout and sorted(plain.fit + plain.val) == sorted(train + gate)
+    with pytest.raises(UserError, match="gate split"):
+        gate_frames(none, split_data, "holdout", 0.5, 0)
+    with pytest.raises(UserError, match="targets"):
+        gate_frames(cfg, split_data, "test", 0.5, 0)
+
+
+def test_training_with_a_gate_holdout_never_reads_the_gate_split(split_data, tmp_path, monkeypatch):
+    """The detectors' dataset is the train split minus the gate split (checked where train() builds
+    it, before any step), and the split is recorded in config.json, where frames_for reads it."""
+    import json
+
+    import study.train as training
+    from study.detect import frames_for
+
+    seen = {}
+
+    class Stop(Exception):
+        pass
+
+    def capture(data, indices, **kw):
+        seen["indices"] = list(indices)
+        raise Stop
+
+    monkeypatch.setattr(training, "FrameDataset", capture)
+    cfg = training.TrainConfig(data=str(split_data), branches=("radar",), branch_set="single", epochs=1,
+                               gate_holdout=0.5, threads=1, device="cpu")
+    with pytest.raises(Stop):
+        training.train(cfg, tmp_path / "run", progress=False)
+    run_cfg = json.loads((tmp_path / "run" / "config.json").read_text())
+    assert run_cfg["gate_holdout"] == 0.5
+    assert seen["indices"] == frames_for(run_cfg, split_data, "train")[0]
+    assert not set(seen["indices"]) & set(frames_for(run_cfg, split_data, "gate")[0])
+    bad = training.TrainConfig(data=str(split_data), branches=("radar",), branch_set="single", gate_holdout=1.0)
+    with pytest.raises(training.UserError, match="gate-holdout"):
+        training.train(bad, tmp_path / "bad", progress=False)

@@ -72,7 +72,7 @@ def test_every_stage_runs_and_writes_the_report_with_its_tables(tiny):
     for c in captions:  # ... naming protocol, scale, dataset size and machine
         if "Figure" in c or "severity per condition (" in c:
             continue
-        assert "protocol reference" in c and "scale tiny" in c and "4 frames (2 train, 2 test)" in c, c
+        assert "protocol reference" in c and "scale tiny" in c and "6 frames (2 train, 2 gate split, 2 test)" in c, c
         assert "machine " in c and "thread(s)" in c, c
     html = (out / "report.html").read_text()
     assert html.count("data:image/png;base64,") >= 3  # figures 4, 5 and the severity sweep, embedded
@@ -91,6 +91,13 @@ def test_every_stage_runs_and_writes_the_report_with_its_tables(tiny):
     assert all(v["chosen_on"] == "validation" for v in res["hydra_table3"].values())
     assert set(res["gate_training"]) == {f"{f}:{g}" for f in ("hydrafusion", "ecofusion") for g in tiny["cfg"].gates.gates}
     assert "What was chosen where" in md and "Learned gates against the best constant" in md
+    # the gate split (train.gate_holdout): the gates learn from it, the choices are made on it, and each gate
+    # is also trained on the detectors' own frames for the comparison (issue 26)
+    assert res["validation"]["holdout"] and res["dataset"]["gate_frames"] == 2
+    for name, v in res["gate_training"].items():
+        assert v["targets"] == "holdout" and v["train_frames"] == 2, name
+        assert v["in_sample"]["targets"] == "train" and v["in_sample"]["train_frames"] == 2, name
+    assert "Gate targets: held-out gate split against the detectors' training frames" in md
     # a learned gate pays for the stems it reads (Table 4 as EcoFusion Table 1)
     t4 = res["hydra_table4"]
     assert t4["late"]["gate_stems_ms"] == 0 and all(t4[f"ecofusion:{g}"]["gate_stems_ms"] >= 0 for g in ("deep",))
