@@ -109,6 +109,10 @@ class GateTrainConfig:
             fitting frames' losses, recorded in the result).
         select_on: what picks the epoch on the validation frames: "regret" (the mean loss of the
             chosen branch minus the per-frame best; ties by MAE) or "mae".
+        context: the gate also reads the frame's context label (road layout and conditions, what
+            a car can know: `fusion.nets.branch_gates.context_features`).
+        pooling: "grid" (convs on the pooled grid) or "global" (an MLP on each stem channel's
+            mean: compact features).
     """
 
     gate: str = "deep"
@@ -128,6 +132,8 @@ class GateTrainConfig:
     objective: str = "auto"
     tau: float = 0.0
     select_on: str = "regret"
+    context: bool = False
+    pooling: str = "grid"
 
     def __post_init__(self) -> None:
         from fusion.gate_objectives import OBJECTIVES
@@ -142,23 +148,48 @@ class GateTrainConfig:
             raise UserError(f"tau: must be >= 0 (0: the default temperature), got {self.tau}")
         if self.select_on not in SELECT_ON:
             raise UserError(f"select_on: expected one of {', '.join(SELECT_ON)}, got {self.select_on!r}")
+        if self.pooling not in ("grid", "global"):
+            raise UserError(f"pooling: expected grid or global, got {self.pooling!r}")
+        if self.pooling == "global" and self.gate == "attention":
+            raise UserError("pooling global: the attention gate attends over the pooled grid; use the deep gate")
 
     def gate_options(self) -> dict:
+        extra = {"context": self.context, "pooling": self.pooling} if self.context or self.pooling != "grid" else {}
         return {"grid": list(self.grid), "channels": list(self.channels), "hidden": self.hidden,
-                "dropout": self.dropout}
+                "dropout": self.dropout, **extra}
 
 
 def mae(pred: np.ndarray, target: np.ndarray) -> float:
     return float(np.abs(np.asarray(pred, np.float64) - np.asarray(target, np.float64)).mean()) if len(target) else float("nan")
 
 
-def predict_losses(gate, feats: np.ndarray, batch: int = 256) -> np.ndarray:
+def reads_context(gate) -> bool:
+    """Whether a learned gate (a ConvGate, or EcoFusion's configuration gate around one) reads the
+    frame's context label besides the stem features."""
+    return bool(getattr(getattr(gate, "net", gate), "context", False))
+
+
+def gate_input(gate, feats: np.ndarray, metas) -> np.ndarray:
+    """What `gate` consumes from cached pooled features: `feats` itself, or with the frames'
+    context planes appended (`fusion.nets.branch_gates.with_context`) when the gate reads them."""
+    if not reads_context(gate):
+        return feats
+    from fusion.nets.branch_gates import with_context
+
+    return with_context(feats, metas)
+
+
+def predict_losses(gate, feats: np.ndarray, batch: int = 256, metas=None) -> np.ndarray:
     """A learned gate's predicted losses on prepared pooled features, in batches, without gradients.
 
-    feats: (n, channels, rows, cols) pooled stem features as `GateData` stores them.
+    feats: (n, channels, rows, cols) pooled stem features as `GateData` stores them; with `metas`
+    (the frames' meta dicts) the context planes of a gate that reads them are appended here,
+    without them `feats` must already hold them (`gate_input`).
     Returns (n, n_branches) float32, or (n, n_configurations) for EcoFusion's configuration gates."""
     import torch
 
+    if metas is not None:
+        feats = gate_input(gate, feats, metas)
     gate.eval()
     out = []
     with torch.no_grad():
@@ -367,11 +398,19 @@ def train_gate(run_dir, data, cfg: GateTrainConfig, progress: bool = True, fresh
     fit_idx, val_idx, test_idx = frames.fit, frames.val, frames.test
     gd = GateData(run_dir, data, model, cfg.checkpoint, cfg.grid)
     out = Path(out) if out is not None else run_dir / "gates" / cfg.gate
-    settings = {**dataclasses.asdict(cfg), "targets": frames.targets, "data_key": gd.key}
+    requested = cfg.targets
+    cfg = dataclasses.replace(cfg, targets=frames.targets)  # resolved: "auto" resumes a "holdout" gate and back
+    settings = {**dataclasses.asdict(cfg), "data_key": gd.key}
     gd.ensure(fit_idx + val_idx + test_idx, progress=progress)
     x_fit, y_fit = gd.load(fit_idx)
     x_val, y_val = gd.load(val_idx)
     x_test, y_test = gd.load(test_idx)
+    if cfg.context:  # the frames' context labels as constant planes after the pooled features
+        from fusion.nets.branch_gates import with_context
+
+        frames_meta = reader.manifest["frames"]
+        x_fit, x_val, x_test = (with_context(x, [frames_meta[int(i)] for i in idx])
+                                for x, idx in ((x_fit, fit_idx), (x_val, val_idx), (x_test, test_idx)))
     out.mkdir(parents=True, exist_ok=True)
     if setup.is_cuda:
         model.cpu()  # build_gate reads the model's layout; the gate trains on the CPU
@@ -387,7 +426,8 @@ def train_gate(run_dir, data, cfg: GateTrainConfig, progress: bool = True, fresh
     result = {
         "gate": cfg.gate, "run": str(run_dir), "data": str(data), "checkpoint": cfg.checkpoint,
         "optimizer": "Adam", "lr": cfg.lr, "loss": OBJECTIVE_LABEL[objective], "objective": objective,
-        "targets": frames.targets, "gate_split": frames.holdout,
+        "targets": frames.targets, "targets_requested": requested, "gate_split": frames.holdout, "context": cfg.context,
+        "pooling": cfg.pooling,
         "objective_requested": cfg.objective, "objectives": objectives,
         "tau": fitted["tau"], "selected_on": f"validation {cfg.select_on}", "epochs": cfg.epochs,
         "best_epoch": fitted["best_epoch"], "val_mae": fitted["best_val_mae"], "val_regret": fitted["best_val_regret"],

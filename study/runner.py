@@ -152,6 +152,8 @@ class GatesSection:
         gates: the learned gates to train (deep, attention); knowledge and the oracles need none.
         epochs, batch_size, lr, val_fraction, seed, targets: as GateTrainConfig (HydraFusion 5.3:
             lr 5e-5; targets "auto": the gate split when train.gate_holdout > 0).
+        context, pooling: the learned gates' inputs besides the pooled stem features (GateTrainConfig:
+            the frame's context label; "global" pooling: an MLP on each channel's mean).
         compare_targets: with a gate split, also train every gate on the detectors' own training
             frames (validated on the same gate-split frames), so the report measures what held-out
             targets change (under RUN/gates/<gate>/in_sample/ and RUN/eco/gates/<gate>/in_sample/).
@@ -168,6 +170,8 @@ class GatesSection:
     seed: int = 0
     targets: str = "auto"
     compare_targets: bool = True
+    context: bool = False
+    pooling: str = "grid"
     eco_max_frames: int = 0
     fusion: str = "wbf"
     energy_frames: int = 3
@@ -190,6 +194,10 @@ class GatesSection:
             raise UserError(f"gates.fusion must be nms, soft-nms or wbf, got {self.fusion!r}")
         if self.targets not in ("auto", "holdout", "train"):
             raise UserError(f"gates.targets must be auto, holdout or train, got {self.targets!r}")
+        if self.pooling not in ("grid", "global"):
+            raise UserError(f"gates.pooling must be grid or global, got {self.pooling!r}")
+        if self.pooling == "global" and "attention" in self.gates:
+            raise UserError("gates.pooling global: the attention gate attends over the pooled grid; train deep only")
 
 
 @dataclass(frozen=True)
@@ -541,7 +549,8 @@ def gates_stage(work: Path, gatedata_run: Path, data: Path, gates: GatesSection,
     out, digests = {}, {}
     for gate in g.gates:
         gate_cfg = GateTrainConfig(gate=gate, epochs=g.epochs, batch_size=g.batch_size, lr=g.lr,
-                                   val_fraction=g.val_fraction, seed=g.seed, threads=setup.threads, targets=g.targets)
+                                   val_fraction=g.val_fraction, seed=g.seed, threads=setup.threads, targets=g.targets,
+                                   context=g.context, pooling=g.pooling)
         in_sample = dataclasses.replace(gate_cfg, targets="train")
         say(f"gates: HydraFusion {gate} gate")
         out[f"hydra_{gate}"] = train_gate(run, data, gate_cfg, progress=progress, setup=setup)

@@ -96,7 +96,7 @@ def hydra_predictions(run, data, frames, gates) -> dict[str, np.ndarray]:
         elif g == "knowledge":
             out[g] = make_gate(g, ev.model, run).predict(None, frames.metas).numpy()
         else:
-            out[g] = predict_losses(load_trained_gate(run, g, ev.model), frames.features)
+            out[g] = predict_losses(load_trained_gate(run, g, ev.model), frames.features, metas=frames.metas)
     return out
 
 

@@ -160,7 +160,7 @@ class LearnedConfigurationGate(ConfigurationGate):
     net_class: type = DeepGate
 
     def __init__(self, *, sensors: Sequence[str] | None = None, **kw) -> None:
-        options = {k: kw.pop(k) for k in ("grid", "channels", "hidden", "dropout") if k in kw}
+        options = {k: kw.pop(k) for k in ("grid", "channels", "hidden", "dropout", "context", "pooling") if k in kw}
         super().__init__(**kw)
         self.net = self.net_class(branch_sensors=self.branch_sensors, branch_frames=self.branch_frames,
                                   sensors=sensors, outputs=len(self.configurations), **options)
@@ -175,7 +175,7 @@ class LearnedConfigurationGate(ConfigurationGate):
         return self.net.predict_prepared(x)
 
     def predict(self, features, meta=None) -> Tensor:
-        return self.net.predict(features)
+        return self.net.predict(features, meta)
 
 
 @CONFIG_GATES.register("deep")

@@ -421,6 +421,43 @@ def pool_features(features: Mapping[str, Tensor], sensors: Sequence[str], grid: 
     return torch.cat(maps, dim=1)
 
 
+def context_features() -> tuple[str, ...]:
+    """The context a learned gate may read besides the stem features (`ConvGate` option `context`):
+    the road layout (one-hot: what a map and a position give) and the conditions (multi-hot: what a
+    rain sensor, a light sensor and a clock give), as the knowledge gate reads them from the frame's
+    context label; never the severity or the lens cover, which only the simulator knows."""
+    from sim.scenario import LAYOUT_NAMES
+
+    return (*LAYOUT_NAMES, *CONDITIONS)
+
+
+def context_vector(meta: Sequence[Mapping[str, Any]]) -> Tensor:
+    """(B, len(context_features())) float32: each frame's layout one-hot and conditions multi-hot,
+    from its meta ("layout" and "conditions", or a "context" name such as "city+night")."""
+    names = context_features()
+    rows = []
+    for i, m in enumerate(meta):
+        layout, conditions, _ = context_of(m, f"meta[{i}]", severity_required=False)
+        rows.append([1.0 if n == layout or n in conditions else 0.0 for n in names])
+    return torch.tensor(rows, dtype=torch.float32).reshape(len(rows), len(names))
+
+
+def with_context(x, meta: Sequence[Mapping[str, Any]]):
+    """Pooled features x (B, C, rows, cols), a tensor or an array, with the frames' context vectors
+    appended as constant planes (B, C + n_context, rows, cols): the input of a gate that reads the
+    context (`ConvGate(context=True).predict_prepared`)."""
+    import numpy as np
+
+    ctx = context_vector(meta)
+    if len(ctx) != len(x):
+        raise ValueError(f"meta: {len(ctx)} entries for {len(x)} frames of features")
+    if isinstance(x, np.ndarray):
+        planes = np.broadcast_to(ctx.numpy()[:, :, None, None], (len(x), ctx.shape[1], *x.shape[2:]))
+        return np.concatenate([x, planes.astype(x.dtype)], axis=1)
+    planes = ctx.to(x.device, x.dtype)[:, :, None, None].expand(-1, -1, *x.shape[2:])
+    return torch.cat([x, planes], dim=1)
+
+
 class SelfAttention2d(nn.Module):
     """SAGAN self-attention (Zhang et al., ICML 2019) on a (B, C, H, W) map.
 
@@ -465,9 +502,16 @@ class ConvGate(Gate):
         outputs: number of predicted losses (default: one per branch; EcoFusion's configuration
             gates predict one per configuration, `fusion.eco.config_gates`).
         attention: add SelfAttention2d after the convs (the Attention gate).
+        context: also read the frame's context label (`context_features`: road layout and
+            conditions, what a car can know), added to the MLP's hidden layer through its own
+            linear map (issue 26).
+        pooling: "grid" (the convs on the pooled `grid`) or "global" (each stem channel averaged
+            over the grid, the MLP alone on those compact features; not with attention, which
+            attends over the grid).
 
     Input of the convs: `pool_features(features)` standardised per channel with `input_mean` /
-    `input_std` (buffers set by `fit_normalization` from the training set). Output:
+    `input_std` (buffers set by `fit_normalization` from the training set); with `context`, the
+    context vector follows as constant planes (`with_context`), read from the first cell. Output:
     `target_center + target_scale * MLP(...)` per branch, with the MLP's last layer starting at
     zero, so an untrained gate predicts the per-branch training median (a constant predictor) and
     training can only move it by what the features explain.
@@ -489,8 +533,14 @@ class ConvGate(Gate):
         hidden: int = 64,
         dropout: float = 0.2,
         outputs: int | None = None,
+        context: bool = False,
+        pooling: str = "grid",
     ) -> None:
         super().__init__(branch_sensors=branch_sensors, branch_frames=branch_frames, k=k)
+        if pooling not in ("grid", "global"):
+            raise ValueError(f"pooling: expected grid or global, got {pooling!r}")
+        if pooling == "global" and self.attention:
+            raise ValueError("pooling: the attention gate attends over the pooled grid; 'global' leaves it none")
         n_out = len(self.branches) if outputs is None else int(outputs)
         if n_out < 1:
             raise ValueError(f"outputs: must be at least 1, got {outputs}")
@@ -514,6 +564,10 @@ class ConvGate(Gate):
         self.grid = grid
         self.options = {"sensors": list(self.sensors), "grid": list(grid), "channels": list(channels),
                         "hidden": int(hidden), "dropout": float(dropout)}
+        if context or pooling != "grid":  # recorded only when set: gates saved before these load unchanged
+            self.options.update(context=bool(context), pooling=pooling)
+        self.context, self.pooling = bool(context), pooling
+        self.n_context = len(context_features()) if self.context else 0
         c_in = STEM_CHANNELS * len(self.sensors)
         c1, c2, c3 = channels
 
@@ -521,12 +575,18 @@ class ConvGate(Gate):
             return nn.Sequential(nn.Conv2d(a, b, 3, stride=stride, padding=1),
                                  nn.GroupNorm(_groups(b), b), nn.ReLU(inplace=True))
 
-        self.convs = nn.Sequential(block(c_in, c1, 1), block(c1, c2, 2), block(c2, c3, 1))
-        self.attn = SelfAttention2d(c3) if self.attention else None
-        self.pool = nn.MaxPool2d(2)
-        cells = ((grid[0] + 1) // 2 // 2) * ((grid[1] + 1) // 2 // 2)
-        self.mlp = nn.Sequential(nn.Flatten(), nn.Dropout(dropout), nn.Linear(c3 * cells, hidden),
+        if pooling == "grid":
+            self.convs = nn.Sequential(block(c_in, c1, 1), block(c1, c2, 2), block(c2, c3, 1))
+            self.attn = SelfAttention2d(c3) if self.attention else None
+            self.pool = nn.MaxPool2d(2)
+            flat = c3 * ((grid[0] + 1) // 2 // 2) * ((grid[1] + 1) // 2 // 2)
+        else:
+            self.convs, self.attn, self.pool, flat = None, None, None, c_in
+        self.mlp = nn.Sequential(nn.Flatten(), nn.Dropout(dropout), nn.Linear(flat, hidden),
                                  nn.ReLU(inplace=True), nn.Linear(hidden, n_out))
+        # the context enters the hidden layer through its own weights (initialised for its 8 inputs,
+        # not drowned among the convs' hundreds)
+        self.context_in = nn.Linear(self.n_context, hidden) if self.context else None
         nn.init.zeros_(self.mlp[-1].weight)
         nn.init.zeros_(self.mlp[-1].bias)
         self.register_buffer("input_mean", torch.zeros(c_in))
@@ -539,25 +599,41 @@ class ConvGate(Gate):
         return pool_features(features, self.sensors, self.grid)
 
     def predict_prepared(self, x: Tensor) -> Tensor:
-        """(B, 64 * n_sensors, *grid) pooled features (float16 or float32) -> (B, outputs)."""
-        c = self.input_mean.numel()
+        """(B, 64 * n_sensors [+ n_context], *grid) pooled features (float16 or float32; with the
+        context planes of `with_context` when the gate reads the context) -> (B, outputs)."""
+        c = self.input_mean.numel() + self.n_context
         if not isinstance(x, Tensor) or x.dim() != 4 or x.shape[1] != c or tuple(x.shape[2:]) != self.grid:
-            raise ValueError(f"x: expected pooled features (B, {c}, {self.grid[0]}, {self.grid[1]}), got {_describe(x)}")
+            what = " with the context planes (`with_context`)" if self.context else ""
+            raise ValueError(f"x: expected pooled features{what} (B, {c}, {self.grid[0]}, {self.grid[1]}), "
+                             f"got {_describe(x)}")
         with full_precision(x):  # a gate's ranking in fp32 even under autocast (its losses differ by little)
-            x = (x.float() - self.input_mean.view(1, -1, 1, 1)) / self.input_std.view(1, -1, 1, 1)
-            x = self.convs(x)
-            if self.attn is not None:
-                x = self.attn(x)
-            return self.target_center + self.target_scale * self.mlp(self.pool(x))
+            c_feat = self.input_mean.numel()
+            ctx = x[:, c_feat:, 0, 0].float()
+            x = (x[:, :c_feat].float() - self.input_mean.view(1, -1, 1, 1)) / self.input_std.view(1, -1, 1, 1)
+            if self.convs is None:  # pooling "global": each channel's mean over the grid
+                flat = x.mean(dim=(2, 3))
+            else:
+                x = self.convs(x)
+                if self.attn is not None:
+                    x = self.attn(x)
+                flat = self.pool(x).flatten(1)
+            z = self.mlp[2](self.mlp[1](self.mlp[0](flat)))
+            if self.context_in is not None:
+                z = z + self.context_in(ctx)
+            return self.target_center + self.target_scale * self.mlp[4](self.mlp[3](z))
 
     def predict(self, features, meta=None) -> Tensor:
-        return self.predict_prepared(self.prepare(features))
+        x = self.prepare(features)
+        if self.context:
+            x = with_context(x, _meta_list(meta, x.shape[0], self.name))
+        return self.predict_prepared(x)
 
     @torch.no_grad()
     def fit_normalization(self, x: Tensor, losses: Tensor) -> None:
         """Set input standardisation from pooled training features x (N, C, *grid) and the output
-        centre / scale from training losses (N, n_branches): median and mean absolute deviation."""
-        x = x.float()
+        centre / scale from training losses (N, n_branches): median and mean absolute deviation.
+        Context planes (after the C feature channels) are read as they are."""
+        x = x[:, :self.input_mean.numel()].float()
         self.input_mean.copy_(x.mean(dim=(0, 2, 3)))
         self.input_std.copy_(x.std(dim=(0, 2, 3), unbiased=False).clamp_min(1e-3))
         losses = losses.float()
@@ -634,10 +710,13 @@ __all__ = [
     "branch_quality",
     "build_gate",
     "check_k",
+    "context_features",
     "context_of",
+    "context_vector",
     "gate_sensors",
     "pool_features",
     "rank_branches",
     "sensor_reliability",
     "top_k",
+    "with_context",
 ]

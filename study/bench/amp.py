@@ -147,3 +147,90 @@ def bench_amp(profile: str = "cpu", branches: tuple[str, ...] = (), batch: int =
         "note": "median step time (forward + backward + SGD) after the warm-up steps, fp32 and bf16 interleaved; "
                 "bf16 autocast covers the backbones, the heads run in fp32",
     }
+
+
+def amp_parity(data: str, out, profile: str = "cpu", branches: tuple[str, ...] = ("radar",), epochs: int = 2,
+               batch: int = 4, lr: float = 0.02, warmup: int = 60, threads: int = 0, seed: int = 0,
+               bootstrap: int = 200, progress: bool = True) -> dict:
+    """`hydrabench bench amp-parity`: the same training run twice on `data`, in fp32 and in bf16
+    autocast (`train --amp off` / `--amp bf16`: the same initial weights, frames, order and learning
+    rate), each in `out/<precision>/` (resumable), then both scored on the run's test split: each
+    branch alone in the right camera, vehicle and all-class mAP, and the paired difference bf16 -
+    fp32 with a 95 % interval from `bootstrap` draws of whole test sequences
+    (`study.detect.context_bootstrap`). Parity: an interval that holds 0 and is narrow. The two runs
+    do not follow the same trajectory (bf16 rounding changes every step after the first), so the
+    difference also holds run-to-run variation, which is what a user of either precision gets.
+    Also: each run's training seconds (process wall time) and final epoch loss."""
+    import csv
+    import json
+    import time
+    from pathlib import Path
+
+    import torch
+
+    from sensors.dataset import DatasetReader
+    from sensors.dataset import check as check_dataset
+    from sim.errors import UserError
+    from study.detect import (
+        context_bootstrap,
+        frames_for,
+        fused,
+        fusion_method,
+        load_run,
+        run_branches,
+        score,
+    )
+    from study.device import default_threads, native_bf16
+    from study.train import TrainConfig, train
+
+    out = Path(out)
+    data = str(Path(data).resolve())
+    if not 0 <= bootstrap <= 10000:
+        raise UserError(f"--bootstrap must be 0..10000 draws, got {bootstrap}")
+    marker = out / "amp_parity.json"
+    if out.exists() and (not out.is_dir() or (any(out.iterdir()) and not marker.exists())):
+        raise UserError(f"--out {out} is not empty and holds no amp-parity runs (no {marker.name}); use a new or empty "
+                        "directory")
+    check_dataset(data)  # every shard readable before anything is written
+    n_threads = threads or default_threads()
+    runs, dets, reader = {}, {}, DatasetReader(data)
+    out.mkdir(parents=True, exist_ok=True)
+    marker.write_text(json.dumps({"data": data, "profile": profile, "branches": list(branches), "seed": seed}) + "\n")
+    for precision, amp in (("fp32", "off"), ("bf16", "bf16")):
+        cfg = TrainConfig(data=data, model_profile=profile, branch_set="paper", branches=tuple(branches), epochs=epochs,
+                          batch_size=batch, lr=lr, warmup_steps=warmup, seed=seed, threads=n_threads, device="cpu",
+                          amp=amp, eval_frames=4, checkpoint_seconds=300.0)
+        t0 = time.perf_counter()
+        train(cfg, out / precision, progress=progress)
+        seconds = time.perf_counter() - t0
+        model, run_cfg = load_run(out / precision, "latest", device="cpu")
+        test, _ = frames_for(run_cfg, data, "test")
+        if not test:
+            raise UserError(f"{data}: the run's split has no test frames to score (generate more sequences)")
+        torch.set_num_threads(n_threads)
+        per = run_branches(model, data, test, list(branches), progress=f"detect {precision}")
+        frames = model.branch_frames
+        with open(out / precision / "metrics.csv") as fh:
+            rows = list(csv.DictReader(fh))
+        runs[precision] = {"train_seconds": round(sum(float(r["train_seconds"]) for r in rows), 1),
+                           "seconds_this_call": round(seconds, 1), "compute": run_cfg.get("compute"),
+                           "loss_total_per_epoch": [float(r["loss_total"]) for r in rows], "branches": {}}
+        for b in branches:
+            alone = fused(per, [b], frames, fusion_method("soft-nms"))
+            s = score(alone, reader, "camera_right", protocol=run_cfg.get("protocol", "reference"))
+            runs[precision]["branches"][b] = {"map": s["map"], "map_vehicles": s["map_vehicles"]}
+            dets[f"{precision}:{b}"] = alone
+    intervals = {}
+    if bootstrap:
+        ci = context_bootstrap(dets, reader, "camera_right", resamples=bootstrap, desc="bootstrap bf16 - fp32")
+        all_ = ci["per_context"]["all"]
+        intervals = {b: {"fp32": all_["map_vehicles"][f"fp32:{b}"], "bf16": all_["map_vehicles"][f"bf16:{b}"],
+                         "bf16_minus_fp32": all_["difference"].get(f"fp32:{b} - bf16:{b}") and
+                         [-all_["difference"][f"fp32:{b} - bf16:{b}"][1], -all_["difference"][f"fp32:{b} - bf16:{b}"][0]]}
+                     for b in branches}
+        intervals["sequences"] = all_["sequences"]
+    native, why = native_bf16("cpu")
+    return {"cpu": cpu_model(), "threads": n_threads, "profile": profile, "branches": list(branches), "epochs": epochs,
+            "batch": batch, "lr": lr, "warmup_steps": warmup, "data": data, "test_frames": len(test),
+            "native_bf16": native, "native_bf16_reason": why, "runs": runs, "ci95_vehicle_map": intervals,
+            "bootstrap": bootstrap, "out": str(out)}

@@ -49,13 +49,21 @@ def add_objective_args(p) -> None:
                         "train --gate-holdout: frames the detectors never saw); train, the detectors' own training "
                         "frames (where overfitting branches look better than they are); auto (default): holdout when "
                         "the run has a gate split. Both are validated on the same gate-split sequences")
+    p.add_argument("--context-inputs", action="store_true",
+                   help="the gate also reads the frame's context label: road layout (one-hot) and conditions "
+                        "(multi-hot), what a map, a rain sensor, a light sensor and a clock tell a car; never the "
+                        "severity or lens cover, which only the simulator knows")
+    p.add_argument("--pooling", default="grid", choices=["grid", "global"],
+                   help="grid (default): the gate's convs read the stem features pooled to --grid; global: an MLP "
+                        "on each stem channel's mean (compact features; deep gate only)")
     p.add_argument("--select-on", default="regret", choices=list(branch_gate_study.SELECT_ON),
                    help="what picks the epoch on the validation sequences: the regret of the gate's choice "
                         "(ties by MAE) or MAE")
 
 
 def parse_objective_fields(args) -> dict:
-    return {"objective": args.objective, "tau": args.tau, "select_on": args.select_on, "targets": args.targets}
+    return {"objective": args.objective, "tau": args.tau, "select_on": args.select_on, "targets": args.targets,
+            "context": args.context_inputs, "pooling": args.pooling}
 
 
 def format_choice_lines(r: dict, what: str) -> list[str]:
@@ -64,6 +72,9 @@ def format_choice_lines(r: dict, what: str) -> list[str]:
     if not c:
         return []
     lines = []
+    if r.get("context") or r.get("pooling", "grid") != "grid":
+        lines.append(f"  inputs: stem features pooled {'per channel' if r.get('pooling') == 'global' else 'to the grid'}"
+                     + (", and the context label (layout, conditions)" if r.get("context") else ""))
     if r.get("targets"):
         lines.append(f"  targets: {r['targets']} ({r.get('train_frames')} frames: "
                      + ("the gate split, never seen by the detectors" if r["targets"] == "holdout"

@@ -42,9 +42,17 @@ def train_eco_gate(run_dir, data, gate: str, cfg: GateTrainConfig, s: EcoSetting
     ed.ensure(fit_idx + val_idx + test, batch_size=s.batch_size, progress=progress)
     out = Path(out) if out is not None else s.gate_dir(run_dir, gate)
     loss = dataclasses.asdict(ed.weights)
-    settings = {**dataclasses.asdict(cfg), "gate": gate, "targets": frames.targets, "data_key": ed.key, "loss": loss}
+    requested = cfg.targets
+    cfg = dataclasses.replace(cfg, targets=frames.targets)  # resolved: "auto" resumes a "holdout" gate and back
+    settings = {**dataclasses.asdict(cfg), "gate": gate, "data_key": ed.key, "loss": loss}
     x_fit, x_val, x_test = (ed.arrays(i, ["features"])["features"] for i in (fit_idx, val_idx, test))
     y_fit, y_val, y_test = (ed.losses(i).astype(np.float32) for i in (fit_idx, val_idx, test))
+    if cfg.context:  # the frames' context labels as constant planes after the pooled features
+        from fusion.nets.branch_gates import with_context
+
+        frames_meta = DatasetReader(data).manifest["frames"]
+        x_fit, x_val, x_test = (with_context(x, [frames_meta[int(i)] for i in idx])
+                                for x, idx in ((x_fit, fit_idx), (x_val, val_idx), (x_test, test)))
     out.mkdir(parents=True, exist_ok=True)
     g, fitted, objectives, objective = fit_objectives(
         lambda: build_config_gate(gate, model, configs, sensors=list(ed.sensors), **cfg.gate_options()),
@@ -62,7 +70,8 @@ def train_eco_gate(run_dir, data, gate: str, cfg: GateTrainConfig, s: EcoSetting
         "gate": gate, "run": str(run_dir), "data": str(data), "configurations": len(configs), "optimizer": "Adam",
         "lr": cfg.lr, "loss": f"{OBJECTIVE_LABEL[objective]} of L_f per configuration", "loss_definition": loss,
         "objective": objective, "objective_requested": cfg.objective, "objectives": objectives,
-        "targets": frames.targets, "gate_split": frames.holdout,
+        "targets": frames.targets, "targets_requested": requested, "gate_split": frames.holdout, "context": cfg.context,
+        "pooling": cfg.pooling,
         "tau": fitted["tau"], "selected_on": f"validation {cfg.select_on}",
         "epochs": cfg.epochs, "choice": choice_table(pred, y_fit, y_test, *contexts, configs.names),
         "best_epoch": fitted["best_epoch"], "val_mae": fitted["best_val_mae"], "val_regret": fitted["best_val_regret"],

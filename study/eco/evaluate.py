@@ -83,7 +83,7 @@ class EcoEval:
                 self.predicted[g] = build_config_gate(g, self.model, self.configs).predict(None, self.metas).numpy()
             else:
                 gate = load_eco_gate(self.run_dir, g, self.model, self.configs, self.ed.key, s)
-                self.predicted[g] = predict_losses(gate, self.features)
+                self.predicted[g] = predict_losses(gate, self.features, metas=self.metas)
 
     def _loss_unit(self, train) -> float:
         """Late fusion's mean L_f over the frames the gates learn from ("late" loss scale; every configuration's

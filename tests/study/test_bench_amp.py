@@ -27,3 +27,48 @@ def test_bench_amp_measures_both_precisions_from_the_same_start():
 def test_bench_amp_refuses_unknown_branches():
     with pytest.raises(UserError, match="unknown branch 'sonar'"):
         bench_amp("cpu", ("sonar",), overrides=TINY)
+
+
+@pytest.fixture(scope="module")
+def parity_data(shared_dataset):
+    from sensors.generate import GenerateConfig
+
+    # 3 one-frame sequences per context: 2 train, 1 test each (the test split has 2 sequences)
+    return shared_dataset(GenerateConfig(contexts=("fog", "motorway"), frames_per_context=3, sequence_length=1, seed=4,
+                                         twins=False))
+
+
+def test_amp_parity_trains_both_precisions_and_scores_them_on_the_same_test_frames(parity_data, tmp_path, capsys):
+    import json
+
+    from study.cli import main
+
+    argv = ["bench", "amp-parity", str(parity_data), "--out", str(tmp_path / "par"), "--epochs", "1",
+            "--warmup-steps", "1", "--bootstrap", "20", "--threads", "1", "--json"]
+    assert main(argv) == 0
+    r = json.loads(capsys.readouterr().out)
+    assert r["branches"] == ["radar"] and r["test_frames"] == 2
+    assert {p: r["runs"][p]["compute"]["precision"] for p in ("fp32", "bf16")} == {"fp32": "fp32", "bf16": "bf16"}
+    for p in ("fp32", "bf16"):
+        run = r["runs"][p]
+        assert len(run["loss_total_per_epoch"]) == 1 and run["train_seconds"] > 0
+        assert set(run["branches"]["radar"]) == {"map", "map_vehicles"}
+    iv = r["ci95_vehicle_map"]["radar"]
+    assert r["ci95_vehicle_map"]["sequences"] == 2 and len(iv["bf16_minus_fp32"]) == 2
+    assert iv["bf16_minus_fp32"][0] <= iv["bf16_minus_fp32"][1]
+    # the two runs are resumed, not trained again: the same numbers, no new epoch
+    assert main(argv) == 0
+    again = json.loads(capsys.readouterr().out)
+    assert again["runs"]["fp32"]["loss_total_per_epoch"] == r["runs"]["fp32"]["loss_total_per_epoch"]
+    assert again["runs"]["bf16"]["branches"] == r["runs"]["bf16"]["branches"]
+
+
+def test_amp_parity_refuses_a_folder_of_other_files(parity_data, tmp_path, capsys):
+    from study.cli import main
+
+    (tmp_path / "mine").mkdir()
+    (tmp_path / "mine" / "notes.txt").write_text("keep")
+    assert main(["bench", "amp-parity", str(parity_data), "--out", str(tmp_path / "mine")]) == 2
+    err = capsys.readouterr().err
+    assert "holds no amp-parity runs" in err and len(err.strip().splitlines()) == 1
+    assert sorted(p.name for p in (tmp_path / "mine").iterdir()) == ["notes.txt"]
