@@ -188,14 +188,13 @@ def amp_parity(data: str, out, profile: str = "cpu", branches: tuple[str, ...] =
     if not 0 <= bootstrap <= 10000:
         raise UserError(f"--bootstrap must be 0..10000 draws, got {bootstrap}")
     marker = out / "amp_parity.json"
-    if out.exists() and (not out.is_dir() or (any(out.iterdir()) and not marker.exists())):
-        raise UserError(f"--out {out} is not empty and holds no amp-parity runs (no {marker.name}); use a new or empty "
-                        "directory")
-    check_dataset(data)  # every shard readable before anything is written
+    ours = {"fp32", "bf16", marker.name}
+    if out.exists() and (not out.is_dir() or any(p.name not in ours for p in out.iterdir())):
+        raise UserError(f"--out {out} holds other files than amp-parity's fp32/, bf16/ and {marker.name}; use a new or "
+                        "empty directory")
+    check_dataset(data)  # every shard readable before anything is written (train checks the rest first too)
     n_threads = threads or default_threads()
     runs, dets, reader = {}, {}, DatasetReader(data)
-    out.mkdir(parents=True, exist_ok=True)
-    marker.write_text(json.dumps({"data": data, "profile": profile, "branches": list(branches), "seed": seed}) + "\n")
     for precision, amp in (("fp32", "off"), ("bf16", "bf16")):
         cfg = TrainConfig(data=data, model_profile=profile, branch_set="paper", branches=tuple(branches), epochs=epochs,
                           batch_size=batch, lr=lr, warmup_steps=warmup, seed=seed, threads=n_threads, device="cpu",
@@ -230,7 +229,9 @@ def amp_parity(data: str, out, profile: str = "cpu", branches: tuple[str, ...] =
                      for b in branches}
         intervals["sequences"] = all_["sequences"]
     native, why = native_bf16("cpu")
-    return {"cpu": cpu_model(), "threads": n_threads, "profile": profile, "branches": list(branches), "epochs": epochs,
-            "batch": batch, "lr": lr, "warmup_steps": warmup, "data": data, "test_frames": len(test),
-            "native_bf16": native, "native_bf16_reason": why, "runs": runs, "ci95_vehicle_map": intervals,
-            "bootstrap": bootstrap, "out": str(out)}
+    result = {"cpu": cpu_model(), "threads": n_threads, "profile": profile, "branches": list(branches), "epochs": epochs,
+              "batch": batch, "lr": lr, "warmup_steps": warmup, "data": data, "test_frames": len(test),
+              "native_bf16": native, "native_bf16_reason": why, "runs": runs, "ci95_vehicle_map": intervals,
+              "bootstrap": bootstrap, "out": str(out)}
+    marker.write_text(json.dumps(result, indent=1) + "\n")  # the last result beside the two runs
+    return result

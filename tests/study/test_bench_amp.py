@@ -61,6 +61,7 @@ def test_amp_parity_trains_both_precisions_and_scores_them_on_the_same_test_fram
     again = json.loads(capsys.readouterr().out)
     assert again["runs"]["fp32"]["loss_total_per_epoch"] == r["runs"]["fp32"]["loss_total_per_epoch"]
     assert again["runs"]["bf16"]["branches"] == r["runs"]["bf16"]["branches"]
+    assert json.loads((tmp_path / "par" / "amp_parity.json").read_text())["runs"] == again["runs"]
 
 
 def test_amp_parity_refuses_a_folder_of_other_files(parity_data, tmp_path, capsys):
@@ -70,5 +71,5 @@ def test_amp_parity_refuses_a_folder_of_other_files(parity_data, tmp_path, capsy
     (tmp_path / "mine" / "notes.txt").write_text("keep")
     assert main(["bench", "amp-parity", str(parity_data), "--out", str(tmp_path / "mine")]) == 2
     err = capsys.readouterr().err
-    assert "holds no amp-parity runs" in err and len(err.strip().splitlines()) == 1
+    assert "holds other files than amp-parity's" in err and len(err.strip().splitlines()) == 1
     assert sorted(p.name for p in (tmp_path / "mine").iterdir()) == ["notes.txt"]
