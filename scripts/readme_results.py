@@ -40,8 +40,9 @@ def results_block(report: dict) -> str:
     """The Markdown block for one study's report JSON."""
     r = report["results"]
     ds, m = r["dataset"], r["machine"]
+    gate = f"{ds['gate_frames']} gate split, " if ds.get("gate_frames") else ""
     tag = (f"protocol `{r['protocol']}`, scale `{report['scale']}`, {ds['frames']} frames ({ds['train_frames']} train, "
-           f"{ds['test_frames']} test), {m.get('cpu') or m.get('platform')} with {m.get('threads')} thread(s)")
+           f"{gate}{ds['test_frames']} test), {m.get('cpu') or m.get('platform')} with {m.get('threads')} thread(s)")
     lines = []
     if report.get("meaningless"):
         lines.append(f"**These numbers mean nothing** (scale `{report['scale']}`: a check that every stage runs).")

@@ -323,3 +323,13 @@ def test_the_other_protocols_figures_are_their_files():
     expected = [radar["map_vehicles"], lidar["map_vehicles"], *(radar["map_vehicles_per_range"][b] for b in bins),
                 *(lidar["map_vehicles_per_range"][b] for b in bins)]
     assert all(_close(q, e) for q, e in zip(m.groups(), expected, strict=True)), (m.groups(), expected)
+
+
+def test_the_cpu_studys_clear_daylight_camera_table_is_its_files():
+    rows = table(ROOT / "docs" / "results.md", "| camera, clear daylight | 0-15 m |")
+    assert len(rows) == 2
+    for proto in ("visible", "reference"):
+        r = _load(f"cpu_study_camera_clear_{proto}.json")
+        assert r["branches"] == ["camera_right"] and r["contexts"] == ["city", "junction", "motorway", "rural"]
+        bins = [_f(r["map_vehicles_per_range"][b], 3) for b in ("0-15", "15-30", "30-50", "50-100")]
+        assert rows[f"camera_right, `{proto}`"] == [*bins, _f(r["map_vehicles"], 3)], proto
