@@ -333,3 +333,32 @@ def test_the_cpu_studys_clear_daylight_camera_table_is_its_files():
         assert r["branches"] == ["camera_right"] and r["contexts"] == ["city", "junction", "motorway", "rural"]
         bins = [_f(r["map_vehicles_per_range"][b], 3) for b in ("0-15", "15-30", "30-50", "50-100")]
         assert rows[f"camera_right, `{proto}`"] == [*bins, _f(r["map_vehicles"], 3)], proto
+
+
+def test_the_gate_inputs_table_is_its_file_and_the_study_report():
+    """docs/results.md's gate-input table: the grid column from the stored study, the others from
+    results/cpu_study_gate_inputs.json (train-gate / eco-train-gate on the study's run)."""
+    runs = _load("cpu_study_gate_inputs.json")["runs"]
+    study = _load("study_cpu/report.json")["results"]["gate_training"]
+    rows = table(ROOT / "docs" / "results.md", "| gate | grid (the study's) |")
+    for label, fam, cmd, gate in (("HydraFusion deep", "hydrafusion", "train-gate", "deep"),
+                                  ("HydraFusion attention", "hydrafusion", "train-gate", "attention"),
+                                  ("EcoFusion deep", "ecofusion", "eco-train-gate", "deep"),
+                                  ("EcoFusion attention", "ecofusion", "eco-train-gate", "attention")):
+        cells = [c.split(" ")[0] for c in rows[label]]
+        assert cells[0] == _f(study[f"{fam}:{gate}"]["choice"]["regret"], 4), label
+        for cell, variant in zip(cells[1:], ("poolingglobal", "contextinputs", "poolingglobalcontextinputs")):
+            run = runs.get(f"{cmd}-{gate}-{variant}")
+            assert cell == ("-" if run is None else _f(run["test_regret"], 4)), (label, variant)
+
+
+def test_the_amp_parity_figures_in_benchmarks_are_its_file():
+    r = _load("bench_amp_parity_2026-12-03.json")
+    text = (ROOT / "BENCHMARKS.md").read_text()
+    fp32, bf16 = (r["runs"][p] for p in ("fp32", "bf16"))
+    iv = r["ci95_vehicle_map"]["radar"]
+    assert f"| {fp32['train_seconds']:.0f} s | {bf16['train_seconds']:.0f} s (**" \
+           f"{fp32['train_seconds'] / bf16['train_seconds']:.2f}x** faster) |" in text
+    assert (f"| {fp32['branches']['radar']['map_vehicles']:.3f} [{iv['fp32'][0]:.3f}, {iv['fp32'][1]:.3f}] | "
+            f"{bf16['branches']['radar']['map_vehicles']:.3f} [{iv['bf16'][0]:.3f}, {iv['bf16'][1]:.3f}] |") in text
+    assert f"**[{iv['bf16_minus_fp32'][0]:+.3f}, {iv['bf16_minus_fp32'][1]:+.3f}]**" in text
