@@ -192,8 +192,10 @@ class GatesSection:
             raise UserError(f"gates.val_fraction must be in [0, 1), got {self.val_fraction}")
         if self.fusion not in ("nms", "soft-nms", "wbf"):
             raise UserError(f"gates.fusion must be nms, soft-nms or wbf, got {self.fusion!r}")
-        if self.targets not in ("auto", "holdout", "train"):
-            raise UserError(f"gates.targets must be auto, holdout or train, got {self.targets!r}")
+        from study.selection import TARGETS
+
+        if self.targets not in TARGETS:
+            raise UserError(f"gates.targets must be one of {', '.join(TARGETS)}, got {self.targets!r}")
         if self.pooling not in ("grid", "global"):
             raise UserError(f"gates.pooling must be grid or global, got {self.pooling!r}")
         if self.pooling == "global" and "attention" in self.gates:

@@ -94,12 +94,12 @@ def test_the_cpu_study_answer_opens_the_verdict(study):
     assert all(difference_interval(per["all"], f"single:{b}", "late")[1] < 0 for b in r["singles"])
     assert answer[0] == "Overall, late fusion beats every single sensor."
     # the second sentence names exactly the methods that run without ground truth and whose overall
-    # interval against late fusion lies above 0 (in the stored study: all_branches and EcoFusion's two
-    # learned gates), in the report's order
+    # interval against late fusion lies above 0 (in the stored study: all_branches and HydraFusion's
+    # attention gate), in the report's order
     deployable = [m for m in r["methods"] if m not in ORACLES and not m.startswith(("single:", "early:"))
                   and m != "late"]
     above = [m for m in deployable if difference_interval(per["all"], m, "late")[0] > 0]
-    assert above == ["all_branches", "ecofusion:deep", "ecofusion:attention"]
+    assert above == ["all_branches", "hydrafusion:attention"]
     assert answer[1].startswith(f"Overall, {', '.join(above[:-1])} and {above[-1]} are resolved above late fusion")
     # ecofusion:loss_based is resolved above late overall, and it is named as the oracle it is
     assert difference_interval(per["all"], "ecofusion:loss_based", "late")[0] > 0
