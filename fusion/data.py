@@ -53,6 +53,25 @@ def split_by_sequence(reader: DatasetReader, train_fraction: float = 0.7, seed: 
     return sorted(train), sorted(test)
 
 
+def carve_sequences(reader: DatasetReader, indices, count, rng) -> tuple[list[int], list[int]]:
+    """Split frames into (rest, carved) by whole sequence (shard), per context: each context's
+    sequences (sorted, then shuffled by `rng`, contexts in sorted order) give their first
+    `count(number of the context's sequences)` to `carved`. What `hold_out_sequences` and the gates'
+    validation carve (`study.selection.validation_split`) share; they differ in `count` and seed."""
+    shards: dict[str, dict[str, list[int]]] = defaultdict(lambda: defaultdict(list))
+    for i in indices:
+        f = reader.manifest["frames"][int(i)]
+        shards[f["context"]][f["shard"]].append(int(i))
+    rest, carved = [], []
+    for context in sorted(shards):
+        names = sorted(shards[context])
+        rng.shuffle(names)
+        n = count(len(names))
+        for k, name in enumerate(names):
+            (carved if k < n else rest).extend(shards[context][name])
+    return sorted(rest), sorted(carved)
+
+
 def hold_out_sequences(reader: DatasetReader, indices, fraction: float, seed: int = 0) -> tuple[list[int], list[int]]:
     """Split frames into (kept, held out) by whole sequence (shard), per context, deterministic in
     `seed`: the gate split of a run (`study.train.TrainConfig.gate_holdout`), sequences the detectors
@@ -63,19 +82,12 @@ def hold_out_sequences(reader: DatasetReader, indices, fraction: float, seed: in
     """
     if not 0 <= fraction < 1:
         raise ValueError(f"the held-out fraction must be in [0, 1), got {fraction}")
-    shards: dict[str, dict[str, list[int]]] = defaultdict(lambda: defaultdict(list))
-    for i in indices:
-        f = reader.manifest["frames"][int(i)]
-        shards[f["context"]][f["shard"]].append(int(i))
-    rng = np.random.default_rng([seed, 11])  # not the validation carve's stream (`study.selection`)
-    kept, held = [], []
-    for context in sorted(shards):
-        names = sorted(shards[context])
-        rng.shuffle(names)
-        n_held = min(max(int(round(fraction * len(names))), 1), len(names) - 1) if fraction > 0 else 0
-        for k, name in enumerate(names):
-            (held if k < n_held else kept).extend(shards[context][name])
-    return sorted(kept), sorted(held)
+
+    def count(n: int) -> int:
+        return min(max(int(round(fraction * n)), 1), n - 1) if fraction > 0 else 0
+
+    # not the validation carve's stream (`study.selection`)
+    return carve_sequences(reader, indices, count, np.random.default_rng([seed, 11]))
 
 
 def crop_bev_labels(lab: dict, size: tuple[int, int], full: int) -> dict:

@@ -179,6 +179,15 @@ def gate_input(gate, feats: np.ndarray, metas) -> np.ndarray:
     return with_context(feats, metas)
 
 
+def with_frame_context(reader, *pairs) -> tuple[np.ndarray, ...]:
+    """Each (pooled features, dataset indices) pair with those frames' context planes appended
+    (`fusion.nets.branch_gates.with_context`): the inputs of a gate trained with `context`."""
+    from fusion.nets.branch_gates import with_context
+
+    frames = reader.manifest["frames"]
+    return tuple(with_context(x, [frames[int(i)] for i in idx]) for x, idx in pairs)
+
+
 def predict_losses(gate, feats: np.ndarray, batch: int = 256, metas=None) -> np.ndarray:
     """A learned gate's predicted losses on prepared pooled features, in batches, without gradients.
 
@@ -406,11 +415,7 @@ def train_gate(run_dir, data, cfg: GateTrainConfig, progress: bool = True, fresh
     x_val, y_val = gd.load(val_idx)
     x_test, y_test = gd.load(test_idx)
     if cfg.context:  # the frames' context labels as constant planes after the pooled features
-        from fusion.nets.branch_gates import with_context
-
-        frames_meta = reader.manifest["frames"]
-        x_fit, x_val, x_test = (with_context(x, [frames_meta[int(i)] for i in idx])
-                                for x, idx in ((x_fit, fit_idx), (x_val, val_idx), (x_test, test_idx)))
+        x_fit, x_val, x_test = with_frame_context(reader, (x_fit, fit_idx), (x_val, val_idx), (x_test, test_idx))
     out.mkdir(parents=True, exist_ok=True)
     if setup.is_cuda:
         model.cpu()  # build_gate reads the model's layout; the gate trains on the CPU

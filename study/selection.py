@@ -21,7 +21,6 @@ study's report prints that record ("What was chosen where").
 
 from __future__ import annotations
 
-from collections import defaultdict
 from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass, field
 
@@ -90,21 +89,12 @@ def sequences_of(reader, indices: Iterable[int]) -> int:
 def validation_split(reader, indices, fraction: float, seed: int) -> tuple[list[int], list[int]]:
     """Split frames into (fit, validation) by sequence (shard), per context, deterministic in seed.
     A context with fewer than 3 sequences keeps them all for fitting."""
-    shards: dict[str, dict[str, list[int]]] = defaultdict(lambda: defaultdict(list))
-    for i in indices:
-        f = reader.manifest["frames"][int(i)]
-        shards[f["context"]][f["shard"]].append(int(i))
-    rng = np.random.default_rng([seed, 7])
-    fit, val = [], []
-    for ctx in sorted(shards):
-        names = sorted(shards[ctx])
-        rng.shuffle(names)
-        n_val = int(round(fraction * len(names))) if len(names) >= 3 else 0
-        if len(names) >= 3 and fraction > 0:
-            n_val = max(1, n_val)
-        for j, name in enumerate(names):
-            (val if j < n_val else fit).extend(shards[ctx][name])
-    return sorted(fit), sorted(val)
+    from fusion.data import carve_sequences
+
+    def count(n: int) -> int:
+        return max(1, int(round(fraction * n))) if n >= 3 and fraction > 0 else 0
+
+    return carve_sequences(reader, indices, count, np.random.default_rng([seed, 7]))
 
 
 @dataclass(frozen=True)

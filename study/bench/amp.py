@@ -173,6 +173,7 @@ def amp_parity(data: str, out, profile: str = "cpu", branches: tuple[str, ...] =
     from sim.errors import UserError
     from study.detect import (
         context_bootstrap,
+        difference_interval,
         frames_for,
         fused,
         fusion_method,
@@ -224,8 +225,7 @@ def amp_parity(data: str, out, profile: str = "cpu", branches: tuple[str, ...] =
         ci = context_bootstrap(dets, reader, "camera_right", resamples=bootstrap, desc="bootstrap bf16 - fp32")
         all_ = ci["per_context"]["all"]
         intervals = {b: {"fp32": all_["map_vehicles"][f"fp32:{b}"], "bf16": all_["map_vehicles"][f"bf16:{b}"],
-                         "bf16_minus_fp32": all_["difference"].get(f"fp32:{b} - bf16:{b}") and
-                         [-all_["difference"][f"fp32:{b} - bf16:{b}"][1], -all_["difference"][f"fp32:{b} - bf16:{b}"][0]]}
+                         "bf16_minus_fp32": difference_interval(all_, f"bf16:{b}", f"fp32:{b}")}
                      for b in branches}
         intervals["sequences"] = all_["sequences"]
     native, why = native_bf16("cpu")

@@ -18,6 +18,7 @@ from study.branch_gate_study import (
     fit_objectives,
     mae,
     predict_losses,
+    with_frame_context,
 )
 from study.eco.data import EcoSettings, eco_gate_frames, open_eco_run
 from study.outputs import torch_save_atomic, write_json_atomic
@@ -39,6 +40,7 @@ def train_eco_gate(run_dir, data, gate: str, cfg: GateTrainConfig, s: EcoSetting
     model, run_cfg, configs, ed = open_eco_run(run_dir, data, s, cfg.threads)
     frames = eco_gate_frames(run_cfg, data, s.max_frames, cfg.targets, cfg.val_fraction, cfg.seed, "eco-train-gate")
     fit_idx, val_idx, test = frames.fit, frames.val, frames.test
+    reader = DatasetReader(data)
     ed.ensure(fit_idx + val_idx + test, batch_size=s.batch_size, progress=progress)
     out = Path(out) if out is not None else s.gate_dir(run_dir, gate)
     loss = dataclasses.asdict(ed.weights)
@@ -48,11 +50,7 @@ def train_eco_gate(run_dir, data, gate: str, cfg: GateTrainConfig, s: EcoSetting
     x_fit, x_val, x_test = (ed.arrays(i, ["features"])["features"] for i in (fit_idx, val_idx, test))
     y_fit, y_val, y_test = (ed.losses(i).astype(np.float32) for i in (fit_idx, val_idx, test))
     if cfg.context:  # the frames' context labels as constant planes after the pooled features
-        from fusion.nets.branch_gates import with_context
-
-        frames_meta = DatasetReader(data).manifest["frames"]
-        x_fit, x_val, x_test = (with_context(x, [frames_meta[int(i)] for i in idx])
-                                for x, idx in ((x_fit, fit_idx), (x_val, val_idx), (x_test, test)))
+        x_fit, x_val, x_test = with_frame_context(reader, (x_fit, fit_idx), (x_val, val_idx), (x_test, test))
     out.mkdir(parents=True, exist_ok=True)
     g, fitted, objectives, objective = fit_objectives(
         lambda: build_config_gate(gate, model, configs, sensors=list(ed.sensors), **cfg.gate_options()),
@@ -60,7 +58,7 @@ def train_eco_gate(run_dir, data, gate: str, cfg: GateTrainConfig, s: EcoSetting
         f"{gate} configuration gate", progress, extra={"data_key": ed.key, "loss": loss}, net=lambda c: c.net)
     pred = predict_losses(g, x_test)
     mean_c = y_fit.mean(axis=0)
-    meta = DatasetReader(data).manifest["frames"]
+    meta = reader.manifest["frames"]
     contexts = [[meta[int(i)]["context"] for i in idx] for idx in (fit_idx, test)]
     from fusion.eco.optimise import select
 
