@@ -107,6 +107,7 @@ class TrainSection:
             on: the gate split the gates learn from and every choice is made on (0 = none: the
             gates learn from the detectors' training frames, the choices are made on validation
             sequences carved from them).
+        model: `KEY=VALUE` overrides of the model profile, as `train --model` (e.g. width=0.5).
     """
 
     branches: tuple[str, ...] = ()
@@ -122,8 +123,12 @@ class TrainSection:
     eval_frames: int = 0
     protocol: str = "reference"
     gate_holdout: float = 0.0
+    model: tuple[str, ...] = ()
 
     def __post_init__(self) -> None:
+        from fusion.nets.profile import parse_model_overrides
+
+        parse_model_overrides(self.model)  # refuses a malformed or data-fixed key now, not after generation
         if not 0 <= self.gate_holdout < 1:
             raise UserError(f"train.gate_holdout must be in [0, 1), got {self.gate_holdout}")
         for name in ("epochs", "batch_size", "checkpoint_steps"):
@@ -504,7 +509,7 @@ def train_stage(work: Path, data: Path, train_cfg: TrainSection, profile: str, s
                          warmup_steps=t.warmup_steps, clip_grad=t.clip_grad, seed=t.seed,
                          checkpoint_steps=t.checkpoint_steps, eval_frames=t.eval_frames, threads=setup.threads,
                          protocol=t.protocol, device=setup.device, amp=setup.amp, workers=setup.workers,
-                         gate_holdout=t.gate_holdout)
+                         gate_holdout=t.gate_holdout, model=tuple(t.model))
         train(tc, work / name, progress=progress)
         digests[name] = file_sha256(work / name / "checkpoint.pt")
     return _digest(digests), {"checkpoints_sha256": digests}

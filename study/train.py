@@ -90,6 +90,9 @@ class TrainConfig:
         protocol: the evaluation protocol whose ground truth the branches train on and are tested
             against (fusion.protocol: reference | visible | bev); runs made before it existed
             trained on `visible`.
+        model: `KEY=VALUE` overrides of the model profile (`fusion.nets.profile.parse_model_overrides`:
+            width=0.5, dilation=true, bev.output_stride=16, box_batch_size_per_image=64, ...); the
+            resolved profile is recorded in config.json ("profile_fields").
     """
 
     data: str
@@ -117,6 +120,15 @@ class TrainConfig:
     amp: bool | str | None = None
     workers: int | None = None
     sampling: str = "global"
+    model: tuple[str, ...] = ()
+
+
+def run_model_profile(cfg: TrainConfig):
+    """The ModelProfile `cfg` trains: its named profile with its `model` overrides (UserError when an
+    override is unknown or invalid)."""
+    from fusion.nets.profile import parse_model_overrides
+
+    return load_profile(cfg.model_profile, **parse_model_overrides(cfg.model))
 
 
 # What a field added later means for a run made before it existed (config.json without the field).
@@ -381,7 +393,7 @@ def run_config(cfg: TrainConfig, reader, specs, chosen: list[str], setup) -> dic
 
     run_cfg = {**dataclasses.asdict(cfg), "branches": chosen,
                "branch_specs": [dataclasses.asdict(s) for s in specs],
-               "data_config": reader.manifest["config"], "profile_fields": to_dict(load_profile(cfg.model_profile)),
+               "data_config": reader.manifest["config"], "profile_fields": to_dict(run_model_profile(cfg)),
                "compute": compute_identity(setup)}
     return json.loads(json.dumps(run_cfg))  # the form it has on disk (tuples become lists)
 

@@ -54,8 +54,9 @@ class Stem(nn.Module):
 
     out_channels = STEM_CHANNELS
 
-    def __init__(self, in_channels: int, *, norm: str) -> None:
+    def __init__(self, in_channels: int, *, norm: str, channels_last: bool = False) -> None:
         super().__init__()
+        self.channels_last = bool(channels_last)
         r = _resnet18(norm)
         if in_channels == 3:
             self.conv1 = r.conv1
@@ -66,16 +67,56 @@ class Stem(nn.Module):
         self.bn1, self.relu, self.maxpool, self.layer1 = r.bn1, r.relu, r.maxpool, r.layer1
 
     def forward(self, x: Tensor) -> Tensor:
+        if self.channels_last:  # NHWC: oneDNN's native layout; the weights were converted at build
+            x = x.contiguous(memory_format=torch.channels_last)
         return self.layer1(self.maxpool(self.relu(self.bn1(self.conv1(x)))))
 
 
-def _set_stride_one(layer: nn.Sequential) -> None:
-    """Turn a ResNet stage's downsampling into stride 1 (BasicBlock refuses dilation)."""
+def _set_stride_one(layer: nn.Sequential, dilation: int = 1, previous: int = 1) -> None:
+    """Turn a ResNet stage's downsampling into stride 1 (BasicBlock refuses dilation at construction).
+
+    With `dilation` > 1 the stage's 3x3 convolutions after the first are dilated by it (the first
+    keeps `previous`, the dilation of the stage before), as torchvision's
+    `replace_stride_with_dilation` does for Bottleneck stages (DeepLab, Chen et al. 2017): the stage
+    keeps the receptive field it had at stride 2 while its map stays at the input's resolution.
+    """
     block = layer[0]
     block.conv1.stride = (1, 1)
     block.stride = 1
     if block.downsample is not None:
         block.downsample[0].stride = (1, 1)
+    if dilation == 1 and previous == 1:
+        return
+    for k, b in enumerate(layer):
+        for j, conv in enumerate((b.conv1, b.conv2)):
+            d = previous if k == 0 and j == 0 else dilation
+            conv.dilation, conv.padding = (d, d), (d, d)
+
+
+def _stages(norm: str, width: float) -> tuple[nn.Module, nn.Module, nn.Module]:
+    """ResNet-18's layer2, layer3, layer4 (two BasicBlocks each, stride 2 first), with 128, 256, 512
+    output channels times `width`, initialised as torchvision initialises ResNet (Kaiming-normal
+    convolutions, unit-scale normalisation). Width 1 is torchvision's own stages."""
+    if width == 1:
+        r = _resnet18(norm)
+        return r.layer2, r.layer3, r.layer4
+    from torchvision.models.resnet import BasicBlock, conv1x1
+
+    norm_layer = NORM_LAYERS.get(norm)
+    stages, inplanes = [], STEM_CHANNELS
+    for planes in (int(round(c * width)) for c in (128, 256, 512)):
+        down = nn.Sequential(conv1x1(inplanes, planes, 2), norm_layer(planes))
+        stage = nn.Sequential(BasicBlock(inplanes, planes, 2, down, norm_layer=norm_layer),
+                              BasicBlock(planes, planes, norm_layer=norm_layer))
+        for m in stage.modules():
+            if isinstance(m, nn.Conv2d):
+                nn.init.kaiming_normal_(m.weight, mode="fan_out", nonlinearity="relu")
+            elif isinstance(m, nn.BatchNorm2d | nn.GroupNorm):
+                nn.init.constant_(m.weight, 1)
+                nn.init.constant_(m.bias, 0)
+        stages.append(stage)
+        inplanes = planes
+    return tuple(stages)
 
 
 class Branch(nn.Module):
@@ -88,7 +129,7 @@ class Branch(nn.Module):
         merge: conv mapping the concatenated stem features (N, 64*len(sensors), h, w) to 64
             channels, or None for a single-sensor branch.
         layer2, layer3, layer4: ResNet-18 stages (strides already set).
-        neck: 1x1 conv to the channels seen by the RPN and RoIAlign, or None (512 channels).
+        neck: 1x1 conv to the channels seen by the RPN and RoIAlign, or None (layer4's channels).
         rpn, roi_heads: torchvision modules, on feature map "0".
 
     Precision: `features` (merge, layer2..4, neck) follows autocast; the heads always run in fp32
@@ -212,24 +253,33 @@ def build_stem(stem: str, profile: ModelProfile) -> Stem:
     channels = {s.stem: s.channels for s in SENSORS.values()}
     if stem not in channels:
         raise ValueError(f"stem: unknown stem {stem!r} (known: {', '.join(channels)})")
-    return Stem(channels[stem], norm=profile.norm)
+    return _memory_format(Stem(channels[stem], norm=profile.norm, channels_last=profile.channels_last), profile)
+
+
+def _memory_format(module: nn.Module, profile: ModelProfile) -> nn.Module:
+    """`module` with its 4-D weights in NHWC when the profile asks for channels_last."""
+    return module.to(memory_format=torch.channels_last) if profile.channels_last else module
 
 
 def build_branch(spec: BranchSpec, profile: ModelProfile) -> Branch:
     """A branch for `spec` sized by `profile` (its view's size, stride and anchors)."""
     view = profile.view(FRAMES[spec.frame])
-    r = _resnet18(profile.norm)
-    if view.output_stride <= 16:
-        _set_stride_one(r.layer4)
+    layer2, layer3, layer4 = _stages(profile.norm, profile.width)
+    dilate = 2 if profile.dilation else 1
     if view.output_stride <= 8:
-        _set_stride_one(r.layer3)
+        _set_stride_one(layer3, dilate)
+    if view.output_stride <= 16:
+        _set_stride_one(layer4, dilate * (dilate if view.output_stride <= 8 else 1),
+                        previous=dilate if view.output_stride <= 8 else 1)
     k = len(spec.sensors)
     merge = (nn.Conv2d(STEM_CHANNELS * k, STEM_CHANNELS, kernel_size=3, padding=1)
              if k > 1 and spec.fusion == "features" else None)
-    input_stem = (Stem(sum(SENSORS[s].channels for s in spec.sensors), norm=profile.norm)
+    input_stem = (Stem(sum(SENSORS[s].channels for s in spec.sensors), norm=profile.norm,
+                       channels_last=profile.channels_last)
                   if spec.fusion == "input" else None)
     channels = profile.roi_channels
-    neck = nn.Conv2d(512, channels, kernel_size=1) if channels != 512 else None
+    top = profile.stage_channels()[2]
+    neck = nn.Conv2d(top, channels, kernel_size=1) if channels != top else None
     anchors = AnchorGenerator(sizes=(tuple(view.anchor_sizes),), aspect_ratios=(tuple(view.aspect_ratios),))
     rpn = RegionProposalNetwork(
         anchors,
@@ -263,16 +313,16 @@ def build_branch(spec: BranchSpec, profile: ModelProfile) -> Branch:
         nms_thresh=profile.box_nms_thresh,
         detections_per_img=profile.box_detections_per_img,
     )
-    return Branch(
+    return _memory_format(Branch(
         spec=spec,
         image_size=view.size,
         output_stride=view.output_stride,
         merge=merge,
-        layer2=r.layer2,
-        layer3=r.layer3,
-        layer4=r.layer4,
+        layer2=layer2,
+        layer3=layer3,
+        layer4=layer4,
         neck=neck,
         rpn=rpn,
         roi_heads=roi_heads,
         input_stem=input_stem,
-    )
+    ), profile)

@@ -201,6 +201,14 @@ class ModelProfile:
     box_batch_size_per_image: int  # [RoIs/image] sampled for the box-head loss
     box_positive_fraction: float  # [1] of those, at most this fraction foreground
     branches: tuple[BranchSpec, ...]  # the branch set (HydraFusion 5.2.1 has seven)
+    # Cost options of the branch backbones (issue 27); the defaults are ResNet-18 as the paper has it
+    width: float = 1.0  # [1] channels of layer2..layer4 are 128, 256, 512 times this (stems keep 64)
+    dilation: bool = False  # a stage run at stride 1 dilates its 3x3 convs (DeepLab) to keep its receptive field
+    channels_last: bool = False  # NHWC memory format for stems and branch backbones (oneDNN's native layout)
+
+    def stage_channels(self) -> tuple[int, int, int]:
+        """Output channels of layer2, layer3, layer4 at this `width`."""
+        return tuple(int(round(c * self.width)) for c in (128, 256, 512))
 
     def __post_init__(self) -> None:
         from fusion.nets.norms import NORM_LAYERS  # here, not at the top: importing profiles needs no torch
@@ -254,8 +262,16 @@ class ModelProfile:
             raise ValueError("rpn_bg_iou_thresh: must not exceed rpn_fg_iou_thresh")
         if self.box_bg_iou_thresh > self.box_fg_iou_thresh:
             raise ValueError("box_bg_iou_thresh: must not exceed box_fg_iou_thresh")
-        if self.roi_channels > 512:
-            raise ValueError(f"roi_channels: at most layer4's 512 channels, got {self.roi_channels}")
+        if not (isinstance(self.width, int | float) and 0.0 < self.width <= 1.0):
+            raise ValueError(f"width: a channel multiplier in (0, 1], got {self.width!r}")
+        groups = 32 if self.norm == "group" else 1
+        odd = [c for c in self.stage_channels() if c < groups or c % groups]
+        if odd:
+            raise ValueError(f"width: {self.width:g} gives {odd[0]} channels, which {self.norm} normalisation cannot "
+                             f"split into {groups} groups (0.25, 0.5, 0.75 and 1 can)")
+        top = self.stage_channels()[2]
+        if self.roi_channels > top:
+            raise ValueError(f"roi_channels: at most layer4's {top} channels (width {self.width:g}), got {self.roi_channels}")
         if not self.branches:
             raise ValueError("branches: the branch set is empty")
         seen: set[str] = set()
@@ -322,3 +338,46 @@ def _plain(value: Any) -> Any:
     if isinstance(value, Mapping):
         return {k: _plain(v) for k, v in value.items()}
     return value
+
+
+FIXED_BY_DATA = ("num_classes", "camera.size", "bev.size", "normalization", "branches")
+"""Profile fields a run cannot override: the dataset's renders fix the sizes and classes, the branch
+set comes from its own option."""
+
+
+def parse_model_overrides(items: Any) -> dict[str, Any]:
+    """`KEY=VALUE` strings (dotted keys into nested fields, YAML values) -> `load_profile` overrides.
+
+    `["width=0.5", "bev.output_stride=16", "dilation=true"]` ->
+    `{"width": 0.5, "bev": {"output_stride": 16}, "dilation": True}`. Keys in `FIXED_BY_DATA`, an
+    item without "=", a key given twice or a value YAML cannot read are refused (UserError); whether
+    the key exists and the value fits is `load_profile`'s check.
+    """
+    import yaml
+
+    out: dict[str, Any] = {}
+    seen: set[str] = set()
+    for item in items or ():
+        key, eq, raw = str(item).partition("=")
+        key = key.strip()
+        if not eq or not key:
+            raise UserError(f"--model {item!r}: expected KEY=VALUE, e.g. width=0.5 or bev.output_stride=16")
+        if key in seen:
+            raise UserError(f"--model {key}: given twice")
+        seen.add(key)
+        if any(key == f or key.startswith(f + ".") for f in FIXED_BY_DATA):
+            raise UserError(f"--model {key}: fixed by the dataset or the branch options, not overridable")
+        try:
+            value = yaml.safe_load(raw)
+        except yaml.YAMLError as err:
+            raise UserError(f"--model {key}: cannot read value {raw!r} ({err.__class__.__name__})") from None
+        node = out
+        *parents, leaf = key.split(".")
+        for p in parents:
+            node = node.setdefault(p, {})
+            if not isinstance(node, dict):
+                raise UserError(f"--model {key}: {p} is given both as a value and as a group")
+        if isinstance(node.get(leaf), dict):
+            raise UserError(f"--model {key}: given both as a value and as a group")
+        node[leaf] = value
+    return out

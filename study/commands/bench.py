@@ -321,7 +321,9 @@ def run_amp(args) -> int:
     from study.bench.amp import bench_amp
 
     r = bench_amp(args.profile, tuple(args.branches), batch=args.batch_size, steps=args.steps, warmup=args.warmup,
-                  threads=args.threads, seed=args.seed, data=str(args.data) if args.data else None)
+                  threads=args.threads, seed=args.seed, data=str(args.data) if args.data else None,
+                  overrides=_model_overrides(args))
+    r["model_overrides"] = list(args.model or ())
     r.update(machine())
     emit(r, args.json, lambda r: "\n".join([
         f"{r['cpu'] or 'CPU'}, {r['threads']} threads; {r['profile']} profile, {', '.join(r['branches'])} "
@@ -376,7 +378,16 @@ def _training_bench_args(p, steps_help: str, data_help: str) -> None:
     p.add_argument("--threads", type=nonneg_int, default=0, help="torch CPU threads (0: the cores available)")
     p.add_argument("--seed", type=nonneg_int, default=0, help="initial weights, frames and sampling")
     p.add_argument("--data", type=dataset_dir, default=None, metavar="DATASET", help=data_help)
+    p.add_argument("--model", action="append", default=None, metavar="KEY=VALUE",
+                   help="override a model-profile field, repeatable, as `train --model` (width=0.5, dilation=true, "
+                   "channels_last=true, bev.output_stride=16, box_batch_size_per_image=64, ...)")
     p.add_argument("--json", action="store_true", help="print one JSON object on stdout")
+
+
+def _model_overrides(args) -> dict:
+    from fusion.nets.profile import parse_model_overrides
+
+    return parse_model_overrides(args.model)
 
 
 def _doc(module: str) -> str:
@@ -390,7 +401,8 @@ def run_profile(args) -> int:
 
     r = bench_profile(args.profile, tuple(args.branches), batch=args.batch_size, steps=args.steps, warmup=args.warmup,
                       threads=args.threads, seed=args.seed, precision=args.precision,
-                      data=str(args.data) if args.data else None)
+                      data=str(args.data) if args.data else None, overrides=_model_overrides(args))
+    r["model_overrides"] = list(args.model or ())
     r.update(machine())
 
     def text(r):

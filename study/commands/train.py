@@ -74,6 +74,11 @@ def add_parser(sub, name, help_text):
                    help="anchor / RoI sampling of the detection losses: global (torch's generator, one image after "
                    "the other), per-frame (seeded per frame and step: the same whatever the number of processes); "
                    "auto: the run's own, else per-frame under torchrun and global in one process")
+    p.add_argument("--model", action="append", default=None, metavar="KEY=VALUE",
+                   help="override a model-profile field, repeatable: width=0.5 (layer2-4 channels x 0.5), "
+                   "dilation=true (stride-1 stages dilated), channels_last=true, bev.output_stride=16, "
+                   "box_batch_size_per_image=64, ... (configs/model/<profile>.yaml names them; sizes, classes and "
+                   "branches are fixed by the dataset). Recorded in RUN/config.json")
     add_device_args(p)
     p.add_argument("--json", action="store_true", help="print one JSON object (final metrics) on stdout")
     p.set_defaults(run=run)
@@ -94,7 +99,7 @@ def run(args) -> int:
         checkpoint_steps=args.checkpoint_steps,
         checkpoint_seconds=args.checkpoint_seconds, init_from=",".join(str(Path(r).resolve()) for r in args.init_from or ()),
         hflip=args.hflip, gate_holdout=args.gate_holdout, protocol=args.protocol, device=args.device, amp=args.amp, workers=args.workers,
-        sampling=_resolve_sampling(args.sampling, Path(args.out)),
+        sampling=_resolve_sampling(args.sampling, Path(args.out)), model=tuple(args.model or ()),
     )
     result = training.train(cfg, Path(args.out))
     if job.rank == 0:  # one JSON object, from one process
