@@ -609,33 +609,35 @@ def evaluate_gate(run_dir, data, gate: str, k=None, fusion: str = "soft-nms", sp
     return result
 
 
-def evaluate_all_gates(run_dir, data, gates=None, fusions=TABLE_FUSIONS, ks=None, split: str = "auto", weights=None,
-                       checkpoint: str = "latest", batch_size: int = 4, progress: bool = True, setup=None) -> dict:
-    """HydraFusion Tables 6 and 7 on this benchmark: mAP per gate x fusion x k, and how often each
-    gate selects each branch per k. Every branch runs once per frame; each gate's top-k subsets are
-    fused afterwards (equal to running only the selected branches: see the module docstring)."""
+@dataclass
+class GatePass:
+    """One pass over frames: every branch's detections and every gate's prediction per frame."""
+
+    per_frame: list  # (meta, {branch: Detections in its own frame})
+    rankings: dict  # gate -> per frame, branch indices from best (lowest predicted loss) to worst
+    predicted: dict  # gate -> per frame, the predicted loss of each branch
+    losses: dict | None  # dataset index -> {branch: a-posteriori loss} when a gate reads losses
+    gates: dict  # gate name -> the gate module
+
+
+def gate_pass(run_dir, data, model, names, indices, checkpoint: str = "latest", batch_size: int = 4,
+              progress: bool = True) -> GatePass:
+    """Run every branch of `model` once per frame of `indices` and every gate of `names` beside it
+    (the optimal gate reads the run's a-posteriori branch losses, computed when missing)."""
     import torch
 
-    from fusion.late import fuse
-    from fusion.nets.branch_gates import GATES, rank_branches
-    from sensors.rig import Calibration
-    from study.detect import score, to_detections
-    from study.train import run_protocol
+    from fusion.nets.branch_gates import rank_branches
+    from study.detect import to_detections
 
-    model, _cfg, indices, used_split, reader = _setup(run_dir, data, split, weights, checkpoint, setup)
-    protocol = run_protocol(_cfg)
-    names = list(gates or GATES.names())
     gate_objs = {g: _gate_on_device(make_gate(g, model, run_dir, checkpoint), model) for g in names}
     branches = list(model.branches)
-    ks = list(ks or table_ks(len(branches)))
-    ks = [parse_k(k, len(branches), "k") for k in ks]
     need_losses = any(g.reads == "losses" for g in gate_objs.values())
     losses = _optimal_losses(run_dir, data, model, checkpoint, indices, progress) if need_losses else None
     rankings: dict[str, list[list[int]]] = {g: [] for g in names}
     predicted: dict[str, list] = {g: [] for g in names}
     per_frame = []
     with torch.no_grad():
-        bar = progress_bar(total=len(indices), desc="evaluate all gates", enabled=progress)
+        bar = progress_bar(total=len(indices), desc="branches and gates", enabled=progress)
         for inputs, _targets, metas in _loader(model, data, indices, batch_size):
             if losses is not None:
                 metas = [dict(m, branch_losses=losses[int(m["dataset_index"])]) for m in metas]
@@ -650,6 +652,28 @@ def evaluate_all_gates(run_dir, data, gates=None, fusions=TABLE_FUSIONS, ks=None
                 per_frame.append((meta, {n: to_detections(d) for n, d in per.items()}))
             bar.update(len(metas))
         bar.close()
+    return GatePass(per_frame, rankings, predicted, losses, gate_objs)
+
+
+def evaluate_all_gates(run_dir, data, gates=None, fusions=TABLE_FUSIONS, ks=None, split: str = "auto", weights=None,
+                       checkpoint: str = "latest", batch_size: int = 4, progress: bool = True, setup=None) -> dict:
+    """HydraFusion Tables 6 and 7 on this benchmark: mAP per gate x fusion x k, and how often each
+    gate selects each branch per k. Every branch runs once per frame; each gate's top-k subsets are
+    fused afterwards (equal to running only the selected branches: see the module docstring)."""
+    from fusion.late import fuse
+    from fusion.nets.branch_gates import GATES
+    from sensors.rig import Calibration
+    from study.detect import score
+    from study.train import run_protocol
+
+    model, _cfg, indices, used_split, reader = _setup(run_dir, data, split, weights, checkpoint, setup)
+    protocol = run_protocol(_cfg)
+    names = list(gates or GATES.names())
+    branches = list(model.branches)
+    ks = list(ks or table_ks(len(branches)))
+    ks = [parse_k(k, len(branches), "k") for k in ks]
+    gp = gate_pass(run_dir, data, model, names, indices, checkpoint, batch_size, progress)
+    per_frame, rankings, predicted, losses, gate_objs = gp.per_frame, gp.rankings, gp.predicted, gp.losses, gp.gates
 
     frames = model.branch_frames
     calibs = [Calibration.from_dict(m["calibration"]) for m, _ in per_frame]

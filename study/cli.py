@@ -326,8 +326,12 @@ _typed(dataset_dir, "dataset", checked=True)
 
 
 def training_run(text: str) -> str:
-    """An argparse type: a training run directory (hydrabench train --out)."""
-    path = Path(_path_text(text))
+    """An argparse type: a training run directory (hydrabench train --out), or a reference model
+    (`study.reference_model`: a name in models/ or its directory), checked against its manifest and
+    copied into its cache run, whose path is returned."""
+    from study.reference_model import resolve_run
+
+    path = Path(_as_type_error(resolve_run, _path_text(text)))
     if not path.is_dir():
         raise argparse.ArgumentTypeError(f"{text} is not a directory" if path.exists() else f"{text} does not exist")
     if not (path / "config.json").is_file():
@@ -406,6 +410,8 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "eco-train-gate": ("study.commands.eco:add_eco_train_gate", "EcoFusion: train the deep or attention configuration gate"),
     "eco-evaluate": ("study.commands.eco:add_eco_evaluate", "EcoFusion at one lambda_E and gamma: mAP, loss, energy, latency per gate"),
     "eco-sweep": ("study.commands.eco:add_eco_sweep", "EcoFusion Tables 1-3 and Figures 4-5 over a lambda_E sweep"),
+    "compare": ("study.commands.compare:add_parser", "selective (gated) against fixed fusion on one dataset, with intervals"),
+    "model": ("study.commands.model:add_parser", "reference models: export a trained run (float16, gates, manifest), list them"),
     "study": ("study.commands.study:add_parser", "the whole HydraFusion + EcoFusion study as cached, resumable stages, "
               "and its report"),
     "bench": ("study.commands.bench:add_parser", "measure throughput (sim, generate, ...) and print the figures"),

@@ -434,6 +434,31 @@ def write_config(out: Path, run_cfg: dict) -> None:
         tmp.write_text(json.dumps(run_cfg, indent=1))
 
 
+SHAPE_FIELDS = ("num_classes", "width", "roi_channels", "roi_output_size", "box_head_width")
+"""Profile fields that change the shapes of branch weights: a warm start across them would skip
+every such tensor silently (`warm_start` copies only tensors of equal shape)."""
+
+
+def check_warm_start_profile(src: Path, run_cfg: dict) -> None:
+    """Refuse (one line) a --init-from run whose recorded profile differs from this run's in a field
+    of `SHAPE_FIELDS`."""
+    try:
+        src_fields = json.loads((src / "config.json").read_text()).get("profile_fields")
+    except (OSError, ValueError):
+        return  # runs from before profiles were recorded: warm_start reports what it copied
+    if not src_fields:
+        return
+    from fusion.nets.profile import ModelProfile
+
+    defaults = {f.name: f.default for f in dataclasses.fields(ModelProfile)}
+    mine = run_cfg["profile_fields"]
+    diff = [f"{k} {src_fields.get(k, defaults.get(k))} there, {mine.get(k, defaults.get(k))} here"
+            for k in SHAPE_FIELDS if src_fields.get(k, defaults.get(k)) != mine.get(k, defaults.get(k))]
+    if diff:
+        raise UserError(f"--init-from {src}: trained with another model profile ({'; '.join(diff)}); "
+                        "give this run the same --model overrides")
+
+
 def apply_warm_start(model, sources: list, srcs: list[Path], out: Path, main_rank: bool, progress: bool) -> None:
     """`warm_start` from the --init-from runs' weights, reported in RUN/warm_start.json."""
     report = warm_start(model, sources)
@@ -578,6 +603,8 @@ def train(cfg: TrainConfig, out: Path, progress: bool = True) -> dict:
     missing = [str(s.parent) for s in srcs if not s.exists()]
     if missing:
         raise UserError(f"--init-from {missing[0]}: no checkpoint.pt there")
+    for s in srcs:
+        check_warm_start_profile(s.parent, run_cfg)
     check_run_dir(out, main_rank)
     if main_rank:
         check_same_run(out, run_cfg)

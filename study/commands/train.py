@@ -56,7 +56,7 @@ def add_parser(sub, name, help_text):
     p.add_argument("--checkpoint-seconds", type=nonneg_float, default=600.0,
                    help="also checkpoint when this many seconds passed since the last one (0: off); a kill loses at "
                    "most this much work")
-    p.add_argument("--init-from", type=name_list, default=None, help="initialise from trained runs, comma-separated in priority "
+    p.add_argument("--init-from", type=name_list, default=None, help="initialise from trained runs or reference models (models/: e.g. cpu-ref), comma-separated in priority "
                    "order: each branch / stem from the first run that has it or its origin (other camera-view "
                    "branches from camera_right, BEV ones from radar)")
     p.add_argument("--hflip", type=probability, default=0.0, help="probability of mirroring a training frame left-right "
@@ -87,6 +87,7 @@ def add_parser(sub, name, help_text):
 def run(args) -> int:
     from study import train as training
     from study.distributed import from_env
+    from study.reference_model import resolve_run
 
     job = from_env()
     # cuda:N under torchrun, or a device this machine does not have: refused before anything is written
@@ -97,7 +98,7 @@ def run(args) -> int:
         batch_size=args.batch_size, lr=args.lr, warmup_steps=args.warmup_steps, lr_drop_epoch=args.lr_drop_epoch,
         clip_grad=args.clip_grad, seed=args.seed, eval_frames=args.eval_frames, threads=args.threads,
         checkpoint_steps=args.checkpoint_steps,
-        checkpoint_seconds=args.checkpoint_seconds, init_from=",".join(str(Path(r).resolve()) for r in args.init_from or ()),
+        checkpoint_seconds=args.checkpoint_seconds, init_from=",".join(str(resolve_run(r).resolve()) for r in args.init_from or ()),
         hflip=args.hflip, gate_holdout=args.gate_holdout, protocol=args.protocol, device=args.device, amp=args.amp, workers=args.workers,
         sampling=_resolve_sampling(args.sampling, Path(args.out)), model=tuple(args.model or ()),
     )

@@ -1,0 +1,69 @@
+"""`hydrabench compare`: the command line of `study.compare` (selective against fixed fusion) and its
+figure."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+from study.cli import (
+    Formatter,
+    bootstrap_int,
+    dataset_dir,
+    emit,
+    module_doc,
+    name_arg,
+    name_list,
+    out_file,
+    pos_int,
+    training_run,
+)
+from study.commands.device import add_device_args
+
+EPILOG = """\
+examples:
+  hydrabench compare cpu-ref demo/test                  (the committed reference model on a fresh dataset)
+  hydrabench compare runs/all data/train1600 --k 3 --fusion wbf --bootstrap 1000 --json
+  hydrabench compare cpu-ref demo/test --plot demo/compare.png
+"""
+
+
+def add_parser(sub, name, help_text):
+    p = sub.add_parser(name, help=help_text, description=module_doc("study.compare"), epilog=EPILOG,
+                       formatter_class=Formatter)
+    p.add_argument("run_dir", metavar="RUN", type=training_run,
+                   help="training run directory, or a reference model (models/: e.g. cpu-ref)")
+    p.add_argument("data", type=dataset_dir, help="dataset directory")
+    p.add_argument("--k", type=pos_int, default=2, help="branches each gate keeps per frame")
+    p.add_argument("--fusion", type=name_arg, default="soft-nms", help="nms | soft-nms | wbf: how chosen branches are fused")
+    p.add_argument("--gates", type=name_list, default="knowledge,deep,attention,optimal",
+                   help="HydraFusion gates to compare (deep and attention only where trained)")
+    p.add_argument("--split", default="auto", choices=["auto", "test", "all"],
+                   help="auto: the run's test split on its own dataset, every frame on another")
+    p.add_argument("--bootstrap", type=bootstrap_int, default=500, metavar="N",
+                   help="draws of whole sequences for the 95%% intervals (0: none)")
+    p.add_argument("--batch-size", type=pos_int, default=4, help="frames per forward pass")
+    p.add_argument("--plot", type=out_file(".png", ".pdf", ".svg"), default=None,
+                   help="also draw each method's mAP minus late fusion with its interval")
+    add_device_args(p, purpose="eval")
+    p.add_argument("--json", action="store_true", help="print one JSON object on stdout")
+    p.set_defaults(run=run)
+
+
+def run(args) -> int:
+    from sim.errors import UserError
+    from study.compare import GATES, compare, format_table
+    from study.device import resolve_device
+
+    gates = tuple(args.gates if not isinstance(args.gates, str) else args.gates.split(","))
+    bad = [g for g in gates if g not in GATES]
+    if bad:
+        raise UserError(f"--gates: unknown gate {bad[0]!r} (choose from: {', '.join(GATES)})")
+    r = compare(Path(args.run_dir), Path(args.data), gates=gates, k=args.k, fusion=args.fusion, split=args.split,
+                resamples=args.bootstrap, batch_size=args.batch_size, setup=resolve_device(args, purpose="eval"))
+    if args.plot:
+        from study.compare import plot_compare
+
+        plot_compare(r, args.plot)
+        r["plot"] = str(args.plot)
+    emit(r, args.json, format_table)
+    return 0

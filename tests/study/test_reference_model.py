@@ -1,0 +1,204 @@
+"""Reference models (study.reference_model) and `hydrabench compare`, end to end on a tiny dataset
+and a one-step run of a narrow (width 0.25) network: float16 export, the manifest that loading
+checks, gates that travel with the weights, names resolved to a cache copy, warm starts refused
+across widths, and the selective-against-fixed comparison checked against `evaluate`."""
+
+import json
+import shutil
+
+import pytest
+import torch
+
+from sensors.generate import GenerateConfig
+from study import reference_model as rm
+from study.cli import main
+from study.compare import verdict
+from study.detect import load_run
+from study.train import TrainConfig, train
+
+BRANCHES = ("radar", "camera_right", "lidar", "radar_lidar")
+
+
+@pytest.fixture(autouse=True, scope="module")
+def _restore_threads():
+    before = torch.get_num_threads()
+    yield
+    torch.set_num_threads(before)
+
+
+@pytest.fixture(scope="module")
+def data(shared_dataset):  # the dataset of tests/study/test_gates.py: generated once per session
+    return shared_dataset(GenerateConfig(contexts=("city", "fog"), frames_per_context=4, sequence_length=2, seed=4))
+
+
+@pytest.fixture(scope="module")
+def run(data, tmp_path_factory):
+    out = tmp_path_factory.mktemp("run") / "run"
+    train(TrainConfig(data=str(data), branches=BRANCHES, epochs=1, batch_size=4, warmup_steps=1, lr=1e-3,
+                      threads=2, eval_frames=1, model=("width=0.25",)), out, progress=False)
+    return out
+
+
+@pytest.fixture(scope="module")
+def exported(run, data, tmp_path_factory):
+    """The run exported in float16, a deep gate trained on the export, then packed as model 'mini'."""
+    base = tmp_path_factory.mktemp("models")
+    half = base / "half"
+    rm.export_model(run, half, name="mini")
+    assert main(["train-gate", str(half), str(data), "--gate", "deep", "--epochs", "1", "--val-fraction", "0",
+                 "--threads", "1", "--json"]) == 0
+    man = rm.export_model(half, base / "mini", name="mini", command="pytest", measured={"map": 0.0})
+    return base / "mini", man, half
+
+
+def _one_line_error(capsys, needle):
+    out, err = capsys.readouterr()
+    assert out == "" and len(err.strip().splitlines()) == 1 and needle in err, err
+    assert "Traceback" not in err
+
+
+def test_export_is_float16_weights_with_a_manifest_and_loads_close_to_the_float32_run(run, data, exported):
+    model_dir, man, half = exported
+    ckpt = torch.load(model_dir / "checkpoint.pt", weights_only=True)
+    assert set(ckpt) == {"model"}  # weights only: no optimiser, no RNG states
+    floats = [v for v in ckpt["model"].values() if v.is_floating_point()]
+    assert floats and all(v.dtype == torch.float16 for v in floats)
+    assert man["weights"]["parameters"] == sum(v.numel() for v in floats)
+    assert man["weights"]["bytes"] == (model_dir / "checkpoint.pt").stat().st_size < rm.MAX_BYTES
+    # the packed checkpoint is the one the gate was trained on, byte for byte, so the gate travels
+    assert (model_dir / "checkpoint.pt").read_bytes() == (half / "checkpoint.pt").read_bytes()
+    assert man["gates"] == ["deep"] and man["skipped_gates"] == []
+    cfg = json.loads((run / "config.json").read_text())
+    assert man["profile"] == "cpu" and man["model_overrides"] == ["width=0.25"] and man["branches"] == list(BRANCHES)
+    assert cfg["profile_fields"]["width"] == 0.25
+    gen = json.loads((data / "manifest.json").read_text())["config"]
+    assert man["data"]["generation_config"] == gen
+    assert man["training"]["command"] == "pytest" and man["measured"] == {"map": 0.0}
+    assert rm.verify(model_dir)["files"] == man["files"]
+    # float16 weights give the float32 run's features to float16 precision
+    m32, _ = load_run(run)
+    m16, _ = load_run(model_dir)
+    x = {"radar": torch.rand(1, 1, 128, 256)}
+    with torch.no_grad():
+        f32 = m32.branches["radar"].features([m32.extract_features(x)["radar"]])
+        f16 = m16.branches["radar"].features([m16.extract_features(x)["radar"]])
+    assert torch.allclose(f32, f16, rtol=0.02, atol=0.02 * float(f32.abs().max()))
+
+
+def test_loading_checks_the_manifest(exported, tmp_path, capsys):
+    model_dir, man, _ = exported
+    bad = tmp_path / "bad"
+    shutil.copytree(model_dir, bad)
+    raw = bytearray((bad / "checkpoint.pt").read_bytes())
+    raw[len(raw) // 2] ^= 0xFF
+    (bad / "checkpoint.pt").write_bytes(bytes(raw))
+    with pytest.raises(rm.UserError, match="checkpoint.pt does not match its manifest"):
+        rm.verify(bad)
+    assert main(["compare", str(bad), "/nonexistent"]) == 2  # refused while parsing RUN, before DATA
+    _one_line_error(capsys, "does not match its manifest")
+    (bad / "checkpoint.pt").write_text("version https://git-lfs.github.com/spec/v1\n")
+    with pytest.raises(rm.UserError, match="Git LFS pointer"):
+        rm.verify(bad)
+    shutil.copyfile(model_dir / "checkpoint.pt", bad / "checkpoint.pt")
+    cfg = json.loads((bad / "config.json").read_text())
+    cfg["profile_fields"]["width"] = 0.5
+    (bad / "config.json").write_text(json.dumps(cfg))
+    mf = json.loads((bad / "manifest.json").read_text())
+    mf["files"]["config.json"] = {"sha256": rm.sha256(bad / "config.json"), "bytes": (bad / "config.json").stat().st_size}
+    (bad / "manifest.json").write_text(json.dumps(mf))
+    with pytest.raises(rm.UserError, match="config.json's model profile is not the manifest's"):
+        rm.verify(bad)
+
+
+def test_a_name_in_models_resolves_to_a_verified_cache_copy(exported, tmp_path, monkeypatch):
+    model_dir, man, _ = exported
+    repo_models = tmp_path / "models"
+    shutil.copytree(model_dir, repo_models / "mini")
+    monkeypatch.setattr(rm, "MODEL_DIR", repo_models)
+    monkeypatch.setenv("HYDRABENCH_CACHE", str(tmp_path / "cache"))
+    assert rm.available_models() == ["mini"]
+    got = rm.resolve_run("mini")
+    assert got == tmp_path / "cache" / "models" / f"mini-{man['files']['checkpoint.pt']['sha256'][:12]}"
+    assert (got / "gates" / "deep" / "gate.pt").read_bytes() == (model_dir / "gates" / "deep" / "gate.pt").read_bytes()
+    stamp = (got / "checkpoint.pt").stat().st_mtime_ns
+    assert rm.resolve_run(str(repo_models / "mini")) == got and (got / "checkpoint.pt").stat().st_mtime_ns == stamp
+    assert rm.resolve_run(str(model_dir)) == model_dir  # outside models/: used in place
+    assert rm.resolve_run("no-such-model") == rm.Path("no-such-model")  # not a model: left to the run checks
+
+
+def test_export_refusals(run, exported, tmp_path):
+    with pytest.raises(rm.UserError, match="over the 1 MiB budget"):
+        rm.export_model(run, tmp_path / "big", name="big", max_bytes=2**20)
+    busy = tmp_path / "busy"
+    busy.mkdir()
+    (busy / "notes.txt").write_text("mine")
+    with pytest.raises(rm.UserError, match="is not a reference model"):
+        rm.export_model(run, busy, name="x")
+    with pytest.raises(rm.UserError, match="letters, digits"):
+        rm.export_model(run, tmp_path / "n", name="no/slash")
+    with pytest.raises(rm.UserError, match="is not a training run"):
+        rm.export_model(tmp_path, tmp_path / "m", name="m")
+    # the float16 conversion is byte-for-byte repeatable: the float32 run exported again gives the
+    # checkpoint the gate was trained on, so the gate is kept ...
+    shutil.copytree(run, tmp_path / "with_gate")
+    shutil.copytree(exported[2] / "gates", tmp_path / "with_gate" / "gates")
+    man = rm.export_model(tmp_path / "with_gate", tmp_path / "out", name="g")
+    assert man["gates"] == ["deep"] and man["files"]["checkpoint.pt"] == exported[1]["files"]["checkpoint.pt"]
+    # ... and a gate trained on another checkpoint is left out, and says so
+    gate = tmp_path / "with_gate" / "gates" / "deep" / "gate.pt"
+    saved = torch.load(gate, weights_only=False)
+    saved["checkpoint_sha256"] = "0" * 64
+    torch.save(saved, gate)
+    man = rm.export_model(tmp_path / "with_gate", tmp_path / "out", name="g")
+    assert man["gates"] == [] and man["skipped_gates"] == ["deep"]
+
+
+def test_warm_start_from_a_model_of_another_width_is_one_line(exported, data, tmp_path, capsys):
+    model_dir, _, _ = exported
+    argv = ["train", str(data), "--out", str(tmp_path / "warm"), "--branches", "radar", "--epochs", "1",
+            "--init-from", str(model_dir), "--threads", "1"]
+    assert main([*argv, "--model", "width=0.5"]) == 2
+    _one_line_error(capsys, "trained with another model profile (width 0.25 there, 0.5 here)")
+    assert not (tmp_path / "warm").exists()
+
+
+def test_compare_scores_fixed_and_gated_fusion_with_paired_intervals(exported, data, capsys):
+    model_dir, _, _ = exported
+    assert main(["compare", str(model_dir), str(data), "--bootstrap", "40", "--gates", "knowledge,deep,optimal",
+                 "--threads", "1", "--json"]) == 0
+    r = json.loads(capsys.readouterr().out)
+    names = list(r["methods"])
+    assert names == ["single:radar", "single:camera_right", "single:lidar", "late", "all_branches",
+                     "hydrafusion:knowledge", "hydrafusion:deep", "hydrafusion:optimal"]
+    assert r["k"] == 2 and r["gates_not_trained"] == [] and r["split"] == "test"
+    for name, row in r["methods"].items():
+        if name == "late":
+            assert "minus_late" not in row
+            continue
+        d = row["minus_late"]
+        lo, hi = d["ci95"]
+        assert lo <= hi and d["verdict"] == verdict([lo, hi])
+        assert d["value"] == pytest.approx(row["map"] - r["methods"]["late"]["map"], abs=2e-4)
+    for g, rates in r["selection_rate_pct"].items():  # each gate keeps k branches on every frame
+        assert sum(rates.values()) == pytest.approx(100.0 * r["k"], abs=0.5), g
+    # the late baseline is what `evaluate` gives for the single-sensor branches fused the same way
+    assert main(["evaluate", str(model_dir), str(data), "--branches", "radar,camera_right,lidar",
+                 "--fusion", "soft-nms", "--threads", "1", "--json"]) == 0
+    ev = json.loads(capsys.readouterr().out)
+    assert ev["map"] == pytest.approx(r["methods"]["late"]["map"], abs=1e-4)
+
+
+def test_verdict_reads_the_interval():
+    assert verdict([0.01, 0.02]) == "above" and verdict([-0.02, -0.001]) == "below"
+    assert verdict([-0.01, 0.01]) == "not resolved" and verdict([0.0, 0.01]) == "not resolved"
+    assert verdict(None) == "not resolved"
+
+
+def test_compare_bad_input_is_one_line(exported, data, capsys):
+    model_dir, _, _ = exported
+    assert main(["compare", str(model_dir), str(data), "--gates", "magic"]) == 2
+    _one_line_error(capsys, "unknown gate 'magic'")
+    assert main(["compare", str(model_dir), str(data), "--fusion", "max"]) == 2
+    _one_line_error(capsys, "unknown fusion method")
+    assert main(["compare", str(model_dir), str(data), "--k", "9"]) == 2
+    _one_line_error(capsys, "must be in 1..4")
