@@ -108,6 +108,9 @@ class TrainSection:
             gates learn from the detectors' training frames, the choices are made on validation
             sequences carved from them).
         model: `KEY=VALUE` overrides of the model profile, as `train --model` (e.g. width=0.5).
+        init_from: a reference model (a name in models/, `study.reference_model`) or a run directory
+            whose weights initialise the paper run (`train --init-from`; "" = from scratch). Its
+            checkpoint's digest is part of the train stage's key.
     """
 
     branches: tuple[str, ...] = ()
@@ -124,6 +127,7 @@ class TrainSection:
     protocol: str = "reference"
     gate_holdout: float = 0.0
     model: tuple[str, ...] = ()
+    init_from: str = ""
 
     def __post_init__(self) -> None:
         from fusion.nets.profile import parse_model_overrides
@@ -509,10 +513,23 @@ def train_stage(work: Path, data: Path, train_cfg: TrainSection, profile: str, s
                          warmup_steps=t.warmup_steps, clip_grad=t.clip_grad, seed=t.seed,
                          checkpoint_steps=t.checkpoint_steps, eval_frames=t.eval_frames, threads=setup.threads,
                          protocol=t.protocol, device=setup.device, amp=setup.amp, workers=setup.workers,
-                         gate_holdout=t.gate_holdout, model=tuple(t.model))
+                         gate_holdout=t.gate_holdout, model=tuple(t.model),
+                         init_from=_init_from(t.init_from) if name == "paper" else "")
         train(tc, work / name, progress=progress)
         digests[name] = file_sha256(work / name / "checkpoint.pt")
     return _digest(digests), {"checkpoints_sha256": digests}
+
+
+def _init_from(text: str) -> str:
+    """train.init_from -> the run directory TrainConfig.init_from takes ("" stays "")."""
+    if not text:
+        return ""
+    from study.reference_model import resolve_run
+
+    run = resolve_run(text)
+    if not (run / "checkpoint.pt").is_file():
+        raise UserError(f"train.init_from {text!r}: neither a reference model (models/) nor a training run")
+    return str(run.resolve())
 
 
 def gatedata_stage(work: Path, run_paper: Path, data: Path, settings, batch_size: int, setup,
@@ -639,6 +656,8 @@ def stage_identity(name: str, cfg: StudyConfig, setup) -> dict:
         from fusion.nets import load_profile as model_profile
 
         out["model_profile"] = _digest(to_dict(model_profile(cfg.profile)))[:16]
+        if cfg.train.init_from:  # the weights it starts from, not their name
+            out["init_from_sha256"] = file_sha256(Path(_init_from(cfg.train.init_from)) / "checkpoint.pt")[:16]
     elif name == "report":
         import study.report
 

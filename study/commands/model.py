@@ -37,13 +37,33 @@ def run_export(args) -> int:
             measured = json.loads(Path(args.measured).read_text())
         except ValueError:
             raise UserError(f"--measured {args.measured}: not JSON") from None
-    man = export_model(Path(args.run_dir), Path(args.out), name=args.name, command=args.command, measured=measured)
+    man = export_model(Path(args.run_dir), Path(args.out), name=args.name, command=args.command,
+                       measured=compact_measured(measured) if measured is not None else None)
     emit(man, args.json, lambda m: (f"{args.out}: {m['name']}, {m['weights']['parameters'] / 1e6:.1f} M parameters, "
                                     f"{m['weights']['bytes'] / 2**20:.1f} MiB float16; gates: "
                                     f"{', '.join(m['gates']) or 'none'}"
                                     + (f" (left out, trained on another checkpoint: {', '.join(m['skipped_gates'])})"
                                        if m["skipped_gates"] else "")))
     return 0
+
+
+MEASURED_KEYS = ("split", "frames", "fusion", "map", "map_vehicles", "map_per_branch_reference",
+                 "map_vehicles_per_context", "map_per_context", "device")
+
+
+def compact_measured(r: dict) -> dict:
+    """The figures of a `hydrabench evaluate --json` result a manifest keeps: overall and per-context
+    mAP, each branch's mAP and vehicle mAP (with its 95 % interval when bootstrapped). Any other JSON
+    is kept whole."""
+    if not isinstance(r, dict) or "map_per_branch_reference" not in r:
+        return r
+    out = {k: r[k] for k in MEASURED_KEYS if k in r}
+    out["map_vehicles_per_branch_reference"] = {b: v.get("map_vehicles") for b, v in r.get("per_branch_reference", {}).items()}
+    iv = (r.get("ci95") or {}).get("per_context", {}).get("all", {})
+    if iv:
+        out["ci95_map_vehicles"] = iv.get("map_vehicles")
+        out["bootstrap"] = {"resamples": r["ci95"].get("resamples"), "sequences": iv.get("sequences")}
+    return out
 
 
 def run_list(args) -> int:
