@@ -527,8 +527,9 @@ def _setup(run_dir, data, split, weights, checkpoint, setup=None):
     return model, cfg, indices, used_split, DatasetReader(data)
 
 
-def _loader(model, data, indices, batch_size):
-    """Batches (inputs on the model's device, targets, metas), decoded by the setup's workers."""
+def _loader(model, data, indices, batch_size, clear: bool = False):
+    """Batches (inputs on the model's device, targets, metas), decoded by the setup's workers;
+    `clear`: the frames' clear-weather twins."""
     from torch.utils.data import DataLoader
 
     from fusion.data import FrameDataset, collate
@@ -536,7 +537,7 @@ def _loader(model, data, indices, batch_size):
 
     setup = model.device_setup
     ds = FrameDataset(data, indices, sensors=model.sensors, bev_size=model.transform.image_size("radar"),
-                      uint8=setup.is_cuda)  # uint8 to a GPU, float32 there (`to_device`)
+                      uint8=setup.is_cuda, clear=clear)  # uint8 to a GPU, float32 there (`to_device`)
     for inputs, targets, metas in DataLoader(ds, batch_size=batch_size, shuffle=False, collate_fn=collate,
                                              num_workers=setup.workers, pin_memory=setup.is_cuda):
         yield to_device(inputs, None, setup.device)[0], targets, metas
@@ -621,9 +622,10 @@ class GatePass:
 
 
 def gate_pass(run_dir, data, model, names, indices, checkpoint: str = "latest", batch_size: int = 4,
-              progress: bool = True) -> GatePass:
+              progress: bool = True, clear: bool = False) -> GatePass:
     """Run every branch of `model` once per frame of `indices` and every gate of `names` beside it
-    (the optimal gate reads the run's a-posteriori branch losses, computed when missing)."""
+    (the optimal gate reads the run's a-posteriori branch losses, computed when missing; not on the
+    `clear` twins, whose losses are not cached)."""
     import torch
 
     from fusion.nets.branch_gates import rank_branches
@@ -632,13 +634,16 @@ def gate_pass(run_dir, data, model, names, indices, checkpoint: str = "latest", 
     gate_objs = {g: _gate_on_device(make_gate(g, model, run_dir, checkpoint), model) for g in names}
     branches = list(model.branches)
     need_losses = any(g.reads == "losses" for g in gate_objs.values())
+    if need_losses and clear:
+        raise UserError("the optimal gate reads the cached losses of the degraded frames, not of their twins")
     losses = _optimal_losses(run_dir, data, model, checkpoint, indices, progress) if need_losses else None
     rankings: dict[str, list[list[int]]] = {g: [] for g in names}
     predicted: dict[str, list] = {g: [] for g in names}
     per_frame = []
     with torch.no_grad():
-        bar = progress_bar(total=len(indices), desc="branches and gates", enabled=progress)
-        for inputs, _targets, metas in _loader(model, data, indices, batch_size):
+        bar = progress_bar(total=len(indices), desc="branches and gates" + (" (clear twins)" if clear else ""),
+                           enabled=progress)
+        for inputs, _targets, metas in _loader(model, data, indices, batch_size, clear):
             if losses is not None:
                 metas = [dict(m, branch_losses=losses[int(m["dataset_index"])]) for m in metas]
             with model.device_setup.autocast():

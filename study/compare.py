@@ -20,7 +20,10 @@ from __future__ import annotations
 
 from pathlib import Path
 
+import numpy as np
+
 from sim.errors import UserError
+from sim.progress import progress as progress_bar
 
 GATES = ("knowledge", "deep", "attention", "optimal")
 
@@ -33,10 +36,11 @@ def verdict(iv) -> str:
 
 
 def compare(run_dir, data, *, gates=GATES, k: int = 2, fusion: str = "soft-nms", split: str = "auto",
-            resamples: int = 500, batch_size: int = 4, setup=None, progress: bool = True) -> dict:
+            resamples: int = 500, batch_size: int = 4, setup=None, progress: bool = True,
+            twins: bool = False) -> dict:
     """The comparison of the module docstring -> a JSON-able dict: per method its kind, mAP, vehicle
     mAP, mAP per context, and mAP minus late fusion with its 95 % interval and verdict, overall and
-    per context."""
+    per context. `twins`: also each method's robustness on the clear-weather twins (`robustness`)."""
     from study.branch_gate_study import _setup, gate_pass, parse_k
     from study.detect import context_bootstrap, difference_interval, fused, fusion_method, score
     from study.train import run_protocol
@@ -91,6 +95,10 @@ def compare(run_dir, data, *, gates=GATES, k: int = 2, fusion: str = "soft-nms",
             row["ci95"] = boot["per_context"]["all"]["map"][name]
         methods[name] = row
     picks = {g: _rates(choices[f"hydrafusion:{g}"], branches) for g in trained}
+    rob = None
+    if twins:
+        rob = robustness(run_dir, data, model, reader, gp, choices, sources, [g for g in trained if g != "optimal"],
+                         k, method, protocol, indices, resamples, batch_size, progress)
     return {
         "run": str(run_dir), "data": str(data), "split": used_split, "frames": len(gp.per_frame),
         "sequences": boot["per_context"]["all"]["sequences"] if boot else None, "contexts": contexts,
@@ -98,7 +106,90 @@ def compare(run_dir, data, *, gates=GATES, k: int = 2, fusion: str = "soft-nms",
         "gates_not_trained": skipped, "methods": methods, "selection_rate_pct": picks,
         "bootstrap": {"resamples": resamples, "unit": "sequence"} if boot else None,
         "metric": "VOC all-point AP at IoU 0.5, every class with ground truth, right camera",
+        **({"robustness": rob} if rob is not None else {}),
     }
+
+
+def robustness(run_dir, data, model, reader, gp, choices, sources, twin_gates, k, method, protocol, indices,
+               resamples, batch_size, progress) -> dict:
+    """Each method on the clear-weather twins of the degraded frames: per condition and severity,
+    vehicle mAP degraded and clear and their ratio RA (MultiCorrupt's relative accuracy, paired:
+    the twins of exactly those frames, `fusion.robustness.twin_relative_accuracy`, whole sequences
+    drawn), the severity's measured physical quantity (median over its frames), and per method mRA,
+    mRR and mCE against late fusion (Robo3D; `fusion.robustness`). A gate chooses afresh on each
+    twin from the twin's own sensors (the knowledge gate reads the context label, which the twin
+    keeps). The optimal gate is left out: its losses are not computed on twins."""
+    from fusion import robustness as R
+    from sensors.dataset import DatasetReader
+    from sim.actors import CLASSES
+    from study.branch_gate_study import gate_pass
+    from study.detect import VEHICLES, _image_matches, fused, ground_truth
+
+    if not reader.manifest["config"].get("twins"):
+        raise UserError(f"--twins: {data} has no clear-weather twins (generate it with --twins)")
+    clear_reader = DatasetReader(data, clear=True)
+    gc = gate_pass(run_dir, data, model, twin_gates, indices, "latest", batch_size, progress, clear=True)
+    branches, frames = list(model.branches), model.branch_frames
+    names = [n for n in choices if not n.startswith("hydrafusion:") or n.split(":", 1)[1] in twin_gates]
+    clear_choices = {n: (choices[n] if not n.startswith("hydrafusion:") else
+                         [tuple(branches[j] for j in sorted(r[:k])) for r in gc.rankings[n.split(":", 1)[1]]])
+                     for n in names}
+    metas = [m for m, _ in gp.per_frame]
+    groups: dict = {}
+    for i, m in enumerate(metas):
+        conds = list(m.get("conditions") or [])
+        if len(conds) == 1 and int(m.get("severity", 0)) > 0:
+            groups.setdefault((conds[0], int(m["severity"])), []).append(i)
+    if not groups:
+        raise UserError(f"--twins: {data} has no degraded frames of a single condition (fog, rain, snow, night)")
+    vehicles = [CLASSES.index(c) + 1 for c in VEHICLES]
+    keys = [int(m["dataset_index"]) for m in metas]
+    gts_d = [ground_truth(reader.labels(kk), "camera_right", None, m, protocol) for kk, m in zip(keys, metas)]
+    gts_c = [ground_truth(clear_reader.labels(kk), "camera_right", None, m, protocol) for kk, m in zip(keys, metas)]
+    out_methods: dict = {}
+    bar = progress_bar(total=len(names) * len(groups) * resamples, desc="bootstrap the twins", unit="draw",
+                       enabled=progress)
+    for n in names:
+        clr = [fused([pf], ch, frames, method)[0] for pf, ch in zip(gc.per_frame, clear_choices[n])]
+        md, mc = _image_matches(sources[n], keys, gts_d, vehicles), _image_matches(clr, keys, gts_c, vehicles)
+        per = {}
+        for (cond, sev), idx in sorted(groups.items()):
+            t = R.twin_relative_accuracy(lambda items, idx=idx, md=md: md.mean_ap([idx[i] for i in items]),
+                                         lambda items, idx=idx, mc=mc: mc.mean_ap([idx[i] for i in items]),
+                                         [metas[i]["sequence_id"] for i in idx], resamples=resamples,
+                                         on_draw=lambda: bar.update(1))
+            per.setdefault(cond, {})[str(sev)] = {
+                "degraded": _r(t.degraded, 6), "clear": _r(t.clear, 6), "ra": _r(t.ra),
+                "ra_ci95": _iv(t.interval), "sequences": t.sequences, "frames": t.frames}
+        out_methods[n] = {"per_condition": per}
+    bar.close()
+    for row in out_methods.values():
+        deg = {c: {int(s): v["degraded"] for s, v in per.items()} for c, per in row["per_condition"].items()}
+        clr = {c: {int(s): v["clear"] for s, v in per.items()} for c, per in row["per_condition"].items()}
+        ra = R.relative_accuracies(deg, clr)
+        base = {c: {int(s): v["degraded"] for s, v in per.items()}
+                for c, per in out_methods["late"]["per_condition"].items()}
+        row["mRA"] = _r(R.mean_relative_accuracy(ra))
+        row["mRR"] = _r(R.mean_resilience_rate(deg, clr))
+        row["mCE_vs_late"] = _r(R.mean_corruption_error(deg, base))
+    physical = {}
+    for (cond, sev), idx in sorted(groups.items()):
+        q = R.severity_quantity(cond)
+        vals = [float(metas[i]["weather"][q]) for i in idx if q in metas[i].get("weather", {})]
+        physical.setdefault(cond, {"quantity": q, "unit": R.severity_value(cond, 1)[1], "per_severity": {}})
+        physical[cond]["per_severity"][str(sev)] = _r(float(np.median(vals)), 3) if vals else None
+    return {"methods": out_methods, "physical": physical, "gates": list(twin_gates),
+            "metric": "vehicle mAP@0.5 (car, van, truck, bus), right camera; RA = degraded / clear twins of the same "
+                      "frames; mRA (MultiCorrupt), mRR and mCE against late fusion (Robo3D)",
+            "resamples": resamples, "unit": "sequence"}
+
+
+def _r(v, nd: int = 4):
+    return None if v is None or not np.isfinite(v) else round(float(v), nd)
+
+
+def _iv(iv):
+    return None if iv is None else [_r(iv[0]), _r(iv[1])]
 
 
 def _diff(a, b):
@@ -122,6 +213,8 @@ def format_table(r: dict) -> str:
         lines.append(f"{name:24s} {_f(row['map'])} {_f(row['map_vehicles'])}   {tail}")
     if r["gates_not_trained"]:
         lines.append("not trained on this run (hydrabench train-gate): " + ", ".join(r["gates_not_trained"]))
+    if "robustness" in r:
+        lines.append(format_robustness(r))
     return "\n".join(lines)
 
 
@@ -158,3 +251,82 @@ def plot_compare(r: dict, path) -> None:
     fig.tight_layout()
     savefig_atomic(fig, path)
     plt.close(fig)
+
+
+COLOURS = {"single:radar": "#d62728", "single:camera_right": "#2ca02c", "single:lidar": "#9467bd", "late": "#000000",
+           "all_branches": "#7f7f7f"}
+GATE_COLOURS = ("#1f77b4", "#17becf", "#ff7f0e", "#8c564b")
+
+
+def plot_robustness(r: dict, path) -> None:
+    """RA (degraded / clear twins, vehicle mAP) against each condition's physical severity, with 95 %
+    intervals: single sensors, late fusion and the gates, one panel per condition."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from study.outputs import savefig_atomic
+
+    rob = r["robustness"]
+    conds = sorted(rob["physical"])
+    shown = [n for n in rob["methods"] if n != "all_branches"]
+    fig, axes = plt.subplots(1, len(conds), figsize=(4.2 * len(conds), 3.8), squeeze=False)
+    gi = 0
+    colours = {}
+    for n in shown:
+        if n in COLOURS:
+            colours[n] = COLOURS[n]
+        else:
+            colours[n], gi = GATE_COLOURS[gi % len(GATE_COLOURS)], gi + 1
+    for ax, cond in zip(axes[0], conds):
+        phys = rob["physical"][cond]
+        sevs = sorted(phys["per_severity"], key=int)
+        xs = [phys["per_severity"][s] for s in sevs]
+        log = cond in ("fog", "night") or phys["unit"] in ("m", "lux")
+        for j, n in enumerate(shown):
+            per = rob["methods"][n]["per_condition"].get(cond, {})
+            spread = 1.04 ** (j - len(shown) / 2) if log else 1 + 0.02 * (j - len(shown) / 2)
+            pts = [(x * spread, per[s]) for x, s in zip(xs, sevs) if s in per and per[s]["ra"] is not None and x]
+            if not pts:
+                continue
+            x, v = zip(*pts)
+            ys = [p["ra"] for p in v]
+            lo = [p["ra"] - p["ra_ci95"][0] if p["ra_ci95"] else 0 for p in v]
+            hi = [p["ra_ci95"][1] - p["ra"] if p["ra_ci95"] else 0 for p in v]
+            ax.errorbar(x, ys, yerr=[lo, hi], color=colours[n], marker="o", ms=4, lw=1.5 if n == "late" else 1,
+                        capsize=2, label=n)
+        if log:
+            ax.set_xscale("log")
+        if phys["unit"] in ("m", "lux"):
+            ax.invert_xaxis()  # harsher to the right: lower visibility, less light
+        ax.axhline(1, color="k", lw=0.6, ls=":")
+        seqs = min((rob["methods"]["late"]["per_condition"].get(cond, {}).get(s, {}).get("sequences") or 0) for s in sevs)
+        ax.set_title(f"{cond} (at least {seqs} sequences per severity)", fontsize=9)
+        ax.set_xlabel(f"{phys['quantity']} [{phys['unit']}] (median of the frames)", fontsize=8)
+        ax.set_ylabel("RA = vehicle mAP degraded / clear twin")
+    axes[0][0].legend(fontsize=7, loc="lower left")
+    fig.suptitle(f"Relative accuracy against physical severity, 95 % intervals from whole-sequence draws ({r['frames']} "
+                 f"frames; gates keep top {r['k']})", fontsize=10)
+    fig.tight_layout()
+    savefig_atomic(fig, path)
+    plt.close(fig)
+
+
+def format_robustness(r: dict) -> str:
+    """mRA, mRR and mCE (against late fusion) of each method, and RA per condition and severity."""
+    rob = r["robustness"]
+    lines = ["robustness on the clear-weather twins (vehicle mAP): " + rob["metric"],
+             f"{'method':24s} {'mRA':>6s} {'mRR':>6s} {'mCE':>6s}"]
+    for n, row in rob["methods"].items():
+        lines.append(f"{n:24s} {_f(row['mRA'])} {_f(row['mRR'])} {_f(row['mCE_vs_late'])}")
+    for cond, phys in sorted(rob["physical"].items()):
+        sevs = sorted(phys["per_severity"], key=int)
+        lines.append(f"  {cond}: RA [95 % interval] at " + ", ".join(
+            f"{phys['per_severity'][s]:g} {phys['unit']}" for s in sevs if phys["per_severity"][s] is not None))
+        for n, row in rob["methods"].items():
+            per = row["per_condition"].get(cond, {})
+            lines.append(f"    {n:22s} " + "  ".join(
+                (f"{per[s]['ra']:.2f} [{per[s]['ra_ci95'][0]:.2f}, {per[s]['ra_ci95'][1]:.2f}]"
+                 if s in per and per[s]["ra"] is not None and per[s]["ra_ci95"] else "  -  ") for s in sevs))
+    return "\n".join(lines)

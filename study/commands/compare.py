@@ -41,6 +41,10 @@ def add_parser(sub, name, help_text):
                    help="auto: the run's test split on its own dataset, every frame on another")
     p.add_argument("--bootstrap", type=bootstrap_int, default=500, metavar="N",
                    help="draws of whole sequences for the 95%% intervals (0: none)")
+    p.add_argument("--twins", action="store_true",
+                   help="also run every method on the clear-weather twins (a dataset generated with --twins): per "
+                   "condition and severity the vehicle mAP kept, RA = degraded / clear with its interval, the "
+                   "severity's physical value, and per method mRA, mRR and mCE against late fusion")
     p.add_argument("--batch-size", type=pos_int, default=4, help="frames per forward pass")
     p.add_argument("--plot", type=out_file(".png", ".pdf", ".svg"), default=None,
                    help="also draw each method's mAP minus late fusion with its interval")
@@ -59,11 +63,18 @@ def run(args) -> int:
     if bad:
         raise UserError(f"--gates: unknown gate {bad[0]!r} (choose from: {', '.join(GATES)})")
     r = compare(Path(args.run_dir), Path(args.data), gates=gates, k=args.k, fusion=args.fusion, split=args.split,
-                resamples=args.bootstrap, batch_size=args.batch_size, setup=resolve_device(args, purpose="eval"))
+                resamples=args.bootstrap, batch_size=args.batch_size, setup=resolve_device(args, purpose="eval"),
+                twins=args.twins)
     if args.plot:
         from study.compare import plot_compare
 
         plot_compare(r, args.plot)
         r["plot"] = str(args.plot)
+        if args.twins:
+            from study.compare import plot_robustness
+
+            ra = Path(args.plot).with_name(Path(args.plot).stem + "_ra" + Path(args.plot).suffix)
+            plot_robustness(r, ra)
+            r["plot_ra"] = str(ra)
     emit(r, args.json, format_table)
     return 0

@@ -6,6 +6,7 @@ across widths, and the selective-against-fixed comparison checked against `evalu
 import json
 import shutil
 
+import numpy as np
 import pytest
 import torch
 
@@ -202,3 +203,49 @@ def test_compare_bad_input_is_one_line(exported, data, capsys):
     _one_line_error(capsys, "unknown fusion method")
     assert main(["compare", str(model_dir), str(data), "--k", "9"]) == 2
     _one_line_error(capsys, "must be in 1..4")
+
+
+def test_compare_twins_gives_ra_per_physical_severity_and_the_benchmarks_means(exported, shared_dataset, capsys,
+                                                                               tmp_path):
+    from fusion import robustness as R
+
+    model_dir, _, _ = exported
+    twins = shared_dataset(GenerateConfig(contexts=("fog", "night"), frames_per_context=4, sequence_length=2, seed=5,
+                                          twins=True))
+    png = tmp_path / "cmp.png"
+    assert main(["compare", str(model_dir), str(twins), "--twins", "--bootstrap", "20", "--gates", "knowledge,deep",
+                 "--plot", str(png), "--threads", "1", "--json"]) == 0
+    r = json.loads(capsys.readouterr().out)
+    rob = r["robustness"]
+    assert png.is_file() and (tmp_path / "cmp_ra.png").is_file() and r["plot_ra"] == str(tmp_path / "cmp_ra.png")
+    assert set(rob["physical"]) == {"fog", "night"} and rob["gates"] == ["knowledge", "deep"]
+    from sensors.dataset import DatasetReader
+
+    reader = DatasetReader(twins)
+    for cond, phys in rob["physical"].items():  # the median of the frames' own weather, in its unit
+        assert phys["quantity"] == R.severity_quantity(cond)
+        for sev, value in phys["per_severity"].items():
+            vals = sorted(reader.meta(i)["weather"][phys["quantity"]] for i in range(len(reader))
+                          if reader.meta(i)["conditions"] == [cond] and str(reader.meta(i)["severity"]) == sev)
+            assert value == pytest.approx(float(np.median(vals)), rel=1e-3)
+    for row in rob["methods"].values():
+        deg, clr = {}, {}
+        for cond, per in row["per_condition"].items():
+            for sev, v in per.items():
+                assert v["frames"] >= 2 and v["sequences"] >= 1
+                if v["ra"] is not None:
+                    assert v["ra"] == pytest.approx(v["degraded"] / v["clear"], rel=1e-3, abs=1e-4)
+                deg.setdefault(cond, {})[int(sev)] = v["degraded"]
+                clr.setdefault(cond, {})[int(sev)] = v["clear"]
+        assert _same(row["mRA"], R.mean_relative_accuracy(R.relative_accuracies(deg, clr)))
+        assert _same(row["mRR"], R.mean_resilience_rate(deg, clr))
+    assert rob["methods"]["late"]["mCE_vs_late"] in (1.0, None)  # the baseline against itself
+
+
+def _same(a, b):
+    return (a is None and not np.isfinite(b)) or a == pytest.approx(b, abs=2e-4)
+
+
+def test_compare_twins_needs_a_dataset_with_twins(exported, data, capsys):
+    assert main(["compare", str(exported[0]), str(data), "--twins", "--bootstrap", "5", "--threads", "1"]) == 2
+    _one_line_error(capsys, "has no clear-weather twins")
