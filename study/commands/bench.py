@@ -170,6 +170,21 @@ def add_parser(sub, name, help_text):
     pr.add_argument("--precision", choices=("fp32", "bf16"), default="fp32",
                     help="fp32, or bf16 autocast of the backbones (as train --amp)")
     pr.set_defaults(run=run_profile)
+    rc = what.add_parser("recipe", help="training recipes and cost options judged by held-out vehicle mAP per "
+                         "CPU-hour, with their curves", description=_doc("study.bench.recipe"), formatter_class=Formatter)
+    rc.add_argument("data", type=dataset_dir, help="dataset to train on (the runs' gate split is the held-out set)")
+    rc.add_argument("--out", required=True, type=out_dir, help="directory of the candidate runs (a second call resumes)")
+    rc.add_argument("--branch", type=name_arg, default="lidar", help="the branch every candidate trains")
+    rc.add_argument("--epochs", type=int_range(1, 100, "epochs"), default=3, help="epochs of every candidate")
+    rc.add_argument("--candidate", action="append", default=None, metavar="NAME:FIELD=VALUE[+FIELD=VALUE]",
+                    help="a candidate (repeatable): what differs from the base recipe (lr, warmup_steps, clip_grad, "
+                    "hflip, lr_drop_epoch, model=KEY=VALUE); default: base, lr 0.04, hflip 0.5, bev stride 16, 64 RoIs")
+    rc.add_argument("--bootstrap", type=int_range(0, 10000, "bootstrap"), default=200,
+                    help="draws of whole held-out sequences for the last epoch's intervals (0: none)")
+    rc.add_argument("--threads", type=nonneg_int, default=0, help="torch CPU threads (0: the cores available)")
+    rc.add_argument("--plot", type=out_file(".png", ".pdf", ".svg"), default=None, help="draw the curves")
+    rc.add_argument("--json", action="store_true", help="print one JSON object on stdout")
+    rc.set_defaults(run=run_recipe)
     ar = what.add_parser("arch", help="training-step time of the model's cost options (width, dilation, channels_last, "
                          "stride, RoIs), fp32 and bf16, side by side", description=_doc("study.bench.arch"),
                          formatter_class=Formatter)
@@ -412,6 +427,35 @@ def _doc(module: str) -> str:
     import importlib
 
     return importlib.import_module(module).__doc__
+
+
+def run_recipe(args) -> int:
+    from sim.errors import UserError
+    from study.bench.recipe import bench_recipe, parse_candidate, plot_recipe
+
+    cands = dict(parse_candidate(c) for c in args.candidate) if args.candidate else None
+    if args.candidate and len(cands) != len(args.candidate):
+        raise UserError("--candidate: each name once")
+    r = bench_recipe(str(args.data), args.out, args.branch, cands, epochs=args.epochs, threads=args.threads,
+                     bootstrap=args.bootstrap)
+    r.update(machine())
+    if args.plot:
+        plot_recipe(r, args.plot)
+        r["plot"] = str(args.plot)
+
+    def text(r):
+        lines = [f"{r['cpu'] or 'CPU'}, {r['threads']} threads; {r['branch']} branch, {r['epochs']} epochs each; "
+                 f"held out: {r['held_out']['frames']} gate-split frames; budget {r['budget_core_hours']} core-hours",
+                 f"{'candidate':16s} {'core-h':>7s} {'veh. mAP':>8s} {'at budget':>9s}  per epoch"]
+        for name, c in r["candidates"].items():
+            last = c["curve"][-1]
+            lines.append(f"{name:16s} {last['core_hours']:7.3f} {last['map_vehicles'] or 0:8.3f} "
+                         f"{c['map_vehicles_at_budget']:9.3f}  " + " ".join(f"{p['map_vehicles'] or 0:.3f}" for p in c["curve"]))
+        lines.append(f"chosen: {r['chosen']} ({r['rule']})")
+        return "\n".join(lines)
+
+    emit(r, args.json, text)
+    return 0
 
 
 def run_arch(args) -> int:

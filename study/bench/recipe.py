@@ -1,0 +1,191 @@
+"""`hydrabench bench recipe`: training recipes and cost options judged by vehicle mAP per CPU-hour.
+
+Each candidate is one `hydrabench train` run of one branch on the same dataset (the same split,
+gate split, initial weights and frame order; `OUT/<candidate>/`, resumable), differing from the base
+recipe in what the candidate names: learning rate, warm-up, augmentation (`hflip`), or model-profile
+overrides (`--model`: width, output stride, sampled RoIs, ...). After training, every epoch's
+checkpoint is scored on the run's **gate split** (sequences no detector trained on and that are not
+test frames: a fixed held-out set, the same for every candidate), the branch alone in the right
+camera, vehicle mAP@0.5. The curve of each candidate is that mAP against the CPU time its training
+took so far (core-hours: the training steps' seconds times the threads), and the choice is the
+candidate with the highest held-out vehicle mAP at the budget of the cheapest candidate's last
+epoch (each curve interpolated linearly, flat after its end): the most learned for the same CPU
+time. The last epoch also gets a 95 % interval (whole held-out sequences drawn). Nothing here reads
+the test split.
+"""
+
+from __future__ import annotations
+
+import json
+import time
+from pathlib import Path
+
+import numpy as np
+
+from study.bench.scale import cpu_model
+
+BASE = {"lr": 0.02, "warmup_steps": 60, "clip_grad": 10.0, "batch_size": 4, "gate_holdout": 0.3,
+        "model": ("width=0.5",), "amp": "auto"}
+"""The `cpu` study's recipe at the reference model's width (configs/study/cpu.yaml)."""
+
+DEFAULT_CANDIDATES: dict[str, dict] = {
+    "base": {},
+    "lr 0.04": {"lr": 0.04},
+    "hflip 0.5": {"hflip": 0.5},
+    "bev stride 16": {"model": ("width=0.5", "bev.output_stride=16")},
+    "64 RoIs": {"model": ("width=0.5", "box_batch_size_per_image=64")},
+}
+"""Name -> the fields that differ from `BASE` (TrainConfig fields)."""
+
+TUNABLE = ("lr", "warmup_steps", "clip_grad", "hflip", "model", "lr_drop_epoch")
+
+
+def parse_candidate(text: str) -> tuple[str, dict]:
+    """'NAME:FIELD=VALUE+FIELD=VALUE' -> (name, fields); `model` values are one override each
+    ('big lr:lr=0.04', 'narrow:model=width=0.25')."""
+    import yaml
+
+    from sim.errors import UserError
+
+    name, colon, rest = str(text).partition(":")
+    if not colon or not name.strip():
+        raise UserError(f"--candidate {text!r}: expected NAME:FIELD=VALUE[+FIELD=VALUE], e.g. fast:lr=0.04")
+    fields: dict = {}
+    for item in filter(None, (x.strip() for x in rest.split("+"))):
+        key, eq, raw = item.partition("=")
+        if not eq or key not in TUNABLE:
+            raise UserError(f"--candidate {name}: {item!r} is not FIELD=VALUE with FIELD one of {', '.join(TUNABLE)}")
+        if key == "model":
+            fields.setdefault("model", list(BASE["model"]))
+            fields["model"] = [m for m in fields["model"] if m.split("=")[0] != raw.split("=")[0]] + [raw]
+        else:
+            fields[key] = yaml.safe_load(raw)
+    if "model" in fields:
+        fields["model"] = tuple(fields["model"])
+    return name.strip(), fields
+
+
+def _curve_at(xs, ys, budget: float) -> float:
+    """The curve's value at `budget` core-hours: linear between epochs, 0 before the first point's
+    x (from (0, 0)), flat after the last."""
+    return float(np.interp(budget, [0.0, *xs], [0.0, *ys]))
+
+
+def bench_recipe(data: str, out, branch: str = "lidar", candidates: dict | None = None, epochs: int = 3,
+                 profile: str = "cpu", threads: int = 0, seed: int = 0, bootstrap: int = 200,
+                 progress: bool = True) -> dict:
+    """The comparison of the module docstring -> a JSON-able dict (also written to OUT/recipe.json)."""
+    import csv
+
+    import torch
+
+    from sensors.dataset import DatasetReader
+    from sensors.dataset import check as check_dataset
+    from sim.errors import UserError
+    from study.detect import (
+        context_bootstrap,
+        frames_for,
+        fused,
+        fusion_method,
+        load_run,
+        run_branches,
+        score,
+    )
+    from study.device import default_threads
+    from study.train import TrainConfig, train
+
+    out = Path(out)
+    data = str(Path(data).resolve())
+    candidates = dict(candidates or DEFAULT_CANDIDATES)
+    marker = out / "recipe.json"
+    if out.exists() and (not out.is_dir() or any(p.name != marker.name and p.name not in {_dir(n) for n in candidates}
+                                                 for p in out.iterdir())):
+        raise UserError(f"--out {out} holds other files than this bench's candidate runs and {marker.name}; use a new "
+                        "or empty directory (or the same candidates)")
+    if not 0 <= bootstrap <= 10000:
+        raise UserError(f"--bootstrap must be 0..10000 draws, got {bootstrap}")
+    check_dataset(data)
+    n_threads = threads or default_threads()
+    reader = DatasetReader(data)
+    rows, sources = {}, {}
+    for name, fields in candidates.items():
+        cfg = TrainConfig(**{"data": data, "model_profile": profile, "branches": (branch,), "epochs": epochs,
+                             "seed": seed, "threads": n_threads, "device": "cpu", "eval_frames": 1,
+                             "checkpoint_seconds": 300.0, **BASE, **fields})
+        t0 = time.perf_counter()
+        train(cfg, out / _dir(name), progress=progress)
+        with open(out / _dir(name) / "metrics.csv") as fh:
+            epochs_rows = list(csv.DictReader(fh))
+        if len(epochs_rows) < epochs:
+            raise UserError(f"{out / _dir(name)}: {len(epochs_rows)} epochs recorded, {epochs} asked")
+        run_cfg = json.loads((out / _dir(name) / "config.json").read_text())
+        held, _ = frames_for(run_cfg, data, "gate")
+        if not held:
+            raise UserError(f"{data}: the run has no gate split to score on (gate_holdout {BASE['gate_holdout']})")
+        curve, spent = [], 0.0
+        for e, row in enumerate(epochs_rows[:epochs], start=1):
+            spent += float(row["train_seconds"]) * n_threads / 3600.0
+            model, _ = load_run(out / _dir(name), f"epoch-{e:03d}", device="cpu")
+            torch.set_num_threads(n_threads)
+            per = run_branches(model, data, held, [branch], progress=f"{name}: epoch {e} on the gate split")
+            alone = fused(per, [branch], model.branch_frames, fusion_method("soft-nms"))
+            sc = score(alone, reader, "camera_right", protocol=run_cfg.get("protocol", "reference"))
+            curve.append({"epoch": e, "core_hours": round(spent, 4), "map_vehicles": sc["map_vehicles"],
+                          "map": sc["map"]})
+            if e == epochs:
+                sources[name] = alone
+        rows[name] = {"fields": {k: list(v) if isinstance(v, tuple) else v for k, v in fields.items()},
+                      "curve": curve, "train_seconds": round(sum(float(r["train_seconds"]) for r in epochs_rows), 1),
+                      "seconds_this_call": round(time.perf_counter() - t0, 1), "compute": run_cfg.get("compute")}
+    budget = min(r["curve"][-1]["core_hours"] for r in rows.values())
+    for r in rows.values():
+        xs = [p["core_hours"] for p in r["curve"]]
+        ys = [p["map_vehicles"] or 0.0 for p in r["curve"]]
+        r["map_vehicles_at_budget"] = round(_curve_at(xs, ys, budget), 4)
+        r["map_vehicles_per_core_hour"] = round(ys[-1] / xs[-1], 4) if xs[-1] > 0 else None
+    if bootstrap:
+        ci = context_bootstrap(sources, reader, "camera_right", resamples=bootstrap, desc="bootstrap the candidates")
+        all_ = ci["per_context"]["all"]
+        for name, r in rows.items():
+            r["ci95_map_vehicles_last_epoch"] = all_["map_vehicles"][name]
+    chosen = max(rows, key=lambda n: rows[n]["map_vehicles_at_budget"])
+    result = {"cpu": cpu_model(), "threads": n_threads, "profile": profile, "branch": branch, "epochs": epochs,
+              "base": {k: list(v) if isinstance(v, tuple) else v for k, v in BASE.items()}, "data": data,
+              "held_out": {"split": "gate", "frames": len(held),
+                           "what": "the run's gate split: sequences no candidate trained on, never test frames"},
+              "budget_core_hours": round(budget, 4), "chosen": chosen, "candidates": rows, "bootstrap": bootstrap,
+              "rule": "highest held-out vehicle mAP at the budget of the cheapest candidate's last epoch",
+              "out": str(out)}
+    marker.write_text(json.dumps(result, indent=1) + "\n")
+    return result
+
+
+def _dir(name: str) -> str:
+    return "".join(c if c.isalnum() or c in "-_." else "_" for c in name)
+
+
+def plot_recipe(r: dict, path) -> None:
+    """Held-out vehicle mAP against core-hours, one curve per candidate, the budget marked."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from study.outputs import savefig_atomic
+
+    fig, ax = plt.subplots(figsize=(6.5, 4.2))
+    for name, row in r["candidates"].items():
+        xs = [0.0] + [p["core_hours"] for p in row["curve"]]
+        ys = [0.0] + [p["map_vehicles"] or 0.0 for p in row["curve"]]
+        line, = ax.plot(xs, ys, "o-", ms=4, lw=2.2 if name == r["chosen"] else 1.2, label=name)
+        iv = row.get("ci95_map_vehicles_last_epoch")
+        if iv:
+            ax.plot([xs[-1], xs[-1]], iv, color=line.get_color(), lw=3, alpha=0.35)
+    ax.axvline(r["budget_core_hours"], color="k", ls=":", lw=0.8)
+    ax.set_xlabel(f"training core-hours ({r['threads']} threads x hours), {r['cpu'] or 'CPU'}")
+    ax.set_ylabel("vehicle mAP@0.5 on the gate split (held out)")
+    ax.set_title(f"{r['branch']} branch, {r['epochs']} epochs each; chosen: {r['chosen']} (dotted: budget)", fontsize=9)
+    ax.legend(fontsize=8)
+    fig.tight_layout()
+    savefig_atomic(fig, path)
+    plt.close(fig)

@@ -1,0 +1,75 @@
+"""`hydrabench bench recipe` on a tiny dataset: candidates trained alike, scored per epoch on the runs'
+gate split (never test frames), curves in core-hours, the choice at equal budget, resume, refusals."""
+
+import json
+
+import pytest
+import torch
+
+from sensors.generate import GenerateConfig
+from sim.errors import UserError
+from study.bench.recipe import _curve_at, bench_recipe, parse_candidate
+from study.cli import main
+from study.detect import frames_for
+
+
+@pytest.fixture(autouse=True, scope="module")
+def _restore_threads():
+    before = torch.get_num_threads()
+    yield
+    torch.set_num_threads(before)
+
+
+@pytest.fixture(scope="module")
+def data(shared_dataset):
+    return shared_dataset(GenerateConfig(contexts=("city", "fog"), frames_per_context=8, sequence_length=2, seed=6))
+
+
+CANDIDATES = {"base": {"model": ("width=0.25",)}, "fast": {"lr": 0.04, "model": ("width=0.25",)}}
+
+
+def test_candidates_are_scored_per_epoch_on_the_gate_split_and_chosen_at_equal_budget(data, tmp_path):
+    out = tmp_path / "recipe"
+    r = bench_recipe(str(data), out, "radar", CANDIDATES, epochs=2, threads=1, bootstrap=10, progress=False)
+    assert list(r["candidates"]) == ["base", "fast"] and r["held_out"]["split"] == "gate"
+    run_cfg = json.loads((out / "base" / "config.json").read_text())
+    held, _ = frames_for(run_cfg, str(data), "gate")
+    test, _ = frames_for(run_cfg, str(data), "test")
+    train_, _ = frames_for(run_cfg, str(data), "train")
+    assert r["held_out"]["frames"] == len(held) > 0 and not set(held) & (set(test) | set(train_))
+    assert run_cfg["lr"] == 0.02 and json.loads((out / "fast" / "config.json").read_text())["lr"] == 0.04
+    for c in r["candidates"].values():
+        xs = [p["core_hours"] for p in c["curve"]]
+        assert [p["epoch"] for p in c["curve"]] == [1, 2] and xs[0] < xs[1]
+        assert xs[-1] == pytest.approx(c["train_seconds"] / 3600.0, abs=1e-3)  # one thread
+        ys = [p["map_vehicles"] or 0.0 for p in c["curve"]]
+        assert c["map_vehicles_at_budget"] == pytest.approx(_curve_at(xs, ys, r["budget_core_hours"]), abs=1e-4)
+        assert len(c["ci95_map_vehicles_last_epoch"]) == 2
+    assert r["budget_core_hours"] == min(c["curve"][-1]["core_hours"] for c in r["candidates"].values())
+    best = max(c["map_vehicles_at_budget"] for c in r["candidates"].values())
+    assert r["candidates"][r["chosen"]]["map_vehicles_at_budget"] == best
+    assert json.loads((out / "recipe.json").read_text())["chosen"] == r["chosen"]
+    # a second call resumes: nothing is trained again, the same curves come back
+    again = bench_recipe(str(data), out, "radar", CANDIDATES, epochs=2, threads=1, bootstrap=10, progress=False)
+    assert [c["curve"] for c in again["candidates"].values()] == [c["curve"] for c in r["candidates"].values()]
+    (out / "notes.txt").write_text("mine")
+    with pytest.raises(UserError, match="holds other files"):
+        bench_recipe(str(data), out, "radar", CANDIDATES, epochs=2, threads=1, progress=False)
+
+
+def test_curve_interpolation_and_candidate_parsing():
+    assert _curve_at([1.0, 2.0], [0.2, 0.4], 1.5) == pytest.approx(0.3)
+    assert _curve_at([1.0, 2.0], [0.2, 0.4], 0.5) == pytest.approx(0.1)  # from (0, 0)
+    assert _curve_at([1.0, 2.0], [0.2, 0.4], 9.0) == pytest.approx(0.4)  # flat after the end
+    assert parse_candidate("fast:lr=0.04+hflip=0.5") == ("fast", {"lr": 0.04, "hflip": 0.5})
+    assert parse_candidate("w:model=width=0.25") == ("w", {"model": ("width=0.25",)})  # replaces the base width
+    assert parse_candidate("s:model=bev.output_stride=16") == ("s", {"model": ("width=0.5", "bev.output_stride=16")})
+    for bad, needle in [("lr=0.04", "expected NAME:FIELD=VALUE"), ("x:epochs=3", "FIELD one of"), ("x:lr", "FIELD one of")]:
+        with pytest.raises(UserError, match=needle):
+            parse_candidate(bad)
+
+
+def test_cli_refuses_a_bad_candidate_in_one_line(data, tmp_path, capsys):
+    assert main(["bench", "recipe", str(data), "--out", str(tmp_path / "r"), "--candidate", "x:epochs=3"]) == 2
+    out, err = capsys.readouterr()
+    assert out == "" and len(err.strip().splitlines()) == 1 and "FIELD one of" in err
