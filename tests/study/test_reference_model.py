@@ -249,3 +249,16 @@ def _same(a, b):
 def test_compare_twins_needs_a_dataset_with_twins(exported, data, capsys):
     assert main(["compare", str(exported[0]), str(data), "--twins", "--bootstrap", "5", "--threads", "1"]) == 2
     _one_line_error(capsys, "has no clear-weather twins")
+
+
+def test_model_list_checks_every_model(exported, tmp_path, monkeypatch, capsys):
+    model_dir, _, _ = exported
+    repo_models = tmp_path / "models"
+    shutil.copytree(model_dir, repo_models / "mini")
+    shutil.copytree(model_dir, repo_models / "broken")
+    (repo_models / "broken" / "gates" / "deep" / "gate.pt").write_bytes(b"x")
+    monkeypatch.setattr(rm, "MODEL_DIR", repo_models)
+    assert main(["model", "list", "--json"]) == 0
+    rows = {x["name"]: x for x in json.loads(capsys.readouterr().out)["models"]}
+    assert rows["mini"]["ok"] and rows["mini"]["gates"] == ["deep"] and rows["mini"]["branches"] == list(BRANCHES)
+    assert not rows["broken"]["ok"] and "gates/deep/gate.pt does not match its manifest" in rows["broken"]["problem"]
