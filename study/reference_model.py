@@ -185,13 +185,15 @@ def _is_half(path: Path) -> bool:
 
 
 def export_model(run: Path, out: Path, *, name: str, command: str = "", measured: dict | None = None,
-                 max_bytes: int = MAX_BYTES) -> dict:
+                 max_bytes: int = MAX_BYTES, training_commit: str | None = None) -> dict:
     """Write the reference model of training run `run` to `out` (module docstring) -> its manifest.
 
     A float32 checkpoint is converted to float16 (weights only); a float16 weights-only one (a run
     this function wrote) is copied byte for byte, with every gate in RUN/gates trained on it. Gates
     trained on another checkpoint are left out (listed in the manifest's "skipped_gates").
     `measured`: a JSON-able record of what the model scored (`hydrabench evaluate --json`).
+    `training_commit`: the commit the run trained at (default: this checkout's HEAD, which is also
+    recorded as the commit that exported it).
     Refuses an `out` that holds anything but an earlier export, and weights over `max_bytes`.
     """
     from study.bench.scale import cpu_model
@@ -239,7 +241,8 @@ def export_model(run: Path, out: Path, *, name: str, command: str = "", measured
         "branches": list(cfg.get("branches", [])), "protocol": cfg.get("protocol"),
         "weights": {"dtype": "float16", "parameters": params, "bytes": size},
         "gates": gates, "skipped_gates": skipped, "files": files,
-        "training": {"command": command, "commit": _git_commit(), "exported_on_cpu": cpu_model(),
+        "training": {"command": command, "commit": training_commit or _git_commit(),
+                     "exported_at_commit": _git_commit(), "exported_on_cpu": cpu_model(),
                      "compute": cfg.get("compute"), "epochs": cfg.get("epochs"), "lr": cfg.get("lr"),
                      "gate_holdout": cfg.get("gate_holdout")},
         "data": {"generation_config": data_cfg,

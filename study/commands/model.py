@@ -19,6 +19,8 @@ def add_parser(sub, name, help_text):
     ex.add_argument("--measured", type=in_file, default=None,
                     help="JSON of what the model scored (hydrabench evaluate --json), kept in the manifest")
     ex.add_argument("--command", default="", help="the command that trained the run, kept in the manifest")
+    ex.add_argument("--training-commit", default=None, metavar="SHA",
+                    help="the commit the run trained at (default: this checkout's HEAD)")
     ex.add_argument("--json", action="store_true", help="print the manifest as one JSON object")
     ex.set_defaults(run=run_export)
     ls = what.add_parser("list", help="the reference models in models/, each checked against its manifest",
@@ -38,7 +40,8 @@ def run_export(args) -> int:
         except ValueError:
             raise UserError(f"--measured {args.measured}: not JSON") from None
     man = export_model(Path(args.run_dir), Path(args.out), name=args.name, command=args.command,
-                       measured=compact_measured(measured) if measured is not None else None)
+                       measured=compact_measured(measured) if measured is not None else None,
+                       training_commit=args.training_commit)
     emit(man, args.json, lambda m: (f"{args.out}: {m['name']}, {m['weights']['parameters'] / 1e6:.1f} M parameters, "
                                     f"{m['weights']['bytes'] / 2**20:.1f} MiB float16; gates: "
                                     f"{', '.join(m['gates']) or 'none'}"
