@@ -91,6 +91,11 @@ def compare(run_dir, data, *, gates=GATES, k: int = 2, fusion: str = "soft-nms",
             row["minus_late_per_context"] = {
                 c: {"ci95": (iv_c := difference_interval(boot["per_context"][c], name, "late")),
                     "verdict": verdict(iv_c)} for c in contexts if c in boot["per_context"]}
+        if boot and name.startswith("hydrafusion:") and "all_branches" in scores:
+            # what choosing adds over running and fusing every branch (HydraFusion's "all" column)
+            iv = difference_interval(boot["per_context"]["all"], name, "all_branches")
+            row["minus_all_branches"] = {"value": _diff(sc["map"], scores["all_branches"]["map"]), "ci95": iv,
+                                         "verdict": verdict(iv)}
         if boot:
             row["ci95"] = boot["per_context"]["all"]["map"][name]
         methods[name] = row
@@ -205,12 +210,15 @@ def format_table(r: dict) -> str:
     """The comparison as text: one row per method, fixed first, then selective."""
     lines = [f"{r['frames']} frames ({r['split']}), {r['sequences']} sequences; fusion {r['fusion']}, "
              f"gates keep top {r['k']} of {len(r['branches'])}; mAP@0.5, all classes",
-             f"{'method':24s} {'mAP':>6s} {'veh.':>6s}   minus late (95 % interval)"]
+             f"{'method':24s} {'mAP':>6s} {'veh.':>6s}   {'minus late (95 % interval)':40s} minus all_branches"]
     for name, row in r["methods"].items():
-        d = row.get("minus_late")
-        tail = "-" if d is None else (f"{d['value']:+.3f} [{d['ci95'][0]:+.3f}, {d['ci95'][1]:+.3f}] {d['verdict']}"
-                                      if d["ci95"] else f"{d['value']:+.3f}")
-        lines.append(f"{name:24s} {_f(row['map'])} {_f(row['map_vehicles'])}   {tail}")
+        cells = []
+        for key in ("minus_late", "minus_all_branches"):
+            d = row.get(key)
+            cells.append("-" if d is None else (f"{d['value']:+.3f} [{d['ci95'][0]:+.3f}, {d['ci95'][1]:+.3f}] "
+                                                f"{d['verdict']}" if d["ci95"] else f"{d['value']:+.3f}"))
+        lines.append(f"{name:24s} {_f(row['map'])} {_f(row['map_vehicles'])}   {cells[0]:40s} "
+                     f"{cells[1] if name.startswith('hydrafusion:') else ''}".rstrip())
     if r["gates_not_trained"]:
         lines.append("not trained on this run (hydrabench train-gate): " + ", ".join(r["gates_not_trained"]))
     if "robustness" in r:

@@ -362,3 +362,31 @@ def test_the_amp_parity_figures_in_benchmarks_are_its_file():
     assert (f"| {fp32['branches']['radar']['map_vehicles']:.3f} [{iv['fp32'][0]:.3f}, {iv['fp32'][1]:.3f}] | "
             f"{bf16['branches']['radar']['map_vehicles']:.3f} [{iv['bf16'][0]:.3f}, {iv['bf16'][1]:.3f}] |") in text
     assert f"**[{iv['bf16_minus_fp32'][0]:+.3f}, {iv['bf16_minus_fp32'][1]:+.3f}]**" in text
+
+
+def test_the_arch_table_in_benchmarks_is_its_file():
+    r = _load("bench_arch_2026-12-03.json")
+    rows = table(ROOT / "BENCHMARKS.md", "| variant | parameters | float16 weights |")
+    labels = {"base": "base (the `cpu` profile)", "dilation": "dilation (stride-1 stages dilated)",
+              "bev stride 16": "BEV output stride 16 (layer3 back to stride 2)", "64 RoIs": "64 sampled RoIs (of 128)"}
+    assert len(rows) == len(r["variants"])
+    for name, v in r["variants"].items():
+        cells = [c.replace("*", "") for c in rows[labels.get(name, name)]]
+        assert cells[:2] == [f"{v['parameters_m']:.1f} M", f"{v['float16_mib']:.1f} MiB"], name
+        assert cells[2:] == [f"{v['step_s']['fp32']:.2f} s", f"{v['speedup_vs_base']['fp32']:.2f}",
+                             f"{v['step_s']['bf16']:.2f} s", f"{v['speedup_vs_base']['bf16']:.2f}",
+                             f"{v['speedup_vs_base_fp32']['bf16']:.2f}"], name
+
+
+def test_the_reference_model_table_is_its_manifest_and_the_width1_file():
+    """docs/reference_model.md's table: models/cpu-ref's measured record and the full-width run's
+    (results/cpu_study_width1_measured.json), the same `evaluate` on the same test frames."""
+    rows = table(ROOT / "docs" / "reference_model.md", "| detectors | training |")
+    man = json.loads((ROOT / "models" / "cpu-ref" / "manifest.json").read_text())["measured"]
+    for label, m in (("width 1 (the `cpu` study's)", _load("cpu_study_width1_measured.json")),
+                     ("width 0.5 (`cpu-ref`)", man)):
+        per, iv = m["map_vehicles_per_branch_reference"], m["ci95_map_vehicles"]
+        want = [f"{per[b]:.3f} [{iv[b][0]:.3f}, {iv[b][1]:.3f}]" for b in ("radar", "camera_right", "lidar", "radar_lidar")]
+        want.append(f"{m['map_vehicles']:.3f} [{iv['fused'][0]:.3f}, {iv['fused'][1]:.3f}]")
+        assert rows[label][1:] == want, label
+        assert m["split"] == "test" and m["frames"] == 256 and m["bootstrap"]["sequences"] == 64

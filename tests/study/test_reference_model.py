@@ -180,6 +180,12 @@ def test_compare_scores_fixed_and_gated_fusion_with_paired_intervals(exported, d
         lo, hi = d["ci95"]
         assert lo <= hi and d["verdict"] == verdict([lo, hi])
         assert d["value"] == pytest.approx(row["map"] - r["methods"]["late"]["map"], abs=2e-4)
+        if name.startswith("hydrafusion:"):  # what choosing adds over fusing every branch
+            a = row["minus_all_branches"]
+            assert a["value"] == pytest.approx(row["map"] - r["methods"]["all_branches"]["map"], abs=2e-4)
+            assert a["verdict"] == verdict(a["ci95"])
+        else:
+            assert "minus_all_branches" not in row
     for g, rates in r["selection_rate_pct"].items():  # each gate keeps k branches on every frame
         assert sum(rates.values()) == pytest.approx(100.0 * r["k"], abs=0.5), g
     # the late baseline is what `evaluate` gives for the single-sensor branches fused the same way
@@ -262,3 +268,20 @@ def test_model_list_checks_every_model(exported, tmp_path, monkeypatch, capsys):
     rows = {x["name"]: x for x in json.loads(capsys.readouterr().out)["models"]}
     assert rows["mini"]["ok"] and rows["mini"]["gates"] == ["deep"] and rows["mini"]["branches"] == list(BRANCHES)
     assert not rows["broken"]["ok"] and "gates/deep/gate.pt does not match its manifest" in rows["broken"]["problem"]
+
+
+def test_the_committed_reference_model_is_whole_and_runs_by_name(data, tmp_path, monkeypatch, capsys):
+    """models/cpu-ref: every file matches its manifest, the weights fit issue 27's ~40 MB, and by name it
+    compares on a dataset it never saw, its trained gates loading (they match its checkpoint)."""
+    man = rm.verify(rm.MODEL_DIR / "cpu-ref")
+    assert man["weights"]["bytes"] <= rm.MAX_BYTES and man["gates"] == ["attention", "deep"]
+    cfg = json.loads((rm.MODEL_DIR / "cpu-ref" / "config.json").read_text())
+    assert cfg["profile_fields"]["width"] == 0.5 and cfg["branches"] == list(BRANCHES)
+    monkeypatch.setenv("HYDRABENCH_CACHE", str(tmp_path / "cache"))
+    before = sorted(p.relative_to(rm.MODEL_DIR) for p in rm.MODEL_DIR.rglob("*"))
+    assert main(["compare", "cpu-ref", str(data), "--bootstrap", "10", "--gates", "knowledge,deep,attention",
+                 "--threads", "1", "--json"]) == 0
+    r = json.loads(capsys.readouterr().out)
+    assert r["gates"] == ["knowledge", "deep", "attention"] and r["gates_not_trained"] == [] and r["split"] == "all"
+    assert sorted(p.relative_to(rm.MODEL_DIR) for p in rm.MODEL_DIR.rglob("*")) == before  # nothing written there
+    assert any((tmp_path / "cache" / "models").iterdir())  # the cache run took the writes
