@@ -100,6 +100,7 @@ def compare(run_dir, data, *, gates=GATES, k: int = 2, fusion: str = "soft-nms",
             row["ci95"] = boot["per_context"]["all"]["map"][name]
         methods[name] = row
     picks = {g: _rates(choices[f"hydrafusion:{g}"], branches) for g in trained}
+    best = best_gate(run_dir, trained)
     rob = None
     if twins:
         rob = robustness(run_dir, data, model, reader, gp, choices, sources, [g for g in trained if g != "optimal"],
@@ -108,7 +109,7 @@ def compare(run_dir, data, *, gates=GATES, k: int = 2, fusion: str = "soft-nms",
         "run": str(run_dir), "data": str(data), "split": used_split, "frames": len(gp.per_frame),
         "sequences": boot["per_context"]["all"]["sequences"] if boot else None, "contexts": contexts,
         "fusion": fusion, "k": k, "protocol": protocol, "branches": branches, "gates": trained,
-        "gates_not_trained": skipped, "methods": methods, "selection_rate_pct": picks,
+        "gates_not_trained": skipped, "methods": methods, "selection_rate_pct": picks, "best_gate": best,
         "bootstrap": {"resamples": resamples, "unit": "sequence"} if boot else None,
         "metric": "VOC all-point AP at IoU 0.5, every class with ground truth, right camera",
         **({"robustness": rob} if rob is not None else {}),
@@ -197,6 +198,25 @@ def _iv(iv):
     return None if iv is None else [_r(iv[0]), _r(iv[1])]
 
 
+def best_gate(run_dir: Path, gates) -> dict | None:
+    """The learned gate with the lowest validation regret recorded when it was trained (`train-gate`:
+    the run's validation sequences, never the frames compared here), with every gate's value; None
+    when no learned gate recorded one."""
+    import torch
+
+    vals = {}
+    for g in gates:
+        path = Path(run_dir) / "gates" / g / "gate.pt"
+        if g in ("deep", "attention") and path.is_file():
+            res = (torch.load(path, map_location="cpu", weights_only=False).get("result") or {})
+            if res.get("val_regret") is not None:
+                vals[g] = float(res["val_regret"])
+    if not vals:
+        return None
+    return {"name": min(vals, key=vals.get), "validation_regret": vals,
+            "by": "lowest validation regret recorded by train-gate (the run's validation sequences)"}
+
+
 def _diff(a, b):
     return None if a is None or b is None else round(a - b, 4)
 
@@ -273,12 +293,15 @@ def plot_robustness(r: dict, path) -> None:
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
+    from matplotlib.ticker import FuncFormatter, NullFormatter
 
     from study.outputs import savefig_atomic
 
     rob = r["robustness"]
     conds = sorted(rob["physical"])
-    shown = [n for n in rob["methods"] if n != "all_branches"]
+    best = (r.get("best_gate") or {}).get("name")
+    shown = [n for n in rob["methods"] if n.startswith("single:") or n == "late" or n == f"hydrafusion:{best}"]
+    top = 2.0
     fig, axes = plt.subplots(1, len(conds), figsize=(4.2 * len(conds), 3.8), squeeze=False)
     gi = 0
     colours = {}
@@ -291,7 +314,7 @@ def plot_robustness(r: dict, path) -> None:
         phys = rob["physical"][cond]
         sevs = sorted(phys["per_severity"], key=int)
         xs = [phys["per_severity"][s] for s in sevs]
-        log = cond in ("fog", "night") or phys["unit"] in ("m", "lux")
+        log = all(x and x > 0 for x in xs)  # every quantity spans decades across the five levels
         for j, n in enumerate(shown):
             per = rob["methods"][n]["per_condition"].get(cond, {})
             spread = 1.04 ** (j - len(shown) / 2) if log else 1 + 0.02 * (j - len(shown) / 2)
@@ -302,10 +325,18 @@ def plot_robustness(r: dict, path) -> None:
             ys = [p["ra"] for p in v]
             lo = [p["ra"] - p["ra_ci95"][0] if p["ra_ci95"] else 0 for p in v]
             hi = [p["ra_ci95"][1] - p["ra"] if p["ra_ci95"] else 0 for p in v]
-            ax.errorbar(x, ys, yerr=[lo, hi], color=colours[n], marker="o", ms=4, lw=1.5 if n == "late" else 1,
-                        capsize=2, label=n)
+            ax.errorbar(x, ys, yerr=[lo, hi], color=colours[n], marker="o", ms=4,
+                        lw=2 if n == "late" or n.startswith("hydrafusion:") else 1, capsize=2, label=n)
+            for xx, y in zip(x, ys):  # a ratio above the axis: its value at the top edge
+                if y > top:
+                    ax.annotate(f"{y:.1f}", (xx, top), fontsize=6, color=colours[n], ha="center", va="top")
+        ax.set_ylim(0, top)
         if log:
             ax.set_xscale("log")
+        ax.set_xticks([x for x in xs if x])  # one tick per severity, at its measured value
+        ax.xaxis.set_major_formatter(FuncFormatter(lambda v, _: f"{v:.3g}"))
+        ax.xaxis.set_minor_formatter(NullFormatter())
+        ax.tick_params(axis="x", labelsize=7)
         if phys["unit"] in ("m", "lux"):
             ax.invert_xaxis()  # harsher to the right: lower visibility, less light
         ax.axhline(1, color="k", lw=0.6, ls=":")
@@ -315,7 +346,8 @@ def plot_robustness(r: dict, path) -> None:
         ax.set_ylabel("RA = vehicle mAP degraded / clear twin")
     axes[0][0].legend(fontsize=7, loc="lower left")
     fig.suptitle(f"Relative accuracy against physical severity, 95 % intervals from whole-sequence draws ({r['frames']} "
-                 f"frames; gates keep top {r['k']})", fontsize=10)
+                 f"frames; the gate keeps top {r['k']}; gate: the lowest validation regret; axis clipped at {top:g})",
+                 fontsize=10)
     fig.tight_layout()
     savefig_atomic(fig, path)
     plt.close(fig)
