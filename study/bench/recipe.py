@@ -98,10 +98,11 @@ def bench_recipe(data: str, out, branch: str = "lidar", candidates: dict | None 
     data = str(Path(data).resolve())
     candidates = dict(candidates or DEFAULT_CANDIDATES)
     marker = out / "recipe.json"
-    if out.exists() and (not out.is_dir() or any(p.name != marker.name and p.name not in {_dir(n) for n in candidates}
+    ours = {marker.name, *(_dir(n) for n in candidates)}
+    if out.exists() and (not out.is_dir() or any(p.name not in ours and p.suffix not in (".png", ".pdf", ".svg")
                                                  for p in out.iterdir())):
-        raise UserError(f"--out {out} holds other files than this bench's candidate runs and {marker.name}; use a new "
-                        "or empty directory (or the same candidates)")
+        raise UserError(f"--out {out} holds other files than this bench's candidate runs, {marker.name} and its "
+                        "figures; use a new or empty directory (or the same candidates)")
     if not 0 <= bootstrap <= 10000:
         raise UserError(f"--bootstrap must be 0..10000 draws, got {bootstrap}")
     check_dataset(data)

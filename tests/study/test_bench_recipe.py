@@ -52,6 +52,11 @@ def test_candidates_are_scored_per_epoch_on_the_gate_split_and_chosen_at_equal_b
     # a second call resumes: nothing is trained again, the same curves come back
     again = bench_recipe(str(data), out, "radar", CANDIDATES, epochs=2, threads=1, bootstrap=10, progress=False)
     assert [c["curve"] for c in again["candidates"].values()] == [c["curve"] for c in r["candidates"].values()]
+    from study.bench.recipe import plot_recipe
+
+    plot_recipe(again, out / "curves.png")  # its own figure beside the runs does not stop a resume
+    assert (out / "curves.png").stat().st_size > 0
+    bench_recipe(str(data), out, "radar", CANDIDATES, epochs=2, threads=1, bootstrap=0, progress=False)
     (out / "notes.txt").write_text("mine")
     with pytest.raises(UserError, match="holds other files"):
         bench_recipe(str(data), out, "radar", CANDIDATES, epochs=2, threads=1, progress=False)

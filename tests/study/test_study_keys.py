@@ -127,3 +127,35 @@ def test_every_stage_records_its_device_and_precision(fake_stages, tmp_path, mon
             {"device": "cuda", "precision": "bf16" if name == "train" else "fp32"}
         assert manifest["compute"] == s["compute"] == want, name
         assert manifest["inputs"]["code"] and manifest["key"] == s["key"]
+
+
+def test_train_model_overrides_and_init_from_are_checked_and_keyed(tmp_path, monkeypatch):
+    """train.model is refused at load when malformed; train.init_from resolves a reference model (or run) and
+    the train stage's identity carries its checkpoint's digest, not its name."""
+    import shutil
+
+    from sim.errors import UserError
+    from study import reference_model as rm
+    from study.runner import _init_from, stage_identity
+
+    cfg = load_study_config("tiny")
+    with pytest.raises(UserError, match="fixed by the dataset"):
+        dataclasses.replace(cfg.train, model=("camera.size=[1, 2]",))
+    with pytest.raises(UserError, match="neither a reference model"):
+        _init_from(str(tmp_path / "nothing"))
+    monkeypatch.setenv("HYDRABENCH_CACHE", str(tmp_path / "cache"))
+    assert _init_from("") == ""
+    resolved = _init_from("cpu-ref")  # the committed model, by name: its verified cache copy
+    assert resolved.startswith(str(tmp_path / "cache")) and (rm.Path(resolved) / "checkpoint.pt").is_file()
+    setup = DeviceSetup(device="cpu", threads=1, amp=False)
+    plain = stage_identity("train", cfg, setup)
+    warm = stage_identity("train", dataclasses.replace(cfg, train=dataclasses.replace(cfg.train, init_from="cpu-ref")),
+                          setup)
+    assert "init_from_sha256" not in plain
+    digest = json.loads((rm.MODEL_DIR / "cpu-ref" / "manifest.json").read_text())["files"]["checkpoint.pt"]["sha256"]
+    assert warm["init_from_sha256"] == digest[:16]
+    other = tmp_path / "copy"  # the same weights under another path: the same identity
+    shutil.copytree(rm.MODEL_DIR / "cpu-ref", other)
+    again = stage_identity("train", dataclasses.replace(cfg, train=dataclasses.replace(cfg.train, init_from=str(other))),
+                           setup)
+    assert again["init_from_sha256"] == warm["init_from_sha256"]
