@@ -390,3 +390,45 @@ def test_the_reference_model_table_is_its_manifest_and_the_width1_file():
         want.append(f"{m['map_vehicles']:.3f} [{iv['fused'][0]:.3f}, {iv['fused'][1]:.3f}]")
         assert rows[label][1:] == want, label
         assert m["split"] == "test" and m["frames"] == 256 and m["bootstrap"]["sequences"] == 64
+
+
+def test_the_recipe_table_in_benchmarks_is_its_file():
+    r = _load("bench_recipe_lidar_2026-12-03.json")
+    rows = table(ROOT / "BENCHMARKS.md", "| candidate | training | core-hours |")
+    assert set(rows) == set(r["candidates"]) and r["held_out"]["split"] == "gate"
+    for name, c in r["candidates"].items():
+        last, iv = c["curve"][-1], c["ci95_map_vehicles_last_epoch"]
+        assert rows[name] == [f"{c['train_seconds']:.0f} s", f"{last['core_hours']:.4f}",
+                              " / ".join(f"{p['map_vehicles']:.3f}" for p in c["curve"]),
+                              f"{last['map_vehicles']:.3f} [{iv[0]:.3f}, {iv[1]:.3f}]",
+                              f"{c['map_vehicles_at_budget']:.3f}"], name
+    text = (ROOT / "BENCHMARKS.md").read_text()
+    assert f"at the budget ({r['budget_core_hours']:.4f} core-h)" in text
+    assert f"- **Chosen: {r['chosen']}**" in text
+
+
+def _cmp_cell(d) -> str:
+    return "-" if not d else f"{d['value']:+.3f} [{d['ci95'][0]:+.3f}, {d['ci95'][1]:+.3f}] {d['verdict']}"
+
+
+def test_the_compare_tables_of_the_reference_model_are_their_files():
+    """docs/reference_model.md: the demo's comparison and the twins' comparison with mRA / mRR / mCE,
+    from `hydrabench compare cpu-ref ... --json` (results/compare_cpu_ref_{demo,twins}_2026-12-03.json)."""
+    doc = ROOT / "docs" / "reference_model.md"
+    demo = _load("compare_cpu_ref_demo_2026-12-03.json")
+    rows = table(doc, "| method | mAP@0.5 (96 fresh frames) |")
+    assert set(rows) == set(demo["methods"]) and demo["frames"] == 96 and demo["sequences"] == 32
+    for name, m in demo["methods"].items():
+        assert rows[name] == [f"{m['map']:.3f}", _cmp_cell(m.get("minus_late")), _cmp_cell(m.get("minus_all_branches"))]
+    tw = _load("compare_cpu_ref_twins_2026-12-03.json")
+    rows = table(doc, "| method | mAP@0.5 | minus late fusion | minus all_branches | mRA |")
+    rob = tw["robustness"]["methods"]
+    assert tw["frames"] == 480 and tw["best_gate"]["name"] == "attention"
+    for name, m in tw["methods"].items():
+        r = rob.get(name)
+        tail = ([f"{r[k]:.3f}" if r[k] is not None else "-" for k in ("mRA", "mRR", "mCE_vs_late")] if r
+                else ["-", "-", "-"])
+        assert rows[name] == [f"{m['map']:.3f}", _cmp_cell(m.get("minus_late")),
+                              _cmp_cell(m.get("minus_all_branches")), *tail], name
+    seqs = [v["sequences"] for per in rob["late"]["per_condition"].values() for v in per.values()]
+    assert f"{min(seqs)} to {max(seqs)} per condition and severity" in doc.read_text()
