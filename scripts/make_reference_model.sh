@@ -23,5 +23,4 @@ for g in deep attention; do
   $H train-gate "$WORK/half" "$DATA" --gate "$g" --val-fraction 0.5
 done
 $H evaluate "$WORK/half" "$DATA" --branches all --fusion soft-nms --bootstrap 500 --json > "$WORK/measured.json"
-$H model export "$WORK/half" --out "$OUT" --name cpu-ref --measured "$WORK/measured.json" \
-   --command "hydrabench ${TRAIN[*]//$DATA/DATA}"
+$H model export "$WORK/half" --out "$OUT" --name cpu-ref --measured "$WORK/measured.json"

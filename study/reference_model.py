@@ -29,6 +29,7 @@ from __future__ import annotations
 import hashlib
 import json
 import os
+import re
 import shutil
 import subprocess
 from pathlib import Path
@@ -184,33 +185,73 @@ def _is_half(path: Path) -> bool:
                                           if torch.is_floating_point(v))
 
 
-def export_model(run: Path, out: Path, *, name: str, command: str = "", measured: dict | None = None,
-                 max_bytes: int = MAX_BYTES, training_commit: str | None = None) -> dict:
+def export_model(run: Path, out: Path, *, name: str, measured: dict | None = None, max_bytes: int = MAX_BYTES,
+                 training_commit: str | None = None) -> dict:
     """Write the reference model of training run `run` to `out` (module docstring) -> its manifest.
 
     A float32 checkpoint is converted to float16 (weights only); a float16 weights-only one (a run
     this function wrote) is copied byte for byte, with every gate in RUN/gates trained on it. Gates
     trained on another checkpoint are left out (listed in the manifest's "skipped_gates").
     `measured`: a JSON-able record of what the model scored (`hydrabench evaluate --json`).
-    `training_commit`: the commit the run trained at (default: this checkout's HEAD, which is also
-    recorded as the commit that exported it).
+    `training_commit`: the commit the run trained at, 7 to 40 hex digits (default: this checkout's
+    HEAD, which is also recorded as the commit that exported it). The manifest's training command is
+    written from the run's config.json (`train_command`). The weights are loaded into the network the
+    config describes first: a checkpoint of another network is refused, and nothing is left behind.
     Refuses an `out` that holds anything but an earlier export, and weights over `max_bytes`.
     """
-    from study.bench.scale import cpu_model
-    from study.checkpoints import load_checkpoint
-
     run, out = Path(run), Path(out)
     cfg_path, ckpt = run / "config.json", run / "checkpoint.pt"
     if not cfg_path.is_file() or not ckpt.is_file():
         raise UserError(f"{run} is not a training run (needs config.json and checkpoint.pt)")
-    if not name or not name.replace("-", "_").isidentifier():
-        raise UserError(f"--name {name!r}: letters, digits, '-' and '_' only")
+    if not re.fullmatch(r"[a-z0-9][a-z0-9_-]{0,39}", str(name)):
+        raise UserError(f"--name {name!r}: lower-case letters, digits, '-' and '_', starting with a letter or digit")
+    if training_commit is not None and not re.fullmatch(r"[0-9a-f]{7,40}", str(training_commit)):
+        raise UserError(f"--training-commit {training_commit!r}: 7 to 40 hexadecimal digits of a git commit")
     if out.exists() and any(out.iterdir()) and not (out / "manifest.json").is_file():
         raise UserError(f"{out} exists and is not a reference model; choose an empty or new --out")
+    from study.detect import load_run
+
+    load_run(run)  # the weights fit the network config.json describes (UserError naming the file otherwise)
     cfg = json.loads(cfg_path.read_text())
     tmp = out.with_name(out.name + ".export-tmp")
     shutil.rmtree(tmp, ignore_errors=True)
     tmp.mkdir(parents=True)
+    try:
+        manifest = _write_export(run, out, tmp, cfg, name, measured, max_bytes, training_commit)
+    except BaseException:
+        shutil.rmtree(tmp, ignore_errors=True)
+        raise
+    shutil.rmtree(out, ignore_errors=True)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    os.replace(tmp, out)
+    return manifest
+
+
+def train_command(cfg: dict) -> str:
+    """The `hydrabench train` command line that makes a run with this config.json (the dataset as
+    DATA, the run as RUN; device options left out)."""
+    args = ["hydrabench train DATA --out RUN", f"--profile {cfg.get('model_profile', 'cpu')}",
+            f"--branch-set {cfg.get('branch_set', 'paper')}"]
+    if cfg.get("branches"):
+        args.append("--branches " + ",".join(cfg["branches"]))
+    for key, flag in (("epochs", "--epochs"), ("batch_size", "--batch-size"), ("lr", "--lr"),
+                      ("warmup_steps", "--warmup-steps"), ("lr_drop_epoch", "--lr-drop-epoch"),
+                      ("clip_grad", "--clip-grad"), ("seed", "--seed"), ("gate_holdout", "--gate-holdout"),
+                      ("hflip", "--hflip"), ("protocol", "--protocol"), ("sampling", "--sampling")):
+        if cfg.get(key) is not None:
+            args.append(f"{flag} {cfg[key]:g}" if isinstance(cfg[key], float) else f"{flag} {cfg[key]}")
+    precision = (cfg.get("compute") or {}).get("precision")
+    args.append("--amp bf16" if precision == "bf16" else "--no-amp")
+    args += [f"--model {m}" for m in cfg.get("model", [])]
+    return " ".join(args)
+
+
+def _write_export(run: Path, out: Path, tmp: Path, cfg: dict, name: str, measured, max_bytes: int,
+                  training_commit) -> dict:
+    from study.bench.scale import cpu_model
+    from study.checkpoints import load_checkpoint
+
+    ckpt, cfg_path = run / "checkpoint.pt", run / "config.json"
     if _is_half(ckpt):
         shutil.copyfile(ckpt, tmp / "checkpoint.pt")
         params = sum(v.numel() for v in load_checkpoint(ckpt)["model"].values() if v.is_floating_point())
@@ -218,7 +259,6 @@ def export_model(run: Path, out: Path, *, name: str, command: str = "", measured
         params = half_checkpoint(ckpt, tmp / "checkpoint.pt")
     size = (tmp / "checkpoint.pt").stat().st_size
     if size > max_bytes:
-        shutil.rmtree(tmp, ignore_errors=True)
         raise UserError(f"{run}: {params / 1e6:.1f} M parameters are {size / 2**20:.1f} MiB in float16, over the "
                         f"{max_bytes / 2**20:.0f} MiB budget; train a narrower model (train --model width=0.5)")
     shutil.copyfile(cfg_path, tmp / "config.json")
@@ -241,7 +281,7 @@ def export_model(run: Path, out: Path, *, name: str, command: str = "", measured
         "branches": list(cfg.get("branches", [])), "protocol": cfg.get("protocol"),
         "weights": {"dtype": "float16", "parameters": params, "bytes": size},
         "gates": gates, "skipped_gates": skipped, "files": files,
-        "training": {"command": command, "commit": training_commit or _git_commit(),
+        "training": {"command": train_command(cfg), "commit": training_commit or _git_commit(),
                      "exported_at_commit": _git_commit(), "exported_on_cpu": cpu_model(),
                      "compute": cfg.get("compute"), "epochs": cfg.get("epochs"), "lr": cfg.get("lr"),
                      "gate_holdout": cfg.get("gate_holdout")},
@@ -250,7 +290,23 @@ def export_model(run: Path, out: Path, *, name: str, command: str = "", measured
         "measured": measured or {},
     }
     (tmp / "manifest.json").write_text(json.dumps(manifest, indent=1) + "\n")
-    shutil.rmtree(out, ignore_errors=True)
-    out.parent.mkdir(parents=True, exist_ok=True)
-    os.replace(tmp, out)
     return manifest
+
+
+MEASURED_KEYS = ("split", "frames", "fusion", "map", "map_vehicles", "map_per_branch_reference",
+                 "map_vehicles_per_context", "map_per_context", "device")
+
+
+def compact_measured(r: dict) -> dict:
+    """The figures of a `hydrabench evaluate --json` result a manifest keeps: overall and per-context
+    mAP, each branch's mAP and vehicle mAP (with its 95 % interval when bootstrapped). Any other JSON
+    is kept whole."""
+    if not isinstance(r, dict) or "map_per_branch_reference" not in r:
+        return r
+    out = {k: r[k] for k in MEASURED_KEYS if k in r}
+    out["map_vehicles_per_branch_reference"] = {b: v.get("map_vehicles") for b, v in r.get("per_branch_reference", {}).items()}
+    iv = (r.get("ci95") or {}).get("per_context", {}).get("all", {})
+    if iv:
+        out["ci95_map_vehicles"] = iv.get("map_vehicles")
+        out["bootstrap"] = {"resamples": r["ci95"].get("resamples"), "sequences": iv.get("sequences")}
+    return out

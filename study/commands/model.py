@@ -5,7 +5,7 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
-from study.cli import Formatter, emit, in_file, module_doc, name_arg
+from study.cli import Formatter, emit, in_file, module_doc, name_arg, out_dir, training_run
 
 
 def add_parser(sub, name, help_text):
@@ -13,14 +13,14 @@ def add_parser(sub, name, help_text):
     what = p.add_subparsers(dest="what", metavar="<what>", required=True)
     ex = what.add_parser("export", help="write a run's float16 weights, gates and manifest to a directory",
                          formatter_class=Formatter)
-    ex.add_argument("run_dir", metavar="RUN", help="training run directory (hydrabench train --out)")
-    ex.add_argument("--out", required=True, help="the model directory to write (e.g. models/cpu-ref)")
+    ex.add_argument("run_dir", metavar="RUN", type=training_run, help="training run directory (hydrabench train --out)")
+    ex.add_argument("--out", required=True, type=out_dir, help="the model directory to write (e.g. models/cpu-ref)")
     ex.add_argument("--name", type=name_arg, required=True, help="the model's name (its directory name in models/)")
     ex.add_argument("--measured", type=in_file, default=None,
                     help="JSON of what the model scored (hydrabench evaluate --json), kept in the manifest")
-    ex.add_argument("--command", default="", help="the command that trained the run, kept in the manifest")
-    ex.add_argument("--training-commit", default=None, metavar="SHA",
-                    help="the commit the run trained at (default: this checkout's HEAD)")
+    ex.add_argument("--training-commit", type=name_arg, default=None, metavar="SHA",
+                    help="the commit the run trained at, 7-40 hex digits (default: this checkout's HEAD); the "
+                    "training command is written from the run's config.json")
     ex.add_argument("--json", action="store_true", help="print the manifest as one JSON object")
     ex.set_defaults(run=run_export)
     ls = what.add_parser("list", help="the reference models in models/, each checked against its manifest",
@@ -31,7 +31,7 @@ def add_parser(sub, name, help_text):
 
 def run_export(args) -> int:
     from sim.errors import UserError
-    from study.reference_model import export_model
+    from study.reference_model import compact_measured, export_model
 
     measured = None
     if args.measured:
@@ -39,7 +39,7 @@ def run_export(args) -> int:
             measured = json.loads(Path(args.measured).read_text())
         except ValueError:
             raise UserError(f"--measured {args.measured}: not JSON") from None
-    man = export_model(Path(args.run_dir), Path(args.out), name=args.name, command=args.command,
+    man = export_model(Path(args.run_dir), Path(args.out), name=args.name,
                        measured=compact_measured(measured) if measured is not None else None,
                        training_commit=args.training_commit)
     emit(man, args.json, lambda m: (f"{args.out}: {m['name']}, {m['weights']['parameters'] / 1e6:.1f} M parameters, "
@@ -48,25 +48,6 @@ def run_export(args) -> int:
                                     + (f" (left out, trained on another checkpoint: {', '.join(m['skipped_gates'])})"
                                        if m["skipped_gates"] else "")))
     return 0
-
-
-MEASURED_KEYS = ("split", "frames", "fusion", "map", "map_vehicles", "map_per_branch_reference",
-                 "map_vehicles_per_context", "map_per_context", "device")
-
-
-def compact_measured(r: dict) -> dict:
-    """The figures of a `hydrabench evaluate --json` result a manifest keeps: overall and per-context
-    mAP, each branch's mAP and vehicle mAP (with its 95 % interval when bootstrapped). Any other JSON
-    is kept whole."""
-    if not isinstance(r, dict) or "map_per_branch_reference" not in r:
-        return r
-    out = {k: r[k] for k in MEASURED_KEYS if k in r}
-    out["map_vehicles_per_branch_reference"] = {b: v.get("map_vehicles") for b, v in r.get("per_branch_reference", {}).items()}
-    iv = (r.get("ci95") or {}).get("per_context", {}).get("all", {})
-    if iv:
-        out["ci95_map_vehicles"] = iv.get("map_vehicles")
-        out["bootstrap"] = {"resamples": r["ci95"].get("resamples"), "sequences": iv.get("sequences")}
-    return out
 
 
 def run_list(args) -> int:

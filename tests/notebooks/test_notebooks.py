@@ -179,7 +179,7 @@ def test_selective_fusion_notebook_is_stored_on_the_committed_cpu_study_and_runs
     assert "holds the report, not the trained run" in text and "fog (motorway layout + fog):" in text
     assert len([o for o in _outputs(nb) if "image/png" in o.get("data", {})]) >= 3
     # section 4: the committed reference model against late fusion on a freshly generated dataset
-    assert "cpu-ref: 19.1 M parameters" in text and "gates deep, attention" in text
+    assert "cpu-ref: 19.1 M parameters" in text and "gates attention, deep" in text
     for method in ("late", "all_branches", "hydrafusion:deep", "hydrafusion:attention", "hydrafusion:optimal"):
         assert f"\n{method} " in text, method
     assert "16 frames (all), 8 sequences" in text

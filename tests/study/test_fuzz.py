@@ -33,7 +33,7 @@ from study.cli import build_parser, main
 
 # Values for required options that no type describes: a valid example each (the fuzz needs a valid
 # command around the one bad value). A new required option without a kind must be added here.
-EXAMPLES = {"--gate": "deep"}
+EXAMPLES = {"--gate": "deep", "--name": "mini"}
 BOGUS = "__bogus__"
 TRACKED: list[tuple[str, float]] = []  # (case, seconds) of every case tried, for the count
 CASES_BY_TEST: dict[str, int] = {}  # test name -> cases it tried

@@ -48,7 +48,7 @@ def exported(run, data, tmp_path_factory):
     rm.export_model(run, half, name="mini")
     assert main(["train-gate", str(half), str(data), "--gate", "deep", "--epochs", "1", "--val-fraction", "0",
                  "--threads", "1", "--json"]) == 0
-    man = rm.export_model(half, base / "mini", name="mini", command="pytest", measured={"map": 0.0})
+    man = rm.export_model(half, base / "mini", name="mini", measured={"map": 0.0})
     return base / "mini", man, half
 
 
@@ -74,7 +74,11 @@ def test_export_is_float16_weights_with_a_manifest_and_loads_close_to_the_float3
     assert cfg["profile_fields"]["width"] == 0.25
     gen = json.loads((data / "manifest.json").read_text())["config"]
     assert man["data"]["generation_config"] == gen
-    assert man["training"]["command"] == "pytest" and man["measured"] == {"map": 0.0}
+    assert man["measured"] == {"map": 0.0}
+    assert man["training"]["command"] == (  # written from the run's config.json
+        "hydrabench train DATA --out RUN --profile cpu --branch-set paper --branches radar,camera_right,lidar,radar_lidar"
+        " --epochs 1 --batch-size 4 --lr 0.001 --warmup-steps 1 --lr-drop-epoch 0 --clip-grad 10 --seed 0"
+        " --gate-holdout 0 --hflip 0 --protocol reference --sampling global --no-amp --model width=0.25")
     assert rm.verify(model_dir)["files"] == man["files"]
     # float16 weights give the float32 run's features to float16 precision
     m32, _ = load_run(run)
@@ -135,8 +139,18 @@ def test_export_refusals(run, exported, tmp_path):
     (busy / "notes.txt").write_text("mine")
     with pytest.raises(rm.UserError, match="is not a reference model"):
         rm.export_model(run, busy, name="x")
-    with pytest.raises(rm.UserError, match="letters, digits"):
-        rm.export_model(run, tmp_path / "n", name="no/slash")
+    for bad in ("no/slash", "__bogus__", "Upper", ""):
+        with pytest.raises(rm.UserError, match="lower-case letters, digits"):
+            rm.export_model(run, tmp_path / "n", name=bad)
+    with pytest.raises(rm.UserError, match="hexadecimal digits"):
+        rm.export_model(run, tmp_path / "n", name="n", training_commit="__bogus__")
+    # a checkpoint of another network: refused by loading it into the config's network, nothing left behind
+    other = tmp_path / "other"
+    shutil.copytree(run, other)
+    torch.save({"model": {"w": torch.zeros(3)}}, other / "checkpoint.pt")
+    with pytest.raises(rm.UserError):
+        rm.export_model(other, tmp_path / "o" / "m", name="m")
+    assert not (tmp_path / "o").exists()
     with pytest.raises(rm.UserError, match="is not a training run"):
         rm.export_model(tmp_path, tmp_path / "m", name="m")
     # the float16 conversion is byte-for-byte repeatable: the float32 run exported again gives the
