@@ -35,6 +35,7 @@ import subprocess
 from pathlib import Path
 
 from sim.errors import UserError
+from study.gate_data import file_sha256 as sha256
 
 MODEL_DIR = Path(__file__).resolve().parents[1] / "models"
 """Where named reference models live (in the repository)."""
@@ -42,14 +43,6 @@ MODEL_DIR = Path(__file__).resolve().parents[1] / "models"
 KIND = "hydrabench-reference-model"
 MAX_BYTES = 40 * 2**20
 """Issue 27's budget for a committed model's weights (about 40 MB)."""
-
-
-def sha256(path: Path) -> str:
-    h = hashlib.sha256()
-    with open(path, "rb") as f:
-        for chunk in iter(lambda: f.read(1 << 20), b""):
-            h.update(chunk)
-    return h.hexdigest()
 
 
 def cache_root() -> Path:
