@@ -392,19 +392,23 @@ def test_the_reference_model_table_is_its_manifest_and_the_width1_file():
         assert m["split"] == "test" and m["frames"] == 256 and m["bootstrap"]["sequences"] == 64
 
 
-def test_the_recipe_table_in_benchmarks_is_its_file():
-    r = _load("bench_recipe_lidar_2026-12-03.json")
-    rows = table(ROOT / "BENCHMARKS.md", "| candidate | training | core-hours |")
+@pytest.mark.parametrize("name, header", [("lidar", "| candidate | training | core-hours |"),
+                                          ("camera", "| candidate (camera_right) | training |")])
+def test_the_recipe_tables_in_benchmarks_are_their_files(name, header):
+    r = _load(f"bench_recipe_{name}_2026-12-03.json")
+    rows = table(ROOT / "BENCHMARKS.md", header)
     assert set(rows) == set(r["candidates"]) and r["held_out"]["split"] == "gate"
-    for name, c in r["candidates"].items():
+    for cand, c in r["candidates"].items():
         last, iv = c["curve"][-1], c["ci95_map_vehicles_last_epoch"]
-        assert rows[name] == [f"{c['train_seconds']:.0f} s", f"{last['core_hours']:.4f}",
+        assert rows[cand] == [f"{c['train_seconds']:.0f} s", f"{last['core_hours']:.4f}",
                               " / ".join(f"{p['map_vehicles']:.3f}" for p in c["curve"]),
                               f"{last['map_vehicles']:.3f} [{iv[0]:.3f}, {iv[1]:.3f}]",
-                              f"{c['map_vehicles_at_budget']:.3f}"], name
+                              f"{c['map_vehicles_at_budget']:.3f}"], cand
     text = (ROOT / "BENCHMARKS.md").read_text()
     assert f"at the budget ({r['budget_core_hours']:.4f} core-h)" in text
-    assert f"- **Chosen: {r['chosen']}**" in text
+    assert r["branch"] == {"lidar": "lidar", "camera": "camera_right"}[name]
+    if name == "lidar":
+        assert f"- **Chosen: {r['chosen']}**" in text
 
 
 def _cmp_cell(d) -> str:
