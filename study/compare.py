@@ -169,12 +169,13 @@ def robustness(run_dir, data, model, reader, gp, choices, sources, twin_gates, k
                 "ra_ci95": _iv(t.interval), "sequences": t.sequences, "frames": t.frames}
         out_methods[n] = {"per_condition": per}
     bar.close()
+    def scores(row, key):  # {condition: {severity: score}}, as fusion.robustness takes them
+        return {c: {int(s): v[key] for s, v in per.items()} for c, per in row["per_condition"].items()}
+
+    base = scores(out_methods["late"], "degraded")
     for row in out_methods.values():
-        deg = {c: {int(s): v["degraded"] for s, v in per.items()} for c, per in row["per_condition"].items()}
-        clr = {c: {int(s): v["clear"] for s, v in per.items()} for c, per in row["per_condition"].items()}
+        deg, clr = scores(row, "degraded"), scores(row, "clear")
         ra = R.relative_accuracies(deg, clr)
-        base = {c: {int(s): v["degraded"] for s, v in per.items()}
-                for c, per in out_methods["late"]["per_condition"].items()}
         row["mRA"] = _r(R.mean_relative_accuracy(ra))
         row["mRR"] = _r(R.mean_resilience_rate(deg, clr))
         row["mCE_vs_late"] = _r(R.mean_corruption_error(deg, base))
