@@ -37,7 +37,9 @@ DEFAULT_CANDIDATES: dict[str, dict] = {
 }
 """Name -> the fields that differ from `BASE` (TrainConfig fields)."""
 
-TUNABLE = ("lr", "warmup_steps", "clip_grad", "hflip", "model", "lr_drop_epoch")
+TUNABLE = ("lr", "warmup_steps", "clip_grad", "hflip", "model", "lr_drop_epoch", "epochs")
+"""`epochs` gives a candidate its own schedule length (the learning-rate drop follows at 3/4 of it):
+candidates that differ only in `epochs` measure what each budget buys when spent on a whole schedule."""
 
 
 def parse_candidate(text: str) -> tuple[str, dict]:
@@ -73,7 +75,7 @@ def _curve_at(xs, ys, budget: float) -> float:
 
 def bench_recipe(data: str, out, branch: str = "lidar", candidates: dict | None = None, epochs: int = 3,
                  profile: str = "cpu", threads: int = 0, seed: int = 0, bootstrap: int = 200,
-                 progress: bool = True) -> dict:
+                 progress: bool = True, aim: float | None = None) -> dict:
     """The comparison of the module docstring -> a JSON-able dict (also written to OUT/recipe.json)."""
     import csv
 
@@ -105,26 +107,33 @@ def bench_recipe(data: str, out, branch: str = "lidar", candidates: dict | None 
                         "figures; use a new or empty directory (or the same candidates)")
     if not 0 <= bootstrap <= 10000:
         raise UserError(f"--bootstrap must be 0..10000 draws, got {bootstrap}")
+    if aim is not None and not 0.0 < aim <= 1.0:
+        raise UserError(f"--aim must be a vehicle mAP in (0, 1], got {aim}")
+    for name, fields in candidates.items():
+        n_ep = fields.get("epochs", epochs)
+        if isinstance(n_ep, bool) or not isinstance(n_ep, int) or not 1 <= n_ep <= 100:
+            raise UserError(f"--candidate {name}: epochs must be a whole number 1..100, got {n_ep!r}")
     check_dataset(data)
     n_threads = threads or default_threads()
     reader = DatasetReader(data)
     rows, sources = {}, {}
     for name, fields in candidates.items():
-        cfg = TrainConfig(**{"data": data, "model_profile": profile, "branches": (branch,), "epochs": epochs,
+        n_ep = int(fields.get("epochs", epochs))
+        cfg = TrainConfig(**{"data": data, "model_profile": profile, "branches": (branch,), "epochs": n_ep,
                              "seed": seed, "threads": n_threads, "device": "cpu", "eval_frames": 1,
                              "checkpoint_seconds": 300.0, **BASE, **fields})
         t0 = time.perf_counter()
         train(cfg, out / _dir(name), progress=progress)
         with open(out / _dir(name) / "metrics.csv") as fh:
             epochs_rows = list(csv.DictReader(fh))
-        if len(epochs_rows) < epochs:
-            raise UserError(f"{out / _dir(name)}: {len(epochs_rows)} epochs recorded, {epochs} asked")
+        if len(epochs_rows) < n_ep:
+            raise UserError(f"{out / _dir(name)}: {len(epochs_rows)} epochs recorded, {n_ep} asked")
         run_cfg = json.loads((out / _dir(name) / "config.json").read_text())
         held, _ = frames_for(run_cfg, data, "gate")
         if not held:
             raise UserError(f"{data}: the run has no gate split to score on (gate_holdout {BASE['gate_holdout']})")
         curve, spent = [], 0.0
-        for e, row in enumerate(epochs_rows[:epochs], start=1):
+        for e, row in enumerate(epochs_rows[:n_ep], start=1):
             spent += float(row["train_seconds"]) * n_threads / 3600.0
             model, _ = load_run(out / _dir(name), f"epoch-{e:03d}", device="cpu")
             torch.set_num_threads(n_threads)
@@ -133,7 +142,7 @@ def bench_recipe(data: str, out, branch: str = "lidar", candidates: dict | None 
             sc = score(alone, reader, "camera_right", protocol=run_cfg.get("protocol", "reference"))
             curve.append({"epoch": e, "core_hours": round(spent, 4), "map_vehicles": sc["map_vehicles"],
                           "map": sc["map"]})
-            if e == epochs:
+            if e == n_ep:
                 sources[name] = alone
         rows[name] = {"fields": {k: list(v) if isinstance(v, tuple) else v for k, v in fields.items()},
                       "curve": curve, "train_seconds": round(sum(float(r["train_seconds"]) for r in epochs_rows), 1),
@@ -150,15 +159,56 @@ def bench_recipe(data: str, out, branch: str = "lidar", candidates: dict | None 
         for name, r in rows.items():
             r["ci95_map_vehicles_last_epoch"] = all_["map_vehicles"][name]
     chosen = max(rows, key=lambda n: rows[n]["map_vehicles_at_budget"])
+    extra = {"aim": aim_reached(rows, aim)} if aim is not None else {}
     result = {"cpu": cpu_model(), "threads": n_threads, "profile": profile, "branch": branch, "epochs": epochs,
               "base": {k: list(v) if isinstance(v, tuple) else v for k, v in BASE.items()}, "data": data,
               "held_out": {"split": "gate", "frames": len(held),
                            "what": "the run's gate split: sequences no candidate trained on, never test frames"},
               "budget_core_hours": round(budget, 4), "chosen": chosen, "candidates": rows, "bootstrap": bootstrap,
               "rule": "highest held-out vehicle mAP at the budget of the cheapest candidate's last epoch",
-              "out": str(out)}
+              "out": str(out), **extra}
     marker.write_text(json.dumps(result, indent=1) + "\n")
     return result
+
+
+def _crossing(curve: list[dict], aim: float) -> float | None:
+    """Core-hours where the curve (from (0, 0), linear between epochs) first reaches `aim`, else None."""
+    x0, y0 = 0.0, 0.0
+    for p in curve:
+        x1, y1 = p["core_hours"], p["map_vehicles"] or 0.0
+        if y1 >= aim:
+            return round(x0 + (x1 - x0) * (aim - y0) / (y1 - y0) if y1 > y0 else x1, 4)
+        x0, y0 = x1, y1
+    return None
+
+
+def aim_reached(rows: dict, aim: float) -> dict:
+    """Where a held-out vehicle-mAP aim is reached: per candidate, the first crossing of its curve;
+    over all, the cheapest. The *ends* (each candidate's last epoch: a whole schedule's result, not
+    an epoch in the middle of one) form the budget frontier; if no curve reaches the aim, the
+    frontier's gain per doubling of core-hours between its two most expensive ends gives a
+    log-linear extrapolation of the budget that would reach it, labelled as such (a guess: learning
+    curves flatten, so it is a lower bound on what would be needed more often than not)."""
+    per = {n: _crossing(r["curve"], aim) for n, r in rows.items()}
+    hit = {n: x for n, x in per.items() if x is not None}
+    ends = sorted(((r["curve"][-1]["core_hours"], r["curve"][-1]["map_vehicles"] or 0.0, n) for n, r in rows.items()))
+    out = {"map_vehicles": aim, "per_candidate_core_hours": per,
+           "frontier": [{"candidate": n, "core_hours": x, "map_vehicles": y} for x, y, n in ends]}
+    if hit:
+        best = min(hit, key=hit.get)
+        out.update(reached=True, core_hours=hit[best], by=best)
+        return out
+    top = max(ends, key=lambda e: e[1])
+    out.update(reached=False, best_map_vehicles=round(top[1], 4), best_core_hours=top[0])
+    if len(ends) >= 2 and ends[-1][0] > ends[-2][0] > 0:
+        (xa, ya, _), (xb, yb, _) = ends[-2], ends[-1]
+        per_doubling = (yb - ya) / np.log2(xb / xa)
+        out["gain_per_doubling"] = round(float(per_doubling), 4)
+        if per_doubling > 0:
+            out["extrapolated_core_hours"] = round(float(xb * 2 ** ((aim - yb) / per_doubling)), 2)
+            out["extrapolation"] = ("log-linear through the two most expensive ends of the frontier; "
+                                    "a guess beyond the measured range")
+    return out
 
 
 def _dir(name: str) -> str:
@@ -183,9 +233,13 @@ def plot_recipe(r: dict, path) -> None:
         if iv:
             ax.plot([xs[-1], xs[-1]], iv, color=line.get_color(), lw=3, alpha=0.35)
     ax.axvline(r["budget_core_hours"], color="k", ls=":", lw=0.8)
+    if r.get("aim"):
+        ax.axhline(r["aim"]["map_vehicles"], color="tab:red", ls="--", lw=0.9, label=f"aim {r['aim']['map_vehicles']:g}")
     ax.set_xlabel(f"training core-hours ({r['threads']} threads x hours), {r['cpu'] or 'CPU'}")
     ax.set_ylabel("vehicle mAP@0.5 on the gate split (held out)")
-    ax.set_title(f"{r['branch']} branch, {r['epochs']} epochs each; chosen: {r['chosen']} (dotted: budget)", fontsize=9)
+    lengths = sorted({len(c["curve"]) for c in r["candidates"].values()})
+    each = f"{lengths[0]} epochs each" if len(lengths) == 1 else f"{'/'.join(map(str, lengths))} epochs"
+    ax.set_title(f"{r['branch']} branch, {each}; chosen: {r['chosen']} (dotted: budget)", fontsize=9)
     ax.legend(fontsize=8)
     fig.tight_layout()
     savefig_atomic(fig, path)

@@ -10,6 +10,7 @@ from study.cli import (
     Formatter,
     dataset_dir,
     emit,
+    float_range,
     int_list,
     int_range,
     name_arg,
@@ -178,9 +179,12 @@ def add_parser(sub, name, help_text):
     rc.add_argument("--epochs", type=int_range(1, 100, "epochs"), default=3, help="epochs of every candidate")
     rc.add_argument("--candidate", action="append", default=None, metavar="NAME:FIELD=VALUE[+FIELD=VALUE]",
                     help="a candidate (repeatable): what differs from the base recipe (lr, warmup_steps, clip_grad, "
-                    "hflip, lr_drop_epoch, model=KEY=VALUE); default: base, lr 0.04, hflip 0.5, bev stride 16, 64 RoIs")
+                    "hflip, lr_drop_epoch, epochs, model=KEY=VALUE); default: base, lr 0.04, hflip 0.5, bev stride 16, 64 RoIs")
     rc.add_argument("--bootstrap", type=int_range(0, 10000, "bootstrap"), default=200,
                     help="draws of whole held-out sequences for the last epoch's intervals (0: none)")
+    rc.add_argument("--aim", type=float_range(0.0, 1.0, "aim", lo_open=True), default=None, metavar="MAP",
+                    help="a held-out vehicle mAP to reach: where each curve reaches it, and if none does, the "
+                    "budget frontier's log-linear extrapolation (candidates differing in epochs=N trace the frontier)")
     rc.add_argument("--threads", type=nonneg_int, default=0, help="torch CPU threads (0: the cores available)")
     rc.add_argument("--plot", type=out_file(".png", ".pdf", ".svg"), default=None, help="draw the curves")
     rc.add_argument("--json", action="store_true", help="print one JSON object on stdout")
@@ -437,7 +441,7 @@ def run_recipe(args) -> int:
     if args.candidate and len(cands) != len(args.candidate):
         raise UserError("--candidate: each name once")
     r = bench_recipe(str(args.data), args.out, args.branch, cands, epochs=args.epochs, threads=args.threads,
-                     bootstrap=args.bootstrap)
+                     bootstrap=args.bootstrap, aim=args.aim)
     r.update(machine())
     if args.plot:
         plot_recipe(r, args.plot)
@@ -452,6 +456,14 @@ def run_recipe(args) -> int:
             lines.append(f"{name:16s} {last['core_hours']:7.3f} {last['map_vehicles'] or 0:8.3f} "
                          f"{c['map_vehicles_at_budget']:9.3f}  " + " ".join(f"{p['map_vehicles'] or 0:.3f}" for p in c["curve"]))
         lines.append(f"chosen: {r['chosen']} ({r['rule']})")
+        a = r.get("aim")
+        if a and a["reached"]:
+            lines.append(f"aim {a['map_vehicles']:g}: reached at {a['core_hours']} core-hours ({a['by']})")
+        elif a:
+            guess = (f"; at the frontier's last gain of {a['gain_per_doubling']:+.3f} per doubling it would be reached "
+                     f"near {a['extrapolated_core_hours']} core-hours (extrapolated)") if "extrapolated_core_hours" in a else ""
+            lines.append(f"aim {a['map_vehicles']:g}: not reached (best {a['best_map_vehicles']:.3f} at "
+                         f"{a['best_core_hours']} core-hours){guess}")
         return "\n".join(lines)
 
     emit(r, args.json, text)

@@ -69,12 +69,12 @@ def test_curve_interpolation_and_candidate_parsing():
     assert parse_candidate("fast:lr=0.04+hflip=0.5") == ("fast", {"lr": 0.04, "hflip": 0.5})
     assert parse_candidate("w:model=width=0.25") == ("w", {"model": ("width=0.25",)})  # replaces the base width
     assert parse_candidate("s:model=bev.output_stride=16") == ("s", {"model": ("width=0.5", "bev.output_stride=16")})
-    for bad, needle in [("lr=0.04", "expected NAME:FIELD=VALUE"), ("x:epochs=3", "FIELD one of"), ("x:lr", "FIELD one of")]:
+    for bad, needle in [("lr=0.04", "expected NAME:FIELD=VALUE"), ("x:batch_size=3", "FIELD one of"), ("x:lr", "FIELD one of")]:
         with pytest.raises(UserError, match=needle):
             parse_candidate(bad)
 
 
 def test_cli_refuses_a_bad_candidate_in_one_line(data, tmp_path, capsys):
-    assert main(["bench", "recipe", str(data), "--out", str(tmp_path / "r"), "--candidate", "x:epochs=3"]) == 2
+    assert main(["bench", "recipe", str(data), "--out", str(tmp_path / "r"), "--candidate", "x:batch_size=3"]) == 2
     out, err = capsys.readouterr()
     assert out == "" and len(err.strip().splitlines()) == 1 and "FIELD one of" in err
