@@ -233,13 +233,22 @@ def plot_recipe(r: dict, path) -> None:
         if iv:
             ax.plot([xs[-1], xs[-1]], iv, color=line.get_color(), lw=3, alpha=0.35)
     ax.axvline(r["budget_core_hours"], color="k", ls=":", lw=0.8)
-    if r.get("aim"):
-        ax.axhline(r["aim"]["map_vehicles"], color="tab:red", ls="--", lw=0.9, label=f"aim {r['aim']['map_vehicles']:g}")
+    a = r.get("aim")
+    if a:
+        ax.axhline(a["map_vehicles"], color="tab:red", ls="--", lw=0.9, label=f"aim {a['map_vehicles']:g}")
+        if len(a["frontier"]) > 1:  # each candidate's end: what a whole schedule of that length buys
+            ax.plot([0.0] + [f["core_hours"] for f in a["frontier"]], [0.0] + [f["map_vehicles"] for f in a["frontier"]],
+                    "k--", marker="D", ms=5, lw=0.9, label="ends of the schedules")
     ax.set_xlabel(f"training core-hours ({r['threads']} threads x hours), {r['cpu'] or 'CPU'}")
     ax.set_ylabel("vehicle mAP@0.5 on the gate split (held out)")
     lengths = sorted({len(c["curve"]) for c in r["candidates"].values()})
     each = f"{lengths[0]} epochs each" if len(lengths) == 1 else f"{'/'.join(map(str, lengths))} epochs"
-    ax.set_title(f"{r['branch']} branch, {each}; chosen: {r['chosen']} (dotted: budget)", fontsize=9)
+    if a:
+        said = (f"aim {a['map_vehicles']:g} reached at {a['core_hours']} core-h ({a['by']})" if a["reached"]
+                else f"aim {a['map_vehicles']:g} not reached (best {a['best_map_vehicles']:.3f})")
+    else:
+        said = f"chosen: {r['chosen']} (dotted: budget)"
+    ax.set_title(f"{r['branch']} branch, {each}; {said}", fontsize=9)
     ax.legend(fontsize=8)
     fig.tight_layout()
     savefig_atomic(fig, path)

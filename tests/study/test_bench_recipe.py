@@ -8,7 +8,7 @@ import torch
 
 from sensors.generate import GenerateConfig
 from sim.errors import UserError
-from study.bench.recipe import _curve_at, bench_recipe, parse_candidate
+from study.bench.recipe import _curve_at, aim_reached, bench_recipe, parse_candidate
 from study.cli import main
 from study.detect import frames_for
 
@@ -78,3 +78,37 @@ def test_cli_refuses_a_bad_candidate_in_one_line(data, tmp_path, capsys):
     assert main(["bench", "recipe", str(data), "--out", str(tmp_path / "r"), "--candidate", "x:batch_size=3"]) == 2
     out, err = capsys.readouterr()
     assert out == "" and len(err.strip().splitlines()) == 1 and "FIELD one of" in err
+
+
+def _rows(**curves):
+    return {n: {"curve": [{"epoch": i + 1, "core_hours": x, "map_vehicles": y} for i, (x, y) in enumerate(c)]}
+            for n, c in curves.items()}
+
+
+def test_aim_is_the_first_crossing_or_a_labelled_log_linear_extrapolation_of_the_frontier():
+    rows = _rows(short=[(0.5, 0.05), (1.0, 0.10)], long=[(0.5, 0.04), (1.0, 0.12), (2.0, 0.30)])
+    a = aim_reached(rows, 0.2)
+    # long crosses 0.2 between (1.0, 0.12) and (2.0, 0.30): 1 + 0.08 / 0.18
+    assert a["reached"] and a["by"] == "long" and a["core_hours"] == pytest.approx(1 + 0.08 / 0.18, abs=1e-4)
+    assert a["per_candidate_core_hours"]["short"] is None
+    assert [f["candidate"] for f in a["frontier"]] == ["short", "long"]  # the ends, by cost
+    b = aim_reached(rows, 0.5)  # ends (1 h, 0.10) and (2 h, 0.30): +0.20 a doubling -> one more doubling
+    assert not b["reached"] and b["best_map_vehicles"] == 0.3 and b["gain_per_doubling"] == pytest.approx(0.2)
+    assert b["extrapolated_core_hours"] == pytest.approx(4.0) and "guess" in b["extrapolation"]
+    flat = aim_reached(_rows(a=[(1.0, 0.2)], b=[(2.0, 0.1)]), 0.5)  # more CPU bought less: no extrapolation
+    assert not flat["reached"] and flat["gain_per_doubling"] < 0 and "extrapolated_core_hours" not in flat
+    assert aim_reached(_rows(a=[(1.0, 0.0), (2.0, 0.3)]), 0.15)["core_hours"] == pytest.approx(1.5)
+
+
+def test_candidates_with_their_own_epochs_trace_the_budget_frontier(data, tmp_path):
+    cands = {"1 epoch": {"epochs": 1, "model": ("width=0.25",)}, "2 epochs": {"epochs": 2, "model": ("width=0.25",)}}
+    r = bench_recipe(str(data), tmp_path / "b", "radar", cands, epochs=5, threads=1, bootstrap=0, progress=False,
+                     aim=0.9)
+    assert [len(c["curve"]) for c in r["candidates"].values()] == [1, 2]
+    for name, n in (("1 epoch", 1), ("2 epochs", 2)):
+        assert json.loads((tmp_path / "b" / name.replace(" ", "_") / "config.json").read_text())["epochs"] == n
+    assert r["aim"] == aim_reached(r["candidates"], 0.9)
+    with pytest.raises(UserError, match="epochs must be a whole number"):
+        bench_recipe(str(data), tmp_path / "c", "radar", {"x": {"epochs": 0}}, progress=False)
+    with pytest.raises(UserError, match="--aim"):
+        bench_recipe(str(data), tmp_path / "c", "radar", {"x": {}}, aim=1.5, progress=False)
