@@ -182,9 +182,21 @@ def _crossing(curve: list[dict], aim: float) -> float | None:
     return None
 
 
+def _stays_from(curve: list[dict], aim: float) -> float | None:
+    """Core-hours of the first epoch from which every later epoch of the curve is at or above `aim`
+    (a noisy curve may touch the aim once and fall back), else None."""
+    at = None
+    for p in curve:
+        if (p["map_vehicles"] or 0.0) >= aim:
+            at = p["core_hours"] if at is None else at
+        else:
+            at = None
+    return at
+
+
 def aim_reached(rows: dict, aim: float) -> dict:
     """Where a held-out vehicle-mAP aim is reached: per candidate, the first crossing of its curve;
-    over all, the cheapest. The *ends* (each candidate's last epoch: a whole schedule's result, not
+    over all, the cheapest; and the epoch from which it stays reached. The *ends* (each candidate's last epoch: a whole schedule's result, not
     an epoch in the middle of one) form the budget frontier; if no curve reaches the aim, the
     frontier's gain per doubling of core-hours between its two most expensive ends gives a
     log-linear extrapolation of the budget that would reach it, labelled as such (a guess: learning
@@ -193,6 +205,7 @@ def aim_reached(rows: dict, aim: float) -> dict:
     hit = {n: x for n, x in per.items() if x is not None}
     ends = sorted(((r["curve"][-1]["core_hours"], r["curve"][-1]["map_vehicles"] or 0.0, n) for n, r in rows.items()))
     out = {"map_vehicles": aim, "per_candidate_core_hours": per,
+           "per_candidate_stays_from_core_hours": {n: _stays_from(r["curve"], aim) for n, r in rows.items()},
            "frontier": [{"candidate": n, "core_hours": x, "map_vehicles": y} for x, y, n in ends]}
     if hit:
         best = min(hit, key=hit.get)

@@ -458,7 +458,9 @@ def run_recipe(args) -> int:
         lines.append(f"chosen: {r['chosen']} ({r['rule']})")
         a = r.get("aim")
         if a and a["reached"]:
-            lines.append(f"aim {a['map_vehicles']:g}: reached at {a['core_hours']} core-hours ({a['by']})")
+            stays = a["per_candidate_stays_from_core_hours"][a["by"]]
+            lines.append(f"aim {a['map_vehicles']:g}: reached at {a['core_hours']} core-hours ({a['by']})"
+                         + (f", stays reached from {stays}" if stays is not None else ", falls back below it"))
         elif a:
             guess = (f"; at the frontier's last gain of {a['gain_per_doubling']:+.3f} per doubling it would be reached "
                      f"near {a['extrapolated_core_hours']} core-hours (extrapolated)") if "extrapolated_core_hours" in a else ""

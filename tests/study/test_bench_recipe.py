@@ -91,6 +91,10 @@ def test_aim_is_the_first_crossing_or_a_labelled_log_linear_extrapolation_of_the
     # long crosses 0.2 between (1.0, 0.12) and (2.0, 0.30): 1 + 0.08 / 0.18
     assert a["reached"] and a["by"] == "long" and a["core_hours"] == pytest.approx(1 + 0.08 / 0.18, abs=1e-4)
     assert a["per_candidate_core_hours"]["short"] is None
+    assert a["per_candidate_stays_from_core_hours"] == {"short": None, "long": 2.0}
+    noisy = aim_reached(_rows(n=[(1.0, 0.3), (2.0, 0.1), (3.0, 0.25), (4.0, 0.3)]), 0.2)
+    assert noisy["core_hours"] == pytest.approx(2 / 3, abs=1e-4)  # touches it first ...
+    assert noisy["per_candidate_stays_from_core_hours"]["n"] == 3.0  # ... and stays from the third epoch
     assert [f["candidate"] for f in a["frontier"]] == ["short", "long"]  # the ends, by cost
     b = aim_reached(rows, 0.5)  # ends (1 h, 0.10) and (2 h, 0.30): +0.20 a doubling -> one more doubling
     assert not b["reached"] and b["best_map_vehicles"] == 0.3 and b["gain_per_doubling"] == pytest.approx(0.2)
