@@ -11,7 +11,11 @@ took so far (core-hours: the training steps' seconds times the threads), and the
 candidate with the highest held-out vehicle mAP at the budget of the cheapest candidate's last
 epoch (each curve interpolated linearly, flat after its end): the most learned for the same CPU
 time. The last epoch also gets a 95 % interval (whole held-out sequences drawn). Nothing here reads
-the test split.
+the test split. A second call trains nothing and rescores nothing (`ScoreMemo`).
+
+A candidate may set its own `epochs`: candidates that differ only in it trace the *budget
+frontier* (each end is a whole schedule, its learning-rate drop included), and `aim` says where a
+held-out vehicle mAP is reached on it (`aim_reached`).
 """
 
 from __future__ import annotations
@@ -132,18 +136,23 @@ def bench_recipe(data: str, out, branch: str = "lidar", candidates: dict | None 
         held, _ = frames_for(run_cfg, data, "gate")
         if not held:
             raise UserError(f"{data}: the run has no gate split to score on (gate_holdout {BASE['gate_holdout']})")
+        protocol = run_cfg.get("protocol", "reference")
+        memo = ScoreMemo(out / _dir(name), {"held_out": held, "protocol": protocol, "branch": branch,
+                                            "fusion": "soft-nms", "camera": "camera_right"})
         curve, spent = [], 0.0
         for e, row in enumerate(epochs_rows[:n_ep], start=1):
             spent += float(row["train_seconds"]) * n_threads / 3600.0
-            model, _ = load_run(out / _dir(name), f"epoch-{e:03d}", device="cpu")
-            torch.set_num_threads(n_threads)
-            per = run_branches(model, data, held, [branch], progress=f"{name}: epoch {e} on the gate split")
-            alone = fused(per, [branch], model.branch_frames, fusion_method("soft-nms"))
-            sc = score(alone, reader, "camera_right", protocol=run_cfg.get("protocol", "reference"))
-            curve.append({"epoch": e, "core_hours": round(spent, 4), "map_vehicles": sc["map_vehicles"],
-                          "map": sc["map"]})
-            if e == n_ep:
-                sources[name] = alone
+            sc = memo.get(e)
+            if sc is None or (e == n_ep and bootstrap):  # the last epoch's detections feed the bootstrap
+                model, _ = load_run(out / _dir(name), f"epoch-{e:03d}", device="cpu")
+                torch.set_num_threads(n_threads)
+                per = run_branches(model, data, held, [branch], progress=f"{name}: epoch {e} on the gate split")
+                alone = fused(per, [branch], model.branch_frames, fusion_method("soft-nms"))
+                sc = score(alone, reader, "camera_right", protocol=protocol)
+                sc = memo.put(e, {"map_vehicles": sc["map_vehicles"], "map": sc["map"]})
+                if e == n_ep:
+                    sources[name] = alone
+            curve.append({"epoch": e, "core_hours": round(spent, 4), **sc})
         rows[name] = {"fields": {k: list(v) if isinstance(v, tuple) else v for k, v in fields.items()},
                       "curve": curve, "train_seconds": round(sum(float(r["train_seconds"]) for r in epochs_rows), 1),
                       "seconds_this_call": round(time.perf_counter() - t0, 1), "compute": run_cfg.get("compute")}
@@ -169,6 +178,43 @@ def bench_recipe(data: str, out, branch: str = "lidar", candidates: dict | None 
               "out": str(out), **extra}
     marker.write_text(json.dumps(result, indent=1) + "\n")
     return result
+
+
+class ScoreMemo:
+    """Each epoch's held-out score, kept beside the run (`RUN/held_out_scores.json`) so a second
+    call rescores nothing: an entry counts only for the same checkpoint file (its SHA-256) scored
+    the same way (held-out frames, protocol, branch, fusion, camera)."""
+
+    NAME = "held_out_scores.json"
+
+    def __init__(self, run: Path, how: dict) -> None:
+        import hashlib
+
+        self.run, self.path = run, run / self.NAME
+        self.key = hashlib.sha256(json.dumps(how, sort_keys=True).encode()).hexdigest()
+        try:
+            kept = json.loads(self.path.read_text())
+        except (OSError, ValueError):
+            kept = {}
+        self.entries = kept.get("epochs", {}) if isinstance(kept, dict) and kept.get("key") == self.key else {}
+
+    def _sha(self, epoch: int) -> str:
+        from study.gate_data import file_sha256
+
+        return file_sha256(self.run / f"epoch-{epoch:03d}.pt")
+
+    def get(self, epoch: int) -> dict | None:
+        e = self.entries.get(str(epoch))
+        if not isinstance(e, dict) or e.get("sha256") != self._sha(epoch):
+            return None
+        return {"map_vehicles": e.get("map_vehicles"), "map": e.get("map")}
+
+    def put(self, epoch: int, sc: dict) -> dict:
+        from study.outputs import write_json_atomic
+
+        self.entries[str(epoch)] = {"sha256": self._sha(epoch), **sc}
+        write_json_atomic(self.path, {"key": self.key, "epochs": self.entries})
+        return sc
 
 
 def _crossing(curve: list[dict], aim: float) -> float | None:

@@ -28,7 +28,7 @@ def data(shared_dataset):
 CANDIDATES = {"base": {"model": ("width=0.25",)}, "fast": {"lr": 0.04, "model": ("width=0.25",)}}
 
 
-def test_candidates_are_scored_per_epoch_on_the_gate_split_and_chosen_at_equal_budget(data, tmp_path):
+def test_candidates_are_scored_per_epoch_on_the_gate_split_and_chosen_at_equal_budget(data, tmp_path, monkeypatch):
     out = tmp_path / "recipe"
     r = bench_recipe(str(data), out, "radar", CANDIDATES, epochs=2, threads=1, bootstrap=10, progress=False)
     assert list(r["candidates"]) == ["base", "fast"] and r["held_out"]["split"] == "gate"
@@ -56,7 +56,20 @@ def test_candidates_are_scored_per_epoch_on_the_gate_split_and_chosen_at_equal_b
 
     plot_recipe(again, out / "curves.png")  # its own figure beside the runs does not stop a resume
     assert (out / "curves.png").stat().st_size > 0
-    bench_recipe(str(data), out, "radar", CANDIDATES, epochs=2, threads=1, bootstrap=0, progress=False)
+    import study.detect
+
+    def no_loading(*a, **k):
+        raise AssertionError("a kept score was computed again")
+
+    monkeypatch.setattr(study.detect, "load_run", no_loading)  # scores kept beside each run: nothing rescored
+    kept = bench_recipe(str(data), out, "radar", CANDIDATES, epochs=2, threads=1, bootstrap=0, progress=False)
+    assert [c["curve"] for c in kept["candidates"].values()] == [c["curve"] for c in r["candidates"].values()]
+    monkeypatch.undo()
+    memo = json.loads((out / "base" / "held_out_scores.json").read_text())
+    memo["epochs"]["1"]["sha256"] = "0" * 64  # another checkpoint under that name: scored again, same value
+    (out / "base" / "held_out_scores.json").write_text(json.dumps(memo))
+    again = bench_recipe(str(data), out, "radar", CANDIDATES, epochs=2, threads=1, bootstrap=0, progress=False)
+    assert again["candidates"]["base"]["curve"] == r["candidates"]["base"]["curve"]
     (out / "notes.txt").write_text("mine")
     with pytest.raises(UserError, match="holds other files"):
         bench_recipe(str(data), out, "radar", CANDIDATES, epochs=2, threads=1, progress=False)
