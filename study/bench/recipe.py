@@ -283,16 +283,17 @@ def plot_recipe(r: dict, path) -> None:
 
     from study.outputs import savefig_atomic
 
+    a = r.get("aim")
+    bold = a["by"] if a and a["reached"] else r["chosen"]
     fig, ax = plt.subplots(figsize=(6.5, 4.2))
     for name, row in r["candidates"].items():
         xs = [0.0] + [p["core_hours"] for p in row["curve"]]
         ys = [0.0] + [p["map_vehicles"] or 0.0 for p in row["curve"]]
-        line, = ax.plot(xs, ys, "o-", ms=4, lw=2.2 if name == r["chosen"] else 1.2, label=name)
+        line, = ax.plot(xs, ys, "o-", ms=4, lw=2.2 if name == bold else 1.2, label=name)
         iv = row.get("ci95_map_vehicles_last_epoch")
         if iv:
             ax.plot([xs[-1], xs[-1]], iv, color=line.get_color(), lw=3, alpha=0.35)
     ax.axvline(r["budget_core_hours"], color="k", ls=":", lw=0.8)
-    a = r.get("aim")
     if a:
         ax.axhline(a["map_vehicles"], color="tab:red", ls="--", lw=0.9, label=f"aim {a['map_vehicles']:g}")
         if len(a["frontier"]) > 1:  # each candidate's end: what a whole schedule of that length buys
@@ -303,11 +304,13 @@ def plot_recipe(r: dict, path) -> None:
     lengths = sorted({len(c["curve"]) for c in r["candidates"].values()})
     each = f"{lengths[0]} epochs each" if len(lengths) == 1 else f"{'/'.join(map(str, lengths))} epochs"
     if a:
-        said = (f"aim {a['map_vehicles']:g} reached at {a['core_hours']} core-h ({a['by']})" if a["reached"]
+        stays = _stays_from(r["candidates"][a["by"]]["curve"], a["map_vehicles"]) if a["reached"] else None
+        said = (f"aim {a['map_vehicles']:g} first reached at {a['core_hours']} core-h ({a['by']})"
+                + (f", stays from {stays}" if stays is not None else "") if a["reached"]
                 else f"aim {a['map_vehicles']:g} not reached (best {a['best_map_vehicles']:.3f})")
     else:
         said = f"chosen: {r['chosen']} (dotted: budget)"
-    ax.set_title(f"{r['branch']} branch, {each}; {said}", fontsize=9)
+    ax.set_title(f"{r['branch']} branch, {each}\n{said}", fontsize=9)
     ax.legend(fontsize=8)
     fig.tight_layout()
     savefig_atomic(fig, path)
