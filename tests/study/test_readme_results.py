@@ -411,6 +411,44 @@ def test_the_recipe_tables_in_benchmarks_are_their_files(name, header):
         assert f"- **Chosen: {r['chosen']}**" in text
 
 
+def test_the_budget_frontier_tables_in_benchmarks_are_their_files():
+    """BENCHMARKS.md's budget frontier: each schedule's end, best epoch and where the aim is reached
+    (recomputed with `aim_reached` from the stored curves), and the 24-epoch detectors on the test split."""
+    from study.bench.recipe import aim_reached
+
+    rows = table(ROOT / "BENCHMARKS.md", "| branch and schedule | training |")
+    seen = set()
+    for name, branch, aim in (("lidar", "lidar", 0.35), ("camera", "camera_right", 0.20)):
+        r = _load(f"bench_frontier_{name}_2026-12-03.json")
+        assert r["branch"] == branch and r["held_out"]["split"] == "gate" and r["aim"]["map_vehicles"] == aim
+        a = aim_reached(r["candidates"], aim)
+        assert {k: v for k, v in a.items() if k != "per_candidate_stays_from_core_hours"} == r["aim"]
+        for cand, c in r["candidates"].items():
+            last, iv = c["curve"][-1], c["ci95_map_vehicles_last_epoch"]
+            key = f"{branch}, {cand}"
+            seen.add(key)
+            assert rows[key] == [f"{c['train_seconds']:.0f} s", f"{last['core_hours']:.4f}",
+                                 f"{last['map_vehicles']:.3f} [{iv[0]:.3f}, {iv[1]:.3f}]",
+                                 f"{max(p['map_vehicles'] for p in c['curve']):.3f}",
+                                 _f(a["per_candidate_core_hours"][cand], 4),
+                                 _f(a["per_candidate_stays_from_core_hours"][cand], 4)], key
+            assert c["fields"]["epochs"] == len(c["curve"])
+    assert seen == set(rows)
+    test_rows = table(ROOT / "BENCHMARKS.md", "| 24-epoch detector, test split |")
+    for key, fname, branch in (("lidar, `reference`", "lidar_test_reference", "lidar"),
+                               ("camera_right, `reference`", "camera_test_reference", "camera_right"),
+                               ("camera_right, `visible`, clear contexts", "camera_test_visible", "camera_right")):
+        m = _load(f"frontier_{fname}_2026-12-03.json")
+        iv = m["ci95"]["per_context"]["all"]["map_vehicles"][branch]
+        rng = m["map_vehicles_per_range"]
+        assert test_rows[key][:6] == [str(m["frames"]), f"{m['map_vehicles']:.3f} [{iv[0]:.3f}, {iv[1]:.3f}]",
+                                      *(f"{rng[b]:.3f}" for b in ("0-15", "15-30", "30-50", "50-100"))], key
+        assert m["split"] == "test" and m["branches"] == [branch] and m["run"].endswith("/24_epochs")
+        assert m["protocol"]["name"] == key.split("`")[1]
+    clear = _load("frontier_camera_test_visible_2026-12-03.json")
+    assert clear["contexts"] == ["city", "junction", "motorway", "rural"]
+
+
 def _cmp_cell(d) -> str:
     return "-" if not d else f"{d['value']:+.3f} [{d['ci95'][0]:+.3f}, {d['ci95'][1]:+.3f}] {d['verdict']}"
 
