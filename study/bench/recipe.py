@@ -241,12 +241,12 @@ def _stays_from(curve: list[dict], aim: float) -> float | None:
 
 
 def aim_reached(rows: dict, aim: float) -> dict:
-    """Where a held-out vehicle-mAP aim is reached: per candidate, the first crossing of its curve;
-    over all, the cheapest; and the epoch from which it stays reached. The *ends* (each candidate's last epoch: a whole schedule's result, not
-    an epoch in the middle of one) form the budget frontier; if no curve reaches the aim, the
-    frontier's gain per doubling of core-hours between its two most expensive ends gives a
-    log-linear extrapolation of the budget that would reach it, labelled as such (a guess: learning
-    curves flatten, so it is a lower bound on what would be needed more often than not)."""
+    """Where a held-out vehicle-mAP aim is reached: per candidate, the first crossing of its curve
+    and the epoch from which it stays reached; over all, the cheapest crossing. The *ends* (each
+    candidate's last epoch: a whole schedule's result, not an epoch in the middle of one) form the
+    budget frontier; if no curve reaches the aim, the frontier's gain per doubling of core-hours
+    between its two most expensive ends gives a log-linear extrapolation of the budget that would
+    reach it, labelled as such: an optimistic guess, since learning curves flatten."""
     per = {n: _crossing(r["curve"], aim) for n, r in rows.items()}
     hit = {n: x for n, x in per.items() if x is not None}
     ends = sorted(((r["curve"][-1]["core_hours"], r["curve"][-1]["map_vehicles"] or 0.0, n) for n, r in rows.items()))
