@@ -449,6 +449,30 @@ def test_the_budget_frontier_tables_in_benchmarks_are_their_files():
     assert clear["contexts"] == ["city", "junction", "motorway", "rural"]
 
 
+def test_the_cpu_frontier_detectors_table_is_its_files():
+    """docs/results.md's aims table: the `cpu` study's detectors and the `cpu-frontier` study's, the same
+    `evaluate` on the same 256 test frames, and the camera at 0-15 m in the clear contexts under `visible`."""
+    rows = table(ROOT / "docs" / "results.md", "| detectors (test split, vehicle mAP, 95 % interval) |")
+    for label, measured, clear in (("`cpu` (width 1, 9 epochs)", "cpu_study_width1_measured.json",
+                                    "cpu_study_camera_clear_visible.json"),
+                                   ("`cpu-frontier` (width 0.5, 64 RoIs, 24 epochs)",
+                                    "cpu_frontier_measured_2026-12-03.json",
+                                    "cpu_frontier_camera_clear_visible_2026-12-03.json")):
+        m, c = _load(measured), _load(clear)
+        per, iv = m["map_vehicles_per_branch_reference"], m["ci95_map_vehicles"]
+        want = [f"{m['train_seconds']:,.0f} s"]
+        want += [f"{per[b]:.3f} [{iv[b][0]:.3f}, {iv[b][1]:.3f}]" for b in ("radar", "camera_right", "lidar", "radar_lidar")]
+        want += [f"{m['map_vehicles']:.3f} [{iv['fused'][0]:.3f}, {iv['fused'][1]:.3f}]",
+                 f"{c['map_vehicles_per_range']['0-15']:.3f}"]
+        assert rows[label] == want, label
+        assert m["split"] == "test" and m["frames"] == 256 and m["bootstrap"]["sequences"] == 64
+        assert c["protocol"]["name"] == "visible" and c["contexts"] == ["city", "junction", "motorway", "rural"]
+    frontier = _load("cpu_frontier_measured_2026-12-03.json")
+    for b, aim in (("radar", 0.35), ("camera_right", 0.20), ("lidar", 0.35)):  # "every aim is met"
+        assert frontier["map_vehicles_per_branch_reference"][b] >= aim, b
+    assert _load("cpu_frontier_camera_clear_visible_2026-12-03.json")["map_vehicles_per_range"]["0-15"] >= 0.35
+
+
 def _cmp_cell(d) -> str:
     return "-" if not d else f"{d['value']:+.3f} [{d['ci95'][0]:+.3f}, {d['ci95'][1]:+.3f}] {d['verdict']}"
 
