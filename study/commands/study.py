@@ -16,8 +16,8 @@ DIR/report.json hold the results.
 
 examples:
   hydrabench study smoke --out out/smoke                 (minutes; numbers mean nothing)
-  hydrabench study cpu --out out/cpu --json > cpu.json   (the README's study: ~2 h on 2 cores)
-  hydrabench study cpu-frontier --out out/cpu-frontier   (the same, trained with the budget frontier's recipe)
+  hydrabench study cpu --out out/cpu --json > cpu.json   (the first 2-core study: ~75 min on 2 cores)
+  hydrabench study cpu-frontier --out out/cpu-frontier   (the README's: the same with the budget frontier's recipe)
   hydrabench study cpu-long --out out/cpu-long           (the same at the reference runs' size: days)
   hydrabench study paper --out out/paper --device cuda   (for a GPU)
   hydrabench study my_study.yaml --out out/mine --until train
