@@ -454,17 +454,18 @@ def test_the_cpu_frontier_detectors_table_is_its_files():
     `evaluate` on the same 256 test frames, and the camera at 0-15 m in the clear contexts under `visible`."""
     rows = table(ROOT / "docs" / "results.md", "| detectors (test split, vehicle mAP, 95 % interval) |")
     for label, measured, clear in (("`cpu` (width 1, 9 epochs)", "cpu_study_width1_measured.json",
-                                    "cpu_study_camera_clear_visible.json"),
+                                    "cpu_study_camera_clear_{}.json"),
                                    ("`cpu-frontier` (width 0.5, 64 RoIs, 24 epochs)",
                                     "cpu_frontier_measured_2026-12-03.json",
-                                    "cpu_frontier_camera_clear_visible_2026-12-03.json")):
-        m, c = _load(measured), _load(clear)
+                                    "cpu_frontier_camera_clear_{}_2026-12-03.json")):
+        m, c, ref = _load(measured), _load(clear.format("visible")), _load(clear.format("reference"))
         per, iv = m["map_vehicles_per_branch_reference"], m["ci95_map_vehicles"]
         want = [f"{m['train_seconds']:,.0f} s"]
         want += [f"{per[b]:.3f} [{iv[b][0]:.3f}, {iv[b][1]:.3f}]" for b in ("radar", "camera_right", "lidar", "radar_lidar")]
         want += [f"{m['map_vehicles']:.3f} [{iv['fused'][0]:.3f}, {iv['fused'][1]:.3f}]",
-                 f"{c['map_vehicles_per_range']['0-15']:.3f}"]
+                 f"{c['map_vehicles_per_range']['0-15']:.3f}", f"{ref['map_vehicles_per_range']['0-15']:.3f}"]
         assert rows[label] == want, label
+        assert ref["protocol"]["name"] == "reference" and ref["contexts"] == c["contexts"]
         assert m["split"] == "test" and m["frames"] == 256 and m["bootstrap"]["sequences"] == 64
         assert c["protocol"]["name"] == "visible" and c["contexts"] == ["city", "junction", "motorway", "rural"]
     frontier = _load("cpu_frontier_measured_2026-12-03.json")
