@@ -477,6 +477,9 @@ def test_the_cpu_frontier_detectors_table_is_its_files():
     said = (f"(radar {per['radar']:.3f}, camera_right {per['camera_right']:.3f}, lidar {per['lidar']:.3f}, the camera at"
             f" 0-15 m {near:.3f}) in {frontier['train_seconds']:,.0f} s")
     assert said in " ".join((ROOT / "BENCHMARKS.md").read_text().split())
+    readme = " ".join((ROOT / "README.md").read_text().split())
+    assert (f"vehicle mAP radar {per['radar']:.3f}, camera {per['camera_right']:.3f}, lidar {per['lidar']:.3f}"
+            in readme)
 
 
 def _cmp_cell(d) -> str:
