@@ -197,11 +197,15 @@ class ScoreMemo:
         except (OSError, ValueError):
             kept = {}
         self.entries = kept.get("epochs", {}) if isinstance(kept, dict) and kept.get("key") == self.key else {}
+        self._shas: dict[int, str] = {}
 
     def _sha(self, epoch: int) -> str:
+        """The checkpoint's digest, read once per call (`get` then `put` hash the same file)."""
         from study.gate_data import file_sha256
 
-        return file_sha256(self.run / f"epoch-{epoch:03d}.pt")
+        if epoch not in self._shas:
+            self._shas[epoch] = file_sha256(self.run / f"epoch-{epoch:03d}.pt")
+        return self._shas[epoch]
 
     def get(self, epoch: int) -> dict | None:
         e = self.entries.get(str(epoch))
