@@ -76,6 +76,7 @@ def test_replacing_keeps_the_rest_and_is_idempotent(tmp_path):
     with pytest.raises(ValueError, match="exactly one"):
         rr.replace_block("no markers\n", "x")
     (tmp_path / "report.json").write_text(json.dumps(REPORT))
+    (tmp_path / "report.html").write_text("<html></html>")
     (tmp_path / "README.md").write_text(readme)
     args = [str(tmp_path / "report.json"), "--readme", str(tmp_path / "README.md")]
     assert rr.main([*args, "--check"]) == 1  # stale
@@ -507,3 +508,21 @@ def test_the_compare_tables_of_the_reference_model_are_their_files():
                               _cmp_cell(m.get("minus_all_branches")), *tail], name
     seqs = [v["sequences"] for per in rob["late"]["per_condition"].values() for v in per.values()]
     assert f"{min(seqs)} to {max(seqs)} per condition and severity" in doc.read_text()
+
+
+def test_the_readme_names_only_report_files_the_repository_has():
+    import re
+
+    line = next(x for x in (ROOT / "README.md").read_text().splitlines() if "The full tables:" in x)
+    named = re.findall(r"`([^`]+)`", line.split("The full tables:")[1])
+    assert named and all((ROOT / p).is_file() for p in named), named
+
+
+def test_the_tables_named_are_those_beside_the_report(tmp_path):
+    (tmp_path / "report.json").write_text("{}")
+    with pytest.raises(ValueError):
+        rr._tables_beside(tmp_path / "report.json", tmp_path)
+    (tmp_path / "report.html").write_text("")
+    assert rr._tables_beside(tmp_path / "report.json", tmp_path) == ("./report.html",)
+    (tmp_path / "report.md").write_text("")
+    assert rr._tables_beside(tmp_path / "report.json", tmp_path / "elsewhere") == ("DIR/report.md", "DIR/report.html")
