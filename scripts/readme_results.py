@@ -190,7 +190,7 @@ def _tables_beside(report: Path, root: Path) -> tuple[str, ...]:
         shown = folder.relative_to(root.resolve()).as_posix()
     except ValueError:
         shown = "DIR"
-    found = tuple(f"{shown}/{n}" for n in ("report.md", "report.html") if (folder / n).is_file())
+    found = tuple(n if shown == "." else f"{shown}/{n}" for n in ("report.md", "report.html") if (folder / n).is_file())
     if not found:
         raise ValueError(f"no report.md or report.html beside {report}")
     return found
