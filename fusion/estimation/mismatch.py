@@ -124,6 +124,26 @@ def scalar_fused_variance(r1_assumed: float, r2_assumed: float, r1_true: float, 
     return w**2 * r1_true + (1.0 - w) ** 2 * r2_true  # var = w^2 r1 + (1-w)^2 r2
 
 
+def scalar_crossover(r1_true: float, r1_assumed: float, r2_assumed: float) -> float:
+    """The true variance of sensor 2 above which fusing it makes the estimate worse than sensor 1
+    alone, when the fusion weighs it by its assumed variance r2_hat: solve w^2 r1 + (1 - w)^2 r2 = r1
+    for r2 (w = r2_hat / (r1_hat + r2_hat), sensor 1's weight):
+
+        r2* = r1 (1 - w^2) / (1 - w)^2 = r1 (1 + w) / (1 - w)
+
+    and with sensor 1's variance known (r1_hat = r1): r2* = r1 + 2 r2_hat. A sensor whose true noise
+    grows with the weather (its nominal r2_hat does not) stops paying at the severity where its
+    variance passes r2*: the covariance argument's crossover. With r2 known too (r2_hat = r2) there is
+    none: r2* = r1 + 2 r2 > r2 always."""
+    for name, v in (("r1_assumed", r1_assumed), ("r2_assumed", r2_assumed)):
+        if not v > 0:
+            raise ValueError(f"{name} must be > 0, got {v}")
+    if not r1_true >= 0:
+        raise ValueError(f"r1_true must be >= 0, got {r1_true}")
+    w = r2_assumed / (r1_assumed + r2_assumed)
+    return r1_true * (1.0 + w) / (1.0 - w)  # r2* = r1 (1 + w) / (1 - w)
+
+
 def subset_errors(
     H_list: Sequence,
     R_assumed_list: Sequence,

@@ -205,3 +205,20 @@ def test_a_perfect_true_sensor_may_have_singular_true_R():
     assert err.P_true[0, 0] == pytest.approx(0.25 * 0.0 + 0.25 * 2.0)
     with pytest.raises(ValueError, match="r1_assumed must be > 0"):
         scalar_fused_variance(0.0, 1.0, 1.0, 1.0)
+
+
+def test_scalar_crossover_is_where_fusing_stops_paying():
+    """Below r2*, fusing sensor 2 (weighted by its nominal variance) beats sensor 1 alone; above, it
+    is worse; at r2* equal. With r1 known, r2* = r1 + 2 r2_hat."""
+    from fusion.estimation.mismatch import scalar_crossover, scalar_fused_variance
+
+    r1, r2_hat = 1.0, 0.25
+    r2_star = scalar_crossover(r1, r1, r2_hat)
+    assert r2_star == pytest.approx(r1 + 2 * r2_hat)
+    assert scalar_fused_variance(r1, r2_hat, r1, r2_star) == pytest.approx(r1)
+    assert scalar_fused_variance(r1, r2_hat, r1, 0.99 * r2_star) < r1 < scalar_fused_variance(r1, r2_hat, r1, 1.01 * r2_star)
+    # sensor 1 mis-assumed too: the general (1 + w) / (1 - w) form, checked against the variance
+    s = scalar_crossover(2.0, 1.5, 0.7)
+    assert scalar_fused_variance(1.5, 0.7, 2.0, s) == pytest.approx(2.0)
+    with pytest.raises(ValueError):
+        scalar_crossover(1.0, 0.0, 1.0)
