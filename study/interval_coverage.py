@@ -1,0 +1,94 @@
+"""Do the study's intervals hold? Split a large test set into disjoint test sets and count how often
+each set's 95 % interval of a difference (gate minus late fusion, all_branches minus late) holds the
+estimate from the rest of the data (`fusion.intervals.coverage`; an exact interval reaches about
+0.933 with 8 equal sets, not 0.95: see there).
+
+The sets are dealt by sequence within each context (seeded), so every set is a smaller test set of
+the same design (the same share of each context); a set's interval is the study's sequence bootstrap
+run on that set alone, drawn within each context (`stratified`, the default: the design of a test set
+with a fixed number of sequences per context) or from all its sequences. The rest's estimate is the
+difference scored on the pooled frames of the other sets (AP is not a mean of its sets' APs).
+Besides the coverage, the spread of the sets' estimates against the bootstrap's standard error says
+the same thing in one number (about 1 when the bootstrap's width is right).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping, Sequence
+
+import numpy as np
+
+from fusion.intervals import coverage, percentile_interval, stratified_sequence_draws
+from fusion.metrics import ImageMatches, sequence_draws
+
+
+def deal_sets(contexts: Sequence[str], sequences: Sequence[str], n_sets: int, seed: int = 0) -> list[list[int]]:
+    """Rows (frames) of each of `n_sets` disjoint sets: each context's sequences shuffled (seeded) and
+    dealt in turn, so the sets hold the same number of sequences of a context, give or take one."""
+    if n_sets < 2:
+        raise ValueError(f"n_sets must be >= 2, got {n_sets!r}")
+    if len(contexts) != len(sequences):
+        raise ValueError("deal_sets: one context and one sequence per row")
+    rows_of: dict[tuple[str, str], list[int]] = {}
+    for r, (c, s) in enumerate(zip(contexts, sequences)):
+        rows_of.setdefault((str(c), str(s)), []).append(r)
+    rng = np.random.default_rng(seed)
+    sets: list[list[int]] = [[] for _ in range(n_sets)]
+    turn = 0  # carries over contexts, so a context with fewer sequences than sets does not always fill set 0
+    for ctx in sorted({c for c, _ in rows_of}):
+        seqs = sorted(s for c, s in rows_of if c == ctx)
+        for j in rng.permutation(len(seqs)):
+            sets[turn % n_sets].extend(rows_of[(ctx, seqs[j])])
+            turn += 1
+    if any(not s for s in sets):
+        raise ValueError(f"deal_sets: {len({s for _, s in rows_of})} sequences cannot fill {n_sets} sets")
+    return [sorted(s) for s in sets]
+
+
+def _strata(rows: Sequence[int], contexts, sequences, stratified: bool) -> dict:
+    by: dict = {}
+    for r in rows:
+        key = str(contexts[r]) if stratified else "all"
+        by.setdefault(key, {}).setdefault(str(sequences[r]), []).append(r)
+    return by
+
+
+def _difference(matches: Mapping[str, ImageMatches], a: str, b: str, rows) -> float:
+    return matches[a].mean_ap(rows) - matches[b].mean_ap(rows)
+
+
+def set_draws(matches: Mapping[str, ImageMatches], a: str, b: str, rows, contexts, sequences,
+              resamples: int, seed: int, stratified: bool = True) -> np.ndarray:
+    """`resamples` bootstrap draws of mAP(a) - mAP(b) over the sequences of `rows`."""
+    by = _strata(rows, contexts, sequences, stratified)
+    draws = (stratified_sequence_draws(by, resamples, seed) if stratified
+             else sequence_draws(by["all"], resamples, seed))
+    return np.array([_difference(matches, a, b, d) for d in draws])
+
+
+def coverage_over_sets(matches: Mapping[str, ImageMatches], contexts: Sequence[str], sequences: Sequence[str],
+                       pairs: Sequence[tuple[str, str]], n_sets: int = 8, resamples: int = 200, seed: int = 0,
+                       stratified: bool = True, level: float = 0.95) -> dict:
+    """Per pair (a, b): each disjoint set's estimate and interval of mAP(a) - mAP(b), the rest's
+    estimate, the coverage (`fusion.intervals.Coverage.as_dict`) and the spread ratio (standard
+    deviation of the sets' estimates over the mean bootstrap standard error)."""
+    sets = deal_sets(contexts, sequences, n_sets, seed)
+    sizes = [len({sequences[r] for r in s}) for s in sets]
+    everything = sorted(r for s in sets for r in s)
+    out = {"sets": n_sets, "sequences_per_set": sizes, "stratified": stratified, "resamples": resamples,
+           "pairs": {}}
+    for a, b in pairs:
+        estimates, intervals, rest, ses = [], [], [], []
+        for i, rows in enumerate(sets):
+            d = set_draws(matches, a, b, rows, contexts, sequences, resamples, seed + 1 + i, stratified)
+            estimates.append(_difference(matches, a, b, rows))
+            intervals.append(percentile_interval(d, level))
+            ses.append(float(np.nanstd(d)))
+            others = sorted(set(everything) - set(rows))
+            rest.append(_difference(matches, a, b, others))
+        cov = coverage(intervals, rest, sizes, level)
+        spread = float(np.std(estimates, ddof=1))
+        out["pairs"][f"{a} - {b}"] = {**cov.as_dict(), "estimates": [float(e) for e in estimates],
+                                      "all": _difference(matches, a, b, everything),
+                                      "spread_over_se": spread / float(np.mean(ses)) if np.mean(ses) > 0 else None}
+    return out

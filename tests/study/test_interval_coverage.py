@@ -1,0 +1,65 @@
+"""study.interval_coverage: disjoint sets dealt by context, each set's interval against the rest's
+pooled estimate, on synthetic detections (the coverage arithmetic itself: tests/fusion/test_intervals.py)."""
+
+import numpy as np
+import pytest
+
+from fusion.metrics import ImageMatches
+from study.interval_coverage import coverage_over_sets, deal_sets
+
+
+def _toy(n_ctx=4, n_seq=16, frames=2, seed=0):
+    """One car per image; method "a" finds it with a sequence-dependent chance, "b" finds it less
+    often: both scored by the same VOC matching."""
+    rng = np.random.default_rng(seed)
+    contexts, sequences, gts, a, b = [], [], [], [], []
+    box = np.array([[10.0, 10.0, 50.0, 40.0]])
+    for c in range(n_ctx):
+        for s in range(n_seq):
+            pa = rng.uniform(0.5, 0.95)
+            for _ in range(frames):
+                contexts.append(f"ctx{c}")
+                sequences.append(f"ctx{c}-seq{s}")
+                gts.append({"boxes": box, "labels": np.array([1])})
+                for out, p in ((a, pa), (b, pa - 0.2)):
+                    hit = rng.uniform() < p
+                    boxes = box if hit else box + 200.0
+                    out.append({"boxes": boxes, "scores": np.array([rng.uniform(0.3, 1.0)]), "labels": np.array([1])})
+    matches = {"a": ImageMatches.of(a, gts, classes=[1]), "b": ImageMatches.of(b, gts, classes=[1])}
+    return matches, contexts, sequences
+
+
+def test_sets_are_disjoint_cover_everything_and_keep_the_design():
+    _, contexts, sequences = _toy()
+    sets = deal_sets(contexts, sequences, 8, seed=3)
+    rows = [r for s in sets for r in s]
+    assert sorted(rows) == list(range(len(contexts))) and len(rows) == len(set(rows))
+    for s in sets:
+        per_ctx = {c: len({sequences[r] for r in s if contexts[r] == c}) for c in set(contexts)}
+        assert set(per_ctx.values()) == {2}  # 16 sequences per context dealt into 8 sets
+        # a sequence is never split between sets
+        assert all(sequences[r] not in {sequences[x] for t in sets if t is not s for x in t} for r in s)
+    assert deal_sets(contexts, sequences, 8, seed=3) == sets and deal_sets(contexts, sequences, 8, seed=4) != sets
+    with pytest.raises(ValueError):
+        deal_sets(contexts[:4], sequences[:4], 8)
+
+
+def test_coverage_over_sets_scores_each_set_against_the_pooled_rest():
+    matches, contexts, sequences = _toy()
+    out = coverage_over_sets(matches, contexts, sequences, [("a", "b")], n_sets=8, resamples=60, seed=1)
+    pair = out["pairs"]["a - b"]
+    sets = deal_sets(contexts, sequences, 8, seed=1)
+    every = sorted(r for s in sets for r in s)
+    # the rest's estimate is the difference on the pooled frames of the other sets
+    for i, s in enumerate(sets):
+        rest = sorted(set(every) - set(s))
+        assert pair["per_set"][i]["rest"] == pytest.approx(matches["a"].mean_ap(rest) - matches["b"].mean_ap(rest))
+        assert pair["estimates"][i] == pytest.approx(matches["a"].mean_ap(s) - matches["b"].mean_ap(s))
+        lo, hi = pair["per_set"][i]["interval"]
+        assert lo <= hi
+    assert pair["sets"] == 8 and 0 <= pair["covered"] <= 8 and pair["expected_if_exact"] == pytest.approx(0.933, abs=1e-3)
+    assert pair["all"] > 0.1  # "a" finds 20 points more often
+    assert pair["spread_over_se"] > 0
+    assert out["sequences_per_set"] == [8] * 8
+    again = coverage_over_sets(matches, contexts, sequences, [("a", "b")], n_sets=8, resamples=60, seed=1)
+    assert again == out  # seeded
