@@ -378,7 +378,8 @@ def slim(root: Path = ROOT, kit: dict | None = None, dry_run: bool = False, carr
     for p in files:
         (state / "files" / p).parent.mkdir(parents=True, exist_ok=True)
         os.rename(root / p, state / "files" / p)
-    out.write("python3 scripts/device_kit.py restore   # after the `device` call (make demo / make test do it too)\n")
+    where = "" if Path(root).resolve() == ROOT else f" --root {root}"
+    out.write(f"python3 scripts/device_kit.py restore{where}   # after the `device` call (make demo / make test do it too)\n")
     return t
 
 
