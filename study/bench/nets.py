@@ -249,8 +249,8 @@ def _load_run_weights(model, run_dir) -> None:
 
 def _worker(args) -> dict:
     """Fresh process: build the configuration, time `repeats` forwards at `batch`, report peak RSS
-    (on a GPU: peak GPU memory, and at batch 1 the energy per frame, `measure_energy`). `args`:
-    (profile, set_name, names, batch, repeats, threads, run_dir, device, amp[, energy keywords])."""
+    (on a GPU: peak GPU memory, and at batch 1 the idle power and the energy per frame,
+    `timed_forwards`). `args`: (profile, set_name, names, batch, repeats, threads, run_dir, device, amp[, energy keywords])."""
     profile, set_name, names, batch, repeats, threads, run_dir, device, amp = args[:9]
     energy_kw = args[9] if len(args) > 9 else {}
     import torch
