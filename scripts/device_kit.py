@@ -11,7 +11,11 @@ registry. `scripts/device_kit.toml` lists those packages, pinned to requirements
                            lacks, with apt-get, as the `device` README says (about 0.4 MB);
   check                    imports every third-party module the check can reach and prints ONE
                            line naming the missing ones (exit 3), or nothing (exit 0);
-  modules                  prints those modules, one per line.
+  modules                  prints those modules, one per line;
+  slim [--dry-run]         before a `device` call: moves the tracked files the check never reads
+                           (the kit file's [slim]) into the git directory, a journal written first,
+                           prints what travels (MiB by part) and refuses (exit 2) above the limit;
+  restore                  after it: puts them back, also after a slim that was interrupted.
 
 Standard library only (it runs before anything is installed). The import walk parses every module
 reachable from the kit file's `entry` with ast, module-level and function-level imports alike.
@@ -21,6 +25,9 @@ from __future__ import annotations
 
 import ast
 import importlib
+import io
+import json
+import os
 import re
 import subprocess
 import sys
@@ -41,15 +48,19 @@ def normalise(name: str) -> str:
 
 def load(path: Path = KIT_FILE) -> dict:
     """The kit file: {"entry", "python", "kit": {name: {"version", "sdist", "imported_by"}},
-    "lazy": {module: why}, "renderer": set of modules, "image": set of names}, names normalised."""
+    "lazy": {module: why}, "renderer": set of modules, "gl": {package: bytes}, "slim": {"paths": globs,
+    "carry": paths, "limit_mib"}, "image": set of names}, names normalised; "bytes": the wheel's size."""
     raw = tomllib.loads(path.read_text())
     kit = {}
     for name, v in raw["kit"].items():
         entry = v if isinstance(v, dict) else {"version": v}
         kit[normalise(name)] = {"version": str(entry["version"]), "sdist": bool(entry.get("sdist", False)),
-                                "imported_by": entry.get("imported_by")}
+                                "imported_by": entry.get("imported_by"), "bytes": entry.get("bytes")}
+    slim = raw.get("slim", {})
     return {"entry": raw["entry"], "python": raw["python"], "kit": kit, "lazy": dict(raw.get("lazy", {})),
-            "renderer": set(raw.get("renderer", [])),
+            "renderer": set(raw.get("renderer", [])), "gl": dict(raw.get("gl", {})),
+            "slim": {"paths": list(slim.get("paths", [])), "carry": list(slim.get("carry", [".whl", ".gl"])),
+                     "limit_mib": float(slim.get("limit_mib", 60))},
             "image": {normalise(n) for n in raw["image"]["packages"]}}
 
 
@@ -192,7 +203,27 @@ def download(dest: Path, kit: dict | None = None, pip: tuple = (sys.executable, 
     got = {wheel_name(p)[0] for p in wheels}
     if got != set(kit["kit"]):
         raise SystemExit(f"device_kit: {dest} lacks {', '.join(sorted(set(kit['kit']) - got))}")
+    for p in wheels:
+        problem = size_problem(p.stat().st_size, kit["kit"][wheel_name(p)[0]])
+        if problem:
+            raise SystemExit(f"device_kit: {p.name}: {problem}")
     return wheels
+
+
+SDIST_SIZE_TOLERANCE = 0.02
+"""A wheel built here from a source archive differs by a few bytes with the builder's version (its
+metadata); a downloaded one is the registry's file, byte for byte."""
+
+
+def size_problem(size: int, spec: dict) -> str | None:
+    """Why a wheel of `size` bytes is not the kit file's (None: it is)."""
+    pinned = spec.get("bytes")
+    if pinned is None:
+        return "no `bytes` in the kit file (add the size, it counts towards what travels)"
+    tolerance = SDIST_SIZE_TOLERANCE * pinned if spec.get("sdist") else 0
+    if abs(size - pinned) > tolerance:
+        return f"{size} bytes, the kit file pins {pinned} (another build? update scripts/device_kit.toml)"
+    return None
 
 
 GL_PACKAGES = ("libvulkan1", "libegl1", "libglvnd0", "libopengl0", "libgl1", "libglx0", "libgles2")
@@ -210,7 +241,189 @@ def download_gl(dest: Path, lists: Path = Path("/tmp/amd64")) -> list[Path]:
         if r.returncode != 0:
             lines = (r.stderr + r.stdout).strip().splitlines()
             raise SystemExit(f"device_kit: {' '.join(cmd[:1] + cmd[-1:])}: {lines[-1] if lines else 'failed'}")
-    return sorted(dest.glob("*.deb"))
+    debs = sorted(dest.glob("*.deb"))
+    pinned = load()["gl"]
+    grown = [p.name for p in debs if p.stat().st_size > pinned.get(p.name.split("_")[0], 0)]
+    if grown:  # apt's versions move: a warning, the travel test counts the pinned sizes
+        sys.stderr.write(f"device_kit: larger than scripts/device_kit.toml's [gl] sizes: {', '.join(grown)}\n")
+    return debs
+
+
+MIB = 2**20
+STATE = "device-kit-slim"
+"""The folder under the git directory (`git rev-parse --git-dir`: per worktree, on the working tree's
+filesystem, so a move is one atomic rename) where `slim` parks files, with its journal."""
+
+
+def _git(root: Path, *args: str) -> str:
+    r = subprocess.run(["git", *args], cwd=root, capture_output=True, text=True)
+    if r.returncode != 0:
+        raise SlimError(f"git {' '.join(args[:2])}: {(r.stderr.strip().splitlines() or ['failed'])[-1]}")
+    return r.stdout
+
+
+class SlimError(Exception):
+    """What `slim` / `restore` refuse to do, in one line (exit 2)."""
+
+
+def _git_files(root: Path, *args: str) -> list[str]:
+    return [p for p in _git(root, "ls-files", "-z", *args).split("\0") if p]
+
+
+def _size(path: Path) -> int:
+    """Bytes under `path` (a file, a link as a link, or a folder walked without following links)."""
+    if path.is_symlink() or path.is_file():
+        return path.lstat().st_size
+    return sum(p.lstat().st_size for p in path.rglob("*") if p.is_symlink() or p.is_file())
+
+
+def slim_files(root: Path = ROOT, kit: dict | None = None) -> list[str]:
+    """The tracked files, present in the working tree, that the kit file's [slim] globs match."""
+    from fnmatch import fnmatchcase
+
+    kit = kit or load()
+    return [p for p in _git_files(root) if any(fnmatchcase(p, g) for g in kit["slim"]["paths"])
+            and (root / p).is_file() and not (root / p).is_symlink()]
+
+
+def pinned_size(carried: str, kit: dict) -> int | None:
+    """What the kit file says a carried folder weighs where it is not here (.whl, .gl), else None."""
+    name = carried.strip("/")
+    if name == ".whl":
+        return sum(s["bytes"] or 0 for s in kit["kit"].values())
+    if name == ".gl":
+        return sum(kit["gl"].values())
+    return None
+
+
+def travel(root: Path = ROOT, carry=None, kit: dict | None = None, leaving=()) -> dict:
+    """What one `device` call sends (bytes by part): tracked files present in the working tree,
+    untracked files git does not ignore, the folder shared/ where the checkout has one, and each
+    carried path (measured where it is here, else the kit file's pinned size, "pinned": True).
+    `leaving`: tracked paths to count as gone (what `slim` would move)."""
+    kit = kit or load()
+    carry = kit["slim"]["carry"] if carry is None else list(carry)
+    gone = set(leaving)
+    tracked = [p for p in _git_files(root) if p not in gone]
+    parts = {"tracked": sum((root / p).lstat().st_size for p in tracked if os.path.lexists(root / p)),
+             "untracked": sum((root / p).lstat().st_size for p in _git_files(root, "--others", "--exclude-standard"))}
+    shared = root / "shared"
+    if shared.is_dir():  # it travels even where ignored: count what the two lists above left out
+        listed = {str(root / p) for p in tracked} | {str(root / p) for p in _git_files(root, "--others", "--exclude-standard")}
+        parts["shared/"] = sum(p.lstat().st_size for p in shared.rglob("*")
+                               if (p.is_symlink() or p.is_file()) and str(p) not in listed)
+    carried = {}
+    for c in carry:
+        here = root / c
+        if os.path.lexists(here):
+            carried[c] = {"bytes": _size(here), "pinned": False}
+        else:
+            carried[c] = {"bytes": pinned_size(c, kit) or 0, "pinned": pinned_size(c, kit) is not None}
+    total = sum(parts.values()) + sum(c["bytes"] for c in carried.values())
+    return {**parts, "carried": carried, "total": total, "limit_mib": kit["slim"]["limit_mib"]}
+
+
+def format_travel(t: dict) -> str:
+    lines = [f"{t['tracked'] / MIB:7.2f} MiB  tracked files in the working tree",
+             f"{t['untracked'] / MIB:7.2f} MiB  untracked files git does not ignore"]
+    if "shared/" in t:
+        lines.append(f"{t['shared/'] / MIB:7.2f} MiB  shared/")
+    for c, v in t["carried"].items():
+        lines.append(f"{v['bytes'] / MIB:7.2f} MiB  carried {c}" + (" (not here: the kit file's pinned size)" if v["pinned"] else ""))
+    lines.append(f"{t['total'] / MIB:7.2f} MiB  in all (limit {t['limit_mib']:g} MiB)")
+    return "\n".join(lines)
+
+
+def _state(root: Path) -> Path:
+    git_dir = Path(_git(root, "rev-parse", "--git-dir").strip())
+    return (git_dir if git_dir.is_absolute() else root / git_dir) / STATE
+
+
+def _write_journal(journal: Path, entries: list[dict]) -> None:
+    """Written (and flushed to disk) before any file moves, so `restore` always knows what moved."""
+    journal.parent.mkdir(parents=True, exist_ok=True)
+    tmp = journal.with_name(journal.name + ".tmp")
+    with open(tmp, "w") as fh:
+        json.dump({"version": 1, "files": entries}, fh, indent=1)
+        fh.flush()
+        os.fsync(fh.fileno())
+    os.replace(tmp, journal)
+
+
+def slim(root: Path = ROOT, kit: dict | None = None, dry_run: bool = False, carry=None, out=sys.stdout) -> dict:
+    """Move the [slim] files into the git directory (a journal first), hide them from `git status`
+    (skip-worktree, which also keeps `git commit -a` from recording them as deleted), print what
+    travels. Refused (SlimError, nothing moved) where that would still pass the limit. A slim state
+    left before is restored first."""
+    kit = kit or load()
+    if not dry_run:
+        restore(root, out=io.StringIO())
+    files = slim_files(root, kit)
+    t = travel(root, carry, kit, leaving=files)
+    if t["total"] > t["limit_mib"] * MIB:
+        parts = ", ".join(f"{k} {v / MIB:.2f}" for k, v in t.items() if k in ("tracked", "untracked", "shared/")) + ", " + \
+            ", ".join(f"{c} {v['bytes'] / MIB:.2f}" for c, v in t["carried"].items())
+        raise SlimError(f"{t['total'] / MIB:.2f} MiB would travel ({parts} MiB), over the {t['limit_mib']:g} MiB limit "
+                        "even slimmed: add large tracked files the GPU check does not read to [slim] in "
+                        "scripts/device_kit.toml, or remove untracked ones")
+    out.write(format_travel(t) + "\n")
+    moved = sum((root / p).stat().st_size for p in files)
+    out.write(f"{moved / MIB:7.2f} MiB  in {len(files)} tracked files {'that slim would move' if dry_run else 'moved'}"
+              " out of the working tree (scripts/device_kit.toml [slim])\n")
+    if dry_run or not files:
+        return t
+    state = _state(root)
+    _write_journal(state / "journal.json", [{"path": p, "bytes": (root / p).stat().st_size} for p in files])
+    _git(root, "update-index", "--skip-worktree", "--", *files)
+    for p in files:
+        (state / "files" / p).parent.mkdir(parents=True, exist_ok=True)
+        os.rename(root / p, state / "files" / p)
+    where = "" if Path(root).resolve() == ROOT else f" --root {root}"
+    out.write(f"python3 scripts/device_kit.py restore{where}   # after the `device` call (make demo / make test do it too)\n")
+    return t
+
+
+def restore(root: Path = ROOT, out=sys.stdout) -> int:
+    """Put back what `slim` moved, from its journal, also after a slim killed half-way; nothing to do
+    is no error (idempotent). Returns the number of files put back. A file that is in both places
+    with other bytes is left in both (SlimError): the journal stays for the next try."""
+    try:
+        state = _state(root)
+    except (SlimError, OSError):  # no git checkout (an unpacked archive) or no git: nothing was slimmed
+        return 0
+    journal = state / "journal.json"
+    if not journal.exists():
+        return 0
+    entries = json.loads(journal.read_text())["files"]
+    back, conflicts, lost = 0, [], []
+    for e in entries:
+        here, parked = root / e["path"], state / "files" / e["path"]
+        if parked.exists() and here.exists():
+            if parked.read_bytes() != here.read_bytes():
+                conflicts.append(e["path"])
+                continue
+            parked.unlink()
+        elif parked.exists():
+            here.parent.mkdir(parents=True, exist_ok=True)
+            os.rename(parked, here)
+            back += 1
+        elif not here.exists():
+            lost.append(e["path"])
+    paths = [e["path"] for e in entries]
+    tracked = set(_git_files(root, "--", *paths))
+    if tracked:
+        _git(root, "update-index", "--no-skip-worktree", "--", *sorted(tracked))
+    if lost:  # tracked: git has the committed bytes
+        _git(root, "checkout", "--", *lost)
+    if conflicts:
+        raise SlimError(f"{conflicts[0]} is both in the working tree and in {state / 'files'}, with other bytes "
+                        f"({len(conflicts)} such): keep one and run restore again")
+    journal.unlink()
+    import shutil
+
+    shutil.rmtree(state, ignore_errors=True)
+    out.write(f"restored {back} files moved by `slim`" + (f" ({len(lost)} from git: {', '.join(lost)})" if lost else "") + "\n")
+    return back
 
 
 def main(argv=None) -> int:
@@ -224,7 +437,29 @@ def main(argv=None) -> int:
     g.add_argument("--dest", default=str(ROOT / ".gl"))
     sub.add_parser("check", help="one line naming what the check cannot import here")
     sub.add_parser("modules", help="the third-party modules the check can import")
+    s = sub.add_parser("slim", help="move the tracked files the check does not read ([slim]) out of the working "
+                       "tree before a `device` call; print what travels; exit 2 above the limit")
+    s.add_argument("--dry-run", action="store_true", help="print what would travel and move nothing")
+    s.add_argument("--carry", nargs="*", default=None, help="the paths the call carries (default: the kit file's)")
+    s.add_argument("--json", action="store_true", help="print the sizes as one JSON object instead")
+    r = sub.add_parser("restore", help="put back what slim moved (also after an interrupted slim); nothing to do is fine")
+    for p in (s, r):
+        p.add_argument("--root", default=str(ROOT), help="the checkout (default: this script's)")
     args = ap.parse_args(argv)
+    if args.command in ("slim", "restore"):
+        try:
+            root = Path(args.root)
+            if args.command == "restore":
+                restore(root)
+            elif args.json:
+                t = slim(root, dry_run=args.dry_run, carry=args.carry, out=io.StringIO())
+                sys.stdout.write(json.dumps(t) + "\n")
+            else:
+                slim(root, dry_run=args.dry_run, carry=args.carry)
+        except SlimError as exc:
+            sys.stderr.write(f"device_kit: {exc}\n")
+            return 2
+        return 0
     if args.command == "download":
         wheels = download(Path(args.dest))
         total = sum(p.stat().st_size for p in wheels)

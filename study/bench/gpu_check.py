@@ -236,23 +236,38 @@ def run_check(work: Path, frames_per_context: int | None = None, steps: int | No
 
     # 3. bench inference on the device (each measurement in a fresh, spawned process)
     if "bench" in parts:
-        from study.bench.nets import bench_inference
-
-        _log("bench inference: latency, memory" + (", NVML energy" if gpu else "") + ", per-branch training speed")
-        t = time.perf_counter()
-        b = bench_inference(p["profile"], repeats=p["repeats"], threads=setup.threads, train_steps=p["branch_steps"],
-                            batches=tuple(p["batches"]), device=setup.device, amp=setup.amp,
-                            configurations=p["configurations"], train_branches=p["train_branches"])
-        summary["bench_inference"] = {k: b[k] for k in ("latency_ms", "latency_ms_per_frame_batch_8", "peak_rss_mb",
-                                                         "peak_gpu_mb", "energy_j_per_frame", "energy_above_idle_j_per_frame",
-                                                         "power_w", "idle_power_w",
-                                                         "energy_source", "ratio_top3_to_all", "gate_overhead_ms",
-                                                         "topk_latency_ms")
-                                      if k in b}
-        summary["bench_inference"]["seconds"] = round(time.perf_counter() - t, 2)
-        summary["train_images_per_second_per_branch"] = b["training_images_per_second"]
+        _bench(summary, p, setup, gpu, on_update)
         done("bench")
     return summary
+
+
+BENCH_KEYS = ("latency_ms", "latency_ms_per_frame_batch_8", "peak_rss_mb", "peak_gpu_mb", "energy_j_per_frame",
+              "energy_above_idle_j_per_frame", "power_w", "idle_power_w", "energy_source", "ratio_top3_to_all",
+              "gate_overhead_ms", "topk_latency_ms", "tasks")
+"""What the summary keeps of `bench inference`'s figures (its `details` stay out)."""
+
+
+def _bench(summary: dict, p: dict, setup, gpu: bool, on_update=None) -> None:
+    """`bench inference` on the device into `summary`, handed to `on_update` after each of its
+    spawned tasks too (a budget that runs out part-way keeps the configurations measured)."""
+    from study.bench.nets import bench_inference
+
+    _log("bench inference: latency, memory" + (", NVML energy" if gpu else "") + ", per-branch training speed")
+    t = time.perf_counter()
+
+    def keep(b: dict) -> None:
+        summary["bench_inference"] = {k: b[k] for k in BENCH_KEYS if k in b}
+        summary["bench_inference"]["seconds"] = round(time.perf_counter() - t, 2)
+        summary["train_images_per_second_per_branch"] = b["training_images_per_second"]
+
+    def partial(b: dict) -> None:
+        keep(b)
+        if on_update is not None:
+            on_update(summary)
+
+    keep(bench_inference(p["profile"], repeats=p["repeats"], threads=setup.threads, train_steps=p["branch_steps"],
+                         batches=tuple(p["batches"]), device=setup.device, amp=setup.amp,
+                         configurations=p["configurations"], train_branches=p["train_branches"], on_result=partial))
 
 
 def _train_run(data: Path, out: Path, p: dict, setup) -> dict:

@@ -93,6 +93,10 @@ ENERGY_WINDOW_S = 3.0
 error to a few per cent."""
 IDLE_WINDOW_S = 1.0
 """Seconds of idle GPU over which the idle power is measured (same counter)."""
+IDLE_REST_S = 3.0
+"""Seconds of rest before the idle window, which comes before any timed forward: a board just
+loaded (the model's copy, the previous configuration's forwards) keeps its clocks and power up for a
+moment, and an idle figure read then is the load's tail, not idle."""
 
 
 def nvml_meter(device: str):
@@ -107,25 +111,33 @@ def nvml_meter(device: str):
     return GpuEnergyMeter.for_uuid(str(torch.cuda.get_device_properties(index).uuid))
 
 
-def measure_energy(meter, once, frames_per_call: int, warmup_s: float = ENERGY_WARMUP_S,
-                   window_s: float = ENERGY_WINDOW_S, idle_s: float = IDLE_WINDOW_S,
-                   clock=time.perf_counter, sleep=time.sleep) -> dict:
+def measure_idle(meter, rest_s: float = IDLE_REST_S, idle_s: float = IDLE_WINDOW_S, clock=time.perf_counter,
+                 sleep=time.sleep) -> dict:
+    """The board's idle power from `meter`'s counter: `rest_s` of nothing, then the counter read at
+    both ends of `idle_s` more. {} where the meter reads nothing."""
+    if meter is None or not meter.available:
+        return {}
+    sleep(rest_s)
+    e0, t0 = meter.energy_mj(), clock()
+    sleep(idle_s)
+    e1, t1 = meter.energy_mj(), clock()
+    if e0 is None or e1 is None or t1 <= t0:
+        return {}
+    return {"idle_power_w": (e1 - e0) / (t1 - t0) / 1000.0, "idle_window_s": t1 - t0, "idle_rest_s": rest_s}
+
+
+def measure_energy(meter, once, frames_per_call: int, idle_w: float | None = None, warmup_s: float = ENERGY_WARMUP_S,
+                   window_s: float = ENERGY_WINDOW_S, clock=time.perf_counter) -> dict:
     """Energy per frame of `once()` (one finished forward of `frames_per_call` frames; it must wait
-    for the device) from `meter`'s counter (`fusion.nvml.GpuEnergyMeter`): the idle power over
-    `idle_s` of nothing, then `warmup_s` of forwards, then forwards until at least `window_s` has
-    passed, the counter read at the window's two ends. {} where the meter reads nothing.
+    for the device) from `meter`'s counter (`fusion.nvml.GpuEnergyMeter`): `warmup_s` of forwards,
+    then forwards until at least `window_s` has passed, the counter read at the window's two ends.
+    `idle_w`: the idle power measured before (`measure_idle`). {} where the meter reads nothing.
 
     energy_mj_per_frame = (E1 - E0) / (calls * frames)                 # the board, idle included
     energy_above_idle_mj_per_frame = (E1 - E0 - P_idle * (t1 - t0)) / (calls * frames)
     """
     if meter is None or not meter.available:
         return {}
-    e0, t0 = meter.energy_mj(), clock()
-    sleep(idle_s)
-    e1, t1 = meter.energy_mj(), clock()
-    if e0 is None or e1 is None or t1 <= t0:
-        return {}
-    idle_w = (e1 - e0) / (t1 - t0) / 1000.0
     end = clock() + warmup_s
     warmup_calls = 0
     while clock() < end or warmup_calls == 0:
@@ -140,10 +152,36 @@ def measure_energy(meter, once, frames_per_call: int, warmup_s: float = ENERGY_W
     if e0 is None or e1 is None:
         return {}
     frames = calls * frames_per_call
-    return {"energy_mj_per_frame": (e1 - e0) / frames,
-            "energy_above_idle_mj_per_frame": (e1 - e0 - 1000.0 * idle_w * (t1 - t0)) / frames,
-            "power_w": (e1 - e0) / (t1 - t0) / 1000.0, "idle_power_w": idle_w, "energy_window_s": t1 - t0,
-            "energy_calls": calls, "energy_warmup_calls": warmup_calls}
+    out = {"energy_mj_per_frame": (e1 - e0) / frames, "power_w": (e1 - e0) / (t1 - t0) / 1000.0,
+           "energy_window_s": t1 - t0, "energy_calls": calls, "energy_warmup_calls": warmup_calls}
+    if idle_w is not None:
+        out.update({"energy_above_idle_mj_per_frame": (e1 - e0 - 1000.0 * idle_w * (t1 - t0)) / frames,
+                    "idle_power_w": idle_w})
+    return out
+
+
+def timed_forwards(once, repeats: int, meter=None, frames_per_call: int = 1, energy_kw: dict | None = None,
+                   after_warmup=None, clock=time.perf_counter, sleep=time.sleep) -> tuple[list, dict]:
+    """(seconds of each of `repeats` timed calls of `once`, energy figures). With a `meter`: the idle
+    power first, after a rest (`measure_idle`), before any forward of this process; then one warm-up
+    call, `after_warmup()`, the timed calls, and the energy window (`measure_energy`)."""
+    kw = {"warmup_s": ENERGY_WARMUP_S, "window_s": ENERGY_WINDOW_S, "idle_s": IDLE_WINDOW_S, "rest_s": IDLE_REST_S,
+          **(energy_kw or {})}
+    idle = measure_idle(meter, kw["rest_s"], kw["idle_s"], clock=clock, sleep=sleep) if meter is not None else {}
+    once()  # warm-up (allocator, first-call overheads)
+    if after_warmup is not None:
+        after_warmup()
+    times = []
+    for _ in range(repeats):
+        t = clock()
+        once()
+        times.append(clock() - t)
+    energy = {}
+    if meter is not None:
+        energy = measure_energy(meter, once, frames_per_call, idle.get("idle_power_w"), kw["warmup_s"], kw["window_s"],
+                                clock=clock)
+        energy.update({k: v for k, v in idle.items() if k != "idle_power_w"} if energy else {})
+    return times, energy
 
 
 def synthetic_batch(model, batch: int, seed: int = 0, device: str = "cpu"):
@@ -211,8 +249,8 @@ def _load_run_weights(model, run_dir) -> None:
 
 def _worker(args) -> dict:
     """Fresh process: build the configuration, time `repeats` forwards at `batch`, report peak RSS
-    (on a GPU: peak GPU memory, and at batch 1 the energy per frame, `measure_energy`). `args`:
-    (profile, set_name, names, batch, repeats, threads, run_dir, device, amp[, energy keywords])."""
+    (on a GPU: peak GPU memory, and at batch 1 the idle power and the energy per frame,
+    `timed_forwards`). `args`: (profile, set_name, names, batch, repeats, threads, run_dir, device, amp[, energy keywords])."""
     profile, set_name, names, batch, repeats, threads, run_dir, device, amp = args[:9]
     energy_kw = args[9] if len(args) > 9 else {}
     import torch
@@ -247,19 +285,11 @@ def _worker(args) -> dict:
                 fuse(_dets(per), frames, calib, "soft_nms")
         _sync(device)
 
-    once()  # warm-up (allocator, first-call overheads)
-    if cuda:
-        torch.cuda.reset_peak_memory_stats(device)
-    times = []
-    for _ in range(repeats):
-        t = time.perf_counter()
-        once()
-        times.append(time.perf_counter() - t)
-    gpu = {}
-    if cuda:
+    meter = nvml_meter(device) if cuda and batch == 1 else None  # energy at batch 1 only
+    times, gpu = timed_forwards(once, repeats, meter, batch, energy_kw,
+                                after_warmup=(lambda: torch.cuda.reset_peak_memory_stats(device)) if cuda else None)
+    if cuda:  # the peak of the warm-up-free forwards and the energy window
         gpu["peak_gpu_mb"] = torch.cuda.max_memory_allocated(device) / 2**20
-        if batch == 1:
-            gpu.update(measure_energy(nvml_meter(device), once, batch, **energy_kw))
     peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
     params = sum(p.numel() for p in model.parameters())
     # where the time goes: self CPU time per operator kind of one more forward (profiled, so each
@@ -402,82 +432,111 @@ def _gate_worker(args) -> dict:
 def bench_inference(profile: str = "cpu", repeats: int = 5, threads: int = 2, run_dir: str | None = None,
                     train_steps: int = 3, batches=(1, 8), device: str = "cpu", amp: bool = False,
                     configurations=None, train_branches=None, energy_warmup_s: float = ENERGY_WARMUP_S,
-                    energy_window_s: float = ENERGY_WINDOW_S, idle_s: float = IDLE_WINDOW_S) -> dict:
+                    energy_window_s: float = ENERGY_WINDOW_S, idle_s: float = IDLE_WINDOW_S,
+                    idle_rest_s: float = IDLE_REST_S, on_result=None) -> dict:
     """HydraFusion Table 4 on this machine (see the module doc). `configurations` / `train_branches`:
     subsets of CONFIGURATIONS and of the paper branches to measure (default: all). `energy_*`,
-    `idle_s`: the energy measurement's windows on a GPU (`measure_energy`)."""
-    energy_kw = {"warmup_s": energy_warmup_s, "window_s": energy_window_s, "idle_s": idle_s}
+    `idle_*`: the energy measurement's windows on a GPU (`timed_forwards`). `on_result(figures)`:
+    called after each spawned task with the figures so far (`summarise_inference`), so a run stopped
+    part-way (a time budget) keeps what it measured."""
+    energy_kw = {"warmup_s": energy_warmup_s, "window_s": energy_window_s, "idle_s": idle_s, "rest_s": idle_rest_s}
     if run_dir:  # its weights loaded here first: a damaged run is refused before any worker starts
         from study.detect import load_run
 
         load_run(run_dir)
-    ctx = mp.get_context("spawn")
+    from study.train import branch_set
+
+    configs = [(n, c) for n, c in CONFIGURATIONS.items() if configurations is None or n in configurations]
+    branches = [s.name for s in branch_set("paper", profile) if train_branches is None or s.name in train_branches]
     results: dict = {}
+    training: dict = {}
+    gates: dict = {}
+    tasks = {"done": 0, "of": len(configs) * len(batches) + len(branches) + 1}
+
+    def summary() -> dict:
+        return summarise_inference(results, training, gates, profile=profile, device=device, amp=amp, run_dir=run_dir,
+                                   energy_kw=energy_kw, tasks=tasks)
+
+    def task_done() -> None:
+        tasks["done"] += 1
+        if on_result is not None:
+            on_result(summary())
+
+    ctx = mp.get_context("spawn")
     with ctx.Pool(1, maxtasksperchild=1) as pool:
-        for name, (set_name, names, _desc) in CONFIGURATIONS.items():
-            if configurations is not None and name not in configurations:
-                continue
+        for name, (set_name, names, _desc) in configs:
             results[name] = {}
             for b in batches:
                 r = pool.apply(_worker, ((profile, set_name, names, b, repeats, threads, run_dir, device, amp,
                                           energy_kw),))
                 results[name][f"batch_{b}"] = {k: round(v, 2) if isinstance(v, float) else v for k, v in r.items()}
-        training = {}
-        from study.train import branch_set
+                task_done()
+        for name in branches:
+            r = pool.apply(_train_worker, ((profile, name, 4, train_steps, threads, device, amp),))
+            training[name] = {k: round(v, 3) for k, v in r.items()}
+            task_done()
+        gates.update(pool.apply(_gate_worker, ((profile, repeats, threads, run_dir, device, amp),)))
+        task_done()
+    return summary()
 
-        for spec in branch_set("paper", profile):
-            if train_branches is not None and spec.name not in train_branches:
-                continue
-            r = pool.apply(_train_worker, ((profile, spec.name, 4, train_steps, threads, device, amp),))
-            training[spec.name] = {k: round(v, 3) for k, v in r.items()}
-        gates = pool.apply(_gate_worker, ((profile, repeats, threads, run_dir, device, amp),))
-    lat = {n: r["batch_1"]["latency_ms"] for n, r in results.items()}
+
+def summarise_inference(results: dict, training: dict, gates: dict, *, profile: str, device: str, amp: bool,
+                        run_dir: str | None, energy_kw: dict, tasks: dict | None = None) -> dict:
+    """`bench inference`'s figures from what its tasks measured so far: `results[configuration]
+    ["batch_N"]` (`_worker`), `training[branch]` (`_train_worker`), `gates` (`bench_gates`). A
+    configuration or batch not measured yet is left out of every figure that needs it."""
+    one = {n: r["batch_1"] for n, r in results.items() if "batch_1" in r}
+    eight = {n: r["batch_8"] for n, r in results.items() if "batch_8" in r}
+    both = {n: (one[n], eight[n]) for n in one if n in eight}
+    lat = {n: r["latency_ms"] for n, r in one.items()}
     gpu = {}
     if device.startswith("cuda"):
-        gpu["peak_gpu_mb"] = {n: r["batch_1"]["peak_gpu_mb"] for n, r in results.items()}
-        measured = {n: r["batch_1"].get("energy_mj_per_frame") for n, r in results.items()}
-        gpu["energy_j_per_frame"] = {n: (None if v is None else round(v / 1000, 4)) for n, v in measured.items()}
-        gpu["energy_above_idle_j_per_frame"] = {
-            n: (None if r["batch_1"].get("energy_above_idle_mj_per_frame") is None
-                else round(r["batch_1"]["energy_above_idle_mj_per_frame"] / 1000, 4)) for n, r in results.items()}
-        gpu["idle_power_w"] = {n: r["batch_1"].get("idle_power_w") for n, r in results.items()}
-        gpu["power_w"] = {n: r["batch_1"].get("power_w") for n, r in results.items()}
-        gpu["energy_source"] = (f"measured: NVML board energy counter (device matched by UUID) over >= {energy_window_s} s "
-                                f"of repeated batch-1 forwards after {energy_warmup_s} s of warm-up; idle power over "
-                                f"{idle_s} s beside it" if any(v is not None for v in measured.values())
-                                else "none: NVML counter unavailable")
-    out = {
+        def joules(key):
+            return {n: (None if r.get(key) is None else round(r[key] / 1000, 4)) for n, r in one.items()}
+
+        gpu = {"peak_gpu_mb": {n: r["peak_gpu_mb"] for n, r in one.items()},
+               "energy_j_per_frame": joules("energy_mj_per_frame"),
+               "energy_above_idle_j_per_frame": joules("energy_above_idle_mj_per_frame"),
+               "idle_power_w": {n: r.get("idle_power_w") for n, r in one.items()},
+               "power_w": {n: r.get("power_w") for n, r in one.items()}}
+        measured = any(r.get("energy_mj_per_frame") is not None for r in one.values())
+        gpu["energy_source"] = (f"measured: NVML board energy counter (device matched by UUID) over >= "
+                                f"{energy_kw['window_s']} s of repeated batch-1 forwards after {energy_kw['warmup_s']} s "
+                                f"of warm-up; idle power over {energy_kw['idle_s']} s after {energy_kw['rest_s']} s of "
+                                "rest, before any timed forward" if measured else
+                                "none: NVML counter unavailable" if one else "none yet: no batch-1 configuration measured")
+
+    def ratio(a, b):
+        return round(lat[a] / lat[b], 3) if {a, b} <= set(lat) else None
+
+    def ops(r, k):
+        return r[f"ops_ms_per_frame/{k}"]
+
+    return {
         **gpu,
         "latency_ms": lat,
-        "latency_ms_per_frame_batch_8": {n: round(r["batch_8"]["latency_ms"] / 8, 2) for n, r in results.items()}
-        if 8 in batches else {},
-        "peak_rss_mb": {n: r["batch_1"]["peak_rss_mb"] for n, r in results.items()},
-        "params_m": {n: r["batch_1"]["params_m"] for n, r in results.items()},
-        "ratio_top3_to_all": round(lat["hydra_top3_typical"] / lat["all_branches"], 3)
-        if {"hydra_top3_typical", "all_branches"} <= set(lat) else None,
-        "ratio_top3_worst_to_all": round(lat["hydra_top3_worst"] / lat["all_branches"], 3)
-        if {"hydra_top3_worst", "all_branches"} <= set(lat) else None,
-        "batch8_throughput_gain": {n: round(r["batch_1"]["latency_ms"] / (r["batch_8"]["latency_ms"] / 8), 2)
-                                   for n, r in results.items()} if 8 in batches else {},
+        "latency_ms_per_frame_batch_8": {n: round(r["latency_ms"] / 8, 2) for n, r in eight.items()},
+        "peak_rss_mb": {n: r["peak_rss_mb"] for n, r in one.items()},
+        "params_m": {n: r["params_m"] for n, r in one.items()},
+        "ratio_top3_to_all": ratio("hydra_top3_typical", "all_branches"),
+        "ratio_top3_worst_to_all": ratio("hydra_top3_worst", "all_branches"),
+        "batch8_throughput_gain": {n: round(a["latency_ms"] / (b["latency_ms"] / 8), 2) for n, (a, b) in both.items()},
         "training_images_per_second": {n: v["images_per_second"] for n, v in training.items()},
         # per operator kind, batch 8 against batch 1 (profiled self CPU time per frame): which parts
         # batching speeds up and which it cannot
-        "batch8_gain_per_op_kind": {n: {k: round(r["batch_1"][f"ops_ms_per_frame/{k}"]
-                                                 / r["batch_8"][f"ops_ms_per_frame/{k}"], 2)
-                                        for k in OP_KINDS if r["batch_8"][f"ops_ms_per_frame/{k}"] > 0}
-                                    for n, r in results.items()} if 8 in batches and 1 in batches else {},
-        "op_share_batch_1": {n: {k: round(r["batch_1"][f"ops_ms_per_frame/{k}"]
-                                          / max(sum(r["batch_1"][f"ops_ms_per_frame/{j}"] for j in OP_KINDS), 1e-9), 3)
-                                 for k in OP_KINDS} for n, r in results.items()} if 1 in batches else {},
+        "batch8_gain_per_op_kind": {n: {k: round(ops(a, k) / ops(b, k), 2) for k in OP_KINDS if ops(b, k) > 0}
+                                    for n, (a, b) in both.items()},
+        "op_share_batch_1": {n: {k: round(ops(r, k) / max(sum(ops(r, j) for j in OP_KINDS), 1e-9), 3) for k in OP_KINDS}
+                             for n, r in one.items()},
         "configurations": {n: d for n, (_, _, d) in CONFIGURATIONS.items() if n in results},
         "device": device,
         "amp": "bf16" if amp else False,
         "details": results,
         "profile": profile,
         "weights": run_dir or "random initialisation",
+        **({"tasks": dict(tasks)} if tasks is not None else {}),
         **gates,
     }
-    return out
 
 
-__all__ = ["bench_gates", "bench_inference", "CONFIGURATIONS"]
+__all__ = ["bench_gates", "bench_inference", "summarise_inference", "CONFIGURATIONS"]

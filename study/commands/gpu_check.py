@@ -11,6 +11,7 @@ import os
 import signal
 import sys
 import tempfile
+import time
 import traceback
 from pathlib import Path
 
@@ -36,8 +37,9 @@ def _where(exc: BaseException) -> str:
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(prog="gpu_check", description=gpu_check.__doc__,
                                  formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--work", default=None, help="directory for the dataset and the run (default: a temporary one, "
-                    "removed at the end)")
+    ap.add_argument("--work", default=None, help="keep the dataset and the run under this directory, in a new "
+                    "attempt-* folder per call (a rerun times generation and training again instead of resuming an "
+                    "earlier attempt's); default: a temporary directory, removed at the end")
     ap.add_argument("--frames-per-context", type=int, default=None, help="dataset size (default 2 on a GPU, 4 on "
                     "the CPU)")
     ap.add_argument("--contexts", default=None, help="comma-separated contexts (default: all on a GPU, junction,fog "
@@ -67,6 +69,8 @@ def main(argv=None) -> int:
     latest: dict = {}
 
     def update(summary: dict) -> None:
+        if work is not None:
+            summary["work"] = str(work)
         latest.clear()
         latest.update(summary)
         _write(out, summary)
@@ -78,10 +82,12 @@ def main(argv=None) -> int:
     if args.budget_s > 0:
         signal.setitimer(signal.ITIMER_REAL, args.budget_s)
     force_cpu = args.cpu or args.device == "cpu"
+    work = None
     try:
         if args.work:
-            work = Path(args.work)
-            work.mkdir(parents=True, exist_ok=True)
+            Path(args.work).mkdir(parents=True, exist_ok=True)
+            work = Path(tempfile.mkdtemp(prefix=f"attempt-{time.strftime('%Y%m%d-%H%M%S')}-", dir=args.work))
+            sys.stderr.write(f"[gpu_check] this attempt's files: {work}\n")
             summary = gpu_check.run_check(work, args.frames_per_context, args.steps, force_cpu, parts, args.contexts,
                                           on_update=update)
         else:

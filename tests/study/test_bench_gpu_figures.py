@@ -11,7 +11,8 @@ import pytest
 from torch.autograd import DeviceType
 
 import fusion.nvml as nvml
-from study.bench.nets import measure_energy, nvml_meter, op_times_ms
+import study.bench.nets as nets
+from study.bench.nets import measure_energy, measure_idle, nvml_meter, op_times_ms, timed_forwards
 
 
 def _row(key, device_type, self_device_us=0.0, self_cpu_us=0.0):
@@ -45,11 +46,13 @@ def test_cpu_time_per_operator_kind_is_self_cpu_time():
 
 
 class FakeGpu:
-    """A clock, a board drawing `idle_w` when idle and `busy_w` during forwards of `call_s` each,
-    and an energy counter [mJ] that moves only every `step_s` (NVML's 20-100 ms updates)."""
+    """A clock, a board drawing `idle_w` when idle and `busy_w` during forwards of `call_s` each and
+    for `tail_s` after the last one (clocks still up), and an energy counter [mJ] that moves only
+    every `step_s` (NVML's 20-100 ms updates)."""
 
-    def __init__(self, idle_w=100.0, busy_w=400.0, call_s=0.01, step_s=0.1):
+    def __init__(self, idle_w=100.0, busy_w=400.0, call_s=0.01, step_s=0.1, tail_s=0.0):
         self.t, self.e = 0.0, 0.0
+        self.tail_s, self.last_busy = tail_s, -1e9
         self.idle_w, self.busy_w, self.call_s, self.step_s = idle_w, busy_w, call_s, step_s
         self.history = [(0.0, 0.0)]  # (time, true energy) after each change
         self.available = True
@@ -63,9 +66,13 @@ class FakeGpu:
     def once(self):
         self.calls += 1
         self._run(self.call_s, self.busy_w)
+        self.last_busy = self.t
 
     def sleep(self, seconds):
-        self._run(seconds, self.idle_w)
+        tail = max(0.0, min(seconds, self.last_busy + self.tail_s - self.t))
+        if tail:
+            self._run(tail, self.busy_w)
+        self._run(seconds - tail, self.idle_w)
 
     def clock(self):
         return self.t
@@ -82,15 +89,39 @@ class FakeGpu:
 
 
 def test_energy_is_measured_over_seconds_after_a_warm_up_with_the_idle_power_beside_it():
-    gpu = FakeGpu(idle_w=100.0, busy_w=400.0, call_s=0.01, step_s=0.1)
-    r = measure_energy(gpu, gpu.once, 1, warmup_s=2.0, window_s=3.0, idle_s=1.0, clock=gpu.clock, sleep=gpu.sleep)
+    gpu = FakeGpu(idle_w=100.0, busy_w=400.0, call_s=0.01, step_s=0.1, tail_s=2.0)
+    for _ in range(50):  # the board was just busy (the model's copy, the previous configuration)
+        gpu.once()
+    first_read = []
+    energy_mj = gpu.energy_mj
+    gpu.energy_mj = lambda: first_read.append(gpu.calls) or energy_mj()
+    kw = {"warmup_s": 2.0, "window_s": 3.0, "idle_s": 1.0, "rest_s": 3.0}
+    times, r = timed_forwards(gpu.once, 5, gpu, 1, kw, clock=gpu.clock, sleep=gpu.sleep)
+    assert first_read[0] == 50  # the idle window came before any forward of its own
+    assert len(times) == 5 and all(s == pytest.approx(0.01) for s in times)
     assert r["energy_window_s"] >= 3.0 and r["energy_calls"] == pytest.approx(300, abs=1)
     assert r["energy_warmup_calls"] == pytest.approx(200, abs=1)
-    assert r["idle_power_w"] == pytest.approx(100.0, rel=0.05)
+    assert r["idle_power_w"] == pytest.approx(100.0, rel=0.05) and r["idle_rest_s"] == 3.0
     # 400 W x 10 ms = 4 J per frame; the counter's 100 ms steps cost at most a few per cent over 3 s
     assert r["energy_mj_per_frame"] == pytest.approx(4000.0, rel=0.04)
     assert r["power_w"] == pytest.approx(400.0, rel=0.04)
     assert r["energy_above_idle_mj_per_frame"] == pytest.approx(3000.0, rel=0.06)  # (400 - 100) W x 10 ms
+
+
+def test_idle_read_in_the_second_after_the_forwards_is_the_load_s_tail():
+    """Why the rest: right after forwards the board still draws its load power."""
+    gpu = FakeGpu(idle_w=100.0, busy_w=400.0, call_s=0.01, step_s=0.1, tail_s=2.0)
+    for _ in range(50):
+        gpu.once()
+    assert measure_idle(gpu, rest_s=0.0, idle_s=1.0, clock=gpu.clock, sleep=gpu.sleep)["idle_power_w"] > 350
+    assert measure_idle(gpu, rest_s=3.0, idle_s=1.0, clock=gpu.clock, sleep=gpu.sleep)["idle_power_w"] == \
+        pytest.approx(100.0, rel=0.05)
+
+
+def test_without_a_meter_the_forwards_are_timed_and_nothing_sleeps():
+    gpu = FakeGpu()
+    times, r = timed_forwards(gpu.once, 4, None, clock=gpu.clock, sleep=lambda s: pytest.fail("slept"))
+    assert len(times) == 4 and r == {} and gpu.calls == 5  # a warm-up call, then the timed ones
 
 
 def test_five_forwards_are_too_short_for_the_counter():
@@ -110,10 +141,12 @@ def test_five_forwards_are_too_short_for_the_counter():
 
 def test_batch_size_divides_the_energy_and_no_meter_reads_nothing():
     gpu = FakeGpu(call_s=0.08, step_s=0.02)
-    r = measure_energy(gpu, gpu.once, 8, warmup_s=0.5, window_s=3.0, idle_s=0.5, clock=gpu.clock, sleep=gpu.sleep)
+    r = measure_energy(gpu, gpu.once, 8, warmup_s=0.5, window_s=3.0, clock=gpu.clock)
+    assert "energy_above_idle_mj_per_frame" not in r  # no idle power handed in
     assert r["energy_mj_per_frame"] == pytest.approx(400 * 0.08 * 1000 / 8, rel=0.02)
     assert measure_energy(None, gpu.once, 1) == {}
     assert measure_energy(SimpleNamespace(available=False), gpu.once, 1) == {}
+    assert measure_idle(None) == {} and measure_idle(SimpleNamespace(available=False)) == {}
 
 
 class FakeNvml:
@@ -200,3 +233,44 @@ def test_ecofusion_energy_counter_reads_the_nvml_device_of_its_cuda_device(monke
     assert NvmlCounter("cuda:1").read() == 111_000
     with pytest.raises(OSError, match="no energy counter"):
         NvmlCounter(meter=nvml.GpuEnergyMeter(None, lib=lib))
+
+
+class FakePool:
+    """mp's spawn Pool, run in this process: canned figures per task, in the order asked."""
+
+    def __init__(self, *a, **k):
+        self.asked = []
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc):
+        return False
+
+    def apply(self, fn, args):
+        (args,) = args
+        self.asked.append(fn.__name__)
+        if fn.__name__ == "_worker":
+            batch = args[3]
+            return {"latency_ms": 10.0 * batch, "peak_rss_mb": 900.0, "params_m": 1.0, "peak_gpu_mb": 500.0,
+                    "energy_mj_per_frame": 2000.0, "energy_above_idle_mj_per_frame": 1500.0, "idle_power_w": 90.0,
+                    "power_w": 300.0, **{f"ops_ms_per_frame/{k}": 1.0 for k in nets.OP_KINDS}}
+        if fn.__name__ == "_train_worker":
+            return {"images_per_second": 3.0, "step_s": 1.0}
+        return {"gate_overhead_ms": {"deep": 0.1}, "topk_latency_ms": {}}
+
+
+def test_bench_inference_hands_over_its_figures_after_every_task(monkeypatch):
+    monkeypatch.setattr(nets.mp, "get_context", lambda method: SimpleNamespace(Pool=FakePool))
+    seen = []
+    r = nets.bench_inference("cpu", device="cuda:0", batches=(1, 8), configurations=["single_camera", "all_branches"],
+                             train_branches=["radar"], on_result=seen.append)
+    assert [s["tasks"]["done"] for s in seen] == [1, 2, 3, 4, 5, 6] and seen[-1]["tasks"]["of"] == 6
+    first = seen[0]  # single_camera at batch 1 only: every figure it can have, nothing it cannot
+    assert first["latency_ms"] == {"single_camera": 10.0} and first["energy_j_per_frame"] == {"single_camera": 2.0}
+    assert first["latency_ms_per_frame_batch_8"] == {} and first["ratio_top3_to_all"] is None
+    assert seen[1]["latency_ms_per_frame_batch_8"] == {"single_camera": 10.0}
+    assert seen[3]["latency_ms"] == {"single_camera": 10.0, "all_branches": 10.0}
+    assert seen[4]["training_images_per_second"] == {"radar": 3.0} and "gate_overhead_ms" not in seen[4]
+    assert r == seen[-1] and r["gate_overhead_ms"] == {"deep": 0.1}
+    assert "after 3.0 s of rest, before any timed forward" in r["energy_source"]

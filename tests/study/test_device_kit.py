@@ -143,7 +143,8 @@ def test_download_builds_the_pip_commands_and_keeps_one_version_of_each(tmp_path
     dest.mkdir()
     (dest / "shapely-1.0.0-cp312-cp312-manylinux_2_28_x86_64.whl").write_bytes(b"old")  # another version
     (dest / "trimesh-5.2.0-py3-none-any.whl").write_bytes(b"kept")  # already there: not fetched again
-    wheels = kit_script.download(dest, KIT, pip=(sys.executable, str(fake)))
+    kit = {**KIT, "kit": {n: {**s, "bytes": 4 if n == "trimesh" else 1} for n, s in KIT["kit"].items()}}  # the stand-ins' sizes
+    wheels = kit_script.download(dest, kit, pip=(sys.executable, str(fake)))
     assert {kit_script.wheel_name(p) for p in wheels} == {(n, s["version"]) for n, s in KIT["kit"].items()}
     assert not (dest / "shapely-1.0.0-cp312-cp312-manylinux_2_28_x86_64.whl").exists()
     log = (tmp_path / "fakepip.py.log").read_text().splitlines()

@@ -233,3 +233,43 @@ def test_the_bench_step_hands_its_plan_to_bench_inference_and_keeps_the_gpu_figu
     assert b["energy_above_idle_j_per_frame"] == {"all_branches": 0.3} and b["idle_power_w"] == {"all_branches": 80.0}
     assert "details" not in b and s["train_images_per_second_per_branch"] == {"radar": 3.0}
     assert s["completed"] == ["probe", "bench"]
+
+
+def test_each_call_gets_a_fresh_work_directory_so_a_rerun_times_everything_again(tmp_path, monkeypatch, capsys):
+    seen = []
+
+    def run_check(work, *a, on_update=None, **k):
+        seen.append((work, sorted(p.name for p in work.iterdir())))
+        (work / "data").mkdir()  # what a first attempt leaves: the next must not resume it
+        summary = {"completed": ["probe"]}
+        on_update(summary)
+        return summary
+
+    monkeypatch.setattr(gpu_check, "run_check", run_check)
+    out = tmp_path / "check.json"
+    for _ in range(2):
+        assert command.main(["--work", str(tmp_path / "gc"), "--json", str(out), "--budget-s", "0"]) == 0
+        assert json.loads(out.read_text())["work"] == str(seen[-1][0])
+    (first, files1), (second, files2) = seen
+    assert first != second and files1 == files2 == []
+    assert first.parent == second.parent == tmp_path / "gc" and first.name.startswith("attempt-")
+    assert (first / "data").is_dir()  # kept (--work), beside the new one
+    capsys.readouterr()
+
+
+def test_the_bench_figures_reach_the_json_as_each_task_ends(tmp_path, monkeypatch, capsys):
+    import study.bench.nets
+
+    def bench_inference(*a, on_result=None, **k):
+        on_result({"latency_ms": {"single_camera": 5.0}, "training_images_per_second": {},
+                   "tasks": {"done": 1, "of": 6}, "details": {"x": 1}})
+        raise gpu_check.TimeBudgetExceeded("the time budget of 300 s ran out")
+
+    monkeypatch.setattr(study.bench.nets, "bench_inference", bench_inference)
+    out = tmp_path / "check.json"
+    assert command.main(["--device", "cpu", "--parts", "bench", "--json", str(out), "--budget-s", "0"]) == 124
+    s = json.loads(out.read_text())
+    assert s["bench_inference"]["latency_ms"] == {"single_camera": 5.0}
+    assert s["bench_inference"]["tasks"] == {"done": 1, "of": 6} and "details" not in s["bench_inference"]
+    assert s["error"]["type"] == "TimeBudgetExceeded" and "bench" not in s["completed"]
+    capsys.readouterr()
