@@ -1076,4 +1076,5 @@ def test_zz_count_of_cases(capsys):
     assert CASES_BY_TEST["test_generate_refuses_a_folder_of_other_files_and_duplicates"] == 4
     assert CASES_BY_TEST["test_train_on_a_one_sequence_dataset_writes_its_checkpoint_and_reports_no_map"] == 5
     assert CASES_BY_TEST["test_entry_point_end_to_end_in_a_subprocess"] == 1
+    assert CASES_BY_TEST["test_study_config_is_checked_whole_before_its_first_stage"] == 6
     assert len(TRACKED) > 500
