@@ -148,16 +148,19 @@ def foreign_entries(root: Path) -> list[str]:
     return sorted(p.name for p in root.iterdir() if not ours.match(p.name))
 
 
-LOCK_NAME = ".generate.lock"
+def lock_name(command: str) -> str:
+    """The lock file of `command`'s output directory: .generate.lock, .train.lock."""
+    return f".{command}.lock"
 
 
 @contextlib.contextmanager
 def output_lock(root: Path, command: str = "generate"):
-    """Hold an exclusive lock on the dataset directory `root` (fcntl.flock on root/.generate.lock,
-    which holds the holder's PID) while writing it; a second writer is refused (UserError naming
-    the holder's PID), not left to race the first. The lock goes with the process (a killed run
-    holds nothing); the file is removed on release."""
-    path = Path(root) / LOCK_NAME
+    """Hold an exclusive lock on the output directory `root` of `command` (a dataset for generate,
+    a run for train: fcntl.flock on root/.<command>.lock, which holds the holder's PID) while
+    writing it; a second writer is refused (UserError naming the holder's PID), not left to race
+    the first. The lock goes with the process (a killed run holds nothing); the file is removed on
+    release."""
+    path = Path(root) / lock_name(command)
     while True:
         try:
             fd = os.open(path, os.O_RDWR | os.O_CREAT, 0o644)
@@ -314,6 +317,19 @@ def _check_record(root: Path, path: Path, k: int, rec: dict, camera: tuple[int, 
                 f"(width x height)")
 
 
+@functools.lru_cache(maxsize=256)
+def _context_problem(name: str) -> str | None:
+    """Why `name` is not a context this hydrabench generates (its canonical name, as sim writes it),
+    or None when it is one."""
+    from sim.scenario import CONTEXT_NAMES, Context
+
+    try:
+        canonical = Context.parse(name).name
+    except UserError:
+        return f"{name!r} is not a known context (one of {', '.join(CONTEXT_NAMES)}, or a combination as in city+night+rain)"
+    return None if canonical == name else f"{name!r} is not a context's canonical name (that is {canonical!r})"
+
+
 def read_manifest(root: str | Path) -> dict:
     """The manifest of dataset `root`, checked field by field (DatasetError naming what is wrong)."""
     root = Path(root)
@@ -352,6 +368,7 @@ def read_manifest(root: str | Path) -> dict:
             _expect(_is_int(s.get(key)), root, path, f"{where}.{key} must be an integer, got {s.get(key)!r}")
         _expect(s["frames"] >= 1, root, path, f"{where}.frames must be >= 1")
         _expect(isinstance(s.get("context"), str), root, path, f"{where}.context must be a string")
+        _expect(_context_problem(s["context"]) is None, root, path, f"{where}.context: {_context_problem(s['context'])}")
         sizes[name] = s["frames"]
     for k, f in enumerate(frames):
         where = f"frames[{k}]"
@@ -361,13 +378,17 @@ def read_manifest(root: str | Path) -> dict:
                 f"{where}.index {f.get('index')!r} is not a frame of {f['shard']}")
         _expect(isinstance(f.get("context"), str) and _is_int(f.get("severity")), root, path,
                 f"{where} needs a context (string) and a severity (integer)")
+        _expect(_context_problem(f["context"]) is None, root, path, f"{where}.context: {_context_problem(f['context'])}")
     return m
 
 
 def verify(root: str | Path) -> list[str]:
-    """Check every shard against the manifest; returns a list of problems (empty when intact).
+    """Everything `check` refuses, plus every shard's checksum against the manifest; returns a list
+    of problems (empty when intact).
 
-    An unreadable manifest is the one problem returned; a shard's problems are one line each."""
+    An unreadable manifest is the one problem returned; otherwise each unlisted shard folder, and
+    each shard's missing folder, checksum mismatch and first structural problem (of the shard and
+    of its twins), is one line."""
     from sim.progress import progress
 
     root = Path(root)
@@ -377,25 +398,45 @@ def verify(root: str | Path) -> list[str]:
         return [exc.short]
     except UserError as exc:
         return [str(exc)]
-    problems = []
+    problems = [f"{name}: {UNLISTED}" for name in unlisted_shards(root, m)]
+    readers = [DatasetReader(root)] + ([DatasetReader(root, clear=True)] if m["config"].get("twins") else [])
     bar = progress(total=len(m["shards"]), desc="verify", unit="shard")
     for s in m["shards"]:
         d = root / s["name"]
         if not d.is_dir():
             problems.append(f"{s['name']}: missing")
-        elif shard_digest(d) != s["sha256"]:
-            problems.append(f"{s['name']}: checksum mismatch (corrupted)")
+        else:
+            if shard_digest(d) != s["sha256"]:
+                problems.append(f"{s['name']}: checksum mismatch (corrupted)")
+            for reader in readers:  # the same check every other command runs first
+                try:
+                    reader.check_shard(s["name"])
+                except DatasetError as exc:
+                    problems.append(exc.short)
         bar.update(1)
     bar.close()
     return problems
 
 
+UNLISTED = "a shard folder manifest.json does not list (the manifest lost shards, or is another generation's)"
+
+
+def unlisted_shards(root: Path, manifest: dict) -> list[str]:
+    """The shard folders (shard-NNNNN) of `root` that the manifest does not list."""
+    listed = {s["name"] for s in manifest["shards"]}
+    return sorted(p.name for p in Path(root).iterdir() if re.fullmatch(r"shard-\d{5}", p.name) and p.name not in listed)
+
+
 def check(root: str | Path) -> dict:
-    """Check a dataset's structure whole, before a command starts work: the manifest, and for every
-    shard (and its clear twins) frames.json and each array's header against the manifest (frame
-    counts, lidar offsets). Cheap: no pixel is read; the checksums are `verify`'s job.
+    """Check a dataset's structure whole, before a command starts work: the manifest, no shard
+    folder it does not list, and for every shard (and its clear twins) frames.json (contexts
+    included) and each array's header against the manifest (frame counts, lidar offsets), and the
+    lidar points finite. Cheap: no pixel is read; the checksums are `verify`'s job.
     Returns the manifest; raises DatasetError naming the first damaged file."""
     reader = DatasetReader(Path(root))
+    unlisted = unlisted_shards(reader.root, reader.manifest)
+    if unlisted:
+        raise DatasetError(reader.root, reader.root / unlisted[0], UNLISTED)
     twins = DatasetReader(reader.root, clear=True) if reader.manifest["config"].get("twins") else None
     for s in reader.manifest["shards"]:
         reader.check_shard(s["name"])
@@ -440,6 +481,7 @@ class DatasetReader:
             raise UserError(f"{self.root} has no clear twins (generate with --twins)")
         self.index = [(f["shard"], f["index"]) for f in self.manifest["frames"]]
         self._frames = {s["name"]: s["frames"] for s in self.manifest["shards"]}
+        self._contexts = {(f["shard"], f["index"]): f["context"] for f in self.manifest["frames"]}
         self._shapes: dict | None = None
 
     def frame_shapes(self) -> dict:
@@ -486,6 +528,13 @@ class DatasetReader:
         o = np.asarray(off)
         _expect(o[0] == 0 and o[-1] == len(pts) and bool(np.all(np.diff(o) >= 0)), self.root,
                 d / "lidar_offsets.npy", f"offsets do not index lidar_points ({len(pts)} points)")
+        # one summing pass (NaN and infinity survive a sum; float32 values cannot overflow a float64
+        # one); the slower search for where only when it fails
+        if len(pts) and not math.isfinite(float(np.add.reduce(pts, axis=None, dtype=np.float64))):
+            row = int(np.flatnonzero(~np.isfinite(pts).all(axis=1))[0])
+            k = int(np.searchsorted(o, row, side="right")) - 1
+            raise DatasetError(self.root, d / "lidar_points.npy",
+                               f"frame {k}: point {row - int(o[k])} is not finite (NaN or infinity)")
         self._checked.add(shard)
 
     def _open(self, shard: str, name: str) -> np.ndarray:
@@ -519,8 +568,18 @@ class DatasetReader:
                 _expect(isinstance(r, dict) and isinstance(r.get("meta"), dict) and isinstance(r.get("labels"), dict),
                         self.root, path, f"frames[{k}] must be an object with 'meta' and 'labels' objects")
                 _check_record(self.root, path, k, r, camera)
+                self._check_context(shard, path, k, r["meta"].get("context"))
             self._json[shard] = recs
         return self._json[shard]
+
+    def _check_context(self, shard: str, path: Path, k: int, context) -> None:
+        """A frame's meta.context: a known context, the one the manifest lists for the frame."""
+        _expect(isinstance(context, str), self.root, path, f"frames[{k}].meta.context must be a string")
+        problem = _context_problem(context)
+        _expect(problem is None, self.root, path, f"frames[{k}].meta.context: {problem}")
+        listed = self._contexts.get((shard, k))
+        _expect(listed in (None, context), self.root, path,
+                f"frames[{k}].meta.context is {context!r}, manifest.json lists the frame as {listed!r}")
 
     def records(self, shard: str) -> list:
         self.check_shard(shard)

@@ -12,6 +12,7 @@ from __future__ import annotations
 import math
 import os
 import shutil
+import signal
 import time
 from collections.abc import Callable
 from dataclasses import asdict, dataclass
@@ -261,6 +262,26 @@ def _init_worker(threads: int) -> None:
     os.environ["OPENBLAS_NUM_THREADS"] = str(threads)
 
 
+def _init_pool_worker(threads: int) -> None:
+    """A local pool's worker. Ctrl-C reaches the whole process group: the parent alone handles it
+    (it terminates the pool and removes partial shards); a worker that took it would print its
+    KeyboardInterrupt traceback. The worker starts with SIGINT blocked (`_start_pool`), so it is
+    ignored from its first instruction on."""
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    signal.pthread_sigmask(signal.SIG_UNBLOCK, {signal.SIGINT})
+    _init_worker(threads)
+
+
+def _start_pool(ctx, workers: int, threads: int):
+    """ctx.Pool with SIGINT blocked while its workers (and the thread that replaces them) start: a
+    Ctrl-C in between stays pending here and is raised in this process once the pool is up."""
+    old = signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGINT})
+    try:
+        return ctx.Pool(workers, initializer=_init_pool_worker, initargs=(threads,), maxtasksperchild=None)
+    finally:
+        signal.pthread_sigmask(signal.SIG_SETMASK, old)
+
+
 def shard_files(config_dict: dict, spec_dict: dict) -> tuple[dict, dict[str, bytes]]:
     """A Ray task's body (`sensors.ray_backend.run_shards`): render one shard in a scratch
     directory and return (its record, {path relative to the shard directory: bytes})."""
@@ -382,7 +403,7 @@ def generate(config: GenerateConfig, out: str | Path, workers: int = 1, progress
                 method = pool_method
                 ctx = mp.get_context(method)
                 threads = max(1, (os.cpu_count() or 1) // workers)
-                with ctx.Pool(workers, initializer=_init_worker, initargs=(threads,), maxtasksperchild=None) as pool:
+                with _start_pool(ctx, workers, threads) as pool:
                     results = [pool.apply_async(generate_shard, (cfg, asdict(s), str(root))) for s in todo]
                     for r in results:
                         collect(r.get())

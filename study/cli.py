@@ -395,7 +395,7 @@ def _json_default(obj):
 COMMANDS: dict[str, tuple[str, str]] = {
     "scenes": ("study.commands.scenes:add_parser", "simulate scenes of a context, summarise and draw them top-down"),
     "generate": ("study.commands.dataset:add_generate", "generate a sharded sensor dataset (cameras, lidar, radar, labels)"),
-    "verify": ("study.commands.dataset:add_verify", "check a dataset's shards against its manifest checksums"),
+    "verify": ("study.commands.dataset:add_verify", "check a dataset whole: what every command checks first, and each shard's checksum"),
     "export-coco": ("study.commands.dataset:add_export", "write a dataset's FWD labels as COCO JSON"),
     "labels": ("study.commands.labels:add_parser", "what each evaluation protocol asks a detector to find (counts per range bin)"),
     "stages": ("study.commands.stages:add_parser", "a digest of every generation stage for one frame, to compare two machines"),

@@ -38,8 +38,13 @@ def load_run(run: str | Path, which: str = "latest", device: str = "cpu"):
     run = Path(run)
     cfg_path = run / "config.json"
     ckpt = run / ("checkpoint.pt" if which == "latest" else f"{which}.pt")
-    if not cfg_path.exists() or not ckpt.exists():
-        raise UserError(f"{run} is not a training run (needs config.json and {ckpt.name})")
+    if not cfg_path.exists():
+        raise UserError(f"{run} is not a training run (no config.json; see hydrabench train)")
+    if not ckpt.exists():  # a run, without the checkpoint asked for: say which it has
+        epochs = sorted(p.stem for p in run.glob("epoch-*.pt"))
+        has = f"its epochs: {', '.join(epochs)}" if epochs else "it has no epoch-NNN.pt yet"
+        raise UserError(f"{ckpt} does not exist: the run has no {'checkpoint.pt' if which == 'latest' else which} "
+                        f"({has}; --checkpoint latest is checkpoint.pt)")
     cfg = json.loads(cfg_path.read_text())
     branches = [BranchSpec(b["name"], tuple(b["sensors"]), b["frame"], b.get("fusion", "features"))
                 for b in cfg["branch_specs"]]

@@ -670,6 +670,9 @@ def run_study(cfg: StudyConfig, out: str | Path, until: str = "report", progress
     when the report stage ran or was skipped, the report's JSON (every number of the report)."""
     if until not in STAGES:
         raise UserError(f"--until: unknown stage {until!r} (choose from: {', '.join(STAGES)})")
+    from study.study_checks import check_study_config
+
+    check_study_config(cfg)  # the sections against each other, whole, before any folder or stage
     study = Study(cfg, out, progress)
     study.prepare()
     setup = _device_setup(cfg)

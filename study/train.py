@@ -20,6 +20,7 @@ checkpoint; a larger --epochs extends a finished run.
 
 from __future__ import annotations
 
+import contextlib
 import csv
 import dataclasses
 import json
@@ -34,7 +35,7 @@ import torch
 
 from fusion.data import FrameDataset, collate, hold_out_sequences, split_by_sequence
 from fusion.nets.profile import load_profile
-from sensors.dataset import DatasetReader
+from sensors.dataset import DatasetReader, lock_name, output_lock
 from sensors.dataset import check as check_dataset
 from sim.config import to_dict
 from sim.errors import UserError
@@ -296,12 +297,16 @@ def _rank_share(batch, rank: int, world: int):
     return np.array_split(np.asarray(batch), world)[rank]
 
 
+TRAIN_LOCK = lock_name("train")
+"""RUN/.train.lock: one train at a time per run (`sensors.dataset.output_lock`)."""
+
+
 def check_run_dir(out: Path, main_rank: bool = True) -> None:
     """Refuse (UserError) an --out that is not empty and holds no training run. Only the main rank
     judges: it creates the directory and writes config.json (through a temporary file), so another
     rank looking at the same moment could see a half-made run and fail a good launch (it did under
     load: rank 1 exited with code 2 while rank 0 wrote)."""
-    if main_rank and out.is_dir() and any(out.iterdir()) and not (out / "config.json").exists():
+    if main_rank and out.is_dir() and any(p.name != TRAIN_LOCK for p in out.iterdir()) and not (out / "config.json").exists():
         raise UserError(f"{out} is not empty and holds no training run (no config.json); use a new or empty --out")
 
 
@@ -620,57 +625,64 @@ def train(cfg: TrainConfig, out: Path, progress: bool = True) -> dict:
     if state is not None:
         load_weights(model, state["model"], ckpt_path)
     sources = [load_checkpoint(s)["model"] for s in srcs] if cfg.init_from and not resuming else []
+    # One train at a time per RUN (the second is refused naming the first's PID, as generate does),
+    # taken once everything is checked and read; rank 0 holds it for the whole launch.
+    hold = contextlib.ExitStack()
     if main_rank:
-        write_config(out, run_cfg)
-    ddp.barrier()  # rank 0 has checked and written config.json; no checkpoint is written before this
-    if sources:
-        apply_warm_start(model, sources, srcs, out, main_rank, progress)
-    model.train()
-    if setup.is_cuda:
-        model.to(setup.torch_device())
-    params = [p for p in model.parameters() if p.requires_grad]
-    opt = torch.optim.SGD(params, lr=cfg.lr, momentum=0.9, weight_decay=1e-4)
-    epoch, step_in_epoch, global_step = 0, 0, 0
-    resumed: dict = {}  # the interrupted epoch's running loss sums, so its row averages the whole epoch
-    if state is not None:
-        opt.load_state_dict(state["optimizer"])
-        epoch, step_in_epoch, global_step = state["epoch"], state["step_in_epoch"], state["global_step"]
-        restore_rng(state)
-        resumed = state.get("epoch_sums", {}) if step_in_epoch else {}
-        if progress:
-            sys.stderr.write(f"resuming {out} at epoch {epoch + 1}, step {step_in_epoch}\n")
-    net = ddp.wrap(model, setup)  # DistributedDataParallel under torchrun, the model itself otherwise
-    if progress and ddp.world > 1:
-        sys.stderr.write(f"data-parallel: {ddp.world} processes ({ddp.backend}), global batch {cfg.batch_size}\n")
-    # frames travel to a GPU as the uint8 they are on disk and become float there (4x fewer bytes)
-    dataset = FrameDataset(cfg.data, train_idx, sensors=model.sensors_for(None),
-                           bev_size=model.transform.image_size("radar"), protocol=cfg.protocol, uint8=setup.is_cuda)
-    result = {}
-    last_save = time.perf_counter()  # the time-based checkpoints count from here (and each save)
-    while epoch < cfg.epochs:
-        t_epoch = time.perf_counter() - resumed.get("seconds", 0.0)
-        global_step, sums, counts, train_seconds, last_save = train_epoch(
-            net, model, opt, params, cfg, setup, ddp, dataset, epoch, step_in_epoch, global_step, resumed,
-            ckpt_path, last_save, progress)
-        resumed = {}
-        sums = ddp.sum_dict(sums)  # the batch-mean losses of every process added up (one process: as is)
-        epoch += 1
-        step_in_epoch = 0
+        out.mkdir(parents=True, exist_ok=True)
+        hold.enter_context(output_lock(out, "train"))
+    with hold:
         if main_rank:
-            result = finish_epoch(model, opt, cfg, setup, reader, test_idx, chosen, out, epoch, global_step, sums,
-                                  counts, t_epoch, train_seconds)
-            last_save = time.perf_counter()
+            write_config(out, run_cfg)
+        ddp.barrier()  # rank 0 has checked and written config.json; no checkpoint is written before this
+        if sources:
+            apply_warm_start(model, sources, srcs, out, main_rank, progress)
+        model.train()
+        if setup.is_cuda:
+            model.to(setup.torch_device())
+        params = [p for p in model.parameters() if p.requires_grad]
+        opt = torch.optim.SGD(params, lr=cfg.lr, momentum=0.9, weight_decay=1e-4)
+        epoch, step_in_epoch, global_step = 0, 0, 0
+        resumed: dict = {}  # the interrupted epoch's running loss sums, so its row averages the whole epoch
+        if state is not None:
+            opt.load_state_dict(state["optimizer"])
+            epoch, step_in_epoch, global_step = state["epoch"], state["step_in_epoch"], state["global_step"]
+            restore_rng(state)
+            resumed = state.get("epoch_sums", {}) if step_in_epoch else {}
             if progress:
-                sys.stderr.write(json.dumps(result) + "\n")
-        ddp.barrier()  # the others wait for rank 0's evaluation and checkpoint
-    metrics_path = out / "metrics.csv"
-    if not result and metrics_path.exists():
-        with open(metrics_path) as fh:
-            rows = list(csv.DictReader(fh))
-        result = rows[-1] if rows else {}
-    ddp.close()
-    return {"run": str(out), "epochs": cfg.epochs, "train_frames": len(train_idx), "test_frames": len(test_idx),
-            "branches": chosen, "last": result, "device": setup.describe(), "processes": ddp.world}
+                sys.stderr.write(f"resuming {out} at epoch {epoch + 1}, step {step_in_epoch}\n")
+        net = ddp.wrap(model, setup)  # DistributedDataParallel under torchrun, the model itself otherwise
+        if progress and ddp.world > 1:
+            sys.stderr.write(f"data-parallel: {ddp.world} processes ({ddp.backend}), global batch {cfg.batch_size}\n")
+        # frames travel to a GPU as the uint8 they are on disk and become float there (4x fewer bytes)
+        dataset = FrameDataset(cfg.data, train_idx, sensors=model.sensors_for(None),
+                               bev_size=model.transform.image_size("radar"), protocol=cfg.protocol, uint8=setup.is_cuda)
+        result = {}
+        last_save = time.perf_counter()  # the time-based checkpoints count from here (and each save)
+        while epoch < cfg.epochs:
+            t_epoch = time.perf_counter() - resumed.get("seconds", 0.0)
+            global_step, sums, counts, train_seconds, last_save = train_epoch(
+                net, model, opt, params, cfg, setup, ddp, dataset, epoch, step_in_epoch, global_step, resumed,
+                ckpt_path, last_save, progress)
+            resumed = {}
+            sums = ddp.sum_dict(sums)  # the batch-mean losses of every process added up (one process: as is)
+            epoch += 1
+            step_in_epoch = 0
+            if main_rank:
+                result = finish_epoch(model, opt, cfg, setup, reader, test_idx, chosen, out, epoch, global_step, sums,
+                                      counts, t_epoch, train_seconds)
+                last_save = time.perf_counter()
+                if progress:
+                    sys.stderr.write(json.dumps(result) + "\n")
+            ddp.barrier()  # the others wait for rank 0's evaluation and checkpoint
+        metrics_path = out / "metrics.csv"
+        if not result and metrics_path.exists():
+            with open(metrics_path) as fh:
+                rows = list(csv.DictReader(fh))
+            result = rows[-1] if rows else {}
+        ddp.close()
+        return {"run": str(out), "epochs": cfg.epochs, "train_frames": len(train_idx), "test_frames": len(test_idx),
+                "branches": chosen, "last": result, "device": setup.describe(), "processes": ddp.world}
 
 
 def _append_row(path: Path, row: dict) -> None:

@@ -128,8 +128,8 @@ def run_generate(args) -> int:
 
 
 def add_verify(sub, name, help_text):
-    p = sub.add_parser(name, help=help_text, description=help_text + ". Exit code 2 names every missing or "
-                       "corrupted shard.", formatter_class=Formatter)
+    p = sub.add_parser(name, help=help_text, description=help_text + ". Exit code 2 names every missing, "
+                       "unlisted or corrupted shard and every file another command would refuse.", formatter_class=Formatter)
     p.add_argument("dir", type=dataset_path, help="dataset directory")
     p.add_argument("--json", action="store_true", help="print one JSON object on stdout, also when the dataset "
                    "is damaged ({\"ok\": false, \"problems\": [...]}, exit code 2)")

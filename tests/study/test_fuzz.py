@@ -45,7 +45,11 @@ CONTRIBUTORS = {"test_every_option_of_every_command_refuses_its_bad_values",
                 "test_train_on_a_one_sequence_dataset_writes_its_checkpoint_and_reports_no_map",
                 "test_every_run_argument_refuses_damaged_checkpoints_naming_the_file",
                 "test_generate_refuses_a_damaged_shard_in_its_out_and_leaves_no_partial_shard",
-                "test_generate_refuses_an_out_another_generate_is_writing"}
+                "test_generate_refuses_an_out_another_generate_is_writing",
+                "test_study_config_is_checked_whole_before_its_first_stage",
+                "test_train_refuses_an_out_another_train_is_writing",
+                "test_ctrl_c_to_generate_with_workers_prints_one_line",
+                "test_evaluate_names_the_missing_epoch_and_the_epochs_there"}
 """The tests that try cases; the count test checks that each of them ran and tried some."""
 
 
@@ -90,10 +94,12 @@ def world(tmp_path_factory):
     os.symlink("loop", root / "links" / "loop")  # a symbolic link loop
     damaged = root / "damaged"
     damaged.mkdir()
-    for name, (_, damage) in DAMAGES.items():
+    for name, (culprit, damage) in DAMAGES.items():
         copy = damaged / name
         shutil.copytree(data, copy)
         damage(copy)
+        if culprit != "manifest.json":
+            _rehash(copy)  # checksums that match the damage: verify must find it as the other commands do
     damaged_runs = root / "damaged_runs"  # (outside "damaged": the snapshot sees every file of these)
     damaged_runs.mkdir()
     for name, (_, damage, _) in RUN_DAMAGES.items():
@@ -101,6 +107,18 @@ def world(tmp_path_factory):
         shutil.copytree(run, copy)
         damage(copy)
     return {"root": root, "data": data, "run": run, "box": box, "damaged": damaged, "damaged_runs": damaged_runs}
+
+
+def _rehash(d: Path) -> None:
+    """Record each present shard's checksum in the manifest, as a tool that damaged the data and then
+    rewrote the manifest would (only the structural check can tell then)."""
+    from sensors.dataset import shard_digest
+
+    m = json.loads((d / "manifest.json").read_text())
+    for s in m["shards"]:
+        if (d / s["name"]).is_dir():
+            s["sha256"] = shard_digest(d / s["name"])
+    (d / "manifest.json").write_text(json.dumps(m, indent=1))
 
 
 def _write(path: Path, text: str) -> None:
@@ -166,6 +184,31 @@ def _edit_records(edit):
 def _one_box(box):
     """A valid camera_right label set of one box `box` (so only the box's values are wrong)."""
     return lambda r: r["labels"].update(camera_right={"ids": [1], "labels": [1], "boxes": [box], "difficult": [False]})
+
+
+def _not_utf8(d: Path) -> None:
+    p = d / S0 / "frames.json"
+    p.write_bytes(p.read_bytes().replace(b'"junction"', b'"junc\xfftion"', 1))  # valid JSON bytes otherwise
+
+
+def _extra_shard(d: Path) -> None:
+    shutil.copytree(d / "shard-00001", d / "shard-00002")
+
+
+def _fewer_shards(d: Path) -> None:
+    """A manifest that lists shard-00000 only (of the two folders), consistent in itself."""
+    m = json.loads((d / "manifest.json").read_text())
+    m["shards"], m["frames"] = m["shards"][:1], [f for f in m["frames"] if f["shard"] == S0]
+    (d / "manifest.json").write_text(json.dumps(m, indent=1))
+
+
+def _lidar_point(value: float, row: int = 5):
+    def damage(d: Path) -> None:
+        p = d / S0 / "lidar_points.npy"
+        a = np.load(p)
+        a[row, 1] = value
+        np.save(p, a)
+    return damage
 
 
 def _array_of_shape(name: str, frame_shape: tuple):
@@ -244,6 +287,18 @@ DAMAGES = {
     "radar_polar_wrong_size": ("radar_polar.npy", _array_of_shape("radar_polar", (400, 100))),
     "radar_bev_with_channels": ("radar_bev.npy", _array_of_shape("radar_bev", (256, 256, 3))),
     "fwd_lidar_wrong_size": ("fwd_lidar.npy", _array_of_shape("fwd_lidar", (94, 168, 3))),
+    # (issue 38) what `verify` once passed and the readers once took
+    "frames_json_not_utf8": ("frames.json", _not_utf8),
+    "shard_not_in_manifest": ("shard-00002", _extra_shard),
+    "manifest_lists_fewer_shards": ("shard-00001", _fewer_shards),
+    "context_unknown": ("frames.json", _edit_records(lambda r: r["meta"].update(context="atlantis"))),
+    "context_not_canonical": ("frames.json", _edit_records(lambda r: r["meta"].update(context="Junction"))),
+    "context_disagrees_with_manifest": ("frames.json", _edit_records(lambda r: r["meta"].update(context="fog"))),
+    "manifest_context_unknown": ("manifest.json", _edit_manifest(lambda m: m["frames"][0].update(context="atlantis"))),
+    "manifest_shard_context_unknown": ("manifest.json",
+                                       _edit_manifest(lambda m: m["shards"][0].update(context="atlantis"))),
+    "lidar_points_nan": ("lidar_points.npy", _lidar_point(NAN)),
+    "lidar_points_inf": ("lidar_points.npy", _lidar_point(INF, row=-1)),
 }
 
 
@@ -864,6 +919,151 @@ def test_gate_data_label_and_lidar_fog_bars_print_whole_lines_into_a_log(capsys,
         assert "from tqdm import" not in (Path(__file__).resolve().parents[2] / path).read_text(), path
 
 
+# ---------------------------------------------------------------------------------------------
+# issue 38, part 3: kinds of bad input found by a new user
+
+
+def _hold_lock(out: Path, command: str) -> subprocess.Popen:
+    """A process holding `command`'s output lock on `out` until a line arrives on its stdin."""
+    repo = Path(__file__).resolve().parents[2]
+    holder = subprocess.Popen(
+        [sys.executable, "-c", "import sys\nfrom pathlib import Path\nfrom sensors.dataset import output_lock\n"
+         "with output_lock(Path(sys.argv[1]), sys.argv[2]):\n    print('locked', flush=True)\n    sys.stdin.readline()\n",
+         str(out), command],
+        stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True, cwd=repo, env=dict(os.environ, PYTHONPATH=str(repo)))
+    assert holder.stdout.readline().strip() == "locked"
+    return holder
+
+
+def test_study_config_is_checked_whole_before_its_first_stage(world, tmp_path, capsys):
+    """A gate the evaluation uses but the gates stage does not train, a gate named twice, a
+    train.init_from that names nothing or a damaged run: refused before the generate stage (with
+    --until generate too: the config is checked whole), with no study folder."""
+    import yaml
+
+    from study.runner import PRESETS_DIR, study_config_from_dict
+
+    tiny = yaml.safe_load((PRESETS_DIR / "tiny.yaml").read_text())
+
+    def edited(**sections):
+        doc = json.loads(json.dumps(tiny))
+        for section, values in sections.items():
+            doc.setdefault(section, {}).update(values)
+        return doc
+
+    cases = [  # (config, what the line must name)
+        (edited(gates={"gates": ["deep"]}), "evaluate.hydra_gate"),  # (hydra_gate: attention, the default)
+        (edited(gates={"gates": ["deep", "deep"]}, evaluate={"hydra_gate": "deep"}), "twice"),
+        (edited(gates={"gates": ["deep"]}, evaluate={"hydra_gate": "deep"}), "evaluate.eco_gate"),
+        (edited(gates={"gates": []}, evaluate={"hydra_gate": "deep", "eco_gate": "knowledge"}), "evaluate.hydra_gate"),
+        (edited(train={"init_from": str(tmp_path / "nowhere")}), "train.init_from"),
+        (edited(train={"init_from": str(world["damaged_runs"] / "checkpoint_truncated")}), "checkpoint.pt"),
+    ]
+    out = tmp_path / "study"
+    for k, (doc, needle) in enumerate(cases):
+        path = tmp_path / f"case{k}.yaml"
+        path.write_text(yaml.safe_dump(doc))
+        before = snapshot(tmp_path)
+        TRACKED.append((f"study {needle} case {k}", 0.0))
+        code = cli(["study", str(path), "--out", str(out), "--until", "generate"])
+        captured = capsys.readouterr()
+        lines = captured.err.strip().splitlines()
+        assert code == 2 and len(lines) == 1 and needle in lines[0] and "Traceback" not in captured.err, \
+            (doc, captured.err[-1500:])
+        assert captured.out == "" and not out.exists() and snapshot(tmp_path) == before
+    # what the check lets through: knowledge needs no trained gate; an existing run to start from
+    from study.study_checks import check_study_config
+
+    check_study_config(study_config_from_dict(edited(gates={"gates": []}, evaluate={
+        "hydra_gate": "knowledge", "eco_gate": "knowledge"}, train={"init_from": str(world["run"])})))
+    check_study_config(study_config_from_dict(edited(gates={"gates": ["deep"]}, evaluate={
+        "hydra_gate": "deep", "eco_gate": "deep"})))
+
+
+def test_train_refuses_an_out_another_train_is_writing(world, tmp_path, capsys):
+    """Two train runs into one --out: the second is refused with one line naming the first's PID (the
+    lock generate takes, on RUN/.train.lock), and changes nothing; once the first is done, the same
+    command runs and leaves no lock behind."""
+    run = tmp_path / "run"
+    shutil.copytree(world["run"], run)
+    argv = ["train", str(world["data"]), "--out", str(run), "--branches", "camera_right", "--epochs", "1",
+            "--batch-size", "1", "--warmup-steps", "1", "--threads", "2", "--eval-frames", "1"]  # the fixture's run
+    holder = _hold_lock(run, "train")
+    try:
+        before = snapshot(tmp_path)
+        TRACKED.append(("train while another train writes --out", 0.0))
+        code = cli(argv)
+        err = capsys.readouterr().err
+        assert code == 2 and len(err.strip().splitlines()) == 1, err
+        assert f"PID {holder.pid}" in err and str(run) in err and "train" in err, err
+        assert snapshot(tmp_path) == before
+    finally:
+        holder.communicate("\n", timeout=60)
+    assert holder.returncode == 0
+    assert cli(argv) == 0, capsys.readouterr().err[-2000:]  # (epoch 1 of 1 is done: nothing to train)
+    capsys.readouterr()
+    assert not (run / ".train.lock").exists()
+
+
+def test_ctrl_c_to_generate_with_workers_prints_one_line(tmp_path):
+    """Ctrl-C in a terminal sends SIGINT to the whole process group, the pool's workers included:
+    they print nothing (no ForkPoolWorker traceback), the command prints `hydrabench: interrupted`,
+    exits 130 and leaves no partial shard and no lock."""
+    import queue
+    import signal
+    import threading
+
+    repo = Path(__file__).resolve().parents[2]
+    out = tmp_path / "d"
+    env = dict(os.environ, HYDRABENCH_PROGRESS_S="0", PYTHONPATH=str(repo))
+    argv = [sys.executable, "-m", "study.cli", "generate", "--out", str(out), "--contexts", "junction",
+            "--frames-per-context", "12", "--sequence-length", "2", "--seed", "3", "--workers", "2"]
+    TRACKED.append(("Ctrl-C to the process group of generate --workers 2", 0.0))
+    p = subprocess.Popen(argv, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, cwd=tmp_path, env=env,
+                         start_new_session=True)  # its own process group, as a terminal's job
+    lines: queue.Queue = queue.Queue()
+    reader = threading.Thread(target=lambda: [lines.put(line) for line in p.stderr], daemon=True)
+    reader.start()
+    err: list[str] = []
+    try:
+        deadline = time.monotonic() + 300
+        while not any(line.startswith("generate: ") for line in err):  # a shard done: the workers render the next
+            assert time.monotonic() < deadline and p.poll() is None, "".join(err)[-2000:]
+            try:
+                err.append(lines.get(timeout=1.0))
+            except queue.Empty:
+                pass
+        os.killpg(p.pid, signal.SIGINT)
+        code = p.wait(timeout=120)
+    finally:
+        if p.poll() is None:
+            os.killpg(p.pid, signal.SIGKILL)
+            p.wait()
+    reader.join(timeout=30)
+    while not lines.empty():
+        err.append(lines.get())
+    text = "".join(err)
+    assert code == 130 and text.splitlines()[-1] == "hydrabench: interrupted", (code, text[-2000:])
+    for word in ("Traceback", "ForkPoolWorker", "KeyboardInterrupt"):
+        assert word not in text, text[-2000:]
+    assert p.stdout.read() == ""
+    left = sorted(os.listdir(out))
+    assert all(name.startswith("shard-") and ".tmp-" not in name for name in left), left  # complete shards only
+
+
+def test_evaluate_names_the_missing_epoch_and_the_epochs_there(sandbox, capsys):
+    """`evaluate --checkpoint epoch-002` of a one-epoch run names the missing file and the epochs the
+    run has (not "not a training run")."""
+    world = sandbox
+    for words, p in commands(build_parser()):
+        if words == ("evaluate",):
+            argv = base_argv(words, p, world) + ["--checkpoint", "epoch-002"]
+            line = check_refused(argv, capsys, world)
+            assert "epoch-002.pt" in line and "epoch-001" in line and "not a training run" not in line, line
+            return
+    raise AssertionError("no evaluate command")
+
+
 def test_zz_count_of_cases(capsys):
     """Runs last in this file: the number of cases the suite tried (see the README)."""
     with capsys.disabled():
@@ -876,4 +1076,5 @@ def test_zz_count_of_cases(capsys):
     assert CASES_BY_TEST["test_generate_refuses_a_folder_of_other_files_and_duplicates"] == 4
     assert CASES_BY_TEST["test_train_on_a_one_sequence_dataset_writes_its_checkpoint_and_reports_no_map"] == 5
     assert CASES_BY_TEST["test_entry_point_end_to_end_in_a_subprocess"] == 1
+    assert CASES_BY_TEST["test_study_config_is_checked_whole_before_its_first_stage"] == 6
     assert len(TRACKED) > 500

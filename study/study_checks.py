@@ -1,0 +1,52 @@
+"""A study config checked whole, before `hydrabench study` starts its first stage.
+
+Each section's dataclass refuses its own bad values when it is loaded (`study.runner`); what no
+section can see alone is checked here: references from one section to another (a gate the
+evaluation uses must be one the gates stage trains) and references to things outside the config
+(`train.init_from` must name a run or a reference model). A study refused here has created nothing;
+one refused after its generate stage would have left a study folder and minutes of work behind.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+from sim.errors import UserError
+
+UNTRAINED_GATES = ("knowledge",)
+"""Gates that need no training: the evaluation may use them whatever gates.gates lists."""
+
+
+def check_study_config(cfg) -> None:
+    """Refuse (UserError, one line naming the key) a `study.runner.StudyConfig` whose sections
+    disagree or whose `train.init_from` resolves to nothing."""
+    learned = tuple(cfg.gates.gates)
+    twice = sorted({g for g in learned if learned.count(g) > 1})
+    if twice:
+        raise UserError(f"gates.gates names {twice[0]!r} twice")
+    for key in ("hydra_gate", "eco_gate"):
+        gate = getattr(cfg.evaluate, key)
+        if gate not in UNTRAINED_GATES and gate not in learned:
+            raise UserError(f"evaluate.{key}: {gate!r} is not among the gates gates.gates trains "
+                            f"({', '.join(learned) or 'none'}); add it there or use knowledge")
+    if cfg.train.init_from:
+        init_from_run(cfg.train.init_from)
+
+
+def init_from_run(text: str) -> Path:
+    """train.init_from -> the run directory whose checkpoint.pt is whole (UserError otherwise)."""
+    from study.checkpoints import checkpoint_problem
+    from study.reference_model import resolve_run
+
+    try:
+        run = resolve_run(text)
+    except UserError as exc:
+        raise UserError(f"train.init_from {text!r}: {exc}") from None
+    ckpt = run / "checkpoint.pt"
+    if not ckpt.is_file():
+        raise UserError(f"train.init_from {text!r}: neither a reference model (models/, `hydrabench model list`) "
+                        "nor a training run (no checkpoint.pt)")
+    problem = checkpoint_problem(ckpt)
+    if problem:
+        raise UserError(f"train.init_from {text!r}: {ckpt} {problem}")
+    return run
