@@ -2,7 +2,7 @@
 the experiments' configs (issue 38): a refactoring of the config may not rerun a finished study.
 
 A stage key hashes the stage's config inputs and, through `stage_identity`, the code, the device and
-the profiles (`study.runner` module docstring). Only the config part is a function of the config
+the profiles (`study.stages` module docstring). Only the config part is a function of the config
 alone, so the test takes that part: `stage_identity` returns nothing and the stages are stand-ins
 that return fixed digests. `data/study_config_keys.json` holds, per preset and stage, the inputs and
 the key computed by the code before the change (`python tests/study/test_study_config_keys.py` rewrites
@@ -17,11 +17,13 @@ from pathlib import Path
 
 import pytest
 
-import study.runner as runner
+import study.stage_cache as stage_cache
+import study.stages as stages
 from study.device import DeviceSetup
+from study.study_config import PRESETS_DIR, load_study_config
 
 FIXTURE = Path(__file__).parent / "data" / "study_config_keys.json"
-PRESETS = sorted(p.stem for p in runner.PRESETS_DIR.glob("*.yaml"))
+PRESETS = sorted(p.stem for p in PRESETS_DIR.glob("*.yaml"))
 
 
 def config_keys(preset: str, out: Path, patch) -> dict:
@@ -38,19 +40,19 @@ def config_keys(preset: str, out: Path, patch) -> dict:
             return f"digest-of-{name}", {}
         return work
 
-    real_stage = runner.Study.stage
+    real_stage = stage_cache.Study.stage
 
     def recording_stage(self, name, inputs, upstream, func, **kwargs):
         rec = real_stage(self, name, inputs, upstream, func, **kwargs)
         seen[name] = {"key": rec.key, "inputs": json.loads(json.dumps(inputs, sort_keys=True, default=str))}
         return rec
 
-    for name in runner.STAGES:
-        patch(runner, f"{name}_stage", stand_in(name))
-    patch(runner, "stage_identity", lambda name, cfg, setup: {})
-    patch(runner, "_device_setup", lambda cfg: DeviceSetup(device="cpu", threads=1, amp=False))
-    patch(runner.Study, "stage", recording_stage)
-    runner.run_study(runner.load_study_config(preset), out, progress=False)
+    for name in stages.STAGES:
+        patch(stages, f"{name}_stage", stand_in(name))
+    patch(stages, "stage_identity", lambda name, cfg, setup: {})
+    patch(stages, "_device_setup", lambda cfg: DeviceSetup(device="cpu", threads=1, amp=False))
+    patch(stage_cache.Study, "stage", recording_stage)
+    stages.run_study(load_study_config(preset), out, progress=False)
     return seen
 
 
@@ -58,8 +60,8 @@ def config_keys(preset: str, out: Path, patch) -> dict:
 def test_the_config_part_of_every_stage_key_is_unchanged(preset, tmp_path, monkeypatch):
     want = json.loads(FIXTURE.read_text())[preset]
     got = config_keys(preset, tmp_path / "study", monkeypatch.setattr)
-    assert list(got) == list(runner.STAGES)
-    for stage in runner.STAGES:
+    assert list(got) == list(stages.STAGES)
+    for stage in stages.STAGES:
         assert got[stage]["inputs"] == want[stage]["inputs"], f"{preset} {stage}: the config inputs changed"
         assert got[stage]["key"] == want[stage]["key"], f"{preset} {stage}: the key changed"
 
