@@ -34,13 +34,16 @@ import json
 import shutil
 import time
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 from sim.config import to_dict
 from sim.errors import UserError
 from study.gate_data import file_sha256
 from study.outputs import atomic_path, write_json_atomic
 from study.stage_cache import Study, _digest, link_farm
-from study.study_config import GatesSection, StudyConfig, TrainSection
+
+if TYPE_CHECKING:  # the config imports torch (TrainConfig); `hydrabench study --help` reads STAGES from here
+    from study.study_config import GatesSection, StudyConfig, TrainSection
 
 STAGES = ("generate", "train", "gatedata", "gates", "evaluate", "report")
 

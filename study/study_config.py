@@ -4,13 +4,70 @@
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import get_type_hints
 
+from sensors.generate import GenerateConfig
 from sim.config import from_dict, load_yaml
 from sim.errors import UserError
+from study.branch_gate_study import GateTrainConfig
+from study.train import TrainConfig  # torch: loading a study config imports it, `--help` does not
 
 PRESETS_DIR = Path(__file__).resolve().parents[1] / "configs" / "study"
+
+class Shared:
+    """The annotation of a section field that is its experiment config's field of the same name
+    (`section_of`)."""
+
+
+def section_of(source: type):
+    """Class decorator: a frozen config section whose fields annotated `Shared` are `source`'s fields
+    of the same name, with their type and default (a value written beside one is the study's own
+    default) and their meaning in `source`'s docstring; a section whose source checks its fields
+    when built (`__post_init__`) runs those checks through `source_config`. Each field of the study is so defined once: a field
+    renamed or dropped in `source` fails here, at import. The docstring gets the list of shared
+    fields."""
+
+    def wrap(cls):
+        hints = get_type_hints(source)
+        fields = {f.name: f for f in dataclasses.fields(source)}
+        own_defaults, annotations, shared = {}, {}, []
+        for name, annotation in cls.__dict__.get("__annotations__", {}).items():
+            if annotation not in (Shared, "Shared"):  # a string under `from __future__ import annotations`
+                annotations[name] = annotation
+                continue
+            if name not in fields:
+                raise TypeError(f"{cls.__name__}.{name}: {source.__name__} has no field {name!r}")
+            annotations[name] = hints[name]
+            shared.append(name)
+            if name in cls.__dict__:
+                own_defaults[name] = cls.__dict__[name]
+            elif fields[name].default is dataclasses.MISSING:
+                raise TypeError(f"{cls.__name__}.{name}: {source.__name__}.{name} has no default; give the study's")
+            else:
+                setattr(cls, name, fields[name].default)
+        cls.__annotations__ = annotations
+        cls.SOURCE = source
+        cls.SHARED = tuple(shared)
+        listed = ", ".join(f"{n} (here {own_defaults[n]!r})" if n in own_defaults else n for n in shared)
+        cls.__doc__ = (cls.__doc__ or "").rstrip() + (
+            f"\n\n    Fields shared with `{source.__module__}.{source.__name__}` (type, default and meaning "
+            f"there): {listed}.\n    ")
+        return dataclass(frozen=True)(cls)
+
+    return wrap
+
+
+def source_config(section, where: str, **fields):
+    """`section`'s experiment config built from its shared fields and `fields` (the experiment's own,
+    or a shared one's value as the experiment takes it), so that the experiment's checks refuse a
+    bad value; its UserError is prefixed with `where`, the section's YAML key."""
+    try:
+        return section.SOURCE(**{**{n: getattr(section, n) for n in section.SHARED}, **fields})
+    except UserError as exc:
+        raise UserError(f"{where}: {exc}") from None
 
 
 def _positive(where: str, value, lo=1) -> None:
@@ -18,80 +75,65 @@ def _positive(where: str, value, lo=1) -> None:
         raise UserError(f"{where} must be >= {lo}, got {value}")
 
 
-@dataclass(frozen=True)
+@section_of(GenerateConfig)
 class DataSection:
     """The datasets (`sensors.generate.GenerateConfig`): one dataset, split by sequence into train
     and test by the training run; with `twins` every frame also has its clear-weather twin (only
-    the condition differs), which the severity sweeps compare against.
+    the condition differs), which the severity sweeps compare against. "all" contexts are the
+    eight."""
 
-    Fields:
-        contexts: context names or combinations; "all" = the eight.
-        frames_per_context: [frames] per context.
-        sequence_length: [frames] per sequence (= per shard; the split is by sequence).
-        frame_rate_hz: [Hz] within a sequence.
-        severities: condition severities drawn per sequence (0-5).
-        twins: also render every frame in clear weather.
-        seed: root seed of the scenes.
-    """
+    contexts: Shared = ("all",)
+    frames_per_context: Shared
+    sequence_length: Shared
+    frame_rate_hz: Shared
+    severities: Shared
+    twins: Shared = True
+    seed: Shared
 
-    contexts: tuple[str, ...] = ("all",)
-    frames_per_context: int = 20
-    sequence_length: int = 10
-    frame_rate_hz: float = 2.0
-    severities: tuple[int, ...] = (1, 2, 3, 4, 5)
-    twins: bool = True
-    seed: int = 0
-
-    def generate_config(self, profile: str):
-        from sensors.generate import GenerateConfig
+    def generate_config(self, profile: str) -> GenerateConfig:
+        """The GenerateConfig of this section for sensor `profile` (its checks refuse a bad value)."""
         from sim.scenario import CONTEXT_NAMES
 
         contexts = tuple(CONTEXT_NAMES) if tuple(self.contexts) == ("all",) else tuple(self.contexts)
-        return GenerateConfig(contexts=contexts, frames_per_context=self.frames_per_context, seed=self.seed,
-                              profile=profile, sequence_length=self.sequence_length, frame_rate_hz=self.frame_rate_hz,
-                              severities=tuple(self.severities), twins=self.twins)
+        return source_config(self, "data", contexts=contexts, profile=profile, severities=tuple(self.severities))
 
 
-@dataclass(frozen=True)
+@section_of(TrainConfig)
 class TrainSection:
-    """Training (`study.train.TrainConfig`, HydraFusion 5.3): one run of the paper's branches (the
-    single-sensor branches among them give Table 2 (i) and late fusion (iii)) and, with
-    `early_fusion`, one run of the input-level early-fusion models (Table 2 (ii)).
+    """Training (`study.train`, HydraFusion 5.3): one run of the paper's branches (the single-sensor
+    branches among them give Table 2 (i) and late fusion (iii)) and, with `early_fusion`, one run of
+    the input-level early-fusion models (Table 2 (ii)). The study trains on the `reference` or
+    `visible` protocol (it fuses in the right camera); its gate split is `gate_holdout`, which the
+    gates learn from and every choice is made on.
 
     Fields:
         branches: branches of the paper set to train (empty = all seven).
         early_fusion: also train the early-fusion set (cameras, cameras + lidar, radar + lidar).
         early_branches: which of the early-fusion models (empty = all three).
-        epochs, batch_size, lr, warmup_steps, clip_grad, seed, checkpoint_steps: as TrainConfig.
-        eval_frames: test frames scored after each epoch (0 = all).
-        protocol: ground truth to train on and score against (reference | visible | bev-free).
-        gate_holdout: share of the train split's sequences, per context, the detectors never train
-            on: the gate split the gates learn from and every choice is made on (0 = none: the
-            gates learn from the detectors' training frames, the choices are made on validation
-            sequences carved from them).
-        model: `KEY=VALUE` overrides of the model profile, as `train --model` (e.g. width=0.5).
         init_from: a reference model (a name in models/, `study.reference_model`) or a run directory
             whose weights initialise the paper run (`train --init-from`; "" = from scratch). Its
             checkpoint's digest is part of the train stage's key.
     """
 
-    branches: tuple[str, ...] = ()
+    branches: Shared
     early_fusion: bool = True
     early_branches: tuple[str, ...] = ()
-    epochs: int = 10
-    batch_size: int = 4
-    lr: float = 5e-3
-    warmup_steps: int = 100
-    clip_grad: float = 10.0
-    seed: int = 0
-    checkpoint_steps: int = 100
-    eval_frames: int = 0
-    protocol: str = "reference"
-    gate_holdout: float = 0.0
-    model: tuple[str, ...] = ()
+    epochs: Shared
+    batch_size: Shared
+    lr: Shared
+    warmup_steps: Shared
+    clip_grad: Shared
+    seed: Shared
+    checkpoint_steps: Shared
+    eval_frames: Shared
+    protocol: Shared
+    gate_holdout: Shared
+    model: Shared
     init_from: str = ""
 
     def __post_init__(self) -> None:
+        # TrainConfig checks its fields in `study.train.check_config`, against the dataset, at train
+        # time; the study refuses them here, before it generates anything
         from fusion.nets.profile import parse_model_overrides
 
         parse_model_overrides(self.model)  # refuses a malformed or data-fixed key now, not after generation
@@ -114,17 +156,15 @@ class TrainSection:
                             f"got {self.protocol!r}")
 
 
-@dataclass(frozen=True)
+@section_of(GateTrainConfig)
 class GatesSection:
     """Gate datasets and gates: HydraFusion's per-branch gates (`study.branch_gate_study`, Section 5.2.2) and
-    EcoFusion's per-configuration gates (`study.eco`), and the latency table (Eq. 6).
+    EcoFusion's per-configuration gates (`study.eco`), and the latency table (Eq. 6). Every learned
+    gate trains with the shared fields (HydraFusion 5.3: lr 5e-5; targets "auto": the gate split
+    when train.gate_holdout > 0).
 
     Fields:
         gates: the learned gates to train (deep, attention); knowledge and the oracles need none.
-        epochs, batch_size, lr, val_fraction, seed, targets: as GateTrainConfig (HydraFusion 5.3:
-            lr 5e-5; targets "auto": the gate split when train.gate_holdout > 0).
-        context, pooling: the learned gates' inputs besides the pooled stem features (GateTrainConfig:
-            the frame's context label; "global" pooling: an MLP on each channel's mean).
         compare_targets: with a gate split, also train every gate on the detectors' own training
             frames (validated on the same gate-split frames), so the report measures what held-out
             targets change (under RUN/gates/<gate>/in_sample/ and RUN/eco/gates/<gate>/in_sample/).
@@ -134,15 +174,15 @@ class GatesSection:
     """
 
     gates: tuple[str, ...] = ("deep", "attention")
-    epochs: int = 100
-    batch_size: int = 32
-    lr: float = 5e-5
-    val_fraction: float = 0.15
-    seed: int = 0
-    targets: str = "auto"
+    epochs: Shared
+    batch_size: Shared
+    lr: Shared
+    val_fraction: Shared
+    seed: Shared
+    targets: Shared
     compare_targets: bool = True
-    context: bool = False
-    pooling: str = "grid"
+    context: Shared
+    pooling: Shared
     eco_max_frames: int = 0
     fusion: str = "wbf"
     energy_frames: int = 3
@@ -153,6 +193,7 @@ class GatesSection:
         bad = [g for g in self.gates if g not in ("deep", "attention")]
         if bad:
             raise UserError(f"gates.gates: {bad[0]!r} is not a learned gate (choose from: deep, attention)")
+        # GateTrainConfig checks targets and pooling when built (below); these, the trainer assumes
         for name in ("epochs", "batch_size", "energy_frames", "energy_repeats"):
             _positive(f"gates.{name}", getattr(self, name))
         for name in ("eco_max_frames", "energy_check", "seed"):
@@ -163,14 +204,8 @@ class GatesSection:
             raise UserError(f"gates.val_fraction must be in [0, 1), got {self.val_fraction}")
         if self.fusion not in ("nms", "soft-nms", "wbf"):
             raise UserError(f"gates.fusion must be nms, soft-nms or wbf, got {self.fusion!r}")
-        from study.selection import TARGETS
-
-        if self.targets not in TARGETS:
-            raise UserError(f"gates.targets must be one of {', '.join(TARGETS)}, got {self.targets!r}")
-        if self.pooling not in ("grid", "global"):
-            raise UserError(f"gates.pooling must be grid or global, got {self.pooling!r}")
-        if self.pooling == "global" and "attention" in self.gates:
-            raise UserError("gates.pooling global: the attention gate attends over the pooled grid; train deep only")
+        for gate in self.gates or ("deep",):  # the shared fields, as each gate's GateTrainConfig
+            source_config(self, "gates", gate=gate)
 
 
 @dataclass(frozen=True)

@@ -247,7 +247,9 @@ def test_bad_configs_are_one_line_errors(tmp_path, capsys):
                          ("data:\n  contexts: [mars]\n", "mars"),
                          ("gates:\n  gates: [optimal]\n", "not a learned gate"),
                          ("train:\n  gate_holdout: 1.0\n", "train.gate_holdout must be in [0, 1)"),
-                         ("gates:\n  targets: test\n", "gates.targets must be one of auto, holdout, train"),
+                         ("gates:\n  targets: test\n", "gates: targets: expected one of auto, holdout, train"),
+                         ("gates:\n  epochs: 0\n", "gates.epochs must be >= 1"),
+                         ("data:\n  frames_per_context: 0\n", "data: frames_per_context must be >= 1"),
                          ("gates:\n  pooling: global\n", "the attention gate attends over the pooled grid"),
                          ("data: [1, 2]\n", "data")):
         path = tmp_path / "bad.yaml"
