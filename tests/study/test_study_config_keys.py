@@ -5,8 +5,8 @@ A stage key hashes the stage's config inputs and, through `stage_identity`, the 
 the profiles (`study.stages` module docstring). Only the config part is a function of the config
 alone, so the test takes that part: `stage_identity` returns nothing and the stages are stand-ins
 that return fixed digests. `data/study_config_keys.json` holds, per preset and stage, the inputs and
-the key computed by the code before the change (`python tests/study/test_study_config_keys.py` rewrites
-it; do that only for a change that is meant to rerun studies).
+the key computed by the code before the change (`python -m tests.study.test_study_config_keys` from
+the checkout's root rewrites it; do that only for a change that is meant to rerun studies).
 """
 
 from __future__ import annotations
