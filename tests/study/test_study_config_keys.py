@@ -4,7 +4,7 @@ the experiments' configs (issue 38): a refactoring of the config may not rerun a
 A stage key hashes the stage's config inputs and, through `stage_identity`, the code, the device and
 the profiles (`study.stages` module docstring). Only the config part is a function of the config
 alone, so the test takes that part: `stage_identity` returns nothing and the stages are stand-ins
-that return fixed digests. `data/study_config_keys.json` holds, per preset and stage, the inputs and
+that return fixed digests. `data/study_config_keys.json` holds, per preset (and for an empty config) and stage, the inputs and
 the key computed by the code before the change (`python -m tests.study.test_study_config_keys` from
 the checkout's root rewrites it; do that only for a change that is meant to rerun studies).
 """
@@ -20,10 +20,12 @@ import pytest
 import study.stage_cache as stage_cache
 import study.stages as stages
 from study.device import DeviceSetup
-from study.study_config import PRESETS_DIR, load_study_config
+from study.study_config import PRESETS_DIR, StudyConfig, load_study_config
 
 FIXTURE = Path(__file__).parent / "data" / "study_config_keys.json"
-PRESETS = sorted(p.stem for p in PRESETS_DIR.glob("*.yaml"))
+DEFAULTS = "(defaults)"
+"""An empty config: every field's default."""
+PRESETS = sorted(p.stem for p in PRESETS_DIR.glob("*.yaml")) + [DEFAULTS]
 
 
 def config_keys(preset: str, out: Path, patch) -> dict:
@@ -52,7 +54,7 @@ def config_keys(preset: str, out: Path, patch) -> dict:
     patch(stages, "stage_identity", lambda name, cfg, setup: {})
     patch(stages, "_device_setup", lambda cfg: DeviceSetup(device="cpu", threads=1, amp=False))
     patch(stage_cache.Study, "stage", recording_stage)
-    stages.run_study(load_study_config(preset), out, progress=False)
+    stages.run_study(StudyConfig() if preset == DEFAULTS else load_study_config(preset), out, progress=False)
     return seen
 
 
@@ -67,7 +69,7 @@ def test_the_config_part_of_every_stage_key_is_unchanged(preset, tmp_path, monke
 
 
 def test_the_fixture_covers_every_preset():
-    assert sorted(json.loads(FIXTURE.read_text())) == PRESETS
+    assert sorted(json.loads(FIXTURE.read_text())) == sorted(PRESETS)
 
 
 if __name__ == "__main__":  # rewrite the fixture from this code
