@@ -17,6 +17,7 @@ from study.train import TrainConfig  # torch: loading a study config imports it,
 
 PRESETS_DIR = Path(__file__).resolve().parents[1] / "configs" / "study"
 
+
 class Shared:
     """The annotation of a section field that is its experiment config's field of the same name
     (`section_of`)."""
@@ -26,9 +27,9 @@ def section_of(source: type):
     """Class decorator: a frozen config section whose fields annotated `Shared` are `source`'s fields
     of the same name, with their type and default (a value written beside one is the study's own
     default) and their meaning in `source`'s docstring; a section whose source checks its fields
-    when built (`__post_init__`) runs those checks through `source_config`. Each field of the study is so defined once: a field
-    renamed or dropped in `source` fails here, at import. The docstring gets the list of shared
-    fields."""
+    when built (`__post_init__`) runs those checks through `source_config`. So each field is defined
+    once, and a field renamed or dropped in `source` fails here, at import. The section's docstring
+    gets the list of its shared fields."""
 
     def wrap(cls):
         hints = get_type_hints(source)
