@@ -350,8 +350,8 @@ _typed(training_run, "run")
 
 def study_config(text: str):
     """An argparse type: a study preset name (configs/study/<name>.yaml) or a YAML file of
-    `study.runner.StudyConfig` fields, loaded and checked whole (unknown keys, bad values)."""
-    from study.runner import load_study_config
+    `study.study_config.StudyConfig` fields, loaded and checked whole (unknown keys, bad values)."""
+    from study.study_config import load_study_config
 
     return _as_type_error(load_study_config, _path_text(text))
 

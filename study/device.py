@@ -180,7 +180,7 @@ def compute_identity(setup: DeviceSetup | None = None, *, device: str | None = N
     """What a result computed under `setup` depends on beyond its inputs: the device type ("cpu" or
     "cuda", not the index: two GPUs of one kind give the same numbers) and the resolved precision
     ("fp32", "bf16", "fp16": whether autocast is on and in which dtype). Part of every cache key and
-    record (`study.runner` stage keys, the gate-data cache key). Without a setup, `device` (a torch
+    record (`study.stages` stage keys, the gate-data cache key). Without a setup, `device` (a torch
     device or its string) and `precision` (default "fp32") say it directly."""
     dev = str(setup.device if setup is not None else (device or "cpu"))
     prec = setup.precision if setup is not None else (precision or "fp32")

@@ -29,7 +29,7 @@ def _fmt(v) -> str:
 
 def settled(path: Path) -> Path:
     """Where a file written inside a stage's work directory (`<stage>-<key>.partial`, renamed to
-    `<stage>-<key>` when the stage ends, `study.runner.Study.stage`) will be: the Markdown links to
+    `<stage>-<key>` when the stage ends, `study.stage_cache.Study.stage`) will be: the Markdown links to
     that, not to the directory that is gone by the time anyone reads the report."""
     return Path(*[part.removesuffix(".partial") for part in Path(path).parts])
 

@@ -1,6 +1,6 @@
 """A study config checked whole, before `hydrabench study` starts its first stage.
 
-Each section's dataclass refuses its own bad values when it is loaded (`study.runner`); what no
+Each section's dataclass refuses its own bad values when it is loaded (`study.study_config`); what no
 section can see alone is checked here: references from one section to another (a gate the
 evaluation uses must be one the gates stage trains) and references to things outside the config
 (`train.init_from` must name a run or a reference model). A study refused here has created nothing;
@@ -18,7 +18,7 @@ UNTRAINED_GATES = ("knowledge",)
 
 
 def check_study_config(cfg) -> None:
-    """Refuse (UserError, one line naming the key) a `study.runner.StudyConfig` whose sections
+    """Refuse (UserError, one line naming the key) a `study.study_config.StudyConfig` whose sections
     disagree or whose `train.init_from` resolves to nothing."""
     learned = tuple(cfg.gates.gates)
     twice = sorted({g for g in learned if learned.count(g) > 1})

@@ -1,4 +1,4 @@
-"""`hydrabench study`: the argparse adapter of `study.runner.run_study` (stages, caching and the
+"""`hydrabench study`: the argparse adapter of `study.stages.run_study` (stages, caching and the
 report are described there and in `study.report`)."""
 
 from __future__ import annotations
@@ -27,14 +27,14 @@ are errors).
 
 
 def add_parser(sub, name, help_text):
-    import study.runner as runner
+    import study.stages as stages
 
-    p = sub.add_parser(name, help=help_text, description=runner.__doc__, epilog=EPILOG, formatter_class=Formatter)
+    p = sub.add_parser(name, help=help_text, description=stages.__doc__, epilog=EPILOG, formatter_class=Formatter)
     p.add_argument("config", metavar="CONFIG", type=study_config,
                    help="a preset (tiny, smoke, cpu, cpu-frontier, cpu-long, paper) or a YAML file of StudyConfig fields")
     p.add_argument("--out", required=True, type=out_dir,
                    help="study directory (created; an existing study is continued; a folder of other files is refused)")
-    p.add_argument("--until", default="report", choices=list(runner.STAGES), help="stop after this stage")
+    p.add_argument("--until", default="report", choices=list(stages.STAGES), help="stop after this stage")
     p.add_argument("--device", default=None, choices=["auto", "cpu", "cuda"],
                    help="where networks run (overrides the config's run.device) [the config's]")
     p.add_argument("--threads", type=count_int, default=None,
@@ -53,7 +53,7 @@ def run(args) -> int:
     import dataclasses
 
     from study.device import resolve_device
-    from study.runner import run_study
+    from study.stages import run_study
 
     cfg = args.config
     over = {k: v for k, v in (("device", args.device), ("threads", args.threads), ("workers", args.workers),

@@ -125,7 +125,8 @@ def test_selective_fusion_notebook_reads_a_tiny_study_and_answers_its_three_ques
                                                                                       cache_lock):
     """03 on the tiny study (configs/study/tiny.yaml), shared with tests/study/test_study_runner.py:
     whichever runs first runs the study, the other finds every stage done."""
-    from study.runner import load_study_config, run_study
+    from study.stages import run_study
+    from study.study_config import load_study_config
 
     cache = shared_cache
     study = Path(os.environ.get("HYDRABENCH_TINY_STUDY") or cache / "study-tiny")

@@ -941,7 +941,7 @@ def test_study_config_is_checked_whole_before_its_first_stage(world, tmp_path, c
     --until generate too: the config is checked whole), with no study folder."""
     import yaml
 
-    from study.runner import PRESETS_DIR, study_config_from_dict
+    from study.study_config import PRESETS_DIR, study_config_from_dict
 
     tiny = yaml.safe_load((PRESETS_DIR / "tiny.yaml").read_text())
 

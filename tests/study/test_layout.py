@@ -7,7 +7,8 @@
 - experiments never import the command line back (`study.cli`, `study.commands`);
 - nothing in `sim/`, `sensors/`, `fusion/` imports `study` (packages import one way);
 - no two modules import each other, directly or round a longer circle, even inside a function;
-- every module path the README and BENCHMARKS.md name in code spans exists.
+- every module path the README and BENCHMARKS.md name in code spans exists;
+- every path and name the "Layout of `study/`" tables of docs/development.md give exists.
 """
 
 from __future__ import annotations
@@ -127,6 +128,8 @@ def test_every_command_runs_through_an_adapter_in_study_commands():
     for t in targets:
         module, func = t.split(":")
         path = ROOT / (module.replace(".", "/") + ".py")
+        if not path.is_file():  # a package of adapters (study/commands/bench/)
+            path = ROOT / module.replace(".", "/") / "__init__.py"
         assert func in {n.name for n in _tree(path).body if isinstance(n, ast.FunctionDef)}, t
 
 
@@ -252,3 +255,49 @@ def test_module_paths_named_in_the_docs_exist():
                 if not (ROOT / ref).is_file():
                     missing.append(f"{doc}: {ref}")
     assert not missing, "the docs name modules that do not exist: " + "; ".join(missing)
+
+
+def _layout_tables(text: str) -> list[list[str]]:
+    """The table cells of the "Layout of `study/`" section, one list per row (header rows skipped)."""
+    section = text.split("## Layout of `study/`", 1)[1].split("\n## ", 1)[0]
+    rows = [line.strip().strip("|").split("|") for line in section.splitlines() if line.startswith("|")]
+    return [[c.strip() for c in row] for row in rows if not set("".join(row)) <= set("-| ")][1:]
+
+
+def _top_level_names(path: Path) -> set[str]:
+    tree = _tree(path)
+    names = {n.name for n in tree.body if isinstance(n, (ast.FunctionDef, ast.ClassDef))}
+    names |= {t.id for n in tree.body if isinstance(n, (ast.Assign, ast.AnnAssign))
+              for t in (n.targets if isinstance(n, ast.Assign) else [n.target]) if isinstance(t, ast.Name)}
+    return names
+
+
+def _layout_problems(text: str) -> list[str]:
+    """Paths in the layout tables that do not exist, and names (`GATES`, `run_study`,
+    `GateTrainConfig.gate`) that no module named in the same cell defines. A path with a placeholder
+    (`study/bench/<what>.py`) or a glob is not checked."""
+    problems = []
+    for row in _layout_tables(text):
+        for cell in row:
+            spans = re.findall(r"`([^`]+)`", cell)
+            paths = [s for s in spans if re.fullmatch(r"(sim|sensors|fusion|study|configs|tests)/[\w/.*<>-]*|[\w-]+\.md", s)]
+            real = [s for s in paths if not re.search(r"[<>*]", s)]
+            for s in real:
+                if not (ROOT / s).exists():
+                    problems.append(f"{s} does not exist")
+            modules = [ROOT / s for s in real if s.endswith(".py") and (ROOT / s).is_file()]
+            defined = set().union(*(_top_level_names(m) for m in modules)) if modules else set()
+            for s in spans:
+                name = re.sub(r"\(.*\)$", "", s).split(".")[0]
+                if s in paths or not name.isidentifier() or not modules:
+                    continue
+                if name not in defined:
+                    problems.append(f"`{s}`: not defined in {', '.join(str(m.relative_to(ROOT)) for m in modules)}")
+    return problems
+
+
+def test_the_layout_tables_name_what_exists():
+    assert _layout_problems((ROOT / "docs" / "development.md").read_text()) == []
+    broken = "## Layout of `study/`\n\n| a | b |\n|---|---|\n| x | `study/stages.py`: `run_studies`, `study/nope.py` |\n"
+    assert _layout_problems(broken) == ["study/nope.py does not exist",
+                                        "`run_studies`: not defined in study/stages.py"]

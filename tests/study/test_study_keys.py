@@ -14,9 +14,10 @@ from pathlib import Path
 
 import pytest
 
-import study.runner as runner
+import study.stages as stages
 from study.device import DeviceSetup
-from study.runner import STAGES, load_study_config, run_study
+from study.stages import STAGES, run_study
+from study.study_config import load_study_config
 
 
 @pytest.fixture
@@ -37,7 +38,7 @@ def fake_stages(monkeypatch):
         return work
 
     for name in STAGES:
-        monkeypatch.setattr(runner, f"{name}_stage", stand_in(name))
+        monkeypatch.setattr(stages, f"{name}_stage", stand_in(name))
     return ran
 
 
@@ -48,7 +49,7 @@ def _setup(device="cpu", amp=False):
 def _rerun(tmp_path, ran, monkeypatch, change, setup=None) -> list[str]:
     """Stages that ran again after `change()` (the first run in the same directory ran them all)."""
     cfg = load_study_config("tiny")
-    monkeypatch.setattr(runner, "_device_setup", setup or _setup())
+    monkeypatch.setattr(stages, "_device_setup", setup or _setup())
     first = run_study(cfg, tmp_path / "study", progress=False)
     assert ran == list(STAGES) and {s["status"] for s in first["stages"].values()} == {"ran"}
     ran.clear()
@@ -108,17 +109,17 @@ def test_a_changed_comment_or_docstring_reruns_nothing(fake_stages, tmp_path, mo
 
 def test_another_device_reruns_every_stage_that_runs_a_network(fake_stages, tmp_path, monkeypatch):
     assert _rerun(tmp_path, fake_stages, monkeypatch,
-                  lambda: monkeypatch.setattr(runner, "_device_setup", _setup("cuda:0"))) == list(STAGES[1:])
+                  lambda: monkeypatch.setattr(stages, "_device_setup", _setup("cuda:0"))) == list(STAGES[1:])
 
 
 def test_another_precision_reruns_every_stage_that_runs_a_network(fake_stages, tmp_path, monkeypatch):
     assert _rerun(tmp_path, fake_stages, monkeypatch,
-                  lambda: monkeypatch.setattr(runner, "_device_setup", _setup("cuda:0", amp=True)),
+                  lambda: monkeypatch.setattr(stages, "_device_setup", _setup("cuda:0", amp=True)),
                   setup=_setup("cuda:0")) == list(STAGES[1:])
 
 
 def test_every_stage_records_its_device_and_precision(fake_stages, tmp_path, monkeypatch):
-    monkeypatch.setattr(runner, "_device_setup", _setup("cuda:3", amp=True))
+    monkeypatch.setattr(stages, "_device_setup", _setup("cuda:3", amp=True))
     r = run_study(load_study_config("tiny"), tmp_path / "study", progress=False)
     for name, s in r["stages"].items():
         manifest = json.loads((Path(s["dir"]) / "manifest.json").read_text())
@@ -136,7 +137,7 @@ def test_train_model_overrides_and_init_from_are_checked_and_keyed(tmp_path, mon
 
     from sim.errors import UserError
     from study import reference_model as rm
-    from study.runner import _init_from, stage_identity
+    from study.stages import _init_from, stage_identity
 
     cfg = load_study_config("tiny")
     with pytest.raises(UserError, match="fixed by the dataset"):

@@ -22,7 +22,8 @@ from pathlib import Path
 import pytest
 
 from sim.errors import UserError
-from study.runner import STAGES, load_study_config, run_study, study_config_from_dict
+from study.stages import STAGES, run_study
+from study.study_config import load_study_config, study_config_from_dict
 
 ROOT = Path(__file__).resolve().parents[2]
 
@@ -246,7 +247,9 @@ def test_bad_configs_are_one_line_errors(tmp_path, capsys):
                          ("data:\n  contexts: [mars]\n", "mars"),
                          ("gates:\n  gates: [optimal]\n", "not a learned gate"),
                          ("train:\n  gate_holdout: 1.0\n", "train.gate_holdout must be in [0, 1)"),
-                         ("gates:\n  targets: test\n", "gates.targets must be one of auto, holdout, train"),
+                         ("gates:\n  targets: test\n", "gates: targets: expected one of auto, holdout, train"),
+                         ("gates:\n  epochs: 0\n", "gates.epochs must be >= 1"),
+                         ("data:\n  frames_per_context: 0\n", "data: frames_per_context must be >= 1"),
                          ("gates:\n  pooling: global\n", "the attention gate attends over the pooled grid"),
                          ("data: [1, 2]\n", "data")):
         path = tmp_path / "bad.yaml"
@@ -266,7 +269,7 @@ def test_bad_configs_are_one_line_errors(tmp_path, capsys):
 
 def test_every_preset_loads_and_the_help_names_it(capsys):
     from study.cli import main
-    from study.runner import PRESETS_DIR
+    from study.study_config import PRESETS_DIR
 
     names = sorted(p.stem for p in PRESETS_DIR.glob("*.yaml"))
     assert {"tiny", "smoke", "cpu", "cpu-long", "paper"} <= set(names)
@@ -288,7 +291,8 @@ def test_the_twin_columns_are_scored_on_the_clear_twins(tiny, tmp_path, monkeypa
     """The severity sweep's "clear" column runs the branches on the clear-weather arrays (a study once
     ran them on the degraded frames again, so every twin equalled its frame, lidar in dense fog too)."""
     import study.detect as detect
-    from study.runner import _device_setup, eco_settings, link_farm
+    from study.stage_cache import link_farm
+    from study.stages import _device_setup, eco_settings
     from study.study_eval import evaluate_study
 
     stages = {n: Path(s["dir"]) for n, s in tiny["first"]["stages"].items()}

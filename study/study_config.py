@@ -1,0 +1,358 @@
+"""The config of `hydrabench study CONFIG`: `StudyConfig` and its sections, as a preset
+(configs/study/<name>.yaml) or a YAML file, loaded strictly (unknown keys and bad values are
+`UserError`s naming the key)."""
+
+from __future__ import annotations
+
+import dataclasses
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import get_type_hints
+
+from sensors.generate import GenerateConfig
+from sim.config import from_dict, load_yaml
+from sim.errors import UserError
+from study.branch_gate_study import GateTrainConfig
+from study.train import TrainConfig  # torch: loading a study config imports it, `--help` does not
+
+PRESETS_DIR = Path(__file__).resolve().parents[1] / "configs" / "study"
+
+
+class Shared:
+    """The annotation of a section field that is its experiment config's field of the same name
+    (`section_of`)."""
+
+
+def section_of(source: type):
+    """Class decorator: a frozen config section whose fields annotated `Shared` are `source`'s fields
+    of the same name, with their type and default (a value written beside one is the study's own
+    default) and their meaning in `source`'s docstring; a section whose source checks its fields
+    when built (`__post_init__`) runs those checks through `source_config`. So each field is defined
+    once, and a field renamed or dropped in `source` fails here, at import. The section's docstring
+    gets the list of its shared fields."""
+
+    def wrap(cls):
+        hints = get_type_hints(source)
+        fields = {f.name: f for f in dataclasses.fields(source)}
+        own_defaults, annotations, shared = {}, {}, []
+        for name, annotation in cls.__dict__.get("__annotations__", {}).items():
+            if annotation not in (Shared, "Shared"):  # a string under `from __future__ import annotations`
+                annotations[name] = annotation
+                continue
+            if name not in fields:
+                raise TypeError(f"{cls.__name__}.{name}: {source.__name__} has no field {name!r}")
+            annotations[name] = hints[name]
+            shared.append(name)
+            if name in cls.__dict__:
+                own_defaults[name] = cls.__dict__[name]
+            elif fields[name].default is dataclasses.MISSING:
+                raise TypeError(f"{cls.__name__}.{name}: {source.__name__}.{name} has no default; give the study's")
+            else:
+                setattr(cls, name, fields[name].default)
+        cls.__annotations__ = annotations
+        cls.SOURCE = source
+        cls.SHARED = tuple(shared)
+        listed = ", ".join(f"{n} (here {own_defaults[n]!r})" if n in own_defaults else n for n in shared)
+        cls.__doc__ = (cls.__doc__ or "").rstrip() + (
+            f"\n\n    Fields shared with `{source.__module__}.{source.__name__}` (type, default and meaning "
+            f"there): {listed}.\n    ")
+        return dataclass(frozen=True)(cls)
+
+    return wrap
+
+
+def source_config(section, where: str, **fields):
+    """`section`'s experiment config built from its shared fields and `fields` (the experiment's own,
+    or a shared one's value as the experiment takes it), so that the experiment's checks refuse a
+    bad value; its UserError is prefixed with `where`, the section's YAML key."""
+    try:
+        return section.SOURCE(**{**{n: getattr(section, n) for n in section.SHARED}, **fields})
+    except UserError as exc:
+        raise UserError(f"{where}: {exc}") from None
+
+
+def _positive(where: str, value, lo=1) -> None:
+    if value < lo:
+        raise UserError(f"{where} must be >= {lo}, got {value}")
+
+
+@section_of(GenerateConfig)
+class DataSection:
+    """The datasets (`sensors.generate.GenerateConfig`): one dataset, split by sequence into train
+    and test by the training run; with `twins` every frame also has its clear-weather twin (only
+    the condition differs), which the severity sweeps compare against. "all" contexts are the
+    eight."""
+
+    contexts: Shared = ("all",)
+    frames_per_context: Shared
+    sequence_length: Shared
+    frame_rate_hz: Shared
+    severities: Shared
+    twins: Shared = True
+    seed: Shared
+
+    def generate_config(self, profile: str) -> GenerateConfig:
+        """The GenerateConfig of this section for sensor `profile` (its checks refuse a bad value)."""
+        from sim.scenario import CONTEXT_NAMES
+
+        contexts = tuple(CONTEXT_NAMES) if tuple(self.contexts) == ("all",) else tuple(self.contexts)
+        return source_config(self, "data", contexts=contexts, profile=profile, severities=tuple(self.severities))
+
+
+@section_of(TrainConfig)
+class TrainSection:
+    """Training (`study.train`, HydraFusion 5.3): one run of the paper's branches (the single-sensor
+    branches among them give Table 2 (i) and late fusion (iii)) and, with `early_fusion`, one run of
+    the input-level early-fusion models (Table 2 (ii)). The study trains on the `reference` or
+    `visible` protocol (it fuses in the right camera); its gate split is `gate_holdout`, which the
+    gates learn from and every choice is made on.
+
+    Fields:
+        branches: branches of the paper set to train (empty = all seven).
+        early_fusion: also train the early-fusion set (cameras, cameras + lidar, radar + lidar).
+        early_branches: which of the early-fusion models (empty = all three).
+        init_from: a reference model (a name in models/, `study.reference_model`) or a run directory
+            whose weights initialise the paper run (`train --init-from`; "" = from scratch). Its
+            checkpoint's digest is part of the train stage's key.
+    """
+
+    branches: Shared
+    early_fusion: bool = True
+    early_branches: tuple[str, ...] = ()
+    epochs: Shared
+    batch_size: Shared
+    lr: Shared
+    warmup_steps: Shared
+    clip_grad: Shared
+    seed: Shared
+    checkpoint_steps: Shared
+    eval_frames: Shared
+    protocol: Shared
+    gate_holdout: Shared
+    model: Shared
+    init_from: str = ""
+
+    def __post_init__(self) -> None:
+        # TrainConfig checks its fields in `study.train.check_config`, against the dataset, at train
+        # time; the study refuses them here, before it generates anything
+        from fusion.nets.profile import parse_model_overrides
+
+        parse_model_overrides(self.model)  # refuses a malformed or data-fixed key now, not after generation
+        if not 0 <= self.gate_holdout < 1:
+            raise UserError(f"train.gate_holdout must be in [0, 1), got {self.gate_holdout}")
+        for name in ("epochs", "batch_size", "checkpoint_steps"):
+            _positive(f"train.{name}", getattr(self, name))
+        for name in ("warmup_steps", "eval_frames", "seed"):
+            _positive(f"train.{name}", getattr(self, name), 0)
+        if not self.lr > 0:
+            raise UserError(f"train.lr must be > 0, got {self.lr}")
+        if self.clip_grad < 0:
+            raise UserError(f"train.clip_grad must be >= 0, got {self.clip_grad}")
+        early = ("early_cameras", "early_camera_lidar", "early_radar_lidar")
+        bad = [b for b in self.early_branches if b not in early]
+        if bad:
+            raise UserError(f"train.early_branches: unknown model {bad[0]!r} (choose from: {', '.join(early)})")
+        if self.protocol not in ("reference", "visible"):
+            raise UserError(f"train.protocol must be reference or visible (the study fuses in the right camera), "
+                            f"got {self.protocol!r}")
+
+
+@section_of(GateTrainConfig)
+class GatesSection:
+    """Gate datasets and gates: HydraFusion's per-branch gates (`study.branch_gate_study`, Section 5.2.2) and
+    EcoFusion's per-configuration gates (`study.eco`), and the latency table (Eq. 6). Every learned
+    gate trains with the shared fields (HydraFusion 5.3: lr 5e-5; targets "auto": the gate split
+    when train.gate_holdout > 0).
+
+    Fields:
+        gates: the learned gates to train (deep, attention); knowledge and the oracles need none.
+        compare_targets: with a gate split, also train every gate on the detectors' own training
+            frames (validated on the same gate-split frames), so the report measures what held-out
+            targets change (under RUN/gates/<gate>/in_sample/ and RUN/eco/gates/<gate>/in_sample/).
+        eco_max_frames: at most this many frames of each split for EcoFusion (0 = all).
+        fusion: late fusion of an EcoFusion configuration (nms | soft-nms | wbf; EcoFusion 4.4: wbf).
+        energy_frames, energy_repeats, energy_check: the latency measurement (eco-energy).
+    """
+
+    gates: tuple[str, ...] = ("deep", "attention")
+    epochs: Shared
+    batch_size: Shared
+    lr: Shared
+    val_fraction: Shared
+    seed: Shared
+    targets: Shared
+    compare_targets: bool = True
+    context: Shared
+    pooling: Shared
+    eco_max_frames: int = 0
+    fusion: str = "wbf"
+    energy_frames: int = 3
+    energy_repeats: int = 3
+    energy_check: int = 12
+
+    def __post_init__(self) -> None:
+        bad = [g for g in self.gates if g not in ("deep", "attention")]
+        if bad:
+            raise UserError(f"gates.gates: {bad[0]!r} is not a learned gate (choose from: deep, attention)")
+        # GateTrainConfig checks targets and pooling when built (below); these, the trainer assumes
+        for name in ("epochs", "batch_size", "energy_frames", "energy_repeats"):
+            _positive(f"gates.{name}", getattr(self, name))
+        for name in ("eco_max_frames", "energy_check", "seed"):
+            _positive(f"gates.{name}", getattr(self, name), 0)
+        if not self.lr > 0:
+            raise UserError(f"gates.lr must be > 0, got {self.lr}")
+        if not 0 <= self.val_fraction < 1:
+            raise UserError(f"gates.val_fraction must be in [0, 1), got {self.val_fraction}")
+        if self.fusion not in ("nms", "soft-nms", "wbf"):
+            raise UserError(f"gates.fusion must be nms, soft-nms or wbf, got {self.fusion!r}")
+        for gate in self.gates or ("deep",):  # the shared fields, as each gate's GateTrainConfig
+            source_config(self, "gates", gate=gate)
+
+
+@dataclass(frozen=True)
+class EvaluateSection:
+    """Evaluation on the run's test split.
+
+    Fields:
+        k: branches HydraFusion's gate keeps per frame (HydraFusion Table 2 (iv): top 3).
+        hydra_gate: the gate of the HydraFusion rows (knowledge | deep | attention).
+        eco_gate: the gate of the EcoFusion rows (knowledge | deep | attention).
+        lambda_e: EcoFusion's energy weight (Eq. 8) of the EcoFusion rows.
+        gamma: candidate margin of Eq. 7 (EcoFusion Section 5: 0.5).
+        rule: Eq. 7 as "prose" (within gamma of the best) or "equation" (as printed).
+        power: P of Eq. 6 where no counter exists: "px2" (45.4 W) or watts as a string.
+        energy_scale: px2 | late | joules (`fusion.eco.optimise.normalise_energy`).
+        loss_scale: late | raw: the L_f lambda_E and gamma weigh (`fusion.eco.optimise.normalise_loss`).
+        twins: score the clear-weather twins of the test frames too (severity sweeps).
+        bootstrap: draws of whole test sequences for 95 % intervals of every method's mAP, overall
+            and per context, and of every paired difference (`study.detect.context_bootstrap`;
+            0 = none).
+    """
+
+    k: int = 3
+    hydra_gate: str = "attention"
+    eco_gate: str = "attention"
+    lambda_e: float = 0.01
+    gamma: float = 0.5
+    rule: str = "prose"
+    power: str = "px2"
+    energy_scale: str = "px2"
+    loss_scale: str = "late"
+    twins: bool = True
+    bootstrap: int = 0
+
+    def __post_init__(self) -> None:
+        _positive("evaluate.k", self.k)
+        from fusion.metrics import MAX_BOOTSTRAP
+
+        if isinstance(self.bootstrap, bool) or not isinstance(self.bootstrap, int) or not 0 <= self.bootstrap <= MAX_BOOTSTRAP:
+            raise UserError(f"evaluate.bootstrap must be an integer in [0, {MAX_BOOTSTRAP}], got {self.bootstrap!r}")
+        for name in ("hydra_gate", "eco_gate"):
+            if getattr(self, name) not in ("knowledge", "deep", "attention"):
+                raise UserError(f"evaluate.{name} must be knowledge, deep or attention, got {getattr(self, name)!r}")
+        if not 0 <= self.lambda_e <= 1:
+            raise UserError(f"evaluate.lambda_e must be in [0, 1], got {self.lambda_e}")
+        if not self.gamma >= 0:
+            raise UserError(f"evaluate.gamma must be >= 0, got {self.gamma}")
+        if self.rule not in ("prose", "equation"):
+            raise UserError(f"evaluate.rule must be prose or equation, got {self.rule!r}")
+        if self.energy_scale not in ("px2", "late", "joules"):
+            raise UserError(f"evaluate.energy_scale must be px2, late or joules, got {self.energy_scale!r}")
+        if self.loss_scale not in ("late", "raw"):
+            raise UserError(f"evaluate.loss_scale must be late or raw, got {self.loss_scale!r}")
+        from fusion.eco.energy import power_model
+
+        try:
+            power_model(self.power)
+        except ValueError as exc:
+            raise UserError(f"evaluate.power: {exc}") from None
+
+
+@dataclass(frozen=True)
+class RunSection:
+    """Where and how fast the stages run. The resolved device type and precision are part of the
+    keys of the stages that run networks; threads, workers and backend of none.
+
+    Fields:
+        device: auto | cpu | cuda | cuda:N.
+        threads: torch CPU threads (0: the cores available).
+        workers: generation processes (and Ray CPUs with backend ray).
+        backend: local | ray (generation: one Ray task per shard).
+        amp: precision of the train stage (`study.device.resolve_amp`): "default" (bf16 autocast
+            on CUDA, fp32 on the CPU), "auto" (bf16 where the device computes it natively: a GPU, or
+            a CPU with AMX-BF16 or AVX512-BF16, `study.device.native_bf16`), "bf16" or "off". The
+            backbones only: anchors, box coding and the heads stay fp32. The stages after train
+            always run in fp32.
+    """
+
+    device: str = "auto"
+    threads: int = 0
+    workers: int = 1
+    backend: str = "local"
+    amp: str = "default"
+
+    def __post_init__(self) -> None:
+        if isinstance(self.amp, bool):  # YAML 1.1 reads a bare `off` / `on` as a boolean
+            object.__setattr__(self, "amp", "bf16" if self.amp else "off")
+        if self.amp not in ("default", "auto", "bf16", "off"):
+            raise UserError(f"run.amp must be default, auto, bf16 or off, got {self.amp!r}")
+        _positive("run.threads", self.threads, 0)
+        _positive("run.workers", self.workers)
+        if self.backend not in ("local", "ray"):
+            raise UserError(f"run.backend must be local or ray, got {self.backend!r}")
+
+
+@dataclass(frozen=True)
+class StudyConfig:
+    """One study (YAML: these keys, each section with its own; unknown keys are errors).
+
+    Fields:
+        scale: the name every table carries (smoke, cpu, paper, or your own).
+        meaningless: the numbers are too small to mean anything (smoke, tests): the report says so
+            in its first line.
+        profile: sensor and model profile (cpu | paper).
+        data, train, gates, evaluate, run: the sections above.
+    """
+
+    scale: str = "custom"
+    meaningless: bool = False
+    profile: str = "cpu"
+    data: DataSection = field(default_factory=DataSection)
+    train: TrainSection = field(default_factory=TrainSection)
+    gates: GatesSection = field(default_factory=GatesSection)
+    evaluate: EvaluateSection = field(default_factory=EvaluateSection)
+    run: RunSection = field(default_factory=RunSection)
+
+    def __post_init__(self) -> None:
+        if not self.scale.strip():
+            raise UserError("scale must name the study's scale")
+        self.data.generate_config(self.profile)  # contexts, severities, profile: refused here
+        from fusion.nets import load_profile
+
+        try:
+            paper = [b.name for b in load_profile(self.profile).branches]
+        except (UserError, OSError, ValueError) as exc:
+            raise UserError(f"profile: {exc}") from None
+        bad = [b for b in self.train.branches if b not in paper]
+        if bad:
+            raise UserError(f"train.branches: unknown branch {bad[0]!r} (choose from: {', '.join(paper)})")
+        if len(set(self.train.branches)) != len(self.train.branches):
+            raise UserError("train.branches names a branch twice")
+
+
+def load_study_config(spec: str) -> StudyConfig:
+    """A preset name (configs/study/<name>.yaml) or a YAML file path -> StudyConfig (strict)."""
+    path = Path(spec)
+    if not spec.endswith((".yaml", ".yml")) and not path.exists():
+        preset = PRESETS_DIR / f"{spec}.yaml"
+        if not preset.is_file():
+            names = sorted(p.stem for p in PRESETS_DIR.glob("*.yaml"))
+            raise UserError(f"{spec!r} is neither a preset ({', '.join(names)}) nor a YAML file")
+        path = preset
+    if not path.is_file():
+        raise UserError(f"{spec}: " + ("not a file" if path.exists() else "does not exist"))
+    return load_yaml(StudyConfig, path)
+
+
+def study_config_from_dict(data: dict) -> StudyConfig:
+    return from_dict(StudyConfig, data, "study config")
