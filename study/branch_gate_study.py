@@ -391,7 +391,7 @@ def train_gate(run_dir, data, cfg: GateTrainConfig, progress: bool = True, fresh
 
     from fusion.nets.branch_gates import GATES, build_gate
     from sensors.dataset import DatasetReader
-    from study.detect import load_run
+    from study.scoring import load_run
     from study.selection import gate_frames
 
     cls = GATES.get(cfg.gate)
@@ -510,7 +510,7 @@ def _rates_per_context(selections, contexts, branches) -> dict[str, dict[str, fl
 def _setup(run_dir, data, split, weights, checkpoint, setup=None):
     from fusion.nets.branch_gates import gate_sensors
     from sensors.dataset import DatasetReader
-    from study.detect import frames_for, load_run
+    from study.scoring import frames_for, load_run
 
     setup = setup or resolve_device(purpose="eval")
     model, cfg = load_run(run_dir, checkpoint, device=setup.device)
@@ -560,7 +560,7 @@ def evaluate_gate(run_dir, data, gate: str, k=None, fusion: str = "soft-nms", sp
     selects run, then they are fused."""
     import torch
 
-    from study.detect import fused, fusion_method, score, to_detections
+    from study.scoring import fused, fusion_method, score, to_detections
     from study.train import run_protocol
 
     method = fusion_method(fusion)
@@ -629,7 +629,7 @@ def gate_pass(run_dir, data, model, names, indices, checkpoint: str = "latest", 
     import torch
 
     from fusion.nets.branch_gates import rank_branches
-    from study.detect import to_detections
+    from study.scoring import to_detections
 
     gate_objs = {g: _gate_on_device(make_gate(g, model, run_dir, checkpoint), model) for g in names}
     branches = list(model.branches)
@@ -668,7 +668,7 @@ def evaluate_all_gates(run_dir, data, gates=None, fusions=TABLE_FUSIONS, ks=None
     from fusion.late import fuse
     from fusion.nets.branch_gates import GATES
     from sensors.rig import Calibration
-    from study.detect import score
+    from study.scoring import score
     from study.train import run_protocol
 
     model, _cfg, indices, used_split, reader = _setup(run_dir, data, split, weights, checkpoint, setup)

@@ -11,7 +11,7 @@ beside it; then, in the right camera, with one late-fusion method (`--fusion`, f
   a-posteriori branch losses (the oracle: no deployable gate does better at choosing by loss).
 
 Every method is scored on the same frames (VOC mAP@0.5, all classes, the run's protocol) and
-compared with `late` by the paired sequence bootstrap (`study.detect.context_bootstrap`): whole
+compared with `late` by the paired sequence bootstrap (`study.scoring.context_bootstrap`): whole
 sequences drawn with replacement, every method scored on each draw. A difference whose 95 %
 interval holds 0 is "not resolved". Nothing is chosen here: k and the fusion method are inputs.
 """
@@ -42,7 +42,7 @@ def compare(run_dir, data, *, gates=GATES, k: int = 2, fusion: str = "soft-nms",
     mAP, mAP per context, and mAP minus late fusion with its 95 % interval and verdict, overall and
     per context. `twins`: also each method's robustness on the clear-weather twins (`robustness`)."""
     from study.branch_gate_study import _setup, gate_pass, parse_k
-    from study.detect import context_bootstrap, difference_interval, fused, fusion_method, score
+    from study.scoring import context_bootstrap, difference_interval, fused, fusion_method, score
     from study.train import run_protocol
 
     run_dir, data = Path(run_dir), Path(data)
@@ -129,7 +129,7 @@ def robustness(run_dir, data, model, reader, gp, choices, sources, twin_gates, k
     from sensors.dataset import DatasetReader
     from sim.actors import CLASSES
     from study.branch_gate_study import gate_pass
-    from study.detect import VEHICLES, _image_matches, fused, ground_truth
+    from study.scoring import VEHICLES, _image_matches, fused, ground_truth
 
     if not reader.manifest["config"].get("twins"):
         raise UserError(f"--twins: {data} has no clear-weather twins (generate it with --twins)")

@@ -255,7 +255,7 @@ def add_intervals(doc: Doc, r: dict, tag: str) -> None:
     ctxs = r["dataset"]["contexts"]
     ci = r.get("intervals")
     if ci:
-        from study.detect import difference_interval
+        from study.scoring import difference_interval
 
         doc.h(2, "How sure: 95 % intervals of every method's mAP and of its difference from late fusion")
         doc.p(f"{ci['resamples']} draws of whole test sequences with replacement (frames of a sequence share traffic "

@@ -4,7 +4,7 @@ branches, gates trained), the early-fusion run, and the run's test split.
 Everything is computed from each branch's detections on each test frame, computed once (the
 EcoFusion configuration dataset holds them, `study.eco.data.EcoData`): a method is a per-frame
 choice of branches whose detections are late-fused in the right camera and scored with VOC
-mAP@0.5 under the run's protocol (`study.detect.score`). Fusing afterwards equals running only the
+mAP@0.5 under the run's protocol (`study.scoring.score`). Fusing afterwards equals running only the
 chosen branches (a branch depends only on its own sensors' stems; tested in tests/study). Methods:
 
 - single sensors: one single-sensor branch (HydraFusion Table 2 (i), EcoFusion "none");
@@ -62,7 +62,7 @@ class Methods:
         return fuse_choice(self.ev.dets, self.ev.metas, self.branches, self.frames, members, method, memo)
 
     def score(self, members, method: str | None = None, keep=None) -> dict:
-        from study.detect import score
+        from study.scoring import score
 
         per = self.fused(members, method)
         if keep is not None:
@@ -112,7 +112,7 @@ def evaluate_study(run, run_early, data, cfg, s, work: Path, setup=None, progres
     """Every number of the study's report (module docstring). `cfg`: the StudyConfig; `s`: its
     EcoSettings; figures are written under `work`."""
     from study.branch_gate_study import evaluate_all_gates
-    from study.eco.evaluate import GATE_ORDER, EcoEval
+    from study.eco.ecofusion_eval import GATE_ORDER, EcoEval
     from study.eco.sweep import sweep
     from study.selection import SelectionLog
 
@@ -206,8 +206,8 @@ class ValidationFrames:
         self.memo: dict = {}
 
     def score(self, members_per_frame, method: str) -> dict:
-        from study.detect import score
         from study.eco.data import fuse_choice
+        from study.scoring import score
 
         per = fuse_choice(self.dets, self.metas, self.ev.ed.branches, self.ev.model.branch_frames,
                           [tuple(m) for m in members_per_frame], method, self.memo.setdefault(method, {}))
@@ -325,7 +325,7 @@ def eco_gate_choices(ev, gates, lambda_e: float, gamma: float) -> tuple[dict, di
 
 
 def score_methods(M: Methods, choices: dict, progress: bool) -> dict:
-    """Each method's choices fused and scored: {name: `study.detect.score` result}."""
+    """Each method's choices fused and scored: {name: `study.scoring.score` result}."""
     bar = progress_bar(total=len(choices), desc="fuse and score the methods", unit="method", enabled=progress)
     scores = {}
     for name, ch in choices.items():
@@ -349,8 +349,8 @@ def early_fusion(run_early, data, ev, method: str, batch_size: int, setup) -> Ea
     """Run and score every early-fusion model of `run_early` on the test frames (None: no run)."""
     if run_early is None:
         return EarlyFusion()
-    from study.detect import fused as fuse_frames
-    from study.detect import load_run, run_branches, score
+    from study.scoring import fused as fuse_frames
+    from study.scoring import load_run, run_branches, score
 
     model, _ = load_run(run_early, "latest", device=setup.device if setup else "cpu")
     names = list(model.branches)
@@ -364,7 +364,7 @@ def early_fusion(run_early, data, ev, method: str, batch_size: int, setup) -> Ea
 
 def bootstrap_intervals(M: Methods, choices: dict, early_fused: dict, ev, resamples: int) -> dict:
     """95 % intervals: whole test sequences drawn with replacement, every method on each draw."""
-    from study.detect import context_bootstrap
+    from study.scoring import context_bootstrap
 
     sources = {name: M.fused(ch) for name, ch in choices.items()}
     sources.update({f"early:{b}": per for b, per in early_fused.items()})
@@ -407,7 +407,7 @@ def cost_table(ev, choices: dict) -> dict:
     A learned gate (deep, attention: HydraFusion's or EcoFusion's) is charged the stems it reads that
     its chosen branches do not need (`EcoEval.gate_overhead`), as EcoFusion's Table 1 charges them: one
     accounting for every method of the report."""
-    from study.eco.evaluate import FEATURE_GATES
+    from study.eco.ecofusion_eval import FEATURE_GATES
 
     index = _config_index(ev)
 
@@ -438,7 +438,7 @@ def clear_twins(ev, early_model, data, batch_size: int) -> Twins | None:
     if not ev.reader.manifest["config"].get("twins"):
         return None
     from sensors.dataset import DatasetReader
-    from study.detect import run_branches
+    from study.scoring import run_branches
 
     reader = DatasetReader(data, clear=True)
     clear_frames = run_branches(ev.model, data, ev.test, list(ev.ed.branches), batch_size=batch_size,
@@ -463,8 +463,8 @@ def severity_sweeps(M: Methods, ev, scores: dict, choices: dict, early_fused: di
                     swept, method: str, progress: bool) -> dict:
     """Vehicle mAP against severity per condition, {condition: {method: {severity: {"degraded",
     "clear", "frames"}}}}; "clear" is the same frames' clear twins (fixed choices and early models)."""
-    from study.detect import fused as fuse_frames
-    from study.detect import score
+    from study.scoring import fused as fuse_frames
+    from study.scoring import score
 
     contexts = [m["context"] for m in ev.metas]
     severities = [int(m.get("severity", 0)) for m in ev.metas]
@@ -595,8 +595,8 @@ def results_record(ev, setup, e, method: str, run_cfg: dict, data, singles, late
                    intervals, hydra_tables: dict, eco_tables: dict, work: Path, **measured) -> dict:
     """results.json: the protocol, the data and machine, the settings, every method's summary, the
     papers' tables and `measured` (Table 2, 4, 5, the severity sweeps, range bins, regrets, picks)."""
-    from study.detect import frames_for
-    from study.eco.energy import machine_description
+    from study.eco.latency_energy import machine_description
+    from study.scoring import frames_for
 
     contexts = [m["context"] for m in ev.metas]
     ctx_list = sorted(set(contexts))

@@ -234,7 +234,7 @@ def _lr_at(cfg: TrainConfig, epoch: int, step: int) -> float:
 
 
 def evaluate_epoch(model, cfg: TrainConfig, reader, test_idx, branches, setup=None) -> dict:
-    from study.detect import bev_crop_of, fused, native, run_branches, score
+    from study.scoring import bev_crop_of, fused, native, run_branches, score
 
     idx = test_idx if not cfg.eval_frames else test_idx[: cfg.eval_frames]
     if not idx:  # e.g. a one-sequence dataset: no test split, nothing to score

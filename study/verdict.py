@@ -3,7 +3,7 @@
 A study's report JSON (`hydrabench study ... --out DIR` writes DIR/report.json) holds, when
 `evaluate.bootstrap` > 0, a 95 % interval of every paired difference of mAP@0.5 (all classes, right
 camera) between two methods, overall and per context (`results.intervals`, written by
-`study.detect.context_bootstrap`). An order is *resolved* when its interval excludes 0; an interval
+`study.scoring.context_bootstrap`). An order is *resolved* when its interval excludes 0; an interval
 that holds 0 (its bounds included) is *not resolved*: never a win, whatever the point estimates say.
 
 - `orders(report)`: every method against late fusion, late fusion against its best single sensor,
@@ -23,7 +23,7 @@ from dataclasses import dataclass
 from math import comb
 from pathlib import Path
 
-from study.detect import difference_interval
+from study.scoring import difference_interval
 
 LATE = "late"
 ORACLES = ("hydrafusion:optimal", "ecofusion:loss_based", "hydrafusion:knowledge_informed",

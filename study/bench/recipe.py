@@ -88,7 +88,8 @@ def bench_recipe(data: str, out, branch: str = "lidar", candidates: dict | None 
     from sensors.dataset import DatasetReader
     from sensors.dataset import check as check_dataset
     from sim.errors import UserError
-    from study.detect import (
+    from study.device import default_threads
+    from study.scoring import (
         context_bootstrap,
         frames_for,
         fused,
@@ -97,7 +98,6 @@ def bench_recipe(data: str, out, branch: str = "lidar", candidates: dict | None 
         run_branches,
         score,
     )
-    from study.device import default_threads
     from study.train import TrainConfig, train
 
     out = Path(out)

@@ -31,8 +31,8 @@ from study.cli import (
 from study.commands.train_gate import add_objective_args, format_choice_lines, parse_objective_fields
 from study.eco.config_gate_study import train_eco_gate
 from study.eco.data import EcoSettings, build_eco_data
-from study.eco.energy import energy_table
-from study.eco.evaluate import GATE_ORDER, EcoEval, evaluate_eco, execute_ecofusion
+from study.eco.ecofusion_eval import GATE_ORDER, EcoEval, evaluate_eco, execute_ecofusion
+from study.eco.latency_energy import energy_table
 from study.eco.sweep import SWEEP_LAMBDAS, sweep
 
 EPILOG = """\

@@ -1,4 +1,4 @@
-"""`hydrabench evaluate`: the command line of `study.evaluate` (branches fused) and of the gate tables
+"""`hydrabench evaluate`: the command line of `study.run_eval` (branches fused) and of the gate tables
 of `study.branch_gate_study` (--gate, --all-gates), with their text (`format_tables`: HydraFusion Tables 6, 7)."""
 
 from __future__ import annotations
@@ -7,7 +7,7 @@ import sys
 from pathlib import Path
 
 from sim.errors import UserError
-from study import evaluate as evaluation
+from study import run_eval as evaluation
 from study.cli import (
     Formatter,
     bootstrap_int,

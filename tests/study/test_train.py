@@ -78,7 +78,7 @@ def test_a_run_records_its_model_profile_and_is_loaded_with_it(reference_run, tm
 
     from fusion.nets.profile import load_profile
     from sim.config import to_dict
-    from study.detect import load_run
+    from study.scoring import load_run
 
     ref, _ = reference_run
     cfg = json.loads((ref / "config.json").read_text())
@@ -300,8 +300,8 @@ def test_warm_start_from_several_runs_takes_each_module_from_the_first_that_has_
 def test_evaluate_twins_scores_the_same_frames_in_clear_weather(reference_run, data, tmp_path, capsys, monkeypatch):
     """--twins: each branch on the degraded frames and on their clear twins, and the ratio."""
     from sensors.dataset import DatasetReader
-    from study.detect import bev_crop_of, load_run, native, run_branches, score
-    from study.evaluate import evaluate
+    from study.run_eval import evaluate
+    from study.scoring import bev_crop_of, load_run, native, run_branches, score
 
     ref, _ = reference_run
     twins = tmp_path / "twins"
@@ -323,7 +323,7 @@ def test_evaluate_twins_scores_the_same_frames_in_clear_weather(reference_run, d
     op = t["fused"]["at_score_0.5"]
     assert set(op) == {"degraded", "clear", "by_distance_over_visibility"} and set(op["clear"]) == {"recall", "precision"}
     # the twin is binned by its fog frame's visibility, so both sides count the same objects
-    from study.detect import operating_point, recall_by_visibility
+    from study.scoring import operating_point, recall_by_visibility
 
     bins = t["branches"]["radar"]["at_score_0.5"]["by_distance_over_visibility"]
     deg = run_branches(model, twins, range(4), ["radar"])
@@ -335,7 +335,7 @@ def test_evaluate_twins_scores_the_same_frames_in_clear_weather(reference_run, d
     assert [v["clear"] for v in bins.values()] == [v["recall"] for v in mine.values()]
     assert r["map_vehicles_per_severity"].keys() == set(sev)
     # --bootstrap: sequences drawn with replacement, each draw scored degraded and clear
-    from study.detect import paired_bootstrap
+    from study.scoring import paired_bootstrap
 
     crop, clear_reader = bev_crop_of(model, reader), DatasetReader(twins, clear=True)
     args = (native(deg, "radar"), native(clear, "radar"), reader, clear_reader, "bev", crop)
@@ -360,7 +360,7 @@ def test_evaluate_twins_scores_the_same_frames_in_clear_weather(reference_run, d
     # twins made before the overcast sky was kept (no `overcast` record) are named, not scored silently
     import shutil
 
-    from study.evaluate import stale_twins
+    from study.run_eval import stale_twins
 
     old = tmp_path / "old_twins"
     shutil.copytree(twins, old)
@@ -428,7 +428,7 @@ def test_bev_label_ranges_match_the_camera_labels_distances(data):
     """The BEV boxes' ranges (used to bin recall by distance / visibility) agree with the camera
     labels' distances of the same objects to within the radar-camera offset."""
     from sensors.dataset import DatasetReader
-    from study.detect import bev_distances
+    from study.scoring import bev_distances
 
     reader = DatasetReader(data)
     diffs = []
@@ -442,8 +442,8 @@ def test_bev_label_ranges_match_the_camera_labels_distances(data):
 def test_split_data_test_is_the_datasets_own_test_split(reference_run, data):
     """--split data-test: on the run's own dataset the same frames and mAP as its test split; it
     also works on another dataset, where --split test is refused."""
-    from study.detect import frames_for
-    from study.evaluate import evaluate
+    from study.run_eval import evaluate
+    from study.scoring import frames_for
 
     ref, _ = reference_run
     a, b = evaluate(ref, data, split="test"), evaluate(ref, data, split="data-test")

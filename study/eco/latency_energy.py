@@ -55,7 +55,7 @@ def measure_latency(model, data, indices, configs, method: str = "soft_nms", rep
     from fusion.late import fuse
     from fusion.nets import SENSORS
     from sensors.rig import Calibration
-    from study.detect import to_detections
+    from study.scoring import to_detections
 
     torch.set_num_threads(threads)
     ctr = open_counter(counter, "cpu")
@@ -163,7 +163,7 @@ def energy_table(run_dir, data, s: EcoSettings = EcoSettings(), threads: int = 1
     latency and energy. `reuse`: take a cached table of this checkpoint measured with other
     thread / counter settings (what evaluation does) instead of measuring again."""
     from fusion.eco.energy import LatencyModel, configuration_energy, power_model
-    from study.detect import fusion_method
+    from study.scoring import fusion_method
 
     run_dir, data = Path(run_dir), Path(data)
     if model is None:
