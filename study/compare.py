@@ -58,7 +58,7 @@ def compare(run_dir, data, *, gates=GATES, k: int = 2, fusion: str = "soft-nms",
     singles = [b for b in branches if len(sensors[b]) == 1]
     if not singles:
         raise UserError(f"{run_dir}: no single-sensor branch, so no late-fusion baseline to compare with")
-    trained = [g for g in gates if g not in ("deep", "attention") or (run_dir / "gates" / g / "gate.pt").is_file()]
+    trained = usable_gates(run_dir, gates)
     skipped = [g for g in gates if g not in trained]
     gp = gate_pass(run_dir, data, model, trained, indices, "latest", batch_size, progress)
     frames = model.branch_frames
@@ -199,16 +199,28 @@ def _iv(iv):
     return None if iv is None else [_r(iv[0]), _r(iv[1])]
 
 
+def usable_gates(run_dir: Path, gates) -> list[str]:
+    """`gates` that can run on `run_dir`: those that learn nothing, and the trainable ones
+    (`Gate.trainable`) with a RUN/gates/<gate>/gate.pt."""
+    from fusion.nets.branch_gates import trainable_gates
+
+    learned = trainable_gates()
+    return [g for g in gates if g not in learned or (Path(run_dir) / "gates" / g / "gate.pt").is_file()]
+
+
 def best_gate(run_dir: Path, gates) -> dict | None:
     """The learned gate with the lowest validation regret recorded when it was trained (`train-gate`:
     the run's validation sequences, never the frames compared here), with every gate's value; None
     when no learned gate recorded one."""
     import torch
 
+    from fusion.nets.branch_gates import trainable_gates
+
     vals = {}
+    learned = trainable_gates()
     for g in gates:
         path = Path(run_dir) / "gates" / g / "gate.pt"
-        if g in ("deep", "attention") and path.is_file():
+        if g in learned and path.is_file():
             res = (torch.load(path, map_location="cpu", weights_only=False).get("result") or {})
             if res.get("val_regret") is not None:
                 vals[g] = float(res["val_regret"])

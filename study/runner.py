@@ -188,9 +188,10 @@ class GatesSection:
     energy_check: int = 12
 
     def __post_init__(self) -> None:
-        bad = [g for g in self.gates if g not in ("deep", "attention")]
-        if bad:
-            raise UserError(f"gates.gates: {bad[0]!r} is not a learned gate (choose from: deep, attention)")
+        from fusion.nets.branch_gates import trainable_gates  # the gate registry says which gates learn
+
+        if bad := [g for g in self.gates if g not in trainable_gates()]:
+            raise UserError(f"gates.gates: {bad[0]!r} is not a learned gate (choose from: {', '.join(trainable_gates())})")
         for name in ("epochs", "batch_size", "energy_frames", "energy_repeats"):
             _positive(f"gates.{name}", getattr(self, name))
         for name in ("eco_max_frames", "energy_check", "seed"):

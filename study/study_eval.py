@@ -111,6 +111,8 @@ def top_k_members(pred: np.ndarray, branches, k: int) -> list[tuple[str, ...]]:
 def evaluate_study(run, run_early, data, cfg, s, work: Path, setup=None, progress: bool = True) -> dict:
     """Every number of the study's report (module docstring). `cfg`: the StudyConfig; `s`: its
     EcoSettings; figures are written under `work`."""
+    from fusion.eco.config_gates import CONFIG_GATES
+    from fusion.nets.branch_gates import trainable_gates
     from study.branch_gate_study import evaluate_all_gates
     from study.eco.ecofusion_eval import GATE_ORDER, EcoEval
     from study.eco.sweep import sweep
@@ -120,7 +122,7 @@ def evaluate_study(run, run_early, data, cfg, s, work: Path, setup=None, progres
     run, data, work = Path(run), Path(data), Path(work)
     learned = tuple(cfg.gates.gates)
     hydra_gates = ["knowledge", *learned, "optimal"]
-    eco_gates = [g for g in GATE_ORDER if g in ("knowledge", "loss_based") or g in learned]
+    eco_gates = [g for g in GATE_ORDER if g not in trainable_gates(CONFIG_GATES) or g in learned]
     ev = EcoEval(run, data, s, eco_gates, threads=setup.threads if setup else 2, progress=progress)
     log = SelectionLog.of(ev.test)
     val = ValidationFrames(ev, cfg.gates.val_fraction, cfg.gates.seed, log)
@@ -407,14 +409,16 @@ def cost_table(ev, choices: dict) -> dict:
     A learned gate (deep, attention: HydraFusion's or EcoFusion's) is charged the stems it reads that
     its chosen branches do not need (`EcoEval.gate_overhead`), as EcoFusion's Table 1 charges them: one
     accounting for every method of the report."""
-    from study.eco.ecofusion_eval import FEATURE_GATES
+    from fusion.eco.config_gates import CONFIG_GATES
+    from fusion.nets.branch_gates import GATES, trainable_gates
 
     index = _config_index(ev)
 
     def cost(name, members_per_frame) -> dict:
         idx = np.array([index[tuple(m)] for m in members_per_frame])
         gate = name.split(":", 1)[1] if name.startswith(("hydrafusion:", "ecofusion:")) else None
-        extra, _ = ev.gate_overhead(idx, gate if gate in FEATURE_GATES else None)
+        learned = trainable_gates(CONFIG_GATES if name.startswith("ecofusion:") else GATES)
+        extra, _ = ev.gate_overhead(idx, gate if gate in learned else None)
         t = ev.t[idx] + extra
         scale = t / ev.t[idx]  # E = P t at the configuration's own power
         return {"latency_ms": _r(1000 * t.mean(), 2), "energy_j": _r((ev.e_raw[idx] * scale).mean()),

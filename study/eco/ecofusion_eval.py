@@ -27,7 +27,6 @@ from study.eco.data import (
 from study.eco.latency_energy import energy_table
 
 GATE_ORDER = ("knowledge", "deep", "attention", "loss_based")
-FEATURE_GATES = ("deep", "attention")
 """Gates that read the stems' features, so every stem they read runs before they decide."""
 METRIC = "VOC all-point AP at IoU 0.5, right camera, difficult ground truth ignored"
 
@@ -122,9 +121,11 @@ class EcoEval:
         decides from external context before any stem runs, and the loss-based oracle is
         a-posteriori: neither adds anything. The gate network's own few small convolutions are not
         counted."""
-        if gate not in FEATURE_GATES:
+        from fusion.eco.config_gates import CONFIG_GATES
+        from fusion.nets.branch_gates import gate_sensors, trainable_gates
+
+        if gate not in trainable_gates(CONFIG_GATES):
             return np.zeros(len(choice)), [set() for _ in choice]
-        from fusion.nets.branch_gates import gate_sensors
 
         read = set(gate_sensors(self.model))
         stems = self.latency_model.stems
