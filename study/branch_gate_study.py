@@ -43,6 +43,7 @@ from sim.errors import UserError
 from sim.progress import progress as progress_bar
 from study.device import resolve_device
 from study.gate_data import GateData, cached_sha256, checkpoint_path
+from study.numbers import rounded
 from study.outputs import atomic_path, torch_save_atomic, write_json_atomic
 
 TABLE_KS = (1, 3, 5, "all")
@@ -495,9 +496,10 @@ def make_gate(name: str, model, run_dir, checkpoint: str = "latest", k: int | st
 
 
 def selection_rates(selections: list[tuple[str, ...]], branches) -> dict[str, float]:
-    """Branch -> percent of frames whose selection contains it (HydraFusion Table 7)."""
+    """Branch -> percent of frames whose selection contains it, to 0.1 % (HydraFusion Table 7; the
+    one rate of `compare`, `evaluate --all-gates` and the study)."""
     n = max(len(selections), 1)
-    return {b: round(100.0 * sum(b in s for s in selections) / n, 2) for b in branches}
+    return {b: rounded(100.0 * sum(b in s for s in selections) / n, 1) for b in branches}
 
 
 def _rates_per_context(selections, contexts, branches) -> dict[str, dict[str, float]]:

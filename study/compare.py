@@ -24,6 +24,7 @@ import numpy as np
 
 from sim.errors import UserError
 from sim.progress import progress as progress_bar
+from study.numbers import number_text, rounded, rounded_interval
 
 GATES = ("knowledge", "deep", "attention", "optimal")
 
@@ -41,7 +42,7 @@ def compare(run_dir, data, *, gates=GATES, k: int = 2, fusion: str = "soft-nms",
     """The comparison of the module docstring -> a JSON-able dict: per method its kind, mAP, vehicle
     mAP, mAP per context, and mAP minus late fusion with its 95 % interval and verdict, overall and
     per context. `twins`: also each method's robustness on the clear-weather twins (`robustness`)."""
-    from study.branch_gate_study import _setup, gate_pass, parse_k
+    from study.branch_gate_study import _setup, gate_pass, parse_k, selection_rates
     from study.scoring import context_bootstrap, difference_interval, fused, fusion_method, score
     from study.train import run_protocol
 
@@ -99,7 +100,7 @@ def compare(run_dir, data, *, gates=GATES, k: int = 2, fusion: str = "soft-nms",
         if boot:
             row["ci95"] = boot["per_context"]["all"]["map"][name]
         methods[name] = row
-    picks = {g: _rates(choices[f"hydrafusion:{g}"], branches) for g in trained}
+    picks = {g: selection_rates(choices[f"hydrafusion:{g}"], branches) for g in trained}
     best = best_gate(run_dir, trained)
     rob = None
     if twins:
@@ -165,8 +166,8 @@ def robustness(run_dir, data, model, reader, gp, choices, sources, twin_gates, k
                                          [metas[i]["sequence_id"] for i in idx], resamples=resamples,
                                          on_draw=lambda: bar.update(1))
             per.setdefault(cond, {})[str(sev)] = {
-                "degraded": _r(t.degraded, 6), "clear": _r(t.clear, 6), "ra": _r(t.ra),
-                "ra_ci95": _iv(t.interval), "sequences": t.sequences, "frames": t.frames}
+                "degraded": rounded(t.degraded, 6), "clear": rounded(t.clear, 6), "ra": rounded(t.ra),
+                "ra_ci95": rounded_interval(t.interval), "sequences": t.sequences, "frames": t.frames}
         out_methods[n] = {"per_condition": per}
     bar.close()
     def scores(row, key):  # {condition: {severity: score}}, as fusion.robustness takes them
@@ -176,27 +177,21 @@ def robustness(run_dir, data, model, reader, gp, choices, sources, twin_gates, k
     for row in out_methods.values():
         deg, clr = scores(row, "degraded"), scores(row, "clear")
         ra = R.relative_accuracies(deg, clr)
-        row["mRA"] = _r(R.mean_relative_accuracy(ra))
-        row["mRR"] = _r(R.mean_resilience_rate(deg, clr))
-        row["mCE_vs_late"] = _r(R.mean_corruption_error(deg, base))
+        row["mRA"] = rounded(R.mean_relative_accuracy(ra))
+        row["mRR"] = rounded(R.mean_resilience_rate(deg, clr))
+        row["mCE_vs_late"] = rounded(R.mean_corruption_error(deg, base))
     physical = {}
     for (cond, sev), idx in sorted(groups.items()):
         q = R.severity_quantity(cond)
         vals = [float(metas[i]["weather"][q]) for i in idx if q in metas[i].get("weather", {})]
         physical.setdefault(cond, {"quantity": q, "unit": R.severity_value(cond, 1)[1], "per_severity": {}})
-        physical[cond]["per_severity"][str(sev)] = _r(float(np.median(vals)), 3) if vals else None
+        physical[cond]["per_severity"][str(sev)] = rounded(float(np.median(vals)), 3) if vals else None
     return {"methods": out_methods, "physical": physical, "gates": list(twin_gates),
             "metric": "vehicle mAP@0.5 (car, van, truck, bus), right camera; RA = degraded / clear twins of the same "
                       "frames; mRA (MultiCorrupt), mRR and mCE against late fusion (Robo3D)",
             "resamples": resamples, "unit": "sequence"}
 
 
-def _r(v, nd: int = 4):
-    return None if v is None or not np.isfinite(v) else round(float(v), nd)
-
-
-def _iv(iv):
-    return None if iv is None else [_r(iv[0]), _r(iv[1])]
 
 
 def usable_gates(run_dir: Path, gates) -> list[str]:
@@ -234,10 +229,6 @@ def _diff(a, b):
     return None if a is None or b is None else round(a - b, 4)
 
 
-def _rates(per_frame: list[tuple[str, ...]], branches) -> dict[str, float]:
-    n = max(len(per_frame), 1)
-    return {b: round(100.0 * sum(b in ch for ch in per_frame) / n, 1) for b in branches}
-
 
 def format_table(r: dict) -> str:
     """The comparison as text: one row per method, fixed first, then selective."""
@@ -250,7 +241,7 @@ def format_table(r: dict) -> str:
             d = row.get(key)
             cells.append("-" if d is None else (f"{d['value']:+.3f} [{d['ci95'][0]:+.3f}, {d['ci95'][1]:+.3f}] "
                                                 f"{d['verdict']}" if d["ci95"] else f"{d['value']:+.3f}"))
-        lines.append(f"{name:24s} {_f(row['map'])} {_f(row['map_vehicles'])}   {cells[0]:40s} "
+        lines.append(f"{name:24s} {number_text(row['map']):>6} {number_text(row['map_vehicles']):>6}   {cells[0]:40s} "
                      f"{cells[1] if name.startswith('hydrafusion:') else ''}".rstrip())
     if r["gates_not_trained"]:
         lines.append("not trained on this run (hydrabench train-gate): " + ", ".join(r["gates_not_trained"]))
@@ -258,9 +249,6 @@ def format_table(r: dict) -> str:
         lines.append(format_robustness(r))
     return "\n".join(lines)
 
-
-def _f(v) -> str:
-    return f"{v:6.3f}" if v is not None else "     -"
 
 
 def plot_compare(r: dict, path) -> None:
@@ -372,7 +360,7 @@ def format_robustness(r: dict) -> str:
     lines = ["robustness on the clear-weather twins (vehicle mAP): " + rob["metric"],
              f"{'method':24s} {'mRA':>6s} {'mRR':>6s} {'mCE':>6s}"]
     for n, row in rob["methods"].items():
-        lines.append(f"{n:24s} {_f(row['mRA'])} {_f(row['mRR'])} {_f(row['mCE_vs_late'])}")
+        lines.append(f"{n:24s} {number_text(row['mRA']):>6} {number_text(row['mRR']):>6} {number_text(row['mCE_vs_late']):>6}")
     for cond, phys in sorted(rob["physical"].items()):
         sevs = sorted(phys["per_severity"], key=int)
         lines.append(f"  {cond}: RA [95 % interval] at " + ", ".join(

@@ -19,6 +19,7 @@ from sensors.dataset import DatasetReader
 from sensors.rig import Calibration
 from sim.actors import CLASSES
 from sim.errors import UserError
+from study.numbers import rounded, rounded_interval
 
 FUSION_ALIASES = {"nms": "nms", "soft-nms": "soft_nms", "soft_nms": "soft_nms", "wbf": "wbf"}
 
@@ -228,7 +229,7 @@ def score(per_frame: list, reader: DatasetReader, frame: str = "camera_right", b
                 for c, ks in sorted(by.items())}
 
     by_ctx, by_sev = per_group(contexts), per_group(severities)
-    per_ctx = {c: _round(r.mean_ap) for c, r in by_ctx.items()}
+    per_ctx = {c: rounded(r.mean_ap) for c, r in by_ctx.items()}
     veh_ctx = {c: _mean_of(r, vehicles) for c, r in by_ctx.items()}
     veh_sev = {c: _mean_of(r, vehicles) for c, r in by_sev.items()}
     ctx_frames = defaultdict(list)
@@ -236,13 +237,13 @@ def score(per_frame: list, reader: DatasetReader, frame: str = "camera_right", b
         ctx_frames[c].append(k)
     return {
         "protocol": as_protocol(protocol).describe(),
-        "map": _round(res.mean_ap),
+        "map": rounded(res.mean_ap),
         "map_vehicles": _mean_of(res, vehicles),
         "map_vehicles_per_context": veh_ctx,
         "map_vehicles_per_severity": veh_sev,
         "map_vehicles_per_range": per_range(range(len(dets))),
         "map_vehicles_per_context_range": {c: per_range(ks) for c, ks in sorted(ctx_frames.items())},
-        "ap_per_class": {CLASSES[c - 1]: _round(v) for c, v in res.ap.items()},
+        "ap_per_class": {CLASSES[c - 1]: rounded(v) for c, v in res.ap.items()},
         "map_per_context": per_ctx,
         "positives_per_class": {CLASSES[c - 1]: int(n) for c, n in res.n_positives.items()},
         "frames": len(per_frame),
@@ -266,7 +267,7 @@ def operating_point(per_frame: list, reader: DatasetReader, frame: str = "camera
         tp = sum(r.n_true_positives.values())
         judged = sum(len(r.precision[c]) for c in vehicles)  # detections not matched to a difficult box
         pos = sum(r.n_positives.values())
-        return {"recall": _round(tp / pos) if pos else None, "precision": _round(tp / judged) if judged else None,
+        return {"recall": rounded(tp / pos) if pos else None, "precision": rounded(tp / judged) if judged else None,
                 "positives": int(pos), "detections": int(judged)}
 
     everything = [x for v in groups.values() for x in v]
@@ -325,8 +326,8 @@ def recall_by_visibility(per_frame: list, reader: DatasetReader, frame: str = "c
     def name(lo, hi):
         return f"{lo:g}-{hi:g}" if np.isfinite(hi) else f">={lo:g}"
 
-    return {name(lo, hi): {"objects": int(n), "found": int(f), "recall": _round(f / n) if n else None,
-                           "contrast": [_round(np.exp(-LN20 * lo)), _round(np.exp(-LN20 * hi))]}
+    return {name(lo, hi): {"objects": int(n), "found": int(f), "recall": rounded(f / n) if n else None,
+                           "contrast": [rounded(np.exp(-LN20 * lo)), rounded(np.exp(-LN20 * hi))]}
             for lo, hi, n, f in zip(edges[:-1], edges[1:], objects, found)}
 
 
@@ -340,11 +341,8 @@ def _image_matches(frames: list, keys: list, gts: list, classes) -> ImageMatches
 def _interval(values: np.ndarray) -> list | None:
     """[2.5th, 97.5th percentile] of the finite values (None when none is)."""
     v = values[np.isfinite(values)]
-    return [_round(np.percentile(v, 2.5)), _round(np.percentile(v, 97.5))] if len(v) else None
+    return [rounded(np.percentile(v, 2.5)), rounded(np.percentile(v, 97.5))] if len(v) else None
 
-
-def _rounded(iv) -> list | None:
-    return None if iv is None else [_round(iv[0]), _round(iv[1])]
 
 
 def paired_bootstrap(deg_frames: list, clr_frames: list, reader, clear_reader, frame: str, bev_crop=None,
@@ -381,8 +379,8 @@ def paired_bootstrap(deg_frames: list, clr_frames: list, reader, clear_reader, f
                                    lambda items: clr.mean_ap([row[ks[i]] for i in items]),
                                    [seq_of[k][0] for k in ks], resamples=resamples, seed=seed,
                                    on_draw=lambda: bar.update(1))
-        return {"sequences": t.sequences, "degraded": _rounded(t.degraded_interval),
-                "clear": _rounded(t.clear_interval), "retained": _rounded(t.interval)}
+        return {"sequences": t.sequences, "degraded": rounded_interval(t.degraded_interval),
+                "clear": rounded_interval(t.clear_interval), "retained": rounded_interval(t.interval)}
 
     present = [s for s in severities or () if any(seq_of[k][1] == s for k in keys)]
     with progress_bar(total=resamples * (1 + len(present)), desc=desc, unit="draw") as bar:
@@ -456,11 +454,8 @@ def difference_interval(group: dict, name: str, ref: str) -> list | None:
 def _mean_of(res, classes) -> float | None:
     """Mean AP over those of `classes` that have ground truth (None when none has)."""
     aps = [res.ap[c] for c in classes if res.ap.get(c) is not None and not np.isnan(res.ap[c])]
-    return _round(float(np.mean(aps))) if aps else None
+    return rounded(float(np.mean(aps))) if aps else None
 
-
-def _round(v):
-    return None if v is None or (isinstance(v, float) and np.isnan(v)) else round(float(v), 4)
 
 
 def fused(per_frame: list, branches, frames: dict, method: str, weights=None) -> list:

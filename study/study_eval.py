@@ -34,15 +34,13 @@ import numpy as np
 
 from sim.errors import UserError
 from sim.progress import progress as progress_bar
+from study.numbers import rounded
 
 FUSIONS = ("nms", "soft_nms", "wbf")
 LATE_COMBOS = (("camera_left", "camera_right"), ("camera_left", "camera_right", "lidar"), ("radar", "lidar"),
                ("radar", "camera_left", "camera_right", "lidar"))
 """HydraFusion Table 5's late-fusion sensor combinations (the branches present are used)."""
 
-
-def _r(v, nd: int = 4):
-    return None if v is None or (isinstance(v, float) and not np.isfinite(v)) else round(float(v), nd)
 
 
 class Methods:
@@ -275,13 +273,13 @@ def lambda_front(eco_tables: dict, ev) -> dict:
     e_cheap = float(min(ev.e[i] for i in singles)) if singles else float(ev.e.min())
     late = ev.configs.baselines.get("late")
     e_late = float(ev.e[late]) if late is not None else float(ev.e.max())
-    out = {"cheapest_single_energy": _r(e_cheap), "late_energy": _r(e_late), "loss_unit": ev.loss_label(),
+    out = {"cheapest_single_energy": rounded(e_cheap), "late_energy": rounded(e_late), "loss_unit": ev.loss_label(),
            "gates": {}}
     for g, c in curve.items():
         lams = sorted(c, key=float)
         e0, e1 = c[lams[0]]["energy"], c[lams[-1]]["energy"]
         out["gates"][g] = {"lambda_from": lams[0], "lambda_to": lams[-1], "energy_from": e0, "energy_to": e1,
-                           "span_pct": _r(100.0 * (e0 - e1) / (e_late - e_cheap), 1) if e_late > e_cheap else None,
+                           "span_pct": rounded(100.0 * (e0 - e1) / (e_late - e_cheap), 1) if e_late > e_cheap else None,
                            "pareto_lambdas": eco_tables.get("pareto_lambdas", {}).get(g)}
     return out
 
@@ -421,9 +419,9 @@ def cost_table(ev, choices: dict) -> dict:
         extra, _ = ev.gate_overhead(idx, gate if gate in learned else None)
         t = ev.t[idx] + extra
         scale = t / ev.t[idx]  # E = P t at the configuration's own power
-        return {"latency_ms": _r(1000 * t.mean(), 2), "energy_j": _r((ev.e_raw[idx] * scale).mean()),
-                "energy": _r((ev.e[idx] * scale).mean()), "gate_stems_ms": _r(1000 * extra.mean(), 2),
-                "branches": _r(np.mean([len(m) for m in members_per_frame]), 3)}
+        return {"latency_ms": rounded(1000 * t.mean(), 2), "energy_j": rounded((ev.e_raw[idx] * scale).mean()),
+                "energy": rounded((ev.e[idx] * scale).mean()), "gate_stems_ms": rounded(1000 * extra.mean(), 2),
+                "branches": rounded(np.mean([len(m) for m in members_per_frame]), 3)}
 
     return {name: cost(name, ch) for name, ch in choices.items()}
 
@@ -521,8 +519,8 @@ def hydra_regret(choices: dict, scores: dict, gates, contexts: list[str]) -> dic
         for ctx in [*sorted(set(contexts)), "all"]:
             frames_ = [k for k, c in enumerate(contexts) if ctx == "all" or c == ctx]
             a, o = _map_in(sc, ctx), _map_in(best, ctx)
-            row[ctx] = {"map": a, "map_oracle": o, "regret_map": None if a is None or o is None else _r(o - a),
-                        "differs_pct": _r(100.0 * np.mean([ch[k] != opt[k] for k in frames_]), 1),
+            row[ctx] = {"map": a, "map_oracle": o, "regret_map": None if a is None or o is None else rounded(o - a),
+                        "differs_pct": rounded(100.0 * np.mean([ch[k] != opt[k] for k in frames_]), 1),
                         "frames": len(frames_)}
         out[g] = row
     return out
@@ -544,9 +542,9 @@ def eco_regret(ev, eco_choice: dict, scores: dict, contexts: list[str]) -> dict:
             a, o = _map_in(sc, ctx), _map_in(best, ctx)
             lf = ev.losses[rows_n, ch][keep].mean()
             lf_o = ev.losses[rows_n, lb][keep].mean()
-            row[ctx] = {"map": a, "map_oracle": o, "regret_map": None if a is None or o is None else _r(o - a),
-                        "avg_loss": _r(lf), "avg_loss_oracle": _r(lf_o), "regret_loss": _r(lf - lf_o),
-                        "differs_pct": _r(100.0 * float(np.mean(ch[keep] != lb[keep])), 1), "frames": int(keep.sum())}
+            row[ctx] = {"map": a, "map_oracle": o, "regret_map": None if a is None or o is None else rounded(o - a),
+                        "avg_loss": rounded(lf), "avg_loss_oracle": rounded(lf_o), "regret_loss": rounded(lf - lf_o),
+                        "differs_pct": rounded(100.0 * float(np.mean(ch[keep] != lb[keep])), 1), "frames": int(keep.sum())}
         out[g] = row
     return out
 
@@ -569,8 +567,8 @@ def fusion_regret(M: Methods, ev, scores: dict, late, contexts: list[str]) -> di
             keep = np.array([ctx == "all" or c == ctx for c in contexts])
             a, w = _map_in(with_, ctx), _map_in(without, ctx)
             row[ctx] = {"map_with": a, "map_without": w,
-                        "regret_map": None if a is None or w is None else _r(w - a),
-                        "regret_loss": _r(ev.losses[keep, late_idx].mean() - ev.losses[keep, rest_idx].mean())}
+                        "regret_map": None if a is None or w is None else rounded(w - a),
+                        "regret_loss": rounded(ev.losses[keep, late_idx].mean() - ev.losses[keep, rest_idx].mean())}
         hurts = {c: v["regret_map"] for c, v in row.items() if c != "all" and v["regret_map"] is not None
                  and v["regret_map"] > 0}
         out[b] = {"per_context": row, "hurts_in": hurts,
@@ -590,7 +588,7 @@ def gate_picks(choices: dict, contexts: list[str]) -> dict:
         for c, m in zip(contexts, ch):
             by[c]["+".join(m)] += 1
         picks[fam][name.split(":", 1)[1]] = {
-            c: dict(sorted(((k, _r(100.0 * v / sum(d.values()), 1)) for k, v in d.items()), key=lambda kv: -kv[1])[:5])
+            c: dict(sorted(((k, rounded(100.0 * v / sum(d.values()), 1)) for k, v in d.items()), key=lambda kv: -kv[1])[:5])
             for c, d in sorted(by.items())}
     return picks
 
