@@ -612,15 +612,31 @@ def evaluate_gate(run_dir, data, gate: str, k=None, fusion: str = "soft-nms", sp
     return result
 
 
+def top_k_selection(predicted, branches, k) -> list[tuple[str, ...]]:
+    """A gate's selection: per frame, the tuple (in branch order) of the `k` branches (an int, or
+    "all") with the lowest predicted loss. `predicted`: (frames, n_branches), columns in `branches`
+    order."""
+    import torch
+
+    from fusion.nets.branch_gates import top_k
+
+    k = len(branches) if k == "all" else min(int(k), len(branches))
+    return top_k(torch.as_tensor(np.asarray(predicted), dtype=torch.float32).reshape(-1, len(branches)), branches, k)
+
+
 @dataclass
 class GatePass:
     """One pass over frames: every branch's detections and every gate's prediction per frame."""
 
     per_frame: list  # (meta, {branch: Detections in its own frame})
-    rankings: dict  # gate -> per frame, branch indices from best (lowest predicted loss) to worst
     predicted: dict  # gate -> per frame, the predicted loss of each branch
     losses: dict | None  # dataset index -> {branch: a-posteriori loss} when a gate reads losses
     gates: dict  # gate name -> the gate module
+    branches: list  # the network's branch names, the columns of `predicted`
+
+    def selection(self, gate: str, k) -> list[tuple[str, ...]]:
+        """Per frame, the tuple of branch names `gate` keeps at `k` (`top_k_selection`)."""
+        return top_k_selection(self.predicted[gate], self.branches, k)
 
 
 def gate_pass(run_dir, data, model, names, indices, checkpoint: str = "latest", batch_size: int = 4,
@@ -630,7 +646,6 @@ def gate_pass(run_dir, data, model, names, indices, checkpoint: str = "latest", 
     `clear` twins, whose losses are not cached)."""
     import torch
 
-    from fusion.nets.branch_gates import rank_branches
     from study.scoring import to_detections
 
     gate_objs = {g: _gate_on_device(make_gate(g, model, run_dir, checkpoint), model) for g in names}
@@ -639,7 +654,6 @@ def gate_pass(run_dir, data, model, names, indices, checkpoint: str = "latest", 
     if need_losses and clear:
         raise UserError("the optimal gate reads the cached losses of the degraded frames, not of their twins")
     losses = _optimal_losses(run_dir, data, model, checkpoint, indices, progress) if need_losses else None
-    rankings: dict[str, list[list[int]]] = {g: [] for g in names}
     predicted: dict[str, list] = {g: [] for g in names}
     per_frame = []
     with torch.no_grad():
@@ -653,13 +667,12 @@ def gate_pass(run_dir, data, model, names, indices, checkpoint: str = "latest", 
                 preds = {g: gate.predict(feats, metas).float().cpu() for g, gate in gate_objs.items()}
                 dets = model(inputs, selection=branches)
             for g, pred in preds.items():
-                rankings[g].extend(rank_branches(pred).tolist())
                 predicted[g].extend(pred.tolist())
             for meta, per in zip(metas, dets):
                 per_frame.append((meta, {n: to_detections(d) for n, d in per.items()}))
             bar.update(len(metas))
         bar.close()
-    return GatePass(per_frame, rankings, predicted, losses, gate_objs)
+    return GatePass(per_frame, predicted, losses, gate_objs, branches)
 
 
 def evaluate_all_gates(run_dir, data, gates=None, fusions=TABLE_FUSIONS, ks=None, split: str = "auto", weights=None,
@@ -667,10 +680,8 @@ def evaluate_all_gates(run_dir, data, gates=None, fusions=TABLE_FUSIONS, ks=None
     """HydraFusion Tables 6 and 7 on this benchmark: mAP per gate x fusion x k, and how often each
     gate selects each branch per k. Every branch runs once per frame; each gate's top-k subsets are
     fused afterwards (equal to running only the selected branches: see the module docstring)."""
-    from fusion.late import fuse
     from fusion.nets.branch_gates import GATES
-    from sensors.rig import Calibration
-    from study.scoring import score
+    from study.scoring import fuse_selection, score
     from study.train import run_protocol
 
     model, _cfg, indices, used_split, reader = _setup(run_dir, data, split, weights, checkpoint, setup)
@@ -680,19 +691,11 @@ def evaluate_all_gates(run_dir, data, gates=None, fusions=TABLE_FUSIONS, ks=None
     ks = list(ks or table_ks(len(branches)))
     ks = [parse_k(k, len(branches), "k") for k in ks]
     gp = gate_pass(run_dir, data, model, names, indices, checkpoint, batch_size, progress)
-    per_frame, rankings, predicted, losses, gate_objs = gp.per_frame, gp.rankings, gp.predicted, gp.losses, gp.gates
+    per_frame, predicted, losses, gate_objs = gp.per_frame, gp.predicted, gp.losses, gp.gates
 
     frames = model.branch_frames
-    calibs = [Calibration.from_dict(m["calibration"]) for m, _ in per_frame]
     contexts = [m["context"] for m, _ in per_frame]
-    memo: dict[tuple, Any] = {}
-
-    def fused_frame(i: int, chosen: tuple[str, ...], method: str):
-        key = (i, chosen, method)
-        if key not in memo:
-            per = per_frame[i][1]
-            memo[key] = fuse({n: per[n] for n in chosen}, frames, calibs[i], method=method, weights=weights)
-        return memo[key]
+    memo: dict[str, dict] = {}  # fusion method -> fused frames, shared by the gates' selections
 
     map_table: dict = {}
     ctx_table: dict = {}
@@ -702,13 +705,12 @@ def evaluate_all_gates(run_dir, data, gates=None, fusions=TABLE_FUSIONS, ks=None
     for g in names:
         map_table[g], ctx_table[g], rates[g], rates_ctx[g] = {}, {}, {}, {}
         for k in ks:
-            n_keep = len(branches) if k == "all" else k
-            sel = [tuple(branches[j] for j in sorted(r[:n_keep])) for r in rankings[g]]
-            rates[g][str(k)] = selection_rates(sel, branches)
-            rates_ctx[g][str(k)] = _rates_per_context(sel, contexts, branches)
+            selection = gp.selection(g, k)
+            rates[g][str(k)] = selection_rates(selection, branches)
+            rates_ctx[g][str(k)] = _rates_per_context(selection, contexts, branches)
             for method in fusions:
                 label = FUSION_LABEL[method]
-                out = [(per_frame[i][0], fused_frame(i, s, method)) for i, s in enumerate(sel)]
+                out = fuse_selection(per_frame, selection, frames, method, weights, memo.setdefault(method, {}))
                 sc = score(out, reader, "camera_right", protocol=protocol)
                 map_table[g].setdefault(label, {})[str(k)] = sc["map"]
                 ctx_table[g].setdefault(label, {})[str(k)] = sc["map_per_context"]

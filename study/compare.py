@@ -3,7 +3,7 @@
 One pass runs every branch of a trained run (or reference model) once per frame and every gate
 beside it; then, in the right camera, with one late-fusion method (`--fusion`, fixed in advance):
 
-- fixed choices: each single-sensor branch alone, `late` (the single-sensor branches fused: the
+- fixed selections: each single-sensor branch alone, `late` (the single-sensor branches fused: the
   paper's late-fusion baseline), `all_branches` (every branch, early-fusion ones included);
 - selective: HydraFusion's gates (Table 2 (iv)): each frame's top-k branches by the gate's
   predicted loss, fused. `knowledge` reads the frame's context label; `deep` and `attention` read
@@ -43,7 +43,7 @@ def compare(run_dir, data, *, gates=GATES, k: int = 2, fusion: str = "soft-nms",
     mAP, mAP per context, and mAP minus late fusion with its 95 % interval and verdict, overall and
     per context. `twins`: also each method's robustness on the clear-weather twins (`robustness`)."""
     from study.branch_gate_study import _setup, gate_pass, parse_k, selection_rates
-    from study.scoring import context_bootstrap, difference_interval, fused, fusion_method, score
+    from study.scoring import context_bootstrap, difference_interval, fuse_selection, fusion_method, score
     from study.train import run_protocol
 
     run_dir, data = Path(run_dir), Path(data)
@@ -64,25 +64,23 @@ def compare(run_dir, data, *, gates=GATES, k: int = 2, fusion: str = "soft-nms",
     gp = gate_pass(run_dir, data, model, trained, indices, "latest", batch_size, progress)
     frames = model.branch_frames
     kinds = {f"single:{b}": "single sensor" for b in singles}
-    choices = {f"single:{b}": [(b,)] * len(gp.per_frame) for b in singles}
-    kinds["late"], choices["late"] = "late fusion of the single-sensor branches", [tuple(singles)] * len(gp.per_frame)
+    selections = {f"single:{b}": [(b,)] * len(gp.per_frame) for b in singles}
+    kinds["late"], selections["late"] = "late fusion of the single-sensor branches", [tuple(singles)] * len(gp.per_frame)
     if len(branches) > len(singles):
         kinds["all_branches"] = "every branch (early-fusion ones too)"
-        choices["all_branches"] = [tuple(branches)] * len(gp.per_frame)
+        selections["all_branches"] = [tuple(branches)] * len(gp.per_frame)
     for g in trained:
         name = f"hydrafusion:{g}"
         kinds[name] = (f"{g} gate, top {k} of {len(branches)} per frame"
                        + (" (oracle: reads each frame's own losses)" if g == "optimal" else ""))
-        choices[name] = [tuple(branches[j] for j in sorted(r[:k])) for r in gp.rankings[g]]
-    sources = {}
-    for name, per_choice in choices.items():
-        sources[name] = [fused([pf], ch, frames, method)[0] for pf, ch in zip(gp.per_frame, per_choice)]
+        selections[name] = gp.selection(g, k)
+    sources = {name: fuse_selection(gp.per_frame, selection, frames, method) for name, selection in selections.items()}
     scores = {n: score(s, reader, "camera_right", protocol=protocol) for n, s in sources.items()}
     boot = (context_bootstrap(sources, reader, "camera_right", protocol=protocol, resamples=resamples,
                               classes="all", desc="bootstrap the methods") if resamples else None)
     contexts = sorted({m["context"] for m, _ in gp.per_frame})
     methods = {}
-    for name in choices:
+    for name in selections:
         sc = scores[name]
         row = {"kind": kinds[name], "map": sc["map"], "map_vehicles": sc["map_vehicles"],
                "map_per_context": sc["map_per_context"]}
@@ -100,24 +98,24 @@ def compare(run_dir, data, *, gates=GATES, k: int = 2, fusion: str = "soft-nms",
         if boot:
             row["ci95"] = boot["per_context"]["all"]["map"][name]
         methods[name] = row
-    picks = {g: selection_rates(choices[f"hydrafusion:{g}"], branches) for g in trained}
+    rates = {g: selection_rates(selections[f"hydrafusion:{g}"], branches) for g in trained}
     best = best_gate(run_dir, trained)
     rob = None
     if twins:
-        rob = robustness(run_dir, data, model, reader, gp, choices, sources, [g for g in trained if g != "optimal"],
+        rob = robustness(run_dir, data, model, reader, gp, selections, sources, [g for g in trained if g != "optimal"],
                          k, method, protocol, indices, resamples, batch_size, progress)
     return {
         "run": str(run_dir), "data": str(data), "split": used_split, "frames": len(gp.per_frame),
         "sequences": boot["per_context"]["all"]["sequences"] if boot else None, "contexts": contexts,
         "fusion": fusion, "k": k, "protocol": protocol, "branches": branches, "gates": trained,
-        "gates_not_trained": skipped, "methods": methods, "selection_rate_pct": picks, "best_gate": best,
+        "gates_not_trained": skipped, "methods": methods, "selection_rate_pct": rates, "best_gate": best,
         "bootstrap": {"resamples": resamples, "unit": "sequence"} if boot else None,
         "metric": "VOC all-point AP at IoU 0.5, every class with ground truth, right camera",
         **({"robustness": rob} if rob is not None else {}),
     }
 
 
-def robustness(run_dir, data, model, reader, gp, choices, sources, twin_gates, k, method, protocol, indices,
+def robustness(run_dir, data, model, reader, gp, selections, sources, twin_gates, k, method, protocol, indices,
                resamples, batch_size, progress) -> dict:
     """Each method on the clear-weather twins of the degraded frames: per condition and severity,
     vehicle mAP degraded and clear and their ratio RA (MultiCorrupt's relative accuracy, paired:
@@ -130,17 +128,16 @@ def robustness(run_dir, data, model, reader, gp, choices, sources, twin_gates, k
     from sensors.dataset import DatasetReader
     from sim.actors import CLASSES
     from study.branch_gate_study import gate_pass
-    from study.scoring import VEHICLES, _image_matches, fused, ground_truth
+    from study.scoring import VEHICLES, _image_matches, fuse_selection, ground_truth
 
     if not reader.manifest["config"].get("twins"):
         raise UserError(f"--twins: {data} has no clear-weather twins (generate it with --twins)")
     clear_reader = DatasetReader(data, clear=True)
     gc = gate_pass(run_dir, data, model, twin_gates, indices, "latest", batch_size, progress, clear=True)
-    branches, frames = list(model.branches), model.branch_frames
-    names = [n for n in choices if not n.startswith("hydrafusion:") or n.split(":", 1)[1] in twin_gates]
-    clear_choices = {n: (choices[n] if not n.startswith("hydrafusion:") else
-                         [tuple(branches[j] for j in sorted(r[:k])) for r in gc.rankings[n.split(":", 1)[1]]])
-                     for n in names}
+    frames = model.branch_frames
+    names = [n for n in selections if not n.startswith("hydrafusion:") or n.split(":", 1)[1] in twin_gates]
+    clear_selections = {n: (selections[n] if not n.startswith("hydrafusion:") else gc.selection(n.split(":", 1)[1], k))
+                        for n in names}
     metas = [m for m, _ in gp.per_frame]
     groups: dict = {}
     for i, m in enumerate(metas):
@@ -157,7 +154,7 @@ def robustness(run_dir, data, model, reader, gp, choices, sources, twin_gates, k
     bar = progress_bar(total=len(names) * len(groups) * resamples, desc="bootstrap the twins", unit="draw",
                        enabled=progress)
     for n in names:
-        clr = [fused([pf], ch, frames, method)[0] for pf, ch in zip(gc.per_frame, clear_choices[n])]
+        clr = fuse_selection(gc.per_frame, clear_selections[n], frames, method)
         md, mc = _image_matches(sources[n], keys, gts_d, vehicles), _image_matches(clr, keys, gts_c, vehicles)
         per = {}
         for (cond, sev), idx in sorted(groups.items()):
@@ -252,7 +249,7 @@ def format_table(r: dict) -> str:
 
 
 def plot_compare(r: dict, path) -> None:
-    """Each method's mAP minus late fusion with its 95 % interval, overall (fixed choices grey,
+    """Each method's mAP minus late fusion with its 95 % interval, overall (fixed selections grey,
     selective blue, the oracle hatched)."""
     import matplotlib
 

@@ -458,14 +458,27 @@ def _mean_of(res, classes) -> float | None:
 
 
 
-def fused(per_frame: list, branches, frames: dict, method: str, weights=None) -> list:
-    """Late fusion of each frame's selected branches in the right camera frame."""
+def fuse_selection(per_frame: list, selection, frames: dict, method: str, weights=None,
+                   memo: dict | None = None) -> list:
+    """The one way a gate's choice becomes scored boxes: [(meta, fused Detections in the right
+    camera)] for [(meta, {branch: Detections})] and `selection` (per frame, the tuple of branch names
+    to fuse; branches a frame lacks are left out). `memo`: a dict reused across calls of one method
+    and one `per_frame`, keyed on (frame position, tuple)."""
+    memo = {} if memo is None else memo
     out = []
-    for meta, per in per_frame:
-        calib = Calibration.from_dict(meta["calibration"])
-        chosen = {n: per[n] for n in branches if n in per}
-        out.append((meta, fuse(chosen, frames, calib, method=method, weights=weights)))
+    for i, ((meta, per), frame_selection) in enumerate(zip(per_frame, selection, strict=True)):
+        key = (i, tuple(frame_selection))
+        if key not in memo:
+            calib = Calibration.from_dict(meta["calibration"])
+            memo[key] = fuse({n: per[n] for n in frame_selection if n in per}, frames, calib, method=method,
+                             weights=weights)
+        out.append((meta, memo[key]))
     return out
+
+
+def fused(per_frame: list, branches, frames: dict, method: str, weights=None) -> list:
+    """Late fusion of the same `branches` on every frame (`fuse_selection`)."""
+    return fuse_selection(per_frame, [tuple(branches)] * len(per_frame), frames, method, weights)
 
 
 def bev_crop_of(model, reader: DatasetReader) -> tuple:

@@ -124,22 +124,6 @@ class EcoData(GateData):
         return self.weights.combine(self.arrays(indices, ["terms"])["terms"])
 
 
-def fuse_choice(per_frame_dets, metas, branches, frames, chosen_members, method, memo=None) -> list:
-    """[(meta, fused Detections)] for each frame's chosen configuration (branch tuple), memoised
-    on (frame position, configuration)."""
-    from fusion.late import fuse
-    from sensors.rig import Calibration
-
-    memo = {} if memo is None else memo
-    out = []
-    for k, (meta, per, members) in enumerate(zip(metas, per_frame_dets, chosen_members)):
-        key = (k, members)
-        if key not in memo:
-            memo[key] = fuse({n: per[n] for n in members}, frames, Calibration.from_dict(meta["calibration"]),
-                             method=method)
-        out.append((meta, memo[key]))
-    return out
-
 
 def rank_correlation(losses: np.ndarray, ap: np.ndarray) -> dict:
     """Per-frame rank correlation across configurations between L_f and the frame's AP (lower

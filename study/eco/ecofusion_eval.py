@@ -21,7 +21,6 @@ from study.eco.data import (
     detections_from_array,
     eco_gate_frames,
     eco_splits,
-    fuse_choice,
     open_eco_run,
 )
 from study.eco.latency_energy import energy_table
@@ -138,7 +137,7 @@ class EcoEval:
         from fusion.eco.energy import total_energy
         from study.scoring import score
 
-        members = [self.configs.members[i] for i in choice]
+        selection = [self.configs.members[i] for i in choice]
         sc = score(self.fused(choice), self.reader, "camera_right", protocol=self.ed.protocol)
         rows = np.arange(len(choice))
         lf = self.losses[rows, choice]
@@ -151,7 +150,7 @@ class EcoEval:
                "energy_j": round(float(e_raw.mean()), 4),
                "latency_ms": round(1000 * float(t.mean()), 2),
                "gate_stems_ms": round(1000 * float(extra.mean()), 2),
-               "mean_branches": round(float(np.mean([len(m) for m in members])), 3)}
+               "mean_branches": round(float(np.mean([len(m) for m in selection])), 3)}
         if per_scene:
             measuring = [sorted(set(self.sensors[c]) | r) for c, r in zip(choice, read)]
             sensor_e = np.array([total_energy(ek, ms, "clock") for ek, ms in zip(e, measuring)])
@@ -177,11 +176,11 @@ class EcoEval:
 
     def fused(self, choice: np.ndarray) -> list:
         """[(meta, Detections)]: each frame's chosen configuration fused in the right camera."""
-        from study.scoring import fusion_method
+        from study.scoring import fuse_selection, fusion_method
 
-        members = [self.configs.members[i] for i in choice]
-        return fuse_choice(self.dets, self.metas, self.ed.branches, self.model.branch_frames, members,
-                           fusion_method(self.s.fusion), self.memo)
+        selection = [self.configs.members[i] for i in choice]
+        return fuse_selection(list(zip(self.metas, self.dets)), selection, self.model.branch_frames,
+                              fusion_method(self.s.fusion), memo=self.memo)
 
     def selection_counts(self, choice: np.ndarray, top: int = 5) -> dict:
         names, counts = np.unique(choice, return_counts=True)
@@ -262,7 +261,7 @@ def execute_ecofusion(run_dir, data, gate: str, lambda_e: float, gamma: float, s
     from fusion.eco.config_gates import EcoFusionSelector, build_config_gate
     from fusion.late import fuse
     from sensors.rig import Calibration
-    from study.scoring import fusion_method, to_detections
+    from study.scoring import fuse_selection, fusion_method, to_detections
 
     ev = ev or EcoEval(run_dir, data, s, [gate], progress=progress)
     model = ev.model
@@ -299,8 +298,8 @@ def execute_ecofusion(run_dir, data, gate: str, lambda_e: float, gamma: float, s
                 times.append(time.perf_counter() - t0)
                 choice = int(selector.last_choice[0])
                 agree += choice == int(offline[pos])
-                ref = fuse_choice([ev.dets[pos]], [ev.metas[pos]], ev.ed.branches, model.branch_frames,
-                                  [ev.configs.members[choice]], method)[0][1]
+                ref = fuse_selection([(ev.metas[pos], ev.dets[pos])], [ev.configs.members[choice]],
+                                     model.branch_frames, method)[0][1]
                 same += bool(len(ref) == len(fused) and np.allclose(ref.boxes, fused.boxes, atol=1e-3)
                              and np.allclose(ref.scores, fused.scores, atol=1e-4))
                 bar.update(1)
@@ -310,11 +309,11 @@ def execute_ecofusion(run_dir, data, gate: str, lambda_e: float, gamma: float, s
         for h in hooks:
             h.remove()
     n = len(idx)
-    chosen = offline[idx]
+    config_index = offline[idx]  # per frame, the configuration the gate chose
     return {"gate": gate, "lambda_e": lambda_e, "gamma": gamma, "frames": n,
             "stem_runs_per_frame": {k.split(":", 1)[1]: round(v / n, 3) for k, v in calls.items() if k.startswith("stem:")},
             "branch_runs_per_frame": round(sum(v for k, v in calls.items() if k.startswith("branch:")) / n, 3),
-            "mean_branches_chosen": round(float(np.mean([len(ev.configs.members[c]) for c in chosen])), 3),
+            "mean_branches_chosen": round(float(np.mean([len(ev.configs.members[c]) for c in config_index])), 3),
             "measured_latency_ms": round(1000 * float(np.mean(times)), 2),
-            "additive_latency_ms": round(1000 * float(ev.t[chosen].mean()), 2),
+            "additive_latency_ms": round(1000 * float(ev.t[config_index].mean()), 2),
             "choice_equals_offline": round(agree / n, 4), "detections_equal_offline": round(same / n, 4)}
