@@ -42,7 +42,7 @@ def compare(run_dir, data, *, gates=GATES, k: int = 2, fusion: str = "soft-nms",
     """The comparison of the module docstring -> a JSON-able dict: per method its kind, mAP, vehicle
     mAP, mAP per context, and mAP minus late fusion with its 95 % interval and verdict, overall and
     per context. `twins`: also each method's robustness on the clear-weather twins (`robustness`)."""
-    from study.branch_gate_study import _setup, gate_pass, parse_k, selection_rates
+    from study.gate_tables import _setup, gate_pass, parse_k, selection_rates
     from study.scoring import context_bootstrap, difference_interval, fuse_selection, fusion_method, score
     from study.train import run_protocol
 
@@ -127,7 +127,7 @@ def robustness(run_dir, data, model, reader, gp, selections, sources, twin_gates
     from fusion import robustness as R
     from sensors.dataset import DatasetReader
     from sim.actors import CLASSES
-    from study.branch_gate_study import gate_pass
+    from study.gate_tables import gate_pass
     from study.scoring import VEHICLES, _image_matches, fuse_selection, ground_truth
 
     if not reader.manifest["config"].get("twins"):

@@ -15,7 +15,7 @@ chosen branches (a branch depends only on its own sensors' stems; tested in test
   branch losses (the oracle);
 - EcoFusion: a configuration gate's choice at lambda_E, gamma (Eq. 7-9); loss_based = the oracle.
 
-Besides the papers' tables (HydraFusion 3, 6, 7 from `study.branch_gate_study.evaluate_all_gates`; EcoFusion
+Besides the papers' tables (HydraFusion 3, 6, 7 from `study.gate_tables.evaluate_all_gates`; EcoFusion
 1-3 and Figures 4-5 from `study.eco.sweep.sweep`) it measures what neither paper has: mAP against
 severity per condition with the clear twins of the same frames, mAP per range bin per context,
 each gate's regret against its oracle per context and how often its choice differs from the
@@ -81,8 +81,9 @@ def _summary(sc: dict) -> dict:
 def hydra_predictions(run, data, frames, gates) -> dict[str, np.ndarray]:
     """Predicted (or, for optimal, a-posteriori) per-branch losses, (n, n_branches), on the frames of
     `frames`: the test frames (an `EcoEval`) or the validation frames (a `ValidationFrames`)."""
-    from study.branch_gate_study import load_trained_gate, make_gate, predict_losses
+    from study.branch_gate_study import load_trained_gate, predict_losses
     from study.gate_data import GateData
+    from study.gate_tables import make_gate
 
     ev = getattr(frames, "ev", frames)
     indices = [int(m["dataset_index"]) for m in frames.metas]
@@ -105,9 +106,9 @@ def evaluate_study(run, run_early, data, cfg, s, work: Path, setup=None, progres
     EcoSettings; figures are written under `work`."""
     from fusion.eco.config_gates import CONFIG_GATES
     from fusion.nets.branch_gates import trainable_gates
-    from study.branch_gate_study import evaluate_all_gates
     from study.eco.ecofusion_eval import GATE_ORDER, EcoEval
     from study.eco.sweep import sweep
+    from study.gate_tables import evaluate_all_gates
     from study.selection import SelectionLog
 
     e = cfg.evaluate
@@ -214,7 +215,7 @@ def table3_on_validation(run, data, ev, val: ValidationFrames, hydra_tables: dic
     """HydraFusion Table 3: per gate, the fusion method whose mAP of the gate's top k is best on the
     validation frames, and that method's test row of Table 6 (the paper picks the best per gate; a
     pick on the test frames would flatter every gate)."""
-    from study.branch_gate_study import FUSION_LABEL, top_k_selection
+    from study.gate_tables import FUSION_LABEL, top_k_selection
 
     branches = list(ev.ed.branches)
     preds = hydra_predictions(run, data, val, gates)
@@ -302,7 +303,7 @@ def fixed_selections(M: Methods, singles, late) -> tuple[dict, dict]:
 
 def hydra_gate_selections(run, data, ev, gates, k: int) -> tuple[dict, dict]:
     """HydraFusion's methods: each branch gate's top k per frame (Table 2 (iv))."""
-    from study.branch_gate_study import top_k_selection
+    from study.gate_tables import top_k_selection
 
     branches = list(ev.ed.branches)
     preds = hydra_predictions(run, data, ev, gates)

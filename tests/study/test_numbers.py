@@ -4,7 +4,7 @@ import math
 
 import numpy as np
 
-from study.branch_gate_study import selection_rates
+from study.gate_tables import selection_rates
 from study.numbers import interval_text, number_text, rounded, rounded_interval
 
 
