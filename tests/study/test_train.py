@@ -239,7 +239,8 @@ def test_evaluate_reports_map_per_class_and_context(data, reference_run, capsys)
 
 def test_warm_start_copies_matching_modules_and_maps_branches(reference_run):
     from fusion.nets import build_hydrafusion
-    from study.train import branch_set, warm_start
+    from study.train import branch_set
+    from study.warm_start import warm_start
 
     ref, _ = reference_run
     source = torch.load(ref / "checkpoint.pt", weights_only=False)["model"]
@@ -265,7 +266,8 @@ def test_warm_start_from_several_runs_takes_each_module_from_the_first_that_has_
     (even though the second run has same-named ones), radar and lidar ones from the second run;
     the merge conv of a fused camera branch then passes the right camera's features through."""
     from fusion.nets import build_hydrafusion
-    from study.train import branch_set, warm_start
+    from study.train import branch_set
+    from study.warm_start import warm_start
 
     paper = branch_set("paper", "cpu")
     torch.manual_seed(1)
