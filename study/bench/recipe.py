@@ -77,6 +77,26 @@ def _curve_at(xs, ys, budget: float) -> float:
     return float(np.interp(budget, [0.0, *xs], [0.0, *ys]))
 
 
+def _check_options(out: Path, marker: Path, candidates: dict, epochs: int, bootstrap: int, aim: float | None) -> None:
+    """Refuse (UserError, one line) what the bench cannot run: an --out holding other files, the
+    bootstrap's draws, --aim, a candidate's epochs; before any work."""
+    from sim.errors import UserError
+
+    ours = {marker.name, *(_dir(n) for n in candidates)}
+    if out.exists() and (not out.is_dir() or any(p.name not in ours and p.suffix not in (".png", ".pdf", ".svg")
+                                                 for p in out.iterdir())):
+        raise UserError(f"--out {out} holds other files than this bench's candidate runs, {marker.name} and its "
+                        "figures; use a new or empty directory (or the same candidates)")
+    if not 0 <= bootstrap <= 10000:
+        raise UserError(f"--bootstrap must be 0..10000 draws, got {bootstrap}")
+    if aim is not None and not 0.0 < aim <= 1.0:
+        raise UserError(f"--aim must be a vehicle mAP in (0, 1], got {aim}")
+    for name, fields in candidates.items():
+        n_ep = fields.get("epochs", epochs)
+        if isinstance(n_ep, bool) or not isinstance(n_ep, int) or not 1 <= n_ep <= 100:
+            raise UserError(f"--candidate {name}: epochs must be a whole number 1..100, got {n_ep!r}")
+
+
 def bench_recipe(data: str, out, branch: str = "lidar", candidates: dict | None = None, epochs: int = 3,
                  profile: str = "cpu", threads: int = 0, seed: int = 0, bootstrap: int = 200,
                  progress: bool = True, aim: float | None = None) -> dict:
@@ -104,19 +124,7 @@ def bench_recipe(data: str, out, branch: str = "lidar", candidates: dict | None 
     data = str(Path(data).resolve())
     candidates = dict(candidates or DEFAULT_CANDIDATES)
     marker = out / "recipe.json"
-    ours = {marker.name, *(_dir(n) for n in candidates)}
-    if out.exists() and (not out.is_dir() or any(p.name not in ours and p.suffix not in (".png", ".pdf", ".svg")
-                                                 for p in out.iterdir())):
-        raise UserError(f"--out {out} holds other files than this bench's candidate runs, {marker.name} and its "
-                        "figures; use a new or empty directory (or the same candidates)")
-    if not 0 <= bootstrap <= 10000:
-        raise UserError(f"--bootstrap must be 0..10000 draws, got {bootstrap}")
-    if aim is not None and not 0.0 < aim <= 1.0:
-        raise UserError(f"--aim must be a vehicle mAP in (0, 1], got {aim}")
-    for name, fields in candidates.items():
-        n_ep = fields.get("epochs", epochs)
-        if isinstance(n_ep, bool) or not isinstance(n_ep, int) or not 1 <= n_ep <= 100:
-            raise UserError(f"--candidate {name}: epochs must be a whole number 1..100, got {n_ep!r}")
+    _check_options(out, marker, candidates, epochs, bootstrap, aim)
     check_dataset(data)
     n_threads = threads or default_threads()
     reader = DatasetReader(data)
