@@ -19,7 +19,7 @@ import json
 import sys
 from pathlib import Path
 
-from study.detect import difference_interval
+from study.scoring import difference_interval
 from study.verdict import answer_sentences
 
 BEGIN = "<!-- study-results:begin (scripts/readme_results.py writes this block; do not edit by hand) -->"

@@ -183,14 +183,14 @@ def render_sequence(spec: ShardSpec, config: GenerateConfig, on_frame: Callable[
         obs, params = raw, {}
         if degrader is not None:
             t = time.perf_counter()
-            obs, params = degrader.apply(scene, raw, scene.frame_index)
+            obs, params = degrader.apply(raw, scene.frame_index)
             renderer.timings["degradation"] += time.perf_counter() - t
         frames.append(renderer.finalize(scene, obs, params, clean=raw))
         if twins is not None:  # the same moment in clear weather (persistent faults stay)
             twin_raw = renderer.observe(scene, clear)
             twin_obs, twin_params = twin_raw, {}
             if degrader is not None:
-                twin_obs, twin_params = degrader.apply(scene, twin_raw, scene.frame_index)
+                twin_obs, twin_params = degrader.apply(twin_raw, scene.frame_index)
             twins.append(renderer.finalize(scene, twin_obs, twin_params, clean=twin_raw))
         if on_frame:
             on_frame()

@@ -119,7 +119,7 @@ def stage_digests(context: str = "city", seed: int = 3, profile: str = "cpu") ->
         d[stage] = digest(trace[stage])
     obs, params = raw, {}
     if degrader is not None:
-        obs, params = degrader.apply(scene, raw, scene.frame_index)
+        obs, params = degrader.apply(raw, scene.frame_index)
     d["degradation"] = digest((obs.camera_left, obs.camera_right, obs.lidar, obs.radar, params))
     frame = renderer.finalize(scene, obs, params, clean=raw)
     d["camera_images"] = digest((frame.camera_left, frame.camera_right))

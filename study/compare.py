@@ -3,7 +3,7 @@
 One pass runs every branch of a trained run (or reference model) once per frame and every gate
 beside it; then, in the right camera, with one late-fusion method (`--fusion`, fixed in advance):
 
-- fixed choices: each single-sensor branch alone, `late` (the single-sensor branches fused: the
+- fixed selections: each single-sensor branch alone, `late` (the single-sensor branches fused: the
   paper's late-fusion baseline), `all_branches` (every branch, early-fusion ones included);
 - selective: HydraFusion's gates (Table 2 (iv)): each frame's top-k branches by the gate's
   predicted loss, fused. `knowledge` reads the frame's context label; `deep` and `attention` read
@@ -11,7 +11,7 @@ beside it; then, in the right camera, with one late-fusion method (`--fusion`, f
   a-posteriori branch losses (the oracle: no deployable gate does better at choosing by loss).
 
 Every method is scored on the same frames (VOC mAP@0.5, all classes, the run's protocol) and
-compared with `late` by the paired sequence bootstrap (`study.detect.context_bootstrap`): whole
+compared with `late` by the paired sequence bootstrap (`study.scoring.context_bootstrap`): whole
 sequences drawn with replacement, every method scored on each draw. A difference whose 95 %
 interval holds 0 is "not resolved". Nothing is chosen here: k and the fusion method are inputs.
 """
@@ -24,6 +24,7 @@ import numpy as np
 
 from sim.errors import UserError
 from sim.progress import progress as progress_bar
+from study.numbers import number_text, rounded, rounded_interval
 
 GATES = ("knowledge", "deep", "attention", "optimal")
 
@@ -41,8 +42,8 @@ def compare(run_dir, data, *, gates=GATES, k: int = 2, fusion: str = "soft-nms",
     """The comparison of the module docstring -> a JSON-able dict: per method its kind, mAP, vehicle
     mAP, mAP per context, and mAP minus late fusion with its 95 % interval and verdict, overall and
     per context. `twins`: also each method's robustness on the clear-weather twins (`robustness`)."""
-    from study.branch_gate_study import _setup, gate_pass, parse_k
-    from study.detect import context_bootstrap, difference_interval, fused, fusion_method, score
+    from study.gate_tables import _setup, gate_pass, parse_k, selection_rates
+    from study.scoring import context_bootstrap, difference_interval, fuse_selection, fusion_method, score
     from study.train import run_protocol
 
     run_dir, data = Path(run_dir), Path(data)
@@ -58,30 +59,28 @@ def compare(run_dir, data, *, gates=GATES, k: int = 2, fusion: str = "soft-nms",
     singles = [b for b in branches if len(sensors[b]) == 1]
     if not singles:
         raise UserError(f"{run_dir}: no single-sensor branch, so no late-fusion baseline to compare with")
-    trained = [g for g in gates if g not in ("deep", "attention") or (run_dir / "gates" / g / "gate.pt").is_file()]
+    trained = usable_gates(run_dir, gates)
     skipped = [g for g in gates if g not in trained]
     gp = gate_pass(run_dir, data, model, trained, indices, "latest", batch_size, progress)
     frames = model.branch_frames
     kinds = {f"single:{b}": "single sensor" for b in singles}
-    choices = {f"single:{b}": [(b,)] * len(gp.per_frame) for b in singles}
-    kinds["late"], choices["late"] = "late fusion of the single-sensor branches", [tuple(singles)] * len(gp.per_frame)
+    selections = {f"single:{b}": [(b,)] * len(gp.per_frame) for b in singles}
+    kinds["late"], selections["late"] = "late fusion of the single-sensor branches", [tuple(singles)] * len(gp.per_frame)
     if len(branches) > len(singles):
         kinds["all_branches"] = "every branch (early-fusion ones too)"
-        choices["all_branches"] = [tuple(branches)] * len(gp.per_frame)
+        selections["all_branches"] = [tuple(branches)] * len(gp.per_frame)
     for g in trained:
         name = f"hydrafusion:{g}"
         kinds[name] = (f"{g} gate, top {k} of {len(branches)} per frame"
                        + (" (oracle: reads each frame's own losses)" if g == "optimal" else ""))
-        choices[name] = [tuple(branches[j] for j in sorted(r[:k])) for r in gp.rankings[g]]
-    sources = {}
-    for name, per_choice in choices.items():
-        sources[name] = [fused([pf], ch, frames, method)[0] for pf, ch in zip(gp.per_frame, per_choice)]
+        selections[name] = gp.selection(g, k)
+    sources = {name: fuse_selection(gp.per_frame, selection, frames, method) for name, selection in selections.items()}
     scores = {n: score(s, reader, "camera_right", protocol=protocol) for n, s in sources.items()}
     boot = (context_bootstrap(sources, reader, "camera_right", protocol=protocol, resamples=resamples,
                               classes="all", desc="bootstrap the methods") if resamples else None)
     contexts = sorted({m["context"] for m, _ in gp.per_frame})
     methods = {}
-    for name in choices:
+    for name in selections:
         sc = scores[name]
         row = {"kind": kinds[name], "map": sc["map"], "map_vehicles": sc["map_vehicles"],
                "map_per_context": sc["map_per_context"]}
@@ -99,24 +98,24 @@ def compare(run_dir, data, *, gates=GATES, k: int = 2, fusion: str = "soft-nms",
         if boot:
             row["ci95"] = boot["per_context"]["all"]["map"][name]
         methods[name] = row
-    picks = {g: _rates(choices[f"hydrafusion:{g}"], branches) for g in trained}
+    rates = {g: selection_rates(selections[f"hydrafusion:{g}"], branches) for g in trained}
     best = best_gate(run_dir, trained)
     rob = None
     if twins:
-        rob = robustness(run_dir, data, model, reader, gp, choices, sources, [g for g in trained if g != "optimal"],
+        rob = robustness(run_dir, data, model, reader, gp, selections, sources, [g for g in trained if g != "optimal"],
                          k, method, protocol, indices, resamples, batch_size, progress)
     return {
         "run": str(run_dir), "data": str(data), "split": used_split, "frames": len(gp.per_frame),
         "sequences": boot["per_context"]["all"]["sequences"] if boot else None, "contexts": contexts,
         "fusion": fusion, "k": k, "protocol": protocol, "branches": branches, "gates": trained,
-        "gates_not_trained": skipped, "methods": methods, "selection_rate_pct": picks, "best_gate": best,
+        "gates_not_trained": skipped, "methods": methods, "selection_rate_pct": rates, "best_gate": best,
         "bootstrap": {"resamples": resamples, "unit": "sequence"} if boot else None,
         "metric": "VOC all-point AP at IoU 0.5, every class with ground truth, right camera",
         **({"robustness": rob} if rob is not None else {}),
     }
 
 
-def robustness(run_dir, data, model, reader, gp, choices, sources, twin_gates, k, method, protocol, indices,
+def robustness(run_dir, data, model, reader, gp, selections, sources, twin_gates, k, method, protocol, indices,
                resamples, batch_size, progress) -> dict:
     """Each method on the clear-weather twins of the degraded frames: per condition and severity,
     vehicle mAP degraded and clear and their ratio RA (MultiCorrupt's relative accuracy, paired:
@@ -128,18 +127,17 @@ def robustness(run_dir, data, model, reader, gp, choices, sources, twin_gates, k
     from fusion import robustness as R
     from sensors.dataset import DatasetReader
     from sim.actors import CLASSES
-    from study.branch_gate_study import gate_pass
-    from study.detect import VEHICLES, _image_matches, fused, ground_truth
+    from study.gate_tables import gate_pass
+    from study.scoring import VEHICLES, _image_matches, fuse_selection, ground_truth
 
     if not reader.manifest["config"].get("twins"):
         raise UserError(f"--twins: {data} has no clear-weather twins (generate it with --twins)")
     clear_reader = DatasetReader(data, clear=True)
     gc = gate_pass(run_dir, data, model, twin_gates, indices, "latest", batch_size, progress, clear=True)
-    branches, frames = list(model.branches), model.branch_frames
-    names = [n for n in choices if not n.startswith("hydrafusion:") or n.split(":", 1)[1] in twin_gates]
-    clear_choices = {n: (choices[n] if not n.startswith("hydrafusion:") else
-                         [tuple(branches[j] for j in sorted(r[:k])) for r in gc.rankings[n.split(":", 1)[1]]])
-                     for n in names}
+    frames = model.branch_frames
+    names = [n for n in selections if not n.startswith("hydrafusion:") or n.split(":", 1)[1] in twin_gates]
+    clear_selections = {n: (selections[n] if not n.startswith("hydrafusion:") else gc.selection(n.split(":", 1)[1], k))
+                        for n in names}
     metas = [m for m, _ in gp.per_frame]
     groups: dict = {}
     for i, m in enumerate(metas):
@@ -156,7 +154,7 @@ def robustness(run_dir, data, model, reader, gp, choices, sources, twin_gates, k
     bar = progress_bar(total=len(names) * len(groups) * resamples, desc="bootstrap the twins", unit="draw",
                        enabled=progress)
     for n in names:
-        clr = [fused([pf], ch, frames, method)[0] for pf, ch in zip(gc.per_frame, clear_choices[n])]
+        clr = fuse_selection(gc.per_frame, clear_selections[n], frames, method)
         md, mc = _image_matches(sources[n], keys, gts_d, vehicles), _image_matches(clr, keys, gts_c, vehicles)
         per = {}
         for (cond, sev), idx in sorted(groups.items()):
@@ -165,8 +163,8 @@ def robustness(run_dir, data, model, reader, gp, choices, sources, twin_gates, k
                                          [metas[i]["sequence_id"] for i in idx], resamples=resamples,
                                          on_draw=lambda: bar.update(1))
             per.setdefault(cond, {})[str(sev)] = {
-                "degraded": _r(t.degraded, 6), "clear": _r(t.clear, 6), "ra": _r(t.ra),
-                "ra_ci95": _iv(t.interval), "sequences": t.sequences, "frames": t.frames}
+                "degraded": rounded(t.degraded, 6), "clear": rounded(t.clear, 6), "ra": rounded(t.ra),
+                "ra_ci95": rounded_interval(t.interval), "sequences": t.sequences, "frames": t.frames}
         out_methods[n] = {"per_condition": per}
     bar.close()
     def scores(row, key):  # {condition: {severity: score}}, as fusion.robustness takes them
@@ -176,27 +174,30 @@ def robustness(run_dir, data, model, reader, gp, choices, sources, twin_gates, k
     for row in out_methods.values():
         deg, clr = scores(row, "degraded"), scores(row, "clear")
         ra = R.relative_accuracies(deg, clr)
-        row["mRA"] = _r(R.mean_relative_accuracy(ra))
-        row["mRR"] = _r(R.mean_resilience_rate(deg, clr))
-        row["mCE_vs_late"] = _r(R.mean_corruption_error(deg, base))
+        row["mRA"] = rounded(R.mean_relative_accuracy(ra))
+        row["mRR"] = rounded(R.mean_resilience_rate(deg, clr))
+        row["mCE_vs_late"] = rounded(R.mean_corruption_error(deg, base))
     physical = {}
     for (cond, sev), idx in sorted(groups.items()):
         q = R.severity_quantity(cond)
         vals = [float(metas[i]["weather"][q]) for i in idx if q in metas[i].get("weather", {})]
         physical.setdefault(cond, {"quantity": q, "unit": R.severity_value(cond, 1)[1], "per_severity": {}})
-        physical[cond]["per_severity"][str(sev)] = _r(float(np.median(vals)), 3) if vals else None
+        physical[cond]["per_severity"][str(sev)] = rounded(float(np.median(vals)), 3) if vals else None
     return {"methods": out_methods, "physical": physical, "gates": list(twin_gates),
             "metric": "vehicle mAP@0.5 (car, van, truck, bus), right camera; RA = degraded / clear twins of the same "
                       "frames; mRA (MultiCorrupt), mRR and mCE against late fusion (Robo3D)",
             "resamples": resamples, "unit": "sequence"}
 
 
-def _r(v, nd: int = 4):
-    return None if v is None or not np.isfinite(v) else round(float(v), nd)
 
 
-def _iv(iv):
-    return None if iv is None else [_r(iv[0]), _r(iv[1])]
+def usable_gates(run_dir: Path, gates) -> list[str]:
+    """`gates` that can run on `run_dir`: those that learn nothing, and the trainable ones
+    (`Gate.trainable`) with a RUN/gates/<gate>/gate.pt."""
+    from fusion.nets.branch_gates import trainable_gates
+
+    learned = trainable_gates()
+    return [g for g in gates if g not in learned or (Path(run_dir) / "gates" / g / "gate.pt").is_file()]
 
 
 def best_gate(run_dir: Path, gates) -> dict | None:
@@ -205,10 +206,13 @@ def best_gate(run_dir: Path, gates) -> dict | None:
     when no learned gate recorded one."""
     import torch
 
+    from fusion.nets.branch_gates import trainable_gates
+
     vals = {}
+    learned = trainable_gates()
     for g in gates:
         path = Path(run_dir) / "gates" / g / "gate.pt"
-        if g in ("deep", "attention") and path.is_file():
+        if g in learned and path.is_file():
             res = (torch.load(path, map_location="cpu", weights_only=False).get("result") or {})
             if res.get("val_regret") is not None:
                 vals[g] = float(res["val_regret"])
@@ -222,10 +226,6 @@ def _diff(a, b):
     return None if a is None or b is None else round(a - b, 4)
 
 
-def _rates(per_frame: list[tuple[str, ...]], branches) -> dict[str, float]:
-    n = max(len(per_frame), 1)
-    return {b: round(100.0 * sum(b in ch for ch in per_frame) / n, 1) for b in branches}
-
 
 def format_table(r: dict) -> str:
     """The comparison as text: one row per method, fixed first, then selective."""
@@ -238,7 +238,7 @@ def format_table(r: dict) -> str:
             d = row.get(key)
             cells.append("-" if d is None else (f"{d['value']:+.3f} [{d['ci95'][0]:+.3f}, {d['ci95'][1]:+.3f}] "
                                                 f"{d['verdict']}" if d["ci95"] else f"{d['value']:+.3f}"))
-        lines.append(f"{name:24s} {_f(row['map'])} {_f(row['map_vehicles'])}   {cells[0]:40s} "
+        lines.append(f"{name:24s} {number_text(row['map']):>6} {number_text(row['map_vehicles']):>6}   {cells[0]:40s} "
                      f"{cells[1] if name.startswith('hydrafusion:') else ''}".rstrip())
     if r["gates_not_trained"]:
         lines.append("not trained on this run (hydrabench train-gate): " + ", ".join(r["gates_not_trained"]))
@@ -247,12 +247,9 @@ def format_table(r: dict) -> str:
     return "\n".join(lines)
 
 
-def _f(v) -> str:
-    return f"{v:6.3f}" if v is not None else "     -"
-
 
 def plot_compare(r: dict, path) -> None:
-    """Each method's mAP minus late fusion with its 95 % interval, overall (fixed choices grey,
+    """Each method's mAP minus late fusion with its 95 % interval, overall (fixed selections grey,
     selective blue, the oracle hatched)."""
     import matplotlib
 
@@ -360,7 +357,7 @@ def format_robustness(r: dict) -> str:
     lines = ["robustness on the clear-weather twins (vehicle mAP): " + rob["metric"],
              f"{'method':24s} {'mRA':>6s} {'mRR':>6s} {'mCE':>6s}"]
     for n, row in rob["methods"].items():
-        lines.append(f"{n:24s} {_f(row['mRA'])} {_f(row['mRR'])} {_f(row['mCE_vs_late'])}")
+        lines.append(f"{n:24s} {number_text(row['mRA']):>6} {number_text(row['mRR']):>6} {number_text(row['mCE_vs_late']):>6}")
     for cond, phys in sorted(rob["physical"].items()):
         sevs = sorted(phys["per_severity"], key=int)
         lines.append(f"  {cond}: RA [95 % interval] at " + ", ".join(

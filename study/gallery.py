@@ -70,7 +70,7 @@ def render_gallery(data, out, index: int = 0, context: str | None = None,
         row_context = layout if cond == "clear" else f"{layout}+{cond}"
         degrader = Degrader(renderer.calib, row_context, shard["seed"], obstructions=False,
                             lidar_fog=manifest["config"].get("lidar_fog", "ours"))
-        obs, params = degrader.apply(scene, renderer.observe(scene, weather), scene.frame_index)
+        obs, params = degrader.apply(renderer.observe(scene, weather), scene.frame_index)
         frame = renderer.finalize(scene, obs, params)
         panels.append({"condition": cond, "severity": sev, "weather": weather, "frame": frame})
     plot_gallery(panels, str(out), title=f"{shard['context']} scene (dataset frame {pick}), "

@@ -76,7 +76,7 @@ class GateData:
     Args:
         run_dir: the training run; the cache lives in `run_dir/gate_data/<key>/`.
         data: dataset directory.
-        model: the run's network at `checkpoint` (eval mode), as `study.detect.load_run` gives it.
+        model: the run's network at `checkpoint` (eval mode), as `study.scoring.load_run` gives it.
         checkpoint: "latest" or "epoch-NNN" (its file's SHA-256 is part of the key).
         grid: the pooling grid of `pool_features` (rows, columns).
         seed: RNG seed of the per-sample loss sampling.

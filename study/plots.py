@@ -15,6 +15,7 @@ from matplotlib.patches import Polygon as MplPolygon  # noqa: E402
 
 from sim.actors import CLASSES, box_corners_2d  # noqa: E402
 from sim.world import STRUCTURE_ID  # noqa: E402
+from study.numbers import number_text
 from study.outputs import savefig_atomic  # noqa: E402
 
 CLASS_COLORS = {
@@ -157,24 +158,19 @@ def frame_caption(meta: dict) -> str:
             if isinstance(params, dict) and set(params) <= {"camera_left", "camera_right"}:
                 cams = "/".join("L" if c == "camera_left" else "R" for c in params)
                 first = next(iter(params.values()))
-                shown = ", ".join(f"{k}={_fmt(v)}" for k, v in first.items() if not isinstance(v, list | dict) and k != "seed")
+                shown = ", ".join(f"{k}={number_text(v)}" for k, v in first.items() if not isinstance(v, list | dict) and k != "seed")
                 parts.append(f"{name}[{cams}]({shown})")
             elif isinstance(params, dict):
-                shown = ", ".join(f"{k}={_fmt(v)}" for k, v in params.items() if not isinstance(v, list | dict) and k != "seed")
+                shown = ", ".join(f"{k}={number_text(v)}" for k, v in params.items() if not isinstance(v, list | dict) and k != "seed")
                 parts.append(f"{name}({shown})")
             else:
-                parts.append(f"{name}={_fmt(params)}")
+                parts.append(f"{name}={number_text(params)}")
         text = "degradation: " + "; ".join(parts)
         lines += [text[i:i + 200] for i in range(0, len(text), 200)]
     else:
         lines.append("degradation: none")
     return "\n".join(lines)
 
-
-def _fmt(v) -> str:
-    if isinstance(v, float):
-        return f"{v:.3g}"
-    return str(v)
 
 
 def plot_frame(frame: dict, path: str) -> None:

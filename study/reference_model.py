@@ -202,7 +202,7 @@ def export_model(run: Path, out: Path, *, name: str, measured: dict | None = Non
         raise UserError(f"--training-commit {training_commit!r}: 7 to 40 hexadecimal digits of a git commit")
     if out.exists() and any(out.iterdir()) and not (out / "manifest.json").is_file():
         raise UserError(f"{out} exists and is not a reference model; choose an empty or new --out")
-    from study.detect import load_run
+    from study.scoring import load_run
 
     load_run(run)  # the weights fit the network config.json describes (UserError naming the file otherwise)
     cfg = json.loads(cfg_path.read_text())

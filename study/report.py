@@ -14,17 +14,11 @@ import json
 import os
 from pathlib import Path
 
+from study.numbers import interval_text, number_text
 from study.outputs import write_text_atomic
 
 REPORT_VERSION = 2
 
-
-def _fmt(v) -> str:
-    if v is None:
-        return "-"
-    if isinstance(v, float):
-        return f"{v:.3f}" if abs(v) < 1000 else f"{v:.0f}"
-    return str(v)
 
 
 def settled(path: Path) -> Path:
@@ -45,7 +39,7 @@ class Doc:
         self.blocks.append(("p", text))
 
     def table(self, caption: str, header: list[str], rows: list[list]) -> None:
-        self.blocks.append(("table", caption, header, [[_fmt(c) for c in r] for r in rows]))
+        self.blocks.append(("table", caption, header, [[number_text(c) for c in r] for r in rows]))
 
     def img(self, caption: str, path: Path) -> None:
         if Path(path).is_file():
@@ -225,8 +219,8 @@ def add_robustness(doc: Doc, r: dict, tag: str) -> None:
           f"baseline's ({table.get('baseline', 'late')}), mCE its mean (Robo3D). Point estimates: each severity "
           "stands on the test frames of that severity only.")
     doc.table(f"Robustness per method ({tag})", ["method", "mRA", "mRR", "mCE", *[f"RA {c}" for c in conds]],
-              [[m, _fmt(t.get("mra")), _fmt(t.get("mrr")), _fmt(t.get("mce")),
-                *[_fmt(t["conditions"].get(c, {}).get("ra")) for c in conds]] for m, t in methods.items()])
+              [[m, number_text(t.get("mra")), number_text(t.get("mrr")), number_text(t.get("mce")),
+                *[number_text(t["conditions"].get(c, {}).get("ra")) for c in conds]] for m, t in methods.items()])
 
 
 def _gate_ks(r: dict) -> list:
@@ -255,7 +249,7 @@ def add_intervals(doc: Doc, r: dict, tag: str) -> None:
     ctxs = r["dataset"]["contexts"]
     ci = r.get("intervals")
     if ci:
-        from study.detect import difference_interval
+        from study.scoring import difference_interval
 
         doc.h(2, "How sure: 95 % intervals of every method's mAP and of its difference from late fusion")
         doc.p(f"{ci['resamples']} draws of whole test sequences with replacement (frames of a sequence share traffic "
@@ -267,7 +261,7 @@ def add_intervals(doc: Doc, r: dict, tag: str) -> None:
         groups = ["all", *[c for c in ctxs if c in per]]
 
         def cell(lo_hi) -> str:
-            return "-" if not lo_hi else f"[{_fmt(lo_hi[0])}, {_fmt(lo_hi[1])}]"
+            return interval_text(lo_hi or None)
 
         doc.table(f"mAP@0.5: 95 % interval per context ({tag})", ["method", *[f"{g} ({per[g]['sequences']} seq)" for g in groups]],
                   [[n, *[cell(per[g]["map"].get(n)) for g in groups]] for n in r["methods"]])
@@ -440,7 +434,7 @@ def add_choices(doc: Doc, r: dict, tag: str) -> None:
           "their rank correlation with AP on the validation frames), k, lambda_E and gamma (the papers').")
     doc.table(f"Choices made on validation frames ({tag})", ["what", "chosen", "measure", "candidates"],
               [[c["what"], c["chosen"], c["measure"],
-                ", ".join(f"{k} {_fmt(x)}" for k, x in (c.get("candidates") or {}).items())] for c in ch])
+                ", ".join(f"{k} {number_text(x)}" for k, x in (c.get("candidates") or {}).items())] for c in ch])
 
 
 def add_severity(doc: Doc, r: dict, tag: str, work: Path) -> None:
@@ -452,7 +446,7 @@ def add_severity(doc: Doc, r: dict, tag: str, work: Path) -> None:
              if r.get("severity_clear_twins") else "This dataset has no twins."))
     for cond, per in r["severity"].items():
         sevs = sorted({s for v in per.values() for s in v}, key=int)
-        rows = [[name, *[f"{_fmt(v.get(s, {}).get('degraded'))} / {_fmt(v.get(s, {}).get('clear'))}" for s in sevs]]
+        rows = [[name, *[f"{number_text(v.get(s, {}).get('degraded'))} / {number_text(v.get(s, {}).get('clear'))}" for s in sevs]]
                 for name, v in per.items()]
         frames = {s: next((v[s]["frames"] for v in per.values() if s in v), 0) for s in sevs}
         doc.table(f"{cond}: vehicle mAP degraded / clear twin per severity ({tag})", ["method",
@@ -504,7 +498,7 @@ def add_fusion_regret(doc: Doc, r: dict, tag: str) -> None:
         cols = list(next(iter(fr.values()))["per_context"])
         doc.table(f"mAP regret of fusing each sensor, per context ({tag})", ["sensor", *cols, "hurts in"],
                   [[b, *[v["per_context"][c]["regret_map"] for c in cols],
-                    ", ".join(f"{c} ({_fmt(x)})" for c, x in v["hurts_in"].items()) or "nowhere"] for b, v in fr.items()])
+                    ", ".join(f"{c} ({number_text(x)})" for c, x in v["hurts_in"].items()) or "nowhere"] for b, v in fr.items()])
         doc.table(f"L_f regret of fusing each sensor, per context ({tag})", ["sensor", *cols],
                   [[b, *[v["per_context"][c]["regret_loss"] for c in cols]] for b, v in fr.items()])
 
@@ -516,7 +510,7 @@ def add_gate_picks(doc: Doc, r: dict, tag: str) -> None:
         for g, by in per.items():
             doc.table(f"{fam} {g}: most chosen branch sets [% of the context's test frames] ({tag})",
                       ["context", "choices"],
-                      [[c, "; ".join(f"{k} {_fmt(v)}" for k, v in d.items())] for c, d in by.items()])
+                      [[c, "; ".join(f"{k} {number_text(v)}" for k, v in d.items())] for c, d in by.items()])
 
 
 def write_report(results: dict, context: dict, work: Path, eval_dir: Path, rel_to: Path | None = None) -> dict:

@@ -1,5 +1,5 @@
 """What a training run's `config.json` says about the network it trained: read by the trainer (to
-resume) and by everything that loads the run (`study.detect.load_run`)."""
+resume) and by everything that loads the run (`study.scoring.load_run`)."""
 
 from __future__ import annotations
 

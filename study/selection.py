@@ -120,7 +120,7 @@ def gate_frames(run_cfg: dict, data, targets: str = "auto", val_fraction: float 
     frames from the detectors' training frames as before, and "holdout" is refused."""
     from sensors.dataset import DatasetReader
     from sim.errors import UserError
-    from study.detect import frames_for, run_train_test
+    from study.scoring import frames_for, run_train_test
 
     if targets not in TARGETS:
         raise UserError(f"targets: expected one of {', '.join(TARGETS)}, got {targets!r}")

@@ -122,9 +122,9 @@ def _init_from(text: str) -> str:
 def gatedata_stage(work: Path, run_paper: Path, data: Path, settings, batch_size: int, setup,
                    progress: bool, val_fraction: float = 0.15, seed: int = 0) -> tuple[str, dict]:
     """HydraFusion's gate dataset and EcoFusion's, cached under work/run (a farm of the paper run)."""
-    from study.detect import frames_for, load_run
     from study.eco.data import build_eco_data
     from study.gate_data import GateData
+    from study.scoring import frames_for, load_run
 
     run = work / "run"
     link_farm(run_paper, run)
@@ -147,12 +147,12 @@ def gates_stage(work: Path, gatedata_run: Path, data: Path, gates: GatesSection,
 
     from study.branch_gate_study import GateTrainConfig, train_gate
     from study.eco.config_gate_study import train_eco_gate
-    from study.eco.energy import energy_table
+    from study.eco.latency_energy import energy_table
 
     g = gates
     run = work / "run"
     link_farm(gatedata_run, run)
-    from study.detect import frames_for
+    from study.scoring import frames_for
     from study.study_eval import IN_SAMPLE
 
     run_cfg = json.loads((run / "config.json").read_text())
@@ -215,8 +215,8 @@ def report_stage(work: Path, results_dir: Path, context: dict, rel_to: Path) -> 
 STAGE_CODE = {
     "generate": (("sensors.generate",), generate_stage),
     "train": (("study.train",), train_stage),
-    "gatedata": (("study.detect", "study.eco.data", "study.gate_data"), gatedata_stage),
-    "gates": (("study.eco.energy", "study.eco.config_gate_study", "study.branch_gate_study"), gates_stage),
+    "gatedata": (("study.scoring", "study.eco.data", "study.gate_data"), gatedata_stage),
+    "gates": (("study.eco.latency_energy", "study.eco.config_gate_study", "study.branch_gate_study"), gates_stage),
     "evaluate": (("study.study_eval",), evaluate_stage),
     "report": (("study.report",), report_stage),
 }

@@ -191,9 +191,10 @@ class GatesSection:
     energy_check: int = 12
 
     def __post_init__(self) -> None:
-        bad = [g for g in self.gates if g not in ("deep", "attention")]
-        if bad:
-            raise UserError(f"gates.gates: {bad[0]!r} is not a learned gate (choose from: deep, attention)")
+        from fusion.nets.branch_gates import trainable_gates  # the gate registry says which gates learn
+
+        if bad := [g for g in self.gates if g not in trainable_gates()]:
+            raise UserError(f"gates.gates: {bad[0]!r} is not a learned gate (choose from: {', '.join(trainable_gates())})")
         # GateTrainConfig checks targets and pooling when built (below); these, the trainer assumes
         for name in ("epochs", "batch_size", "energy_frames", "energy_repeats"):
             _positive(f"gates.{name}", getattr(self, name))
@@ -225,7 +226,7 @@ class EvaluateSection:
         loss_scale: late | raw: the L_f lambda_E and gamma weigh (`fusion.eco.optimise.normalise_loss`).
         twins: score the clear-weather twins of the test frames too (severity sweeps).
         bootstrap: draws of whole test sequences for 95 % intervals of every method's mAP, overall
-            and per context, and of every paired difference (`study.detect.context_bootstrap`;
+            and per context, and of every paired difference (`study.scoring.context_bootstrap`;
             0 = none).
     """
 
@@ -247,9 +248,12 @@ class EvaluateSection:
 
         if isinstance(self.bootstrap, bool) or not isinstance(self.bootstrap, int) or not 0 <= self.bootstrap <= MAX_BOOTSTRAP:
             raise UserError(f"evaluate.bootstrap must be an integer in [0, {MAX_BOOTSTRAP}], got {self.bootstrap!r}")
+        from fusion.nets.branch_gates import trainable_gates
+
+        allowed = ("knowledge", *trainable_gates())
         for name in ("hydra_gate", "eco_gate"):
-            if getattr(self, name) not in ("knowledge", "deep", "attention"):
-                raise UserError(f"evaluate.{name} must be knowledge, deep or attention, got {getattr(self, name)!r}")
+            if getattr(self, name) not in allowed:
+                raise UserError(f"evaluate.{name} must be {', '.join(allowed)}, got {getattr(self, name)!r}")
         if not 0 <= self.lambda_e <= 1:
             raise UserError(f"evaluate.lambda_e must be in [0, 1], got {self.lambda_e}")
         if not self.gamma >= 0:

@@ -4,7 +4,7 @@ branches, gates trained), the early-fusion run, and the run's test split.
 Everything is computed from each branch's detections on each test frame, computed once (the
 EcoFusion configuration dataset holds them, `study.eco.data.EcoData`): a method is a per-frame
 choice of branches whose detections are late-fused in the right camera and scored with VOC
-mAP@0.5 under the run's protocol (`study.detect.score`). Fusing afterwards equals running only the
+mAP@0.5 under the run's protocol (`study.scoring.score`). Fusing afterwards equals running only the
 chosen branches (a branch depends only on its own sensors' stems; tested in tests/study). Methods:
 
 - single sensors: one single-sensor branch (HydraFusion Table 2 (i), EcoFusion "none");
@@ -15,7 +15,7 @@ chosen branches (a branch depends only on its own sensors' stems; tested in test
   branch losses (the oracle);
 - EcoFusion: a configuration gate's choice at lambda_E, gamma (Eq. 7-9); loss_based = the oracle.
 
-Besides the papers' tables (HydraFusion 3, 6, 7 from `study.branch_gate_study.evaluate_all_gates`; EcoFusion
+Besides the papers' tables (HydraFusion 3, 6, 7 from `study.gate_tables.evaluate_all_gates`; EcoFusion
 1-3 and Figures 4-5 from `study.eco.sweep.sweep`) it measures what neither paper has: mAP against
 severity per condition with the clear twins of the same frames, mAP per range bin per context,
 each gate's regret against its oracle per context and how often its choice differs from the
@@ -25,7 +25,6 @@ oracle's, and each sensor's fusion regret (late fusion with it against late fusi
 from __future__ import annotations
 
 import json
-from collections import defaultdict
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -34,6 +33,8 @@ import numpy as np
 
 from sim.errors import UserError
 from sim.progress import progress as progress_bar
+from study.numbers import rounded
+from study.regrets import config_index_of, eco_regret, fusion_regret, gate_selection_shares, hydra_regret
 
 FUSIONS = ("nms", "soft_nms", "wbf")
 LATE_COMBOS = (("camera_left", "camera_right"), ("camera_left", "camera_right", "lidar"), ("radar", "lidar"),
@@ -41,12 +42,9 @@ LATE_COMBOS = (("camera_left", "camera_right"), ("camera_left", "camera_right", 
 """HydraFusion Table 5's late-fusion sensor combinations (the branches present are used)."""
 
 
-def _r(v, nd: int = 4):
-    return None if v is None or (isinstance(v, float) and not np.isfinite(v)) else round(float(v), nd)
-
 
 class Methods:
-    """Per-frame branch choices on the test frames of an `EcoEval`, fused and scored on demand."""
+    """Per-frame branch selections on the test frames of an `EcoEval`, fused and scored on demand."""
 
     def __init__(self, ev, method: str) -> None:
         self.ev, self.method = ev, method
@@ -54,23 +52,24 @@ class Methods:
         self.branches = list(ev.ed.branches)
         self.frames = ev.model.branch_frames
 
-    def fused(self, members: list[tuple[str, ...]], method: str | None = None):
-        from study.eco.data import fuse_choice
+    def fused(self, selection: list[tuple[str, ...]], method: str | None = None):
+        from study.scoring import fuse_selection
 
         method = method or self.method
         memo = self.memo.setdefault(method, {})
-        return fuse_choice(self.ev.dets, self.ev.metas, self.branches, self.frames, members, method, memo)
+        return fuse_selection(list(zip(self.ev.metas, self.ev.dets)), selection, self.frames, method, memo=memo)
 
-    def score(self, members, method: str | None = None, keep=None) -> dict:
-        from study.detect import score
+    def score(self, selection, method: str | None = None, keep=None) -> dict:
+        from study.scoring import score
 
-        per = self.fused(members, method)
+        per = self.fused(selection, method)
         if keep is not None:
             per = [p for p, k in zip(per, keep) if k]
         return score(per, self.ev.reader, "camera_right", protocol=self.ev.ed.protocol)
 
-    def fixed(self, members: tuple[str, ...]) -> list[tuple[str, ...]]:
-        return [tuple(members)] * len(self.ev.test)
+    def fixed(self, branches: tuple[str, ...]) -> list[tuple[str, ...]]:
+        """The selection that keeps `branches` on every test frame."""
+        return [tuple(branches)] * len(self.ev.test)
 
 
 def _summary(sc: dict) -> dict:
@@ -82,8 +81,9 @@ def _summary(sc: dict) -> dict:
 def hydra_predictions(run, data, frames, gates) -> dict[str, np.ndarray]:
     """Predicted (or, for optimal, a-posteriori) per-branch losses, (n, n_branches), on the frames of
     `frames`: the test frames (an `EcoEval`) or the validation frames (a `ValidationFrames`)."""
-    from study.branch_gate_study import load_trained_gate, make_gate, predict_losses
+    from study.branch_gate_study import load_trained_gate, predict_losses
     from study.gate_data import GateData
+    from study.gate_tables import make_gate
 
     ev = getattr(frames, "ev", frames)
     indices = [int(m["dataset_index"]) for m in frames.metas]
@@ -100,27 +100,22 @@ def hydra_predictions(run, data, frames, gates) -> dict[str, np.ndarray]:
     return out
 
 
-def top_k_members(pred: np.ndarray, branches, k: int) -> list[tuple[str, ...]]:
-    import torch
-
-    from fusion.nets.branch_gates import top_k
-
-    return top_k(torch.as_tensor(pred, dtype=torch.float32), branches, min(k, len(branches)))
-
 
 def evaluate_study(run, run_early, data, cfg, s, work: Path, setup=None, progress: bool = True) -> dict:
     """Every number of the study's report (module docstring). `cfg`: the StudyConfig; `s`: its
     EcoSettings; figures are written under `work`."""
-    from study.branch_gate_study import evaluate_all_gates
-    from study.eco.evaluate import GATE_ORDER, EcoEval
+    from fusion.eco.config_gates import CONFIG_GATES
+    from fusion.nets.branch_gates import trainable_gates
+    from study.eco.ecofusion_eval import GATE_ORDER, EcoEval
     from study.eco.sweep import sweep
+    from study.gate_tables import evaluate_all_gates
     from study.selection import SelectionLog
 
     e = cfg.evaluate
     run, data, work = Path(run), Path(data), Path(work)
     learned = tuple(cfg.gates.gates)
     hydra_gates = ["knowledge", *learned, "optimal"]
-    eco_gates = [g for g in GATE_ORDER if g in ("knowledge", "loss_based") or g in learned]
+    eco_gates = [g for g in GATE_ORDER if g not in trainable_gates(CONFIG_GATES) or g in learned]
     ev = EcoEval(run, data, s, eco_gates, threads=setup.threads if setup else 2, progress=progress)
     log = SelectionLog.of(ev.test)
     val = ValidationFrames(ev, cfg.gates.val_fraction, cfg.gates.seed, log)
@@ -138,28 +133,28 @@ def evaluate_study(run, run_early, data, cfg, s, work: Path, setup=None, progres
     M = Methods(ev, method)
     contexts = [m["context"] for m in ev.metas]
 
-    choices, kinds = fixed_choices(M, singles, late)
-    hydra_choices, hydra_kinds = hydra_gate_choices(run, data, ev, hydra_gates, e.k)
-    eco_choice, eco_kinds = eco_gate_choices(ev, eco_gates, e.lambda_e, e.gamma)
-    choices |= hydra_choices | {f"ecofusion:{g}": [ev.configs.members[c] for c in ch] for g, ch in eco_choice.items()}
+    selections, kinds = fixed_selections(M, singles, late)
+    hydra_selections, hydra_kinds = hydra_gate_selections(run, data, ev, hydra_gates, e.k)
+    eco_config_index, eco_kinds = eco_gate_configurations(ev, eco_gates, e.lambda_e, e.gamma)
+    selections |= hydra_selections | {f"ecofusion:{g}": [ev.configs.members[c] for c in ch] for g, ch in eco_config_index.items()}
     kinds |= hydra_kinds | eco_kinds
-    scores = score_methods(M, choices, progress)
+    scores = score_methods(M, selections, progress)
     early = early_fusion(run_early, data, ev, method, cfg.train.batch_size, setup)
     for b, sc in early.scores.items():
         scores[f"early:{b}"], kinds[f"early:{b}"] = sc, f"early fusion model ({'+'.join(early.sensors[b])})"
-    intervals = (bootstrap_intervals(M, choices, early.fused, ev, e.bootstrap) if e.bootstrap else None)
+    intervals = (bootstrap_intervals(M, selections, early.fused, ev, e.bootstrap) if e.bootstrap else None)
     table2, table5 = hydra_tables_2_and_5(M, scores, singles, early.scores, e, val, log)
     twins = clear_twins(ev, early.model, data, cfg.train.batch_size) if e.twins else None
     swept = swept_methods(scores, e)
     run_cfg = json.loads((run / "config.json").read_text())
     record = results_record(
         ev, setup, e, method, run_cfg, data, singles, late, kinds, scores, intervals, hydra_tables, eco_tables, work,
-        hydra_table2=table2, hydra_table4=cost_table(ev, choices), hydra_table5=table5,
-        severity=severity_sweeps(M, ev, scores, choices, early.fused, twins, swept, method, progress),
+        hydra_table2=table2, hydra_table4=cost_table(ev, selections), hydra_table5=table5,
+        severity=severity_sweeps(M, ev, scores, selections, early.fused, twins, swept, method, progress),
         range_per_context={name: scores[name]["map_vehicles_per_context_range"] for name in swept},
-        regret={"hydrafusion": hydra_regret(choices, scores, hydra_gates, contexts),
-                "ecofusion": eco_regret(ev, eco_choice, scores, contexts)},
-        fusion_regret=fusion_regret(M, ev, scores, late, contexts), picks=gate_picks(choices, contexts),
+        regret={"hydrafusion": hydra_regret(selections, scores, hydra_gates, contexts),
+                "ecofusion": eco_regret(ev, eco_config_index, scores, contexts)},
+        fusion_regret=fusion_regret(M, ev, scores, late, contexts), picks=gate_selection_shares(selections, contexts),
         severity_clear_twins=twins is not None)
     record["gate_training"] = gate_training(run, s, learned)
     record["lambda_front"] = lambda_front(eco_tables, ev)
@@ -173,7 +168,7 @@ def evaluate_study(run, run_early, data, cfg, s, work: Path, setup=None, progres
                                                f"{cfg.train.gate_holdout:g})" if val.holdout else
                                                "the detectors trained on them too")) if val.carved else
                             (f"every fitting frame of the {split}: too few sequences per context to carve a "
-                             "validation share, so the choices read the gates' fitting frames (never test frames)")}
+                             "validation share, so the selections read the gates' fitting frames (never test frames)")}
     from study.robustness_table import robustness_table
 
     record["robustness"] = robustness_table(record)  # MultiCorrupt's RA, Robo3D's RR and CE, against late fusion
@@ -205,31 +200,30 @@ class ValidationFrames:
         self.metas = [dict(ev.reader.meta(i), dataset_index=int(i)) for i in self.indices]
         self.memo: dict = {}
 
-    def score(self, members_per_frame, method: str) -> dict:
-        from study.detect import score
-        from study.eco.data import fuse_choice
+    def score(self, selection, method: str) -> dict:
+        from study.scoring import fuse_selection, score
 
-        per = fuse_choice(self.dets, self.metas, self.ev.ed.branches, self.ev.model.branch_frames,
-                          [tuple(m) for m in members_per_frame], method, self.memo.setdefault(method, {}))
+        per = fuse_selection(list(zip(self.metas, self.dets)), selection, self.ev.model.branch_frames, method,
+                             memo=self.memo.setdefault(method, {}))
         return score(per, self.ev.reader, "camera_right", protocol=self.ev.ed.protocol)
 
-    def map(self, members: tuple[str, ...], method: str):
-        return self.score([tuple(members)] * len(self.indices), method)["map"]
+    def map(self, branches: tuple[str, ...], method: str):
+        return self.score([tuple(branches)] * len(self.indices), method)["map"]
 
 
 def table3_on_validation(run, data, ev, val: ValidationFrames, hydra_tables: dict, gates, k: int, log) -> dict:
     """HydraFusion Table 3: per gate, the fusion method whose mAP of the gate's top k is best on the
     validation frames, and that method's test row of Table 6 (the paper picks the best per gate; a
     pick on the test frames would flatter every gate)."""
-    from study.branch_gate_study import FUSION_LABEL
+    from study.gate_tables import FUSION_LABEL, top_k_selection
 
     branches = list(ev.ed.branches)
     preds = hydra_predictions(run, data, val, gates)
     out = {}
     for g in gates:
-        members = top_k_members(preds[g], branches, k)
+        selection = top_k_selection(preds[g], branches, k)
         label = FUSION_LABEL[log.choose(f"HydraFusion Table 3: fusion of the {g} gate's top {min(k, len(branches))}",
-                                        {f: val.score(members, f)["map"] for f in FUSIONS}, val.indices,
+                                        {f: val.score(selection, f)["map"] for f in FUSIONS}, val.indices,
                                         lower_is_better=False, measure="mAP", sequences=val.sequences)]
         out[g] = {"fusion": label, "map": hydra_tables["map_table"][g][label], "chosen_on": "validation"}
     return out
@@ -273,13 +267,13 @@ def lambda_front(eco_tables: dict, ev) -> dict:
     e_cheap = float(min(ev.e[i] for i in singles)) if singles else float(ev.e.min())
     late = ev.configs.baselines.get("late")
     e_late = float(ev.e[late]) if late is not None else float(ev.e.max())
-    out = {"cheapest_single_energy": _r(e_cheap), "late_energy": _r(e_late), "loss_unit": ev.loss_label(),
+    out = {"cheapest_single_energy": rounded(e_cheap), "late_energy": rounded(e_late), "loss_unit": ev.loss_label(),
            "gates": {}}
     for g, c in curve.items():
         lams = sorted(c, key=float)
         e0, e1 = c[lams[0]]["energy"], c[lams[-1]]["energy"]
         out["gates"][g] = {"lambda_from": lams[0], "lambda_to": lams[-1], "energy_from": e0, "energy_to": e1,
-                           "span_pct": _r(100.0 * (e0 - e1) / (e_late - e_cheap), 1) if e_late > e_cheap else None,
+                           "span_pct": rounded(100.0 * (e0 - e1) / (e_late - e_cheap), 1) if e_late > e_cheap else None,
                            "pareto_lambdas": eco_tables.get("pareto_lambdas", {}).get(g)}
     return out
 
@@ -296,27 +290,29 @@ def single_and_late(ev) -> tuple[list[str], tuple[str, ...]]:
     return singles, tuple(singles)
 
 
-def fixed_choices(M: Methods, singles, late) -> tuple[dict, dict]:
-    """The methods that choose the same branches on every frame: ({name: per-frame members},
+def fixed_selections(M: Methods, singles, late) -> tuple[dict, dict]:
+    """The methods that choose the same branches on every frame: ({name: selection},
     {name: what it is})."""
-    choices, kinds = {}, {}
+    selections, kinds = {}, {}
     for b in singles:
-        choices[f"single:{b}"], kinds[f"single:{b}"] = M.fixed((b,)), "single sensor"
-    choices["late"], kinds["late"] = M.fixed(late), "late fusion of the single-sensor branches"
-    choices["all_branches"], kinds["all_branches"] = M.fixed(tuple(M.branches)), "all branches (early + late)"
-    return choices, kinds
+        selections[f"single:{b}"], kinds[f"single:{b}"] = M.fixed((b,)), "single sensor"
+    selections["late"], kinds["late"] = M.fixed(late), "late fusion of the single-sensor branches"
+    selections["all_branches"], kinds["all_branches"] = M.fixed(tuple(M.branches)), "all branches (early + late)"
+    return selections, kinds
 
 
-def hydra_gate_choices(run, data, ev, gates, k: int) -> tuple[dict, dict]:
+def hydra_gate_selections(run, data, ev, gates, k: int) -> tuple[dict, dict]:
     """HydraFusion's methods: each branch gate's top k per frame (Table 2 (iv))."""
+    from study.gate_tables import top_k_selection
+
     branches = list(ev.ed.branches)
     preds = hydra_predictions(run, data, ev, gates)
-    choices = {f"hydrafusion:{g}": top_k_members(preds[g], branches, k) for g in gates}
+    selections = {f"hydrafusion:{g}": top_k_selection(preds[g], branches, k) for g in gates}
     kinds = {f"hydrafusion:{g}": f"HydraFusion, {g} gate, top {min(k, len(branches))}" for g in gates}
-    return choices, kinds
+    return selections, kinds
 
 
-def eco_gate_choices(ev, gates, lambda_e: float, gamma: float) -> tuple[dict, dict]:
+def eco_gate_configurations(ev, gates, lambda_e: float, gamma: float) -> tuple[dict, dict]:
     """EcoFusion's methods: each configuration gate's choice per frame (configuration indices, Eq. 7-9),
     and what each is."""
     choice = {g: ev.choose(g, lambda_e, gamma) for g in gates}
@@ -324,12 +320,12 @@ def eco_gate_choices(ev, gates, lambda_e: float, gamma: float) -> tuple[dict, di
     return choice, kinds
 
 
-def score_methods(M: Methods, choices: dict, progress: bool) -> dict:
-    """Each method's choices fused and scored: {name: `study.detect.score` result}."""
-    bar = progress_bar(total=len(choices), desc="fuse and score the methods", unit="method", enabled=progress)
+def score_methods(M: Methods, selections: dict, progress: bool) -> dict:
+    """Each method's selections fused and scored: {name: `study.scoring.score` result}."""
+    bar = progress_bar(total=len(selections), desc="fuse and score the methods", unit="method", enabled=progress)
     scores = {}
-    for name, ch in choices.items():
-        scores[name] = M.score(ch)
+    for name, selection in selections.items():
+        scores[name] = M.score(selection)
         bar.update(1)
     bar.close()
     return scores
@@ -349,8 +345,8 @@ def early_fusion(run_early, data, ev, method: str, batch_size: int, setup) -> Ea
     """Run and score every early-fusion model of `run_early` on the test frames (None: no run)."""
     if run_early is None:
         return EarlyFusion()
-    from study.detect import fused as fuse_frames
-    from study.detect import load_run, run_branches, score
+    from study.scoring import fused as fuse_frames
+    from study.scoring import load_run, run_branches, score
 
     model, _ = load_run(run_early, "latest", device=setup.device if setup else "cpu")
     names = list(model.branches)
@@ -362,11 +358,11 @@ def early_fusion(run_early, data, ev, method: str, batch_size: int, setup) -> Ea
     return out
 
 
-def bootstrap_intervals(M: Methods, choices: dict, early_fused: dict, ev, resamples: int) -> dict:
+def bootstrap_intervals(M: Methods, selections: dict, early_fused: dict, ev, resamples: int) -> dict:
     """95 % intervals: whole test sequences drawn with replacement, every method on each draw."""
-    from study.detect import context_bootstrap
+    from study.scoring import context_bootstrap
 
-    sources = {name: M.fused(ch) for name, ch in choices.items()}
+    sources = {name: M.fused(selection) for name, selection in selections.items()}
     sources.update({f"early:{b}": per for b, per in early_fused.items()})
     return context_bootstrap(sources, ev.reader, "camera_right", protocol=ev.ed.protocol,
                              resamples=resamples, classes="all", desc="bootstrap the methods")
@@ -382,15 +378,15 @@ def hydra_tables_2_and_5(M: Methods, scores: dict, singles, early_scores: dict, 
               "late_fusion": {}, "hydrafusion": {}}
     table5 = {}
     for combo in LATE_COMBOS:
-        members = tuple(b for b in branches if b in combo)
-        if len(members) < 2 or len(members) != len(combo):
+        combo_branches = tuple(b for b in branches if b in combo)
+        if len(combo_branches) < 2 or len(combo_branches) != len(combo):
             continue
-        row = {f: M.score(M.fixed(members), f)["map"] for f in FUSIONS}
-        table5["+".join(members)] = row
-        pick = log.choose(f"HydraFusion Table 2: fusion of late {'+'.join(members)}",
-                          {f: val.map(members, f) for f in FUSIONS}, val.indices, lower_is_better=False,
+        row = {f: M.score(M.fixed(combo_branches), f)["map"] for f in FUSIONS}
+        table5["+".join(combo_branches)] = row
+        pick = log.choose(f"HydraFusion Table 2: fusion of late {'+'.join(combo_branches)}",
+                          {f: val.map(combo_branches, f) for f in FUSIONS}, val.indices, lower_is_better=False,
                           measure="mAP", sequences=val.sequences)
-        table2["late_fusion"]["+".join(members)] = row[pick]
+        table2["late_fusion"]["+".join(combo_branches)] = row[pick]
     table2["late_fusion"]["all_branches (early + late)"] = scores["all_branches"]["map"]
     table2["hydrafusion"] = {f"{e.hydra_gate} top {min(e.k, len(branches))}": scores[f"hydrafusion:{e.hydra_gate}"]["map"]}
     table2["ecofusion"] = {f"{e.eco_gate} lambda_E {e.lambda_e:g}": scores[f"ecofusion:{e.eco_gate}"]["map"]
@@ -398,30 +394,28 @@ def hydra_tables_2_and_5(M: Methods, scores: dict, singles, early_scores: dict, 
     return table2, table5
 
 
-def _config_index(ev) -> dict[tuple[str, ...], int]:
-    return {m: i for i, m in enumerate(ev.configs.members)}
-
-
-def cost_table(ev, choices: dict) -> dict:
+def cost_table(ev, selections: dict) -> dict:
     """HydraFusion Table 4 analogue: each method's mean latency, energy and branch count per frame.
     A learned gate (deep, attention: HydraFusion's or EcoFusion's) is charged the stems it reads that
     its chosen branches do not need (`EcoEval.gate_overhead`), as EcoFusion's Table 1 charges them: one
     accounting for every method of the report."""
-    from study.eco.evaluate import FEATURE_GATES
+    from fusion.eco.config_gates import CONFIG_GATES
+    from fusion.nets.branch_gates import GATES, trainable_gates
 
-    index = _config_index(ev)
+    index = config_index_of(ev)
 
-    def cost(name, members_per_frame) -> dict:
-        idx = np.array([index[tuple(m)] for m in members_per_frame])
+    def cost(name, selection) -> dict:
+        idx = np.array([index[tuple(m)] for m in selection])
         gate = name.split(":", 1)[1] if name.startswith(("hydrafusion:", "ecofusion:")) else None
-        extra, _ = ev.gate_overhead(idx, gate if gate in FEATURE_GATES else None)
+        learned = trainable_gates(CONFIG_GATES if name.startswith("ecofusion:") else GATES)
+        extra, _ = ev.gate_overhead(idx, gate if gate in learned else None)
         t = ev.t[idx] + extra
         scale = t / ev.t[idx]  # E = P t at the configuration's own power
-        return {"latency_ms": _r(1000 * t.mean(), 2), "energy_j": _r((ev.e_raw[idx] * scale).mean()),
-                "energy": _r((ev.e[idx] * scale).mean()), "gate_stems_ms": _r(1000 * extra.mean(), 2),
-                "branches": _r(np.mean([len(m) for m in members_per_frame]), 3)}
+        return {"latency_ms": rounded(1000 * t.mean(), 2), "energy_j": rounded((ev.e_raw[idx] * scale).mean()),
+                "energy": rounded((ev.e[idx] * scale).mean()), "gate_stems_ms": rounded(1000 * extra.mean(), 2),
+                "branches": rounded(np.mean([len(m) for m in selection]), 3)}
 
-    return {name: cost(name, ch) for name, ch in choices.items()}
+    return {name: cost(name, selection) for name, selection in selections.items()}
 
 
 @dataclass
@@ -438,7 +432,7 @@ def clear_twins(ev, early_model, data, batch_size: int) -> Twins | None:
     if not ev.reader.manifest["config"].get("twins"):
         return None
     from sensors.dataset import DatasetReader
-    from study.detect import run_branches
+    from study.scoring import run_branches
 
     reader = DatasetReader(data, clear=True)
     clear_frames = run_branches(ev.model, data, ev.test, list(ev.ed.branches), batch_size=batch_size,
@@ -459,12 +453,12 @@ def swept_methods(scores: dict, e) -> list[str]:
              f"ecofusion:{e.eco_gate}", "ecofusion:loss_based")]
 
 
-def severity_sweeps(M: Methods, ev, scores: dict, choices: dict, early_fused: dict, twins: Twins | None,
+def severity_sweeps(M: Methods, ev, scores: dict, selections: dict, early_fused: dict, twins: Twins | None,
                     swept, method: str, progress: bool) -> dict:
     """Vehicle mAP against severity per condition, {condition: {method: {severity: {"degraded",
-    "clear", "frames"}}}}; "clear" is the same frames' clear twins (fixed choices and early models)."""
-    from study.detect import fused as fuse_frames
-    from study.detect import score
+    "clear", "frames"}}}}; "clear" is the same frames' clear twins (fixed selections and early models)."""
+    from study.scoring import fused as fuse_frames
+    from study.scoring import score
 
     contexts = [m["context"] for m in ev.metas]
     severities = [int(m.get("severity", 0)) for m in ev.metas]
@@ -479,14 +473,14 @@ def severity_sweeps(M: Methods, ev, scores: dict, choices: dict, early_fused: di
                 per = [p for p, k in zip(early_fused[name.split(":", 1)[1]], keep) if k]
                 deg = score(per, ev.reader, "camera_right", protocol=ev.ed.protocol)
             else:
-                deg = M.score(choices[name], keep=keep)
+                deg = M.score(selections[name], keep=keep)
             clear = None
             if twins is not None and (name.startswith(("single:", "early:")) or name in ("late", "all_branches")):
                 src = "early" if name.startswith("early:") else "paper"
                 if src in twins.frames:
                     frames_, bframes = twins.frames[src]
-                    members = ([name.split(":", 1)[1]] if ":" in name else list(choices[name][0]))
-                    per = [p for p, k in zip(fuse_frames(frames_, members, bframes, method), keep) if k]
+                    branches_fused = ([name.split(":", 1)[1]] if ":" in name else list(selections[name][0]))
+                    per = [p for p, k in zip(fuse_frames(frames_, branches_fused, bframes, method), keep) if k]
                     clear = score(per, twins.reader, "camera_right", protocol=ev.ed.protocol)
             sev = sorted(set(deg["map_vehicles_per_severity"]), key=int)
             rows[cond][name] = {
@@ -499,104 +493,12 @@ def severity_sweeps(M: Methods, ev, scores: dict, choices: dict, early_fused: di
     return rows
 
 
-def _map_in(sc: dict, ctx: str):
-    """A score's mAP in one context, or over all frames (ctx "all")."""
-    return sc["map"] if ctx == "all" else sc["map_per_context"].get(ctx)
-
-
-def hydra_regret(choices: dict, scores: dict, gates, contexts: list[str]) -> dict:
-    """Each HydraFusion gate against the optimal gate, per context and over all frames: both mAPs,
-    the mAP regret and how often the two choose differently."""
-    opt, best = choices["hydrafusion:optimal"], scores["hydrafusion:optimal"]
-    out = {}
-    for g in gates:
-        if g == "optimal":
-            continue
-        ch, sc = choices[f"hydrafusion:{g}"], scores[f"hydrafusion:{g}"]
-        row = {}
-        for ctx in [*sorted(set(contexts)), "all"]:
-            frames_ = [k for k, c in enumerate(contexts) if ctx == "all" or c == ctx]
-            a, o = _map_in(sc, ctx), _map_in(best, ctx)
-            row[ctx] = {"map": a, "map_oracle": o, "regret_map": None if a is None or o is None else _r(o - a),
-                        "differs_pct": _r(100.0 * np.mean([ch[k] != opt[k] for k in frames_]), 1),
-                        "frames": len(frames_)}
-        out[g] = row
-    return out
-
-
-def eco_regret(ev, eco_choice: dict, scores: dict, contexts: list[str]) -> dict:
-    """Each EcoFusion gate against the loss-based oracle, per context and over all frames: both mAPs,
-    both mean L_f, the regrets and how often the two choose differently."""
-    lb, best = eco_choice["loss_based"], scores["ecofusion:loss_based"]
-    rows_n = np.arange(len(ev.test))
-    out = {}
-    for g, ch in eco_choice.items():
-        if g == "loss_based":
-            continue
-        sc = scores[f"ecofusion:{g}"]
-        row = {}
-        for ctx in [*sorted(set(contexts)), "all"]:
-            keep = np.array([ctx == "all" or c == ctx for c in contexts])
-            a, o = _map_in(sc, ctx), _map_in(best, ctx)
-            lf = ev.losses[rows_n, ch][keep].mean()
-            lf_o = ev.losses[rows_n, lb][keep].mean()
-            row[ctx] = {"map": a, "map_oracle": o, "regret_map": None if a is None or o is None else _r(o - a),
-                        "avg_loss": _r(lf), "avg_loss_oracle": _r(lf_o), "regret_loss": _r(lf - lf_o),
-                        "differs_pct": _r(100.0 * float(np.mean(ch[keep] != lb[keep])), 1), "frames": int(keep.sum())}
-        out[g] = row
-    return out
-
-
-def fusion_regret(M: Methods, ev, scores: dict, late, contexts: list[str]) -> dict:
-    """Each sensor's fusion regret: late fusion with its branch against late fusion without it, per
-    context (mAP and L_f), and the contexts where adding it lowers the mAP."""
-    index = _config_index(ev)
-    late_idx = index[tuple(late)]
-    with_ = scores["late"]
-    out = {}
-    for b in late:
-        rest = tuple(x for x in late if x != b)
-        if not rest:
-            continue
-        without = M.score(M.fixed(rest))
-        rest_idx = index[rest]
-        row = {}
-        for ctx in [*sorted(set(contexts)), "all"]:
-            keep = np.array([ctx == "all" or c == ctx for c in contexts])
-            a, w = _map_in(with_, ctx), _map_in(without, ctx)
-            row[ctx] = {"map_with": a, "map_without": w,
-                        "regret_map": None if a is None or w is None else _r(w - a),
-                        "regret_loss": _r(ev.losses[keep, late_idx].mean() - ev.losses[keep, rest_idx].mean())}
-        hurts = {c: v["regret_map"] for c, v in row.items() if c != "all" and v["regret_map"] is not None
-                 and v["regret_map"] > 0}
-        out[b] = {"per_context": row, "hurts_in": hurts,
-                  "worst_context": max(hurts, key=hurts.get) if hurts else None,
-                  "worst_regret_map": max(hurts.values()) if hurts else 0.0}
-    return out
-
-
-def gate_picks(choices: dict, contexts: list[str]) -> dict:
-    """What each gate picks per context: its five most frequent choices, % of the context's frames."""
-    picks: dict = {"hydrafusion": {}, "ecofusion": {}}
-    for name, ch in choices.items():
-        fam = name.split(":")[0]
-        if fam not in picks:
-            continue
-        by = defaultdict(lambda: defaultdict(int))
-        for c, m in zip(contexts, ch):
-            by[c]["+".join(m)] += 1
-        picks[fam][name.split(":", 1)[1]] = {
-            c: dict(sorted(((k, _r(100.0 * v / sum(d.values()), 1)) for k, v in d.items()), key=lambda kv: -kv[1])[:5])
-            for c, d in sorted(by.items())}
-    return picks
-
-
 def results_record(ev, setup, e, method: str, run_cfg: dict, data, singles, late, kinds: dict, scores: dict,
                    intervals, hydra_tables: dict, eco_tables: dict, work: Path, **measured) -> dict:
     """results.json: the protocol, the data and machine, the settings, every method's summary, the
     papers' tables and `measured` (Table 2, 4, 5, the severity sweeps, range bins, regrets, picks)."""
-    from study.detect import frames_for
-    from study.eco.energy import machine_description
+    from study.eco.latency_energy import machine_description
+    from study.scoring import frames_for
 
     contexts = [m["context"] for m in ev.metas]
     ctx_list = sorted(set(contexts))

@@ -3,7 +3,7 @@
 A study's report JSON (`hydrabench study ... --out DIR` writes DIR/report.json) holds, when
 `evaluate.bootstrap` > 0, a 95 % interval of every paired difference of mAP@0.5 (all classes, right
 camera) between two methods, overall and per context (`results.intervals`, written by
-`study.detect.context_bootstrap`). An order is *resolved* when its interval excludes 0; an interval
+`study.scoring.context_bootstrap`). An order is *resolved* when its interval excludes 0; an interval
 that holds 0 (its bounds included) is *not resolved*: never a win, whatever the point estimates say.
 
 - `orders(report)`: every method against late fusion, late fusion against its best single sensor,
@@ -23,7 +23,8 @@ from dataclasses import dataclass
 from math import comb
 from pathlib import Path
 
-from study.detect import difference_interval
+from study.numbers import interval_text
+from study.scoring import difference_interval
 
 LATE = "late"
 ORACLES = ("hydrafusion:optimal", "ecofusion:loss_based", "hydrafusion:knowledge_informed",
@@ -116,9 +117,6 @@ def orders(report: dict) -> list[Order]:
     return out
 
 
-def _iv(iv) -> str:
-    return f"[{iv[0] + 0.0:+.3f}, {iv[1] + 0.0:+.3f}]"  # + 0.0: a negated 0 prints as +0.000
-
 
 def _where(group: str, n: int) -> str:
     return f"Overall ({n} test sequences)" if group == "all" else f"In {group} ({n} test sequences)"
@@ -129,7 +127,7 @@ def _name(m: str) -> str:
 
 
 def _listing(os_: list[Order]) -> str:
-    return "; ".join(f"{_name(o.a)} {_iv(o.interval)}" for o in os_)
+    return "; ".join(f"{_name(o.a)} {interval_text(o.interval, signed=True)}" for o in os_)
 
 
 def _names(ms) -> str:
@@ -220,7 +218,7 @@ def verdict_sentences(report: dict) -> list[str]:
             if best is not None and best.interval is not None:
                 word = {1: "resolved above", -1: "resolved below", 0: "not resolved against"}[best.sign]
                 out.append(f"{where}, late fusion is {word} its best single sensor, {best.b}: "
-                           f"late minus {best.b} {_iv(best.interval)}.")
+                           f"late minus {best.b} {interval_text(best.interval, signed=True)}.")
             others = [o for o in vs_late if o.a not in ss and o.interval is not None]
             above = [o for o in others if o.sign > 0]
             lower = [o for o in others if o.sign < 0]
@@ -233,7 +231,7 @@ def verdict_sentences(report: dict) -> list[str]:
         pairs = [o for o in og if o.a in ss and o.b in ss and o.interval is not None]
         if pairs:
             res = [f"{o.a if o.sign > 0 else o.b} above {o.b if o.sign > 0 else o.a} "
-                   f"{_iv(o.interval if o.sign > 0 else (-o.interval[1], -o.interval[0]))}" for o in pairs if o.resolved]
+                   f"{interval_text(o.interval if o.sign > 0 else (-o.interval[1], -o.interval[0]), signed=True)}" for o in pairs if o.resolved]
             unres = [f"{o.a} and {o.b}" for o in pairs if not o.resolved]
             text = f"{where}, among single sensors: " + ("; ".join(res) if res else "no order resolved")
             out.append(text + (f"; not resolved: {'; '.join(unres)}." if unres else "."))

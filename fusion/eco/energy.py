@@ -3,7 +3,7 @@ Eq. 10-11).
 
 **Compute energy, Eq. 6: E(phi) = P(phi) t(phi).** t is measured on the machine at hand, per
 component: each stem on one sensor, each branch on its stem features, the fusion block on n
-branches' detections (`study.eco.energy.measure_latency`). A configuration's latency is additive:
+branches' detections (`study.eco.latency_energy.measure_latency`). A configuration's latency is additive:
 the stems of the sensors its branches need, each once (stems are shared), plus its branches, plus
 the fusion block (`LatencyModel.latency`); the sum is checked against configurations timed end to
 end. P comes from an energy counter where one exists:

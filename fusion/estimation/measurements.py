@@ -791,7 +791,7 @@ def measure_sequence(spec, sequence: int = 0, obstructions: bool = False, on_fra
     parts = []
     for scene in itertools.chain([first], scenes):
         clean = renderer.observe(scene)
-        degraded, _ = degrader.apply(scene, clean, scene.frame_index)
+        degraded, _ = degrader.apply(clean, scene.frame_index)
         parts.append(measure_frame(scene, clean, degraded, renderer.calib, sequence=sequence))
         if on_frame is not None:
             on_frame()

@@ -53,6 +53,15 @@ GATES: Registry = Registry(
     "lower is better.",
 )
 
+
+
+def trainable_gates(registry: Registry = GATES) -> list[str]:
+    """The names of `registry`'s gates that learn (`trainable`), in registration order: the gates
+    `train-gate` trains and a run must hold before they are used. `registry`: GATES, or
+    `fusion.eco.config_gates.CONFIG_GATES` for EcoFusion's configuration gates."""
+    return [name for name, gate in registry.items() if gate.trainable]
+
+
 DEFAULT_GRID = (8, 16)
 """(rows, columns) every sensor's stem features are average-pooled to before the learned gates."""
 

@@ -196,38 +196,38 @@ class HydraFusion(nn.Module):
                 f"got {selection!r}"
             )
         if all(isinstance(s, str) for s in selection):
-            per_sample = [selection] * batch_size
+            selection = [selection] * batch_size
             fields = ["selection"] * batch_size
         elif all(isinstance(s, Sequence) and not isinstance(s, str) for s in selection):
             if len(selection) != batch_size:
                 raise ValueError(f"selection: {len(selection)} per-sample lists for a batch of {batch_size}")
-            per_sample = list(selection)
+            selection = list(selection)
             fields = [f"selection[{i}]" for i in range(batch_size)]
         else:
             raise ValueError(f"selection: mixes branch names and per-sample lists: {selection!r}")
         out = []
-        for field, chosen in zip(fields, per_sample):
-            if len(chosen) == 0:
+        for field, sample_selection in zip(fields, selection):
+            if len(sample_selection) == 0:
                 raise ValueError(f"{field}: no branch selected")
-            for n in chosen:
+            for n in sample_selection:
                 if not isinstance(n, str) or n not in self.branches:
                     raise ValueError(f"{field}: unknown branch {n!r} (branches: {', '.join(names)})")
-            if len(set(chosen)) != len(chosen):
-                raise ValueError(f"{field}: a branch is named twice in {list(chosen)}")
-            out.append(tuple(n for n in names if n in chosen))
+            if len(set(sample_selection)) != len(sample_selection):
+                raise ValueError(f"{field}: a branch is named twice in {list(sample_selection)}")
+            out.append(tuple(n for n in names if n in sample_selection))
         return out
 
     def sensors_for(self, selection: Any = None) -> tuple[str, ...]:
         """Sensors the selected branches consume (any sample), in `SENSORS` order."""
-        per_sample = self.expand_selection(selection, _batch_of(selection))
-        used = {s for chosen in per_sample for n in chosen for s in self.branches[n].sensors}
+        selection = self.expand_selection(selection, _batch_of(selection))
+        used = {s for sample_selection in selection for n in sample_selection for s in self.branches[n].sensors}
         return tuple(s for s in SENSORS if s in used)
 
     def stems_for(self, selection: Any = None) -> tuple[str, ...]:
         """Shared stems the selected branches need (any sample), in `stems` order (branches that fuse
         their inputs, fusion "input", bring their own stem)."""
-        per_sample = self.expand_selection(selection, _batch_of(selection))
-        used = {SENSORS[s].stem for chosen in per_sample for n in chosen
+        selection = self.expand_selection(selection, _batch_of(selection))
+        used = {SENSORS[s].stem for sample_selection in selection for n in sample_selection
                 if self.branches[n].fusion == "features" for s in self.branches[n].sensors}
         return tuple(k for k in self.stems if k in used)
 
@@ -304,9 +304,10 @@ class HydraFusion(nn.Module):
 
     # ----- branches --------------------------------------------------------------------------
 
-    def _plan(self, inputs: Mapping[str, Tensor], per_sample: list[tuple[str, ...]]):
+    def _plan(self, inputs: Mapping[str, Tensor], selection: list[tuple[str, ...]]):
         """Group samples by branch and list the samples each sensor is needed for."""
-        groups = {n: [i for i, chosen in enumerate(per_sample) if n in chosen] for n in self.branches}
+        groups = {n: [i for i, sample_selection in enumerate(selection) if n in sample_selection]
+                  for n in self.branches}
         groups = {n: idx for n, idx in groups.items() if idx}
         needs: dict[str, set[int]] = {}
         for name, idx in groups.items():
@@ -319,16 +320,16 @@ class HydraFusion(nn.Module):
                     needs.setdefault(s, set()).update(idx)
         return groups, {s: sorted(v) for s, v in needs.items()}
 
-    def _check_targets(self, targets: Any, per_sample: list[tuple[str, ...]], values: bool | None = None) -> None:
-        batch = len(per_sample)
+    def _check_targets(self, targets: Any, selection: list[tuple[str, ...]], values: bool | None = None) -> None:
+        batch = len(selection)
         if not isinstance(targets, Sequence) or isinstance(targets, str | Mapping):
             raise ValueError(
                 f"targets: expected a list of {batch} dicts frame -> boxes/labels, got {type(targets).__name__}"
             )
         if len(targets) != batch:
             raise ValueError(f"targets: {len(targets)} entries for a batch of {batch}")
-        num_classes = self.branches[per_sample[0][0]].roi_heads.box_predictor.cls_score.out_features
-        for i, (t, chosen) in enumerate(zip(targets, per_sample)):
+        num_classes = self.branches[selection[0][0]].roi_heads.box_predictor.cls_score.out_features
+        for i, (t, sample_selection) in enumerate(zip(targets, selection)):
             if not isinstance(t, Mapping):
                 raise ValueError(
                     f"targets[{i}]: expected a dict frame name -> boxes/labels, got {type(t).__name__}"
@@ -336,11 +337,11 @@ class HydraFusion(nn.Module):
             for frame in t:
                 if frame not in FRAMES:
                     raise ValueError(f"targets[{i}]: unknown frame {frame!r} (frames: {', '.join(FRAMES)})")
-            for name in chosen:
+            for name in sample_selection:
                 frame = self.branches[name].frame
                 if frame not in t:
                     raise ValueError(f"targets[{i}]: no {frame!r} entry, needed by branch {name!r}")
-            for frame in {self.branches[n].frame for n in chosen}:
+            for frame in {self.branches[n].frame for n in sample_selection}:
                 self._check_target(f"targets[{i}][{frame!r}]", t[frame], frame, num_classes, values)
 
     def check_targets(self, targets: Any, selection: Any = None) -> None:
@@ -423,23 +424,23 @@ class HydraFusion(nn.Module):
         if selection is None and self.gate is not None and getattr(self.gate, "reads", "features") == "features":
             # Algorithm 1 lines 2-4: every stem runs, the gate reads them, the branches reuse them
             features = self.extract_features(inputs)
-            per_sample = self.expand_selection(self.gate(features, meta), batch)
-            groups, needs = self._plan(inputs, per_sample)  # every needed sensor is in features
+            selection = self.expand_selection(self.gate(features, meta), batch)
+            groups, needs = self._plan(inputs, selection)  # every needed sensor is in features
             feats = {s: (f, {i: i for i in range(batch)}) for s, f in features.items()}
         elif selection is None and self.gate is not None:
             # a gate that reads external context (or losses) decides before any stem runs; then
-            # only the stems the chosen branches need run (EcoFusion 4.2.1, Knowledge gating)
-            per_sample = self.expand_selection(self.gate(None, meta), batch)
-            groups, needs = self._plan(inputs, per_sample)
+            # only the stems the selected branches need run (EcoFusion 4.2.1, Knowledge gating)
+            selection = self.expand_selection(self.gate(None, meta), batch)
+            groups, needs = self._plan(inputs, selection)
             feats = None
         else:
-            per_sample = self.expand_selection(selection, batch)
-            groups, needs = self._plan(inputs, per_sample)
+            selection = self.expand_selection(selection, batch)
+            groups, needs = self._plan(inputs, selection)
             feats = None
         if self.training:
             if targets is None:
                 raise ValueError("targets: required in training mode")
-            self._check_targets(targets, per_sample)
+            self._check_targets(targets, selection)
         if feats is None:
             feats = self._run_stems(inputs, needs, batch)
 
@@ -495,9 +496,9 @@ class HydraFusion(nn.Module):
         if self.training:
             raise RuntimeError("per_sample_losses needs eval mode (call model.eval() first)")
         batch = self._check_inputs(inputs)
-        per_sample = self.expand_selection(selection, batch)
-        groups, needs = self._plan(inputs, per_sample)
-        self._check_targets(targets, per_sample)
+        selection = self.expand_selection(selection, batch)
+        groups, needs = self._plan(inputs, selection)
+        self._check_targets(targets, selection)
         feats = self._run_stems(inputs, needs, batch)
         out: list[dict[str, dict[str, Tensor]]] = [{} for _ in range(batch)]
         for name, idx in groups.items():

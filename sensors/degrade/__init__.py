@@ -62,7 +62,7 @@ class Degrader:
     def _models(self) -> list[tuple[str, Degradation]]:
         return [(n, m) for n, m in DEGRADATIONS.items() if self.obstructions or m.kind != "obstruction"]
 
-    def apply(self, scene, obs, frame_index: int):
+    def apply(self, obs, frame_index: int):
         """Degrade Observations `obs` (not modified) -> (new Observations, params by model)."""
         out = dataclasses.replace(obs)
         weather = obs.weather

@@ -157,7 +157,7 @@ def amp_parity(data: str, out, profile: str = "cpu", branches: tuple[str, ...] =
     rate), each in `out/<precision>/` (resumable), then both scored on the run's test split: each
     branch alone in the right camera, vehicle and all-class mAP, and the paired difference bf16 -
     fp32 with a 95 % interval from `bootstrap` draws of whole test sequences
-    (`study.detect.context_bootstrap`). Parity: an interval that holds 0 and is narrow. The two runs
+    (`study.scoring.context_bootstrap`). Parity: an interval that holds 0 and is narrow. The two runs
     do not follow the same trajectory (bf16 rounding changes every step after the first), so the
     difference also holds run-to-run variation, which is what a user of either precision gets.
     Also: each run's training seconds (process wall time) and final epoch loss."""
@@ -171,7 +171,8 @@ def amp_parity(data: str, out, profile: str = "cpu", branches: tuple[str, ...] =
     from sensors.dataset import DatasetReader
     from sensors.dataset import check as check_dataset
     from sim.errors import UserError
-    from study.detect import (
+    from study.device import default_threads, native_bf16
+    from study.scoring import (
         context_bootstrap,
         difference_interval,
         frames_for,
@@ -181,7 +182,6 @@ def amp_parity(data: str, out, profile: str = "cpu", branches: tuple[str, ...] =
         run_branches,
         score,
     )
-    from study.device import default_threads, native_bf16
     from study.train import TrainConfig, train
 
     out = Path(out)

@@ -240,7 +240,7 @@ def _load_run_weights(model, run_dir) -> None:
     """Copy a trained run's weights into `model` where the module names match (nothing without a run)."""
     if not run_dir:
         return
-    from study.detect import load_run
+    from study.scoring import load_run
 
     trained, _ = load_run(run_dir)
     own = model.state_dict()
@@ -441,7 +441,7 @@ def bench_inference(profile: str = "cpu", repeats: int = 5, threads: int = 2, ru
     part-way (a time budget) keeps what it measured."""
     energy_kw = {"warmup_s": energy_warmup_s, "window_s": energy_window_s, "idle_s": idle_s, "rest_s": idle_rest_s}
     if run_dir:  # its weights loaded here first: a damaged run is refused before any worker starts
-        from study.detect import load_run
+        from study.scoring import load_run
 
         load_run(run_dir)
     from study.train import branch_set

@@ -77,33 +77,11 @@ def _curve_at(xs, ys, budget: float) -> float:
     return float(np.interp(budget, [0.0, *xs], [0.0, *ys]))
 
 
-def bench_recipe(data: str, out, branch: str = "lidar", candidates: dict | None = None, epochs: int = 3,
-                 profile: str = "cpu", threads: int = 0, seed: int = 0, bootstrap: int = 200,
-                 progress: bool = True, aim: float | None = None) -> dict:
-    """The comparison of the module docstring -> a JSON-able dict (also written to OUT/recipe.json)."""
-    import csv
-
-    import torch
-
-    from sensors.dataset import DatasetReader
-    from sensors.dataset import check as check_dataset
+def _check_options(out: Path, marker: Path, candidates: dict, epochs: int, bootstrap: int, aim: float | None) -> None:
+    """Refuse (UserError, one line) what the bench cannot run: an --out holding other files, the
+    bootstrap's draws, --aim, a candidate's epochs; before any work."""
     from sim.errors import UserError
-    from study.detect import (
-        context_bootstrap,
-        frames_for,
-        fused,
-        fusion_method,
-        load_run,
-        run_branches,
-        score,
-    )
-    from study.device import default_threads
-    from study.train import TrainConfig, train
 
-    out = Path(out)
-    data = str(Path(data).resolve())
-    candidates = dict(candidates or DEFAULT_CANDIDATES)
-    marker = out / "recipe.json"
     ours = {marker.name, *(_dir(n) for n in candidates)}
     if out.exists() and (not out.is_dir() or any(p.name not in ours and p.suffix not in (".png", ".pdf", ".svg")
                                                  for p in out.iterdir())):
@@ -117,6 +95,36 @@ def bench_recipe(data: str, out, branch: str = "lidar", candidates: dict | None 
         n_ep = fields.get("epochs", epochs)
         if isinstance(n_ep, bool) or not isinstance(n_ep, int) or not 1 <= n_ep <= 100:
             raise UserError(f"--candidate {name}: epochs must be a whole number 1..100, got {n_ep!r}")
+
+
+def bench_recipe(data: str, out, branch: str = "lidar", candidates: dict | None = None, epochs: int = 3,
+                 profile: str = "cpu", threads: int = 0, seed: int = 0, bootstrap: int = 200,
+                 progress: bool = True, aim: float | None = None) -> dict:
+    """The comparison of the module docstring -> a JSON-able dict (also written to OUT/recipe.json)."""
+    import csv
+
+    import torch
+
+    from sensors.dataset import DatasetReader
+    from sensors.dataset import check as check_dataset
+    from sim.errors import UserError
+    from study.device import default_threads
+    from study.scoring import (
+        context_bootstrap,
+        frames_for,
+        fused,
+        fusion_method,
+        load_run,
+        run_branches,
+        score,
+    )
+    from study.train import TrainConfig, train
+
+    out = Path(out)
+    data = str(Path(data).resolve())
+    candidates = dict(candidates or DEFAULT_CANDIDATES)
+    marker = out / "recipe.json"
+    _check_options(out, marker, candidates, epochs, bootstrap, aim)
     check_dataset(data)
     n_threads = threads or default_threads()
     reader = DatasetReader(data)

@@ -31,8 +31,8 @@ from study.cli import (
 from study.commands.train_gate import add_objective_args, format_choice_lines, parse_objective_fields
 from study.eco.config_gate_study import train_eco_gate
 from study.eco.data import EcoSettings, build_eco_data
-from study.eco.energy import energy_table
-from study.eco.evaluate import GATE_ORDER, EcoEval, evaluate_eco, execute_ecofusion
+from study.eco.ecofusion_eval import GATE_ORDER, EcoEval, evaluate_eco, execute_ecofusion
+from study.eco.latency_energy import energy_table
 from study.eco.sweep import SWEEP_LAMBDAS, sweep
 
 EPILOG = """\
@@ -158,9 +158,13 @@ _power.kind = "name"
 def _require_trained(run_dir, gates, s: EcoSettings) -> None:
     """Before any work: every learned gate asked for has been trained for these settings' L_f
     (`EcoSettings.gate_dir`/gate.pt)."""
+    from fusion.eco.config_gates import CONFIG_GATES
+    from fusion.nets.branch_gates import trainable_gates
+
     fp = s.fp_flag()
+    learned = trainable_gates(CONFIG_GATES)
     for g in gates:
-        if g in ("deep", "attention") and not (s.gate_dir(run_dir, g) / "gate.pt").exists():
+        if g in learned and not (s.gate_dir(run_dir, g) / "gate.pt").exists():
             raise UserError(f"no trained {g} configuration gate in {run_dir}{' for' + fp if fp else ''} (run: "
                             f"hydrabench eco-train-gate {run_dir} DATA --gate {g}{fp}, or leave it out of --gates)")
 

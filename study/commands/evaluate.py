@@ -1,5 +1,5 @@
-"""`hydrabench evaluate`: the command line of `study.evaluate` (branches fused) and of the gate tables
-of `study.branch_gate_study` (--gate, --all-gates), with their text (`format_tables`: HydraFusion Tables 6, 7)."""
+"""`hydrabench evaluate`: the command line of `study.run_eval` (branches fused) and of the gate tables
+of `study.gate_tables` (--gate, --all-gates), with their text (`format_tables`: HydraFusion Tables 6, 7)."""
 
 from __future__ import annotations
 
@@ -7,7 +7,7 @@ import sys
 from pathlib import Path
 
 from sim.errors import UserError
-from study import evaluate as evaluation
+from study import run_eval as evaluation
 from study.cli import (
     Formatter,
     bootstrap_int,
@@ -88,7 +88,7 @@ def parse_weights(text) -> dict[str, float]:
 
 
 def run_gates(args) -> int:
-    from study import branch_gate_study
+    from study import gate_tables
 
     if args.gate and args.all_gates:
         raise UserError("--gate and --all-gates exclude each other (--all-gates evaluates every gate)")
@@ -102,12 +102,12 @@ def run_gates(args) -> int:
     if args.all_gates:
         if args.k is not None:
             raise UserError("--k is for --gate; --all-gates evaluates k = 1, 3, 5 and all")
-        result = branch_gate_study.evaluate_all_gates(Path(args.run_dir), Path(args.data), split=args.split,
+        result = gate_tables.evaluate_all_gates(Path(args.run_dir), Path(args.data), split=args.split,
                                                       weights=weights, checkpoint=args.checkpoint,
                                                       batch_size=args.batch_size, setup=resolve_device(args, purpose="eval"))
         emit(result, args.json, format_tables)
         return 0
-    result = branch_gate_study.evaluate_gate(Path(args.run_dir), Path(args.data), args.gate, args.k, args.fusion,
+    result = gate_tables.evaluate_gate(Path(args.run_dir), Path(args.data), args.gate, args.k, args.fusion,
                                              args.split, weights, args.checkpoint, args.batch_size,
                                              setup=resolve_device(args, purpose="eval"))
 

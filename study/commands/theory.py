@@ -8,6 +8,7 @@ import os
 from study import theory
 from study.cli import Formatter, emit, name_arg, nonneg_int, pos_int, severity_arg, workers_int
 from study.cli import cache_dir as cache_dir_arg
+from study.numbers import interval_text, number_text
 
 EPILOG = """\
 conditions: rain, fog, snow, night or combinations such as rain+night, on --layout (default
@@ -61,10 +62,10 @@ def format_text(result: dict) -> str:
             subset = "/".join(sorted({"+".join(s[0] for s in sub) for sub in det["selective_subsets"]}))
             lo, hi = res["nees_bounds"]
             lines.append(
-                f"  {sev:>3} {det['weather']:<26} {det['compared']:>4} {_f(single['camera']):>8} {_f(single['lidar']):>8} "
-                f"{_f(single['radar']):>8} | {_f(res['mse_full_nominal']):>8} {_f(res['mse_full_true']):>9} "
-                f"{_f(res['mse_selective']):>9} {subset:<13} {_f(res['mse_gated']):>8} | "
-                f"{_f(res['nees_mean']):>7} [{_f(lo)}, {_f(hi)}]")
+                f"  {sev:>3} {det['weather']:<26} {det['compared']:>4} {number_text(single['camera']):>8} {number_text(single['lidar']):>8} "
+                f"{number_text(single['radar']):>8} | {number_text(res['mse_full_nominal']):>8} {number_text(res['mse_full_true']):>9} "
+                f"{number_text(res['mse_selective']):>9} {subset:<13} {number_text(res['mse_gated']):>8} | "
+                f"{number_text(res['nees_mean']):>7} {interval_text((lo, hi))}")
         lines.append(f"  {'sev':>3} {'sensor check':<26} " + "  ".join(
             f"{s:<31}" for s in ("camera", "lidar", "radar")))
         for sev in by_sev:
@@ -76,7 +77,7 @@ def format_text(result: dict) -> str:
                     cells.append(f"{'not measured':<31}")
                     continue
                 vr = e["variance_ratio"]
-                cells.append(f"{_f(vr[0]) + '/' + _f(vr[1]):>13} NEES {_f(e['nees_mean']):>6} {100 * e['availability']:3.0f}%")
+                cells.append(f"{number_text(vr[0]) + '/' + number_text(vr[1]):>13} NEES {number_text(e['nees_mean']):>6} {100 * e['availability']:3.0f}%")
             lines.append(f"  {sev:>3} {'':<26} " + "  ".join(f"{c:<31}" for c in cells))
         lines.extend(_robust_lines(result["details"][cond]))
         lines.extend(_gross_lines(result["details"][cond]))
@@ -98,12 +99,12 @@ def _robust_lines(details: dict) -> list[str]:
             continue
         rob = det["robust"]
         for i, (key, label) in enumerate(ROBUST_FIGURES):
-            v = [_f(rob[c][key]) for c in ROBUST_COLUMNS]
+            v = [number_text(rob[c][key]) for c in ROBUST_COLUMNS]
             lines.append(f"  {sev if i == 0 else '':>3} {label:<14} {v[0]:>8} {v[1]:>8} {v[2]:>8} | {v[3]:>8} "
                          f"{v[4]:>9} {v[5]:>9} {v[6]:>8} {v[7]:>10}")
         paired = det["paired_vs_best_single"]
         for key, label in (("mean", f"- {paired['best_single']}"), ("se", "  +- se")):
-            v = [_f(paired[c][key]) if key == "se" or paired[c][key] is None
+            v = [number_text(paired[c][key]) if key == "se" or paired[c][key] is None
                  else f"{paired[c][key]:+.3g}" for c in ROBUST_COLUMNS[3:]]
             lines.append(f"  {'':>3} {label:<14} {'':>8} {'':>8} {'':>8} | {v[0]:>8} {v[1]:>9} {v[2]:>9} {v[3]:>8} "
                          f"{v[4]:>10}")
@@ -112,7 +113,7 @@ def _robust_lines(details: dict) -> list[str]:
 
 def _gross_lines(details: dict) -> list[str]:
     """Gross errors per sensor (count of measured, causes), the gate's verdicts, the fused SSE they carry."""
-    lines = [f"  {'sev':>3} gross errors, NEES > {_f(_gross_bound())} against each sensor's nominal R (its gate: 'gated') "
+    lines = [f"  {'sev':>3} gross errors, NEES > {number_text(_gross_bound())} against each sensor's nominal R (its gate: 'gated') "
              "or measured R (its gate: 'gated_true'):",
              f"  {'':>3} gross/measured (causes) | what the gate did | share of full fusion's summed squared error "
              "on those objects; MSE on the other objects"]
@@ -130,7 +131,7 @@ def _gross_lines(details: dict) -> list[str]:
             verdict = ", ".join(f"{o} {n}" for o, n in gate.items()) or "-"
             share = g["sse_share"][fused]
             without = g["mse_without_gross"][kind]
-            rest = ", ".join(f"{name} {_f(without[name])}" for name in ("lidar", "radar", fused))
+            rest = ", ".join(f"{name} {number_text(without[name])}" for name in ("lidar", "radar", fused))
             lines.append(f"  {sev if i == 0 else '':>3} {kind + ' R:':<12} " + "; ".join(parts)
                          + f" | gate: {verdict} | {fused} SSE share {_pct(share)}; MSE without them: {rest}")
     return lines
@@ -145,20 +146,6 @@ def _gross_bound() -> float:
 def _pct(v) -> str:
     return "-" if v is None else f"{100 * v:.0f} %"
 
-
-def _f(v) -> str:
-    if v is None:
-        return "-"
-    v = float(v)
-    if v == 0:
-        return "0"
-    if abs(v) >= 1000:
-        return f"{v:.3g}"
-    if abs(v) >= 10:
-        return f"{v:.1f}"
-    if abs(v) >= 0.01:
-        return f"{v:.3f}"
-    return f"{v:.1e}"
 
 
 def add_parser(sub, name: str, help_text: str) -> None:

@@ -30,8 +30,8 @@ gating (Eq. 10-11) per scene.
 """
 
 # Where each part lives:
-#   study.eco.data      EcoData, EcoSettings, build_eco_data, rank_correlation   (configuration dataset)
-#   study.eco.energy    measure_latency, energy_table                             (latency and energy)
-#   study.eco.config_gate_study     train_eco_gate, load_eco_gate                             (gates)
-#   study.eco.evaluate  EcoEval, evaluate_eco, execute_ecofusion                  (evaluation)
-#   study.eco.sweep     sweep, plot_figure4, plot_figure5                         (Tables 1-3, Figures 4-5)
+#   study.eco.data               EcoData, EcoSettings, build_eco_data, rank_correlation   (configuration dataset)
+#   study.eco.latency_energy     measure_latency, energy_table                            (latency and energy)
+#   study.eco.config_gate_study  train_eco_gate, load_eco_gate                            (gates)
+#   study.eco.ecofusion_eval     EcoEval, evaluate_eco, execute_ecofusion                 (evaluation)
+#   study.eco.sweep              sweep, plot_figure4, plot_figure5                        (Tables 1-3, Figures 4-5)

@@ -89,13 +89,13 @@ class EcoData(GateData):
     def extra_identity(self) -> dict:
         return {"eco_version": ECO_DATA_VERSION, "configurations": [list(m) for m in self.configurations.members],
                 "fusion": self.fusion, "loss": dataclasses.asdict(self.loss_spec), "max_detections": self.max_det,
-                "ground_truth": "study.detect.ground_truth camera_right"}
+                "ground_truth": "study.scoring.ground_truth camera_right"}
 
     def compute(self, model, inputs, targets, metas, features) -> dict[str, np.ndarray]:
         from fusion.eco.loss import loss_terms
         from fusion.late import fuse, to_reference
         from sensors.rig import Calibration
-        from study.detect import ground_truth, to_detections
+        from study.scoring import ground_truth, to_detections
 
         frames = model.branch_frames
         dets = model(inputs, selection=list(self.branches))
@@ -123,22 +123,6 @@ class EcoData(GateData):
         """(n, n_configurations) L_f of each frame and configuration (with `weights`)."""
         return self.weights.combine(self.arrays(indices, ["terms"])["terms"])
 
-
-def fuse_choice(per_frame_dets, metas, branches, frames, chosen_members, method, memo=None) -> list:
-    """[(meta, fused Detections)] for each frame's chosen configuration (branch tuple), memoised
-    on (frame position, configuration)."""
-    from fusion.late import fuse
-    from sensors.rig import Calibration
-
-    memo = {} if memo is None else memo
-    out = []
-    for k, (meta, per, members) in enumerate(zip(metas, per_frame_dets, chosen_members)):
-        key = (k, members)
-        if key not in memo:
-            memo[key] = fuse({n: per[n] for n in members}, frames, Calibration.from_dict(meta["calibration"]),
-                             method=method)
-        out.append((meta, memo[key]))
-    return out
 
 
 def rank_correlation(losses: np.ndarray, ap: np.ndarray) -> dict:
@@ -232,7 +216,7 @@ def open_eco_run(run_dir, data, s: EcoSettings, threads: int = 2, device: str = 
 
     from fusion.eco.configurations import build_configurations, load_configurations_config
     from fusion.nets.branch_gates import gate_sensors
-    from study.detect import fusion_method, load_run
+    from study.scoring import fusion_method, load_run
 
     torch.set_num_threads(threads)
     method = fusion_method(s.fusion)
@@ -253,9 +237,9 @@ def _subsample(indices: list[int], n: int) -> list[int]:
 
 
 def eco_splits(cfg, data, max_frames: int = 0) -> tuple[list[int], list[int]]:
-    """The run's (train, test) dataset indices of `data` (`study.detect.run_train_test`), each cut
+    """The run's (train, test) dataset indices of `data` (`study.scoring.run_train_test`), each cut
     to at most `max_frames` evenly spaced frames (0 = all)."""
-    from study.detect import run_train_test
+    from study.scoring import run_train_test
 
     train, test = run_train_test(cfg, data, "EcoFusion")
     return _subsample(train, max_frames), _subsample(test, max_frames)
@@ -283,7 +267,7 @@ def build_eco_data(run_dir, data, s: EcoSettings = EcoSettings(), progress: bool
     sequences to carve any. The network runs on `device` (a torch device string, `study.device`),
     in fp32."""
     from fusion.eco.loss import FusedLossSpec
-    from study.detect import frames_for
+    from study.scoring import frames_for
 
     run_dir, data = Path(run_dir), Path(data)
     model, cfg, configs, ed = open_eco_run(run_dir, data, s, device=device)

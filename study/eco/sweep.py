@@ -9,7 +9,7 @@ import numpy as np
 
 from sim.progress import progress as progress_bar
 from study.eco.data import EcoSettings
-from study.eco.evaluate import METRIC, EcoEval
+from study.eco.ecofusion_eval import METRIC, EcoEval
 from study.outputs import write_json_atomic
 
 TABLE1_LAMBDAS = (0.0, 0.01, 0.05)

@@ -28,7 +28,7 @@ def motorway():
 
 def twin(renderer, scene, weather, context="motorway", obstructions=False):
     obs = renderer.observe(scene, weather)
-    return Degrader(renderer.calib, context, 11, obstructions=obstructions).apply(scene, obs, scene.frame_index)
+    return Degrader(renderer.calib, context, 11, obstructions=obstructions).apply(obs, scene.frame_index)
 
 
 def test_lidar_fog_law(motorway):
@@ -218,7 +218,7 @@ def test_model_streams_are_derived_on_first_draw(motorway, monkeypatch):
     results = []
     for make in (degrade_pkg._Stream, stream):
         monkeypatch.setattr(degrade_pkg, "_Stream", make)
-        out, params = Degrader(renderer.calib, "snow", 11).apply(scene, obs, scene.frame_index)
+        out, params = Degrader(renderer.calib, "snow", 11).apply(obs, scene.frame_index)
         results.append((repr(params), out.camera_left.radiance.tobytes(), out.lidar.power.tobytes(),
                         out.radar.clutter.tobytes()))
     assert results[0] == results[1]

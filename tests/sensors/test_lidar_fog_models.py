@@ -104,8 +104,8 @@ def test_clear_air_keeps_every_point_and_the_hahner_model_stays_off():
     scenes, renderer = render("motorway", seed=11)
     scene = scenes[0]
     obs = renderer.observe(scene, CLEAR)
-    a, pa = Degrader(renderer.calib, "motorway", 11, obstructions=False).apply(scene, obs, 0)
-    b, pb = Degrader(renderer.calib, "motorway", 11, obstructions=False, lidar_fog="hahner").apply(scene, obs, 0)
+    a, pa = Degrader(renderer.calib, "motorway", 11, obstructions=False).apply(obs, 0)
+    b, pb = Degrader(renderer.calib, "motorway", 11, obstructions=False, lidar_fog="hahner").apply(obs, 0)
     assert "lidar_fog_backscatter" not in pb and pa["lidar_extinction"] == pb["lidar_extinction"]
     for f in ("range", "power", "returned"):
         np.testing.assert_array_equal(getattr(a.lidar, f), getattr(b.lidar, f))
@@ -121,7 +121,7 @@ def test_hahner_hard_returns_fall_as_exp_minus_two_alpha_r_once(motorway):
     scene, renderer, clear = motorway
     fog_w = WeatherState(fog_visibility_m=80.0, illuminance_lux=8000.0)
     out, params = Degrader(renderer.calib, "fog", 11, obstructions=False, lidar_fog="hahner").apply(
-        scene, renderer.observe(scene, fog_w), 0)
+        renderer.observe(scene, fog_w), 0)
     p = params["lidar_fog_backscatter"]
     assert p["model"] == "hahner" and p["alpha_per_m"] == pytest.approx(math.log(20) / 80.0)
     assert p["beta_per_m_sr"] == pytest.approx(0.046 / 80.0)
@@ -137,7 +137,7 @@ def test_hahner_hard_returns_fall_as_exp_minus_two_alpha_r_once(motorway):
     # rain adds its own extinction; the fog share stays with the fog model
     rain_fog = WeatherState(fog_visibility_m=80.0, rain_mm_h=10.0, illuminance_lux=8000.0)
     _, pr = Degrader(renderer.calib, "fog", 11, obstructions=False, lidar_fog="hahner").apply(
-        scene, renderer.observe(scene, rain_fog), 0)
+        renderer.observe(scene, rain_fog), 0)
     assert pr["lidar_extinction"]["alpha_per_m"] == pytest.approx(rain_fog.rain_alpha_per_m)
 
 
@@ -162,7 +162,7 @@ def test_selection_is_recorded_replayable_and_validated(motorway):
     fog_w = WeatherState(fog_visibility_m=60.0, illuminance_lux=8000.0)
     obs = renderer.observe(scene, fog_w)
     for name in ("ours", "hahner"):
-        out, params = Degrader(renderer.calib, "fog", 5, obstructions=False, lidar_fog=name).apply(scene, obs, 0)
+        out, params = Degrader(renderer.calib, "fog", 5, obstructions=False, lidar_fog=name).apply(obs, 0)
         p = params["lidar_fog_backscatter"]
         assert p["model"] == name
         json.dumps(p)

@@ -4,7 +4,7 @@ a split, the feature maps are the strides the profile asks for."""
 import pytest
 
 from sim.errors import UserError
-from study.bench.profile import PARTS, bench_profile
+from study.bench.step_profile import PARTS, bench_profile
 from tests.study.test_bench_amp import TINY
 
 

@@ -141,7 +141,7 @@ def test_per_frame_sampling_changes_nothing_but_the_draws_and_global_stays_the_d
     """A one-process run with the default sampling is the run the code made before devices existed
     (torchvision's sampler untouched); per-frame sampling is recorded and kept on resume."""
     from fusion.nets.sampling import FrameSeededSampler
-    from study.detect import load_run
+    from study.scoring import load_run
 
     assert json.loads((single / "config.json").read_text())["sampling"] == "per-frame"
     assert TrainConfig(data="x").sampling == "global"

@@ -63,8 +63,8 @@ def test_eco_data_reports_loss_ap_rank_correlation_and_subsets_fused_afterwards_
     from fusion.late import fuse
     from sensors.dataset import DatasetReader
     from sensors.rig import Calibration
-    from study.detect import ground_truth, load_run, to_detections
     from study.eco.data import EcoData
+    from study.scoring import ground_truth, load_run, to_detections
 
     assert main(["eco-data", str(eco), str(data), "--json"]) == 0
     r = _json(capsys)
@@ -186,8 +186,8 @@ def test_fp_weight_reweights_cached_terms_and_keeps_its_gates_apart(eco, data, c
     differently trained gates."""
     from fusion.eco.configurations import build_configurations
     from fusion.eco.loss import FusedLossSpec
-    from study.detect import load_run
     from study.eco.data import EcoData, EcoSettings, eco_splits
+    from study.scoring import load_run
 
     assert main(["eco-data", str(eco), str(data), "--fp-weight", "0.25", "--json"]) == 0
     r = _json(capsys)

@@ -11,8 +11,8 @@ import torch
 
 from sensors.generate import GenerateConfig
 from study.cli import main
-from study.detect import load_run
 from study.gate_data import GateData
+from study.scoring import load_run
 from study.train import TrainConfig, train
 
 BRANCHES = ("radar", "camera_right", "lidar", "radar_lidar")  # k = 1, 3 and all exist for 4 branches

@@ -14,7 +14,7 @@ from sensors.generate import GenerateConfig
 from study import reference_model as rm
 from study.cli import main
 from study.compare import verdict
-from study.detect import load_run
+from study.scoring import load_run
 from study.train import TrainConfig, train
 
 BRANCHES = ("radar", "camera_right", "lidar", "radar_lidar")

@@ -73,7 +73,7 @@ def _run_cfg(data, holdout):
 
 def test_gate_frames_split_train_gate_and_test_and_validate_both_targets_on_the_same_frames(split_data):
     from sim.errors import UserError
-    from study.detect import frames_for
+    from study.scoring import frames_for
     from study.selection import gate_frames
 
     cfg = _run_cfg(split_data, 0.5)
@@ -102,7 +102,7 @@ def test_training_with_a_gate_holdout_never_reads_the_gate_split(split_data, tmp
     import json
 
     import study.train as training
-    from study.detect import frames_for
+    from study.scoring import frames_for
 
     seen = {}
 

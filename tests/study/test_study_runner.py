@@ -290,7 +290,7 @@ def test_every_preset_loads_and_the_help_names_it(capsys):
 def test_the_twin_columns_are_scored_on_the_clear_twins(tiny, tmp_path, monkeypatch):
     """The severity sweep's "clear" column runs the branches on the clear-weather arrays (a study once
     ran them on the degraded frames again, so every twin equalled its frame, lidar in dense fog too)."""
-    import study.detect as detect
+    import study.scoring as detect
     from study.stage_cache import link_farm
     from study.stages import _device_setup, eco_settings
     from study.study_eval import evaluate_study

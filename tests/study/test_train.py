@@ -78,7 +78,7 @@ def test_a_run_records_its_model_profile_and_is_loaded_with_it(reference_run, tm
 
     from fusion.nets.profile import load_profile
     from sim.config import to_dict
-    from study.detect import load_run
+    from study.scoring import load_run
 
     ref, _ = reference_run
     cfg = json.loads((ref / "config.json").read_text())
@@ -239,7 +239,8 @@ def test_evaluate_reports_map_per_class_and_context(data, reference_run, capsys)
 
 def test_warm_start_copies_matching_modules_and_maps_branches(reference_run):
     from fusion.nets import build_hydrafusion
-    from study.train import branch_set, warm_start
+    from study.train import branch_set
+    from study.warm_start import warm_start
 
     ref, _ = reference_run
     source = torch.load(ref / "checkpoint.pt", weights_only=False)["model"]
@@ -265,7 +266,8 @@ def test_warm_start_from_several_runs_takes_each_module_from_the_first_that_has_
     (even though the second run has same-named ones), radar and lidar ones from the second run;
     the merge conv of a fused camera branch then passes the right camera's features through."""
     from fusion.nets import build_hydrafusion
-    from study.train import branch_set, warm_start
+    from study.train import branch_set
+    from study.warm_start import warm_start
 
     paper = branch_set("paper", "cpu")
     torch.manual_seed(1)
@@ -300,8 +302,8 @@ def test_warm_start_from_several_runs_takes_each_module_from_the_first_that_has_
 def test_evaluate_twins_scores_the_same_frames_in_clear_weather(reference_run, data, tmp_path, capsys, monkeypatch):
     """--twins: each branch on the degraded frames and on their clear twins, and the ratio."""
     from sensors.dataset import DatasetReader
-    from study.detect import bev_crop_of, load_run, native, run_branches, score
-    from study.evaluate import evaluate
+    from study.run_eval import evaluate
+    from study.scoring import bev_crop_of, load_run, native, run_branches, score
 
     ref, _ = reference_run
     twins = tmp_path / "twins"
@@ -323,7 +325,7 @@ def test_evaluate_twins_scores_the_same_frames_in_clear_weather(reference_run, d
     op = t["fused"]["at_score_0.5"]
     assert set(op) == {"degraded", "clear", "by_distance_over_visibility"} and set(op["clear"]) == {"recall", "precision"}
     # the twin is binned by its fog frame's visibility, so both sides count the same objects
-    from study.detect import operating_point, recall_by_visibility
+    from study.scoring import operating_point, recall_by_visibility
 
     bins = t["branches"]["radar"]["at_score_0.5"]["by_distance_over_visibility"]
     deg = run_branches(model, twins, range(4), ["radar"])
@@ -335,7 +337,7 @@ def test_evaluate_twins_scores_the_same_frames_in_clear_weather(reference_run, d
     assert [v["clear"] for v in bins.values()] == [v["recall"] for v in mine.values()]
     assert r["map_vehicles_per_severity"].keys() == set(sev)
     # --bootstrap: sequences drawn with replacement, each draw scored degraded and clear
-    from study.detect import paired_bootstrap
+    from study.scoring import paired_bootstrap
 
     crop, clear_reader = bev_crop_of(model, reader), DatasetReader(twins, clear=True)
     args = (native(deg, "radar"), native(clear, "radar"), reader, clear_reader, "bev", crop)
@@ -352,6 +354,7 @@ def test_evaluate_twins_scores_the_same_frames_in_clear_weather(reference_run, d
     assert same["all"]["retained"] in ([1.0, 1.0], None)  # the same detections on both sides
     assert list(ci["per_severity"]) == sev and sum(v["sequences"] for v in ci["per_severity"].values()) == 2
     monkeypatch.setenv("HYDRABENCH_PROGRESS_S", "0")  # a progress line per batch: stderr is not a terminal here
+    capsys.readouterr()  # the calls above print progress too when a batch outlasts 5 s (a loaded machine)
     assert main(["evaluate", str(ref), str(twins), "--twins"]) == 0
     out = capsys.readouterr()
     assert "same frames in clear weather" in out.out and "warning" not in out.err and "warning" not in t
@@ -360,7 +363,7 @@ def test_evaluate_twins_scores_the_same_frames_in_clear_weather(reference_run, d
     # twins made before the overcast sky was kept (no `overcast` record) are named, not scored silently
     import shutil
 
-    from study.evaluate import stale_twins
+    from study.run_eval import stale_twins
 
     old = tmp_path / "old_twins"
     shutil.copytree(twins, old)
@@ -428,7 +431,7 @@ def test_bev_label_ranges_match_the_camera_labels_distances(data):
     """The BEV boxes' ranges (used to bin recall by distance / visibility) agree with the camera
     labels' distances of the same objects to within the radar-camera offset."""
     from sensors.dataset import DatasetReader
-    from study.detect import bev_distances
+    from study.scoring import bev_distances
 
     reader = DatasetReader(data)
     diffs = []
@@ -442,8 +445,8 @@ def test_bev_label_ranges_match_the_camera_labels_distances(data):
 def test_split_data_test_is_the_datasets_own_test_split(reference_run, data):
     """--split data-test: on the run's own dataset the same frames and mAP as its test split; it
     also works on another dataset, where --split test is refused."""
-    from study.detect import frames_for
-    from study.evaluate import evaluate
+    from study.run_eval import evaluate
+    from study.scoring import frames_for
 
     ref, _ = reference_run
     a, b = evaluate(ref, data, split="test"), evaluate(ref, data, split="data-test")

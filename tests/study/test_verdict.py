@@ -9,7 +9,7 @@ from pathlib import Path
 
 import pytest
 
-from study.detect import difference_interval
+from study.scoring import difference_interval
 from study.verdict import (
     ORACLES,
     answer_sentences,

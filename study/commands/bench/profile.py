@@ -1,4 +1,4 @@
-"""`hydrabench bench profile`: where one training step's time goes (`study.bench.profile`)."""
+"""`hydrabench bench profile`: where one training step's time goes (`study.bench.step_profile`)."""
 
 from __future__ import annotations
 
@@ -12,7 +12,7 @@ from study.commands.bench.common import _doc, _model_overrides, _training_bench_
 
 def add_parser(what) -> None:
     pr = what.add_parser("profile", help="where one training step's time goes: stems, layer2-4, RPN, RoIAlign, box head, "
-                         "backward, optimiser", description=_doc("study.bench.profile"), formatter_class=Formatter)
+                         "backward, optimiser", description=_doc("study.bench.step_profile"), formatter_class=Formatter)
     _training_bench_args(pr, "timed steps", "train on this dataset's first frames and time reading them (default: "
                          "synthetic frames)")
     pr.add_argument("--precision", choices=("fp32", "bf16"), default="fp32",
@@ -21,7 +21,7 @@ def add_parser(what) -> None:
 
 
 def run_profile(args) -> int:
-    from study.bench.profile import bench_profile
+    from study.bench.step_profile import bench_profile
 
     r = bench_profile(args.profile, tuple(args.branches), batch=args.batch_size, steps=args.steps, warmup=args.warmup,
                       threads=args.threads, seed=args.seed, precision=args.precision,

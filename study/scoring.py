@@ -19,6 +19,7 @@ from sensors.dataset import DatasetReader
 from sensors.rig import Calibration
 from sim.actors import CLASSES
 from sim.errors import UserError
+from study.numbers import rounded, rounded_interval
 
 FUSION_ALIASES = {"nms": "nms", "soft-nms": "soft_nms", "soft_nms": "soft_nms", "wbf": "wbf"}
 
@@ -233,7 +234,7 @@ def score(per_frame: list, reader: DatasetReader, frame: str = "camera_right", b
                 for c, ks in sorted(by.items())}
 
     by_ctx, by_sev = per_group(contexts), per_group(severities)
-    per_ctx = {c: _round(r.mean_ap) for c, r in by_ctx.items()}
+    per_ctx = {c: rounded(r.mean_ap) for c, r in by_ctx.items()}
     veh_ctx = {c: _mean_of(r, vehicles) for c, r in by_ctx.items()}
     veh_sev = {c: _mean_of(r, vehicles) for c, r in by_sev.items()}
     ctx_frames = defaultdict(list)
@@ -241,13 +242,13 @@ def score(per_frame: list, reader: DatasetReader, frame: str = "camera_right", b
         ctx_frames[c].append(k)
     return {
         "protocol": as_protocol(protocol).describe(),
-        "map": _round(res.mean_ap),
+        "map": rounded(res.mean_ap),
         "map_vehicles": _mean_of(res, vehicles),
         "map_vehicles_per_context": veh_ctx,
         "map_vehicles_per_severity": veh_sev,
         "map_vehicles_per_range": per_range(range(len(dets))),
         "map_vehicles_per_context_range": {c: per_range(ks) for c, ks in sorted(ctx_frames.items())},
-        "ap_per_class": {CLASSES[c - 1]: _round(v) for c, v in res.ap.items()},
+        "ap_per_class": {CLASSES[c - 1]: rounded(v) for c, v in res.ap.items()},
         "map_per_context": per_ctx,
         "positives_per_class": {CLASSES[c - 1]: int(n) for c, n in res.n_positives.items()},
         "frames": len(per_frame),
@@ -271,7 +272,7 @@ def operating_point(per_frame: list, reader: DatasetReader, frame: str = "camera
         tp = sum(r.n_true_positives.values())
         judged = sum(len(r.precision[c]) for c in vehicles)  # detections not matched to a difficult box
         pos = sum(r.n_positives.values())
-        return {"recall": _round(tp / pos) if pos else None, "precision": _round(tp / judged) if judged else None,
+        return {"recall": rounded(tp / pos) if pos else None, "precision": rounded(tp / judged) if judged else None,
                 "positives": int(pos), "detections": int(judged)}
 
     everything = [x for v in groups.values() for x in v]
@@ -330,8 +331,8 @@ def recall_by_visibility(per_frame: list, reader: DatasetReader, frame: str = "c
     def name(lo, hi):
         return f"{lo:g}-{hi:g}" if np.isfinite(hi) else f">={lo:g}"
 
-    return {name(lo, hi): {"objects": int(n), "found": int(f), "recall": _round(f / n) if n else None,
-                           "contrast": [_round(np.exp(-LN20 * lo)), _round(np.exp(-LN20 * hi))]}
+    return {name(lo, hi): {"objects": int(n), "found": int(f), "recall": rounded(f / n) if n else None,
+                           "contrast": [rounded(np.exp(-LN20 * lo)), rounded(np.exp(-LN20 * hi))]}
             for lo, hi, n, f in zip(edges[:-1], edges[1:], objects, found)}
 
 
@@ -345,11 +346,8 @@ def _image_matches(frames: list, keys: list, gts: list, classes) -> ImageMatches
 def _interval(values: np.ndarray) -> list | None:
     """[2.5th, 97.5th percentile] of the finite values (None when none is)."""
     v = values[np.isfinite(values)]
-    return [_round(np.percentile(v, 2.5)), _round(np.percentile(v, 97.5))] if len(v) else None
+    return [rounded(np.percentile(v, 2.5)), rounded(np.percentile(v, 97.5))] if len(v) else None
 
-
-def _rounded(iv) -> list | None:
-    return None if iv is None else [_round(iv[0]), _round(iv[1])]
 
 
 def paired_bootstrap(deg_frames: list, clr_frames: list, reader, clear_reader, frame: str, bev_crop=None,
@@ -386,8 +384,8 @@ def paired_bootstrap(deg_frames: list, clr_frames: list, reader, clear_reader, f
                                    lambda items: clr.mean_ap([row[ks[i]] for i in items]),
                                    [seq_of[k][0] for k in ks], resamples=resamples, seed=seed,
                                    on_draw=lambda: bar.update(1))
-        return {"sequences": t.sequences, "degraded": _rounded(t.degraded_interval),
-                "clear": _rounded(t.clear_interval), "retained": _rounded(t.interval)}
+        return {"sequences": t.sequences, "degraded": rounded_interval(t.degraded_interval),
+                "clear": rounded_interval(t.clear_interval), "retained": rounded_interval(t.interval)}
 
     present = [s for s in severities or () if any(seq_of[k][1] == s for k in keys)]
     with progress_bar(total=resamples * (1 + len(present)), desc=desc, unit="draw") as bar:
@@ -461,21 +459,31 @@ def difference_interval(group: dict, name: str, ref: str) -> list | None:
 def _mean_of(res, classes) -> float | None:
     """Mean AP over those of `classes` that have ground truth (None when none has)."""
     aps = [res.ap[c] for c in classes if res.ap.get(c) is not None and not np.isnan(res.ap[c])]
-    return _round(float(np.mean(aps))) if aps else None
+    return rounded(float(np.mean(aps))) if aps else None
 
 
-def _round(v):
-    return None if v is None or (isinstance(v, float) and np.isnan(v)) else round(float(v), 4)
+
+def fuse_selection(per_frame: list, selection, frames: dict, method: str, weights=None,
+                   memo: dict | None = None) -> list:
+    """The one way a gate's choice becomes scored boxes: [(meta, fused Detections in the right
+    camera)] for [(meta, {branch: Detections})] and `selection` (per frame, the tuple of branch names
+    to fuse; branches a frame lacks are left out). `memo`: a dict reused across calls of one method
+    and one `per_frame`, keyed on (frame position, tuple)."""
+    memo = {} if memo is None else memo
+    out = []
+    for i, ((meta, per), frame_selection) in enumerate(zip(per_frame, selection, strict=True)):
+        key = (i, tuple(frame_selection))
+        if key not in memo:
+            calib = Calibration.from_dict(meta["calibration"])
+            memo[key] = fuse({n: per[n] for n in frame_selection if n in per}, frames, calib, method=method,
+                             weights=weights)
+        out.append((meta, memo[key]))
+    return out
 
 
 def fused(per_frame: list, branches, frames: dict, method: str, weights=None) -> list:
-    """Late fusion of each frame's selected branches in the right camera frame."""
-    out = []
-    for meta, per in per_frame:
-        calib = Calibration.from_dict(meta["calibration"])
-        chosen = {n: per[n] for n in branches if n in per}
-        out.append((meta, fuse(chosen, frames, calib, method=method, weights=weights)))
-    return out
+    """Late fusion of the same `branches` on every frame (`fuse_selection`)."""
+    return fuse_selection(per_frame, [tuple(branches)] * len(per_frame), frames, method, weights)
 
 
 def bev_crop_of(model, reader: DatasetReader) -> tuple:

@@ -55,7 +55,7 @@ def measure_latency(model, data, indices, configs, method: str = "soft_nms", rep
     from fusion.late import fuse
     from fusion.nets import SENSORS
     from sensors.rig import Calibration
-    from study.detect import to_detections
+    from study.scoring import to_detections
 
     torch.set_num_threads(threads)
     ctr = open_counter(counter, "cpu")
@@ -64,33 +64,12 @@ def measure_latency(model, data, indices, configs, method: str = "soft_nms", rep
     stems_s, branch_s, fusion_s = defaultdict(list), defaultdict(list), defaultdict(list)
     energy = defaultdict(list) if ctr is not None else None
     direct_t, direct_e = defaultdict(list), defaultdict(list)
-    rng = np.random.default_rng(seed)
-    members = list(configs.members)
-    first = [configs.members[configs.baselines["late"]]] if "late" in configs.baselines else []
-    if tuple(configs.branches) in members:
-        first.append(tuple(configs.branches))
-    first += [configs.members[i] for i in configs.baselines.values()]
-    first = list(dict.fromkeys(first))
-    others = [m for m in members if m not in first]
-    extra = [others[i] for i in rng.permutation(len(others))] if others else []
-    checked = (first + extra)[:max(check, 1)]
+    checked = checked_configurations(configs, check, seed)
     shared = [s for s in model.sensors if SENSORS[s].stem in model.stems]
     by_n = defaultdict(list)
-    for m in members:
+    for m in configs.members:
         by_n[len(m)].append(m)
-
-    def timed(fn):
-        """(median seconds, mean joules or None) of `repeats` calls after one warm-up."""
-        fn()
-        ts, es = [], []
-        for _ in range(repeats):
-            before = ctr.read() if ctr is not None else None
-            t = time.perf_counter()
-            fn()
-            ts.append(time.perf_counter() - t)
-            if ctr is not None:
-                es.append(ctr.joules(before, ctr.read()))
-        return float(np.median(ts)), (float(np.mean(es)) if es else None)
+    timed = _timer(ctr, repeats)
 
     def record(key, table, value):
         t, e = value
@@ -136,6 +115,46 @@ def measure_latency(model, data, indices, configs, method: str = "soft_nms", rep
                        {k: float(np.mean(v)) for k, v in energy.items()} if energy is not None else None,
                        {"frames": len(ds), "repeats": repeats, "counter": ctr.name if ctr is not None else None,
                         "machine": machine_description(threads), "method": method})
+    return lat, additive_check(lat, checked, direct_t, direct_e)
+
+
+def checked_configurations(configs, check: int, seed: int) -> list[tuple[str, ...]]:
+    """The configurations timed end to end: late fusion, all branches, the other named baselines,
+    then random others (seeded), the first `check` (at least one)."""
+    rng = np.random.default_rng(seed)
+    members = list(configs.members)
+    first = [configs.members[configs.baselines["late"]]] if "late" in configs.baselines else []
+    if tuple(configs.branches) in members:
+        first.append(tuple(configs.branches))
+    first += [configs.members[i] for i in configs.baselines.values()]
+    first = list(dict.fromkeys(first))
+    others = [m for m in members if m not in first]
+    extra = [others[i] for i in rng.permutation(len(others))] if others else []
+    return (first + extra)[:max(check, 1)]
+
+
+def _timer(ctr, repeats: int):
+    """timed(fn) -> (median seconds, mean joules or None) of `repeats` calls of fn after one warm-up,
+    joules from the energy counter `ctr` (None: no counter)."""
+
+    def timed(fn):
+        fn()
+        ts, es = [], []
+        for _ in range(repeats):
+            before = ctr.read() if ctr is not None else None
+            t = time.perf_counter()
+            fn()
+            ts.append(time.perf_counter() - t)
+            if ctr is not None:
+                es.append(ctr.joules(before, ctr.read()))
+        return float(np.median(ts)), (float(np.mean(es)) if es else None)
+
+    return timed
+
+
+def additive_check(lat, checked, direct_t: dict, direct_e: dict) -> dict:
+    """The additive latency model `lat` against the configurations timed end to end: per
+    configuration measured and additive ms (and J where a counter measured), relative errors."""
     rows = {}
     for m in checked:
         pred, meas = lat.latency(m), float(np.mean(direct_t[m]))
@@ -145,9 +164,8 @@ def measure_latency(model, data, indices, configs, method: str = "soft_nms", rep
             rows["+".join(m)].update(measured_j=round(float(np.mean(direct_e[m])), 4),
                                      additive_j=round(lat.measured_energy(m), 4))
     errs = [abs(r["relative_error"]) for r in rows.values()]
-    check_out = {"configurations": rows, "mean_abs_relative_error": round(float(np.mean(errs)), 4),
-                 "max_abs_relative_error": round(float(np.max(errs)), 4)}
-    return lat, check_out
+    return {"configurations": rows, "mean_abs_relative_error": round(float(np.mean(errs)), 4),
+            "max_abs_relative_error": round(float(np.max(errs)), 4)}
 
 
 def latency_identity(run_dir, s: EcoSettings, threads: int, counter: str) -> dict:
@@ -163,7 +181,7 @@ def energy_table(run_dir, data, s: EcoSettings = EcoSettings(), threads: int = 1
     latency and energy. `reuse`: take a cached table of this checkpoint measured with other
     thread / counter settings (what evaluation does) instead of measuring again."""
     from fusion.eco.energy import LatencyModel, configuration_energy, power_model
-    from study.detect import fusion_method
+    from study.scoring import fusion_method
 
     run_dir, data = Path(run_dir), Path(data)
     if model is None:

@@ -39,7 +39,7 @@ def evaluate(run_dir, data, branches="all", fusion="soft-nms", split="auto", wei
     each branch's and the fused vehicle mAP per context and of their differences ("ci95")."""
 
     from fusion.protocol import PROTOCOLS, Protocol
-    from study.detect import (
+    from study.scoring import (
         bev_crop_of,
         frames_for,
         fused,
@@ -109,7 +109,7 @@ def evaluate(run_dir, data, branches="all", fusion="soft-nms", split="auto", wei
                 "map_vehicles_per_context_range")
         result["per_branch_reference"] = {b: {k: alone[b][k] for k in keys} for b in names}
         if bootstrap and not twins:
-            from study.detect import context_bootstrap
+            from study.scoring import context_bootstrap
 
             result["ci95"] = context_bootstrap({"fused": fused_frames, **alone_frames}, reader, "camera_right", proto,
                                                bootstrap)
@@ -133,7 +133,7 @@ def _twins(model, data, indices, names, frames, method, weights, batch_size, per
     the degraded frames, on their clear twins, and their ratio, overall and per severity; and the same
     for the fused result. The frames and labels are identical; only the weather differs."""
     from sensors.dataset import DatasetReader
-    from study.detect import (
+    from study.scoring import (
         bev_crop_of,
         fused,
         native,

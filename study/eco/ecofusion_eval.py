@@ -21,13 +21,11 @@ from study.eco.data import (
     detections_from_array,
     eco_gate_frames,
     eco_splits,
-    fuse_choice,
     open_eco_run,
 )
-from study.eco.energy import energy_table
+from study.eco.latency_energy import energy_table
 
 GATE_ORDER = ("knowledge", "deep", "attention", "loss_based")
-FEATURE_GATES = ("deep", "attention")
 """Gates that read the stems' features, so every stem they read runs before they decide."""
 METRIC = "VOC all-point AP at IoU 0.5, right camera, difficult ground truth ignored"
 
@@ -122,9 +120,11 @@ class EcoEval:
         decides from external context before any stem runs, and the loss-based oracle is
         a-posteriori: neither adds anything. The gate network's own few small convolutions are not
         counted."""
-        if gate not in FEATURE_GATES:
+        from fusion.eco.config_gates import CONFIG_GATES
+        from fusion.nets.branch_gates import gate_sensors, trainable_gates
+
+        if gate not in trainable_gates(CONFIG_GATES):
             return np.zeros(len(choice)), [set() for _ in choice]
-        from fusion.nets.branch_gates import gate_sensors
 
         read = set(gate_sensors(self.model))
         stems = self.latency_model.stems
@@ -135,9 +135,9 @@ class EcoEval:
         """mAP, mean actual L_f, energy and latency of per-frame configuration choices; with `gate`,
         the energy and latency include what that gate costs to decide (`gate_overhead`)."""
         from fusion.eco.energy import total_energy
-        from study.detect import score
+        from study.scoring import score
 
-        members = [self.configs.members[i] for i in choice]
+        selection = [self.configs.members[i] for i in choice]
         sc = score(self.fused(choice), self.reader, "camera_right", protocol=self.ed.protocol)
         rows = np.arange(len(choice))
         lf = self.losses[rows, choice]
@@ -150,7 +150,7 @@ class EcoEval:
                "energy_j": round(float(e_raw.mean()), 4),
                "latency_ms": round(1000 * float(t.mean()), 2),
                "gate_stems_ms": round(1000 * float(extra.mean()), 2),
-               "mean_branches": round(float(np.mean([len(m) for m in members])), 3)}
+               "mean_branches": round(float(np.mean([len(m) for m in selection])), 3)}
         if per_scene:
             measuring = [sorted(set(self.sensors[c]) | r) for c, r in zip(choice, read)]
             sensor_e = np.array([total_energy(ek, ms, "clock") for ek, ms in zip(e, measuring)])
@@ -176,11 +176,11 @@ class EcoEval:
 
     def fused(self, choice: np.ndarray) -> list:
         """[(meta, Detections)]: each frame's chosen configuration fused in the right camera."""
-        from study.detect import fusion_method
+        from study.scoring import fuse_selection, fusion_method
 
-        members = [self.configs.members[i] for i in choice]
-        return fuse_choice(self.dets, self.metas, self.ed.branches, self.model.branch_frames, members,
-                           fusion_method(self.s.fusion), self.memo)
+        selection = [self.configs.members[i] for i in choice]
+        return fuse_selection(list(zip(self.metas, self.dets)), selection, self.model.branch_frames,
+                              fusion_method(self.s.fusion), memo=self.memo)
 
     def selection_counts(self, choice: np.ndarray, top: int = 5) -> dict:
         names, counts = np.unique(choice, return_counts=True)
@@ -203,7 +203,7 @@ def evaluate_eco(run_dir, data, lambda_e: float = 0.01, gamma: float = 0.5, s: E
     """`hydrabench eco-evaluate`: every gate at one lambda_E and gamma against the fixed baselines
     and the oracle (regret = gate minus loss-based, in mean joint loss and mean L_f). `bootstrap`:
     95 % intervals of every mAP and every paired mAP difference (gate minus late fusion above all)
-    from that many draws of whole sequences (`study.detect.context_bootstrap`), as "ci95"."""
+    from that many draws of whole sequences (`study.scoring.context_bootstrap`), as "ci95"."""
     if not 0 <= bootstrap <= MAX_BOOTSTRAP:
         raise UserError(f"--bootstrap must be 0..{MAX_BOOTSTRAP} draws, got {bootstrap}")
     from fusion.eco.optimise import joint_loss
@@ -234,7 +234,7 @@ def evaluate_eco(run_dir, data, lambda_e: float = 0.01, gamma: float = 0.5, s: E
                          "latency_ratio": round(r["latency_ms"] / late["latency_ms"], 4)}
     ci = None
     if bootstrap:
-        from study.detect import context_bootstrap
+        from study.scoring import context_bootstrap
 
         sources = {g: ev.fused(ev.choose(g, lambda_e, gamma)) for g in ev.predicted}
         sources.update({name: ev.fused(ev.fixed(name)) for name in ev.configs.baselines if name not in sources})
@@ -261,7 +261,7 @@ def execute_ecofusion(run_dir, data, gate: str, lambda_e: float, gamma: float, s
     from fusion.eco.config_gates import EcoFusionSelector, build_config_gate
     from fusion.late import fuse
     from sensors.rig import Calibration
-    from study.detect import fusion_method, to_detections
+    from study.scoring import fuse_selection, fusion_method, to_detections
 
     ev = ev or EcoEval(run_dir, data, s, [gate], progress=progress)
     model = ev.model
@@ -298,8 +298,8 @@ def execute_ecofusion(run_dir, data, gate: str, lambda_e: float, gamma: float, s
                 times.append(time.perf_counter() - t0)
                 choice = int(selector.last_choice[0])
                 agree += choice == int(offline[pos])
-                ref = fuse_choice([ev.dets[pos]], [ev.metas[pos]], ev.ed.branches, model.branch_frames,
-                                  [ev.configs.members[choice]], method)[0][1]
+                ref = fuse_selection([(ev.metas[pos], ev.dets[pos])], [ev.configs.members[choice]],
+                                     model.branch_frames, method)[0][1]
                 same += bool(len(ref) == len(fused) and np.allclose(ref.boxes, fused.boxes, atol=1e-3)
                              and np.allclose(ref.scores, fused.scores, atol=1e-4))
                 bar.update(1)
@@ -309,11 +309,11 @@ def execute_ecofusion(run_dir, data, gate: str, lambda_e: float, gamma: float, s
         for h in hooks:
             h.remove()
     n = len(idx)
-    chosen = offline[idx]
+    config_index = offline[idx]  # per frame, the configuration the gate chose
     return {"gate": gate, "lambda_e": lambda_e, "gamma": gamma, "frames": n,
             "stem_runs_per_frame": {k.split(":", 1)[1]: round(v / n, 3) for k, v in calls.items() if k.startswith("stem:")},
             "branch_runs_per_frame": round(sum(v for k, v in calls.items() if k.startswith("branch:")) / n, 3),
-            "mean_branches_chosen": round(float(np.mean([len(ev.configs.members[c]) for c in chosen])), 3),
+            "mean_branches_chosen": round(float(np.mean([len(ev.configs.members[c]) for c in config_index])), 3),
             "measured_latency_ms": round(1000 * float(np.mean(times)), 2),
-            "additive_latency_ms": round(1000 * float(ev.t[chosen].mean()), 2),
+            "additive_latency_ms": round(1000 * float(ev.t[config_index].mean()), 2),
             "choice_equals_offline": round(agree / n, 4), "detections_equal_offline": round(same / n, 4)}
