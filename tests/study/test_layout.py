@@ -301,3 +301,31 @@ def test_the_layout_tables_name_what_exists():
     broken = "## Layout of `study/`\n\n| a | b |\n|---|---|\n| x | `study/stages.py`: `run_studies`, `study/nope.py` |\n"
     assert _layout_problems(broken) == ["study/nope.py does not exist",
                                         "`run_studies`: not defined in study/stages.py"]
+
+
+MAX_MODULE_LINES, MAX_FUNCTION_LINES = 600, 100
+"""Issue 38's aims for `study/`: a module a newcomer can read, a function that does one job."""
+
+
+def _sizes(root: Path) -> tuple[list, list]:
+    too_long_modules, too_long_functions = [], []
+    for path in sorted(root.rglob("*.py")):
+        src = path.read_text()
+        if len(src.splitlines()) > MAX_MODULE_LINES:
+            too_long_modules.append(f"{path.relative_to(root.parent)}: {len(src.splitlines())} lines")
+        for node in ast.walk(ast.parse(src)):
+            if isinstance(node, (ast.FunctionDef, ast.AsyncFunctionDef)):
+                n = node.end_lineno - node.lineno + 1
+                if n > MAX_FUNCTION_LINES:
+                    too_long_functions.append(f"{path.relative_to(root.parent)}:{node.lineno} {node.name}: {n} lines")
+    return too_long_modules, too_long_functions
+
+
+def test_no_study_module_over_600_lines_and_no_function_over_100(tmp_path):
+    assert _sizes(ROOT / "study") == ([], [])
+    # the check sees what it is for
+    pkg = tmp_path / "study"
+    pkg.mkdir()
+    (pkg / "big.py").write_text("def f():\n" + "    x = 1\n" * 100 + "\n" * 500)
+    modules, functions = _sizes(pkg)
+    assert modules == ["study/big.py: 601 lines"] and functions == ["study/big.py:1 f: 101 lines"]
