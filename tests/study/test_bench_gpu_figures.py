@@ -274,3 +274,23 @@ def test_bench_inference_hands_over_its_figures_after_every_task(monkeypatch):
     assert seen[4]["training_images_per_second"] == {"radar": 3.0} and "gate_overhead_ms" not in seen[4]
     assert r == seen[-1] and r["gate_overhead_ms"] == {"deep": 0.1}
     assert "after 3.0 s of rest, before any timed forward" in r["energy_source"]
+
+
+def test_bench_inference_partial_keeps_what_was_measured_when_stopped(monkeypatch, tmp_path):
+    """`hydrabench bench inference --partial FILE`: the file holds the figures after each task, so a
+    run stopped part-way (here: interrupted after two tasks) keeps them; a finished run marks it whole."""
+    import json
+
+    from study.cli import main
+
+    def stopped(*args, on_result=None, **kw):
+        on_result({"latency_ms": {"radar": 11.0}, "tasks": {"done": 1, "of": 9}})
+        on_result({"latency_ms": {"radar": 11.0, "lidar": 12.5}, "tasks": {"done": 2, "of": 9}})
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(nets, "bench_inference", stopped)
+    out = tmp_path / "partial.json"
+    assert main(["bench", "inference", "--partial", str(out)]) != 0
+    kept = json.loads(out.read_text())
+    assert kept["latency_ms"] == {"radar": 11.0, "lidar": 12.5} and kept["tasks"]["done"] == 2
+    assert kept["complete"] is False and kept["cores"] >= 1

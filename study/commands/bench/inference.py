@@ -8,6 +8,7 @@ from study.cli import (
     emit,
     name_arg,
     nonneg_float,
+    out_file,
     pos_float,
     pos_int,
     training_run,
@@ -32,6 +33,9 @@ def add_parser(what) -> None:
                    "batch-1 forwards over which NVML's energy counter is read [s] (it moves in 20-100 ms steps)")
     n.add_argument("--energy-warmup-s", type=nonneg_float, default=2.0, help="on a GPU: forwards before the energy "
                    "window, so the clocks have risen [s]")
+    n.add_argument("--partial", type=out_file(".json"), default=None, metavar="FILE",
+                   help="rewrite this JSON file with the figures measured so far after each measurement task, so a run "
+                   "stopped part-way (a time budget) keeps every latency, memory and energy figure it took")
     n.add_argument("--json", action="store_true", help="print one JSON object on stdout")
     n.set_defaults(run=run_inference)
 
@@ -44,8 +48,15 @@ def run_inference(args) -> int:
 
     load_profile(args.profile)  # an unknown profile is refused before any worker process starts
     setup = resolve_device(args, apply=False)  # each measurement runs in a fresh process, which applies it
+    partial = None
+    if args.partial:
+        from study.outputs import write_json_atomic
+
+        def partial(figures):
+            write_json_atomic(args.partial, {**figures, **machine(), "complete": False})
+
     r = bench_inference(args.profile, args.repeats, setup.threads, args.weights, device=setup.device, amp=setup.amp,
-                        energy_window_s=args.energy_window_s, energy_warmup_s=args.energy_warmup_s)
+                        energy_window_s=args.energy_window_s, energy_warmup_s=args.energy_warmup_s, on_result=partial)
     boxes = bench_box_fusion(repeats=10)
     r["fusion_block_vs_ensemble_boxes"] = {m: {"ours_ms": v["ours_ms"], "ensemble_boxes_ms": v["ensemble_boxes_ms"],
                                                "speedup": v["speedup"], "equal_output": v["equal_output"]}
@@ -80,5 +91,9 @@ def run_inference(args) -> int:
             f"{m} x{v['speedup']}" for m, v in r["fusion_block_vs_ensemble_boxes"].items()))
         return "\n".join(lines)
 
+    if args.partial:
+        from study.outputs import write_json_atomic
+
+        write_json_atomic(args.partial, {**r, "complete": True})
     emit(r, args.json, text)
     return 0
