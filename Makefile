@@ -35,7 +35,7 @@ demo: $(STAMP)
 	  $(BIN)/hydrabench show $(DEMO)/data --context $$c --index 0 --out $(DEMO)/frame_$$c.png || exit $$?; \
 	done
 	$(BIN)/hydrabench gallery $(DEMO)/data --context city --out $(DEMO)/gallery.png
-	$(BIN)/hydrabench generate --out $(DEMO)/test --frames-per-context 12 --sequence-length 3 --seed 1 --workers 2
+	$(BIN)/hydrabench generate --out $(DEMO)/test --frames-per-context 24 --sequence-length 3 --seed 1 --workers 2
 	$(BIN)/hydrabench compare cpu-ref $(DEMO)/test --plot $(DEMO)/compare.png > $(DEMO)/compare.txt
 	@cat $(DEMO)/compare.txt
 	@echo "demo: scenes in $(DEMO)/scenes, dataset in $(DEMO)/data, frames and gallery in $(DEMO)/," \
