@@ -184,3 +184,21 @@ def test_module_paths_named_in_the_docs_pages_exist():
                 if not (ROOT / ref).is_file():
                     missing.append(f"{doc.name}: {ref}")
     assert not missing, "the docs name modules that do not exist: " + "; ".join(missing)
+
+
+def test_the_demo_time_the_readme_quotes_is_its_newest_measurement():
+    """README: "make demo ... (N s on CPU: scripts/time_demo.sh, results/demo_time_DATE.json)": the
+    newest file of scripts/time_demo.sh, its seconds and CPU."""
+    import json
+    import re
+
+    files = sorted((ROOT / "results").glob("demo_time_*.json"))
+    assert files, "no results/demo_time_*.json: run scripts/time_demo.sh"
+    newest = files[-1]
+    t = json.loads(newest.read_text())
+    readme = " ".join((ROOT / "README.md").read_text().split())
+    m = re.search(r"\((\d+) s on an? ([^:]+): `scripts/time_demo.sh`, `(results/demo_time_[0-9-]+\.json)`\)", readme)
+    assert m, "README's demo time sentence is missing"
+    assert m.group(3) == f"results/{newest.name}" and int(m.group(1)) == round(t["seconds"]) and m.group(2) == t["cpu"]
+    minutes = {1: "a minute", 2: "two minutes", 3: "three minutes", 4: "four minutes", 5: "five minutes"}
+    assert f"about {minutes[max(1, round(t['seconds'] / 60))]}" in readme

@@ -490,11 +490,11 @@ def _cmp_cell(d) -> str:
 
 def test_the_compare_tables_of_the_reference_model_are_their_files():
     """docs/reference_model.md: the demo's comparison and the twins' comparison with mRA / mRR / mCE,
-    from `hydrabench compare cpu-ref ... --json` (results/compare_cpu_ref_{demo,twins}_2026-12-03.json)."""
+    from `hydrabench compare cpu-ref ... --json` (results/compare_cpu_ref_demo_2026-12-04.json, compare_cpu_ref_twins_2026-12-03.json)."""
     doc = ROOT / "docs" / "reference_model.md"
-    demo = _load("compare_cpu_ref_demo_2026-12-03.json")
-    rows = table(doc, "| method | mAP@0.5 (96 fresh frames) |")
-    assert set(rows) == set(demo["methods"]) and demo["frames"] == 96 and demo["sequences"] == 32
+    demo = _load("compare_cpu_ref_demo_2026-12-04.json")
+    rows = table(doc, "| method | mAP@0.5 (192 fresh frames) |")
+    assert set(rows) == set(demo["methods"]) and demo["frames"] == 192 and demo["sequences"] == 64
     for name, m in demo["methods"].items():
         assert rows[name] == [f"{m['map']:.3f}", _cmp_cell(m.get("minus_late")), _cmp_cell(m.get("minus_all_branches"))]
     tw = _load("compare_cpu_ref_twins_2026-12-03.json")
