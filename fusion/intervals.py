@@ -81,31 +81,25 @@ def holm(pvalues: Sequence[float]) -> np.ndarray:
     """Holm's step-down adjusted p-values (family-wise error): sort ascending, p_(j) x (m - j + 1)
     (j from 1), running maximum, capped at 1; returned in the input's order. NaN stays NaN and does
     not count towards m."""
-    p = np.asarray(pvalues, dtype=float)
-    out = np.full_like(p, np.nan)
-    ok = np.flatnonzero(np.isfinite(p))
-    m = len(ok)
-    if not m:
-        return out
-    order = ok[np.argsort(p[ok], kind="stable")]
-    adjusted = np.minimum(1.0, np.maximum.accumulate(p[order] * (m - np.arange(m))))
-    out[order] = adjusted
-    return out
+    return _adjust(pvalues, lambda sorted_p, m: np.maximum.accumulate(sorted_p * (m - np.arange(m))))
 
 
 def benjamini_hochberg(pvalues: Sequence[float]) -> np.ndarray:
     """Benjamini-Hochberg adjusted p-values (false discovery rate): sort ascending,
     p_(j) x m / j, running minimum from the largest down, capped at 1; in the input's order. NaN
     stays NaN and does not count towards m (scipy's `false_discovery_control` on the finite ones)."""
+    return _adjust(pvalues, lambda sorted_p, m: np.minimum.accumulate((sorted_p * m / np.arange(1, m + 1))[::-1])[::-1])
+
+
+def _adjust(pvalues: Sequence[float], step) -> np.ndarray:
+    """Apply `step(sorted finite p-values, m)` to the finite p-values in ascending order, cap at 1,
+    and return them in the input's order (NaN where the input is not finite)."""
     p = np.asarray(pvalues, dtype=float)
     out = np.full_like(p, np.nan)
     ok = np.flatnonzero(np.isfinite(p))
-    m = len(ok)
-    if not m:
-        return out
-    order = ok[np.argsort(p[ok], kind="stable")]
-    scaled = p[order] * m / np.arange(1, m + 1)
-    out[order] = np.minimum(1.0, np.minimum.accumulate(scaled[::-1])[::-1])
+    if len(ok):
+        order = ok[np.argsort(p[ok], kind="stable")]
+        out[order] = np.minimum(1.0, step(p[order], len(ok)))
     return out
 
 
