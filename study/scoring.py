@@ -89,6 +89,8 @@ def frames_for(run_cfg: dict, data: str | Path, split: str = "auto") -> tuple[li
     reader = DatasetReader(data)
     if split == "data-test":
         return split_by_sequence(reader, run_cfg["train_fraction"], run_cfg["split_seed"])[1], split
+    if "parts" in reader.manifest and split != "all":
+        return view_frames(run_cfg, reader, split), split
     same = reader.manifest["config"] == run_cfg.get("data_config")
     if split == "auto":
         split = "test" if same else "all"
@@ -101,6 +103,29 @@ def frames_for(run_cfg: dict, data: str | Path, split: str = "auto") -> tuple[li
         return test, split
     train, gate = hold_out_sequences(reader, train, run_cfg.get("gate_holdout", 0.0), run_cfg["split_seed"])
     return (train if split == "train" else gate), split
+
+
+VIEW_PARTS = ("detectors", "gate", "test")
+"""The parts of a study's dataset view (`sensors.combine`): the detectors' own dataset, then the gate
+set and the test set, each generated with its own seed and size."""
+
+
+def view_frames(run_cfg: dict, reader: DatasetReader, split: str) -> list[int]:
+    """A split of a dataset view: "train" is the run's train split of the "detectors" part (which must
+    be the run's training dataset), "gate" and "test" (and "auto": test) every frame of those parts.
+    Indices are the view's."""
+    from sensors.combine import part_indices
+
+    parts = reader.manifest["parts"]
+    if split in ("gate", "test", "auto"):
+        return part_indices(reader.manifest, "test" if split == "auto" else split)
+    det = parts.get("detectors")
+    if det is None or det["config"] != run_cfg.get("data_config"):
+        raise UserError(f"{reader.root}: its 'detectors' part is not the run's training dataset ({run_cfg.get('data')})")
+    own = DatasetReader((reader.root / reader.index[det["start"]][0]).resolve().parent)
+    train, _ = split_by_sequence(own, run_cfg["train_fraction"], run_cfg["split_seed"])
+    train, _ = hold_out_sequences(own, train, run_cfg.get("gate_holdout", 0.0), run_cfg["split_seed"])
+    return [det["start"] + i for i in train]
 
 
 def to_detections(d: dict) -> Detections:
