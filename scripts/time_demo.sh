@@ -6,7 +6,7 @@ set -euo pipefail
 cd "$(dirname "$0")/.."
 out=${1:-results/demo_time_$(date -u +%F).json}
 dir=$(mktemp -d /tmp/hydrabench-demo-XXXXXX)
-trap 'rm -rf "$dir"' EXIT
+trap 'rm -rf "$dir" "$dir.log"' EXIT
 make venv >/dev/null
 load=$(cut -d' ' -f1-3 /proc/loadavg)
 start=$(date +%s.%N)
@@ -21,4 +21,3 @@ json.dump({"command": "make demo", "seconds": round(float(end) - float(start), 1
           open(out, "w"), indent=1)
 print(open(out).read())
 PY
-rm -f "$dir.log"
