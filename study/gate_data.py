@@ -113,6 +113,11 @@ class GateData:
         self.identity.update(compute_identity(device=model_device(model), precision="fp32"))
         self.identity.update(self.extra_identity())
         self.key = hashlib.sha256(json.dumps(self.identity, sort_keys=True).encode()).hexdigest()[:16]
+        # what a gate trained on this cache depends on besides its training frames: the same network,
+        # settings and targets on any dataset (a study's gates fit on its gate set and run on its test set)
+        self.model_key = hashlib.sha256(json.dumps(
+            {k: v for k, v in self.identity.items() if k != "dataset_manifest_sha256"}, sort_keys=True).encode()
+        ).hexdigest()[:16]
         self.dir = self.run_dir / self.subdir / self.key
         self._index: dict[int, tuple[Path, int]] | None = None
 

@@ -162,9 +162,12 @@ def run_tag(r: dict, scale: str) -> str:
     dev = r.get("device")
     dev = dev.get("device", "") if isinstance(dev, dict) else str(dev or "")
     machine = f"{m.get('cpu') or m.get('platform', '?')}, {m.get('threads', '?')} thread(s), device {dev}"
-    gate = f"{ds['gate_frames']} gate split, " if ds.get("gate_frames") else ""
+    sets = ds.get("sets") or {}
+    gate = (f"{ds['gate_frames']} gate {'set (seed ' + str(sets['gate']['seed']) + ')' if 'gate' in sets else 'split'}, "
+            if ds.get("gate_frames") else "")
+    test = f"{ds['test_frames']} test" + (f" set (seed {sets['test']['seed']})" if "test" in sets else "")
     return (f"protocol {r['protocol']}; scale {scale}; dataset {ds['frames']} frames ({ds['train_frames']} train, "
-            f"{gate}{ds['test_frames']} test); machine {machine}")
+            f"{gate}{test}); machine {machine}")
 
 
 def add_intro(doc: Doc, r: dict, context: dict, tag: str) -> None:

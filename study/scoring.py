@@ -66,7 +66,7 @@ def run_train_test(run_cfg: dict, data: str | Path, who: str) -> tuple[list[int]
     from sensors.dataset import DatasetReader
     from sim.errors import UserError
 
-    if DatasetReader(data).manifest["config"] != run_cfg.get("data_config"):
+    if not is_runs_data(run_cfg, DatasetReader(data).manifest):
         raise UserError(f"{who} needs the run's training dataset ({run_cfg.get('data')}), not {data}: gates train "
                         "on the run's train split and are tested on its test split")
     train, _ = frames_for(run_cfg, data, "train")
@@ -111,21 +111,32 @@ set and the test set, each generated with its own seed and size."""
 
 
 def view_frames(run_cfg: dict, reader: DatasetReader, split: str) -> list[int]:
-    """A split of a dataset view: "train" is the run's train split of the "detectors" part (which must
-    be the run's training dataset), "gate" and "test" (and "auto": test) every frame of those parts.
-    Indices are the view's."""
+    """A split of a dataset view: "gate" and "test" (and "auto": test) every frame of those parts, or,
+    for a view without that part, the run's own gate or test split of the "detectors" part; "train"
+    the run's train split of the "detectors" part (which must be the run's training dataset). Indices
+    are the view's."""
     from sensors.combine import part_indices
 
     parts = reader.manifest["parts"]
-    if split in ("gate", "test", "auto"):
-        return part_indices(reader.manifest, "test" if split == "auto" else split)
+    split = "test" if split == "auto" else split
+    if split in ("gate", "test") and split in parts:
+        return part_indices(reader.manifest, split)
     det = parts.get("detectors")
     if det is None or det["config"] != run_cfg.get("data_config"):
         raise UserError(f"{reader.root}: its 'detectors' part is not the run's training dataset ({run_cfg.get('data')})")
     own = DatasetReader((reader.root / reader.index[det["start"]][0]).resolve().parent)
-    train, _ = split_by_sequence(own, run_cfg["train_fraction"], run_cfg["split_seed"])
-    train, _ = hold_out_sequences(own, train, run_cfg.get("gate_holdout", 0.0), run_cfg["split_seed"])
-    return [det["start"] + i for i in train]
+    train, test = split_by_sequence(own, run_cfg["train_fraction"], run_cfg["split_seed"])
+    train, gate = hold_out_sequences(own, train, run_cfg.get("gate_holdout", 0.0), run_cfg["split_seed"])
+    return [det["start"] + i for i in {"train": train, "gate": gate, "test": test}[split]]
+
+
+def is_runs_data(run_cfg: dict, manifest: dict) -> bool:
+    """Whether a dataset (its manifest) is the run's training dataset, or a view whose "detectors"
+    part is."""
+    if "parts" in manifest:
+        det = manifest["parts"].get("detectors")
+        return det is not None and det["config"] == run_cfg.get("data_config")
+    return manifest["config"] == run_cfg.get("data_config")
 
 
 def to_detections(d: dict) -> Detections:

@@ -93,6 +93,11 @@ def train_stage(work: Path, data: Path, train_cfg: TrainSection, profile: str, s
     if t.early_fusion:
         runs["early"] = ("early_fusion", t.early_branches)
     digests = {}
+    if t.detectors:
+        say(f"train: paper (adopting the detectors of {t.detectors}: nothing to train)")
+        adopt_detectors(t.detectors, data, work / "paper", t.branches)
+        digests["paper"] = file_sha256(work / "paper" / "checkpoint.pt")
+        runs.pop("paper")
     for name, (bset, branches) in runs.items():
         say(f"train: {name} ({bset} branch set)")
         tc = TrainConfig(data=str(Path(data).resolve()), model_profile=profile, branch_set=bset,
@@ -107,6 +112,26 @@ def train_stage(work: Path, data: Path, train_cfg: TrainSection, profile: str, s
     return _digest(digests), {"checkpoints_sha256": digests}
 
 
+def adopt_detectors(spec: str, data: Path, out: Path, branches) -> None:
+    """Copy the detectors of `spec` (train.detectors: a reference model or a training run) into the run
+    directory `out` (config.json and checkpoint.pt; atomic), after checking that they were trained on
+    `data` (`study.study_checks.check_adopted`). The copied config names `data` and where the weights
+    came from."""
+    import shutil
+
+    from sensors.dataset import read_manifest
+    from study.study_checks import check_adopted, detectors_run
+
+    src = detectors_run(spec)
+    cfg = check_adopted(src, read_manifest(data)["config"], branches)
+    if (out / "checkpoint.pt").is_file() and file_sha256(out / "checkpoint.pt") == file_sha256(src / "checkpoint.pt"):
+        return
+    out.mkdir(parents=True, exist_ok=True)
+    with atomic_path(out / "checkpoint.pt") as tmp:
+        shutil.copyfile(src / "checkpoint.pt", tmp)
+    write_json_atomic(out / "config.json", {**cfg, "data": str(Path(data).resolve()), "adopted_from": str(spec)})
+
+
 def _init_from(text: str) -> str:
     """train.init_from -> the run directory TrainConfig.init_from takes ("" stays "")."""
     if not text:
@@ -119,19 +144,33 @@ def _init_from(text: str) -> str:
     return str(run.resolve())
 
 
-def gatedata_stage(work: Path, run_paper: Path, data: Path, settings, batch_size: int, setup,
+def study_data(work: Path, parts: dict[str, Path]) -> Path:
+    """The dataset a stage reads: the detectors' own when the study has no gate or test set, else the
+    view of its `parts` {name: dataset} in work/data (`sensors.combine`: links to the parts' shards,
+    relative, so they hold when the stage's folder is renamed beside the parts')."""
+    if list(parts) == ["detectors"]:
+        return Path(parts["detectors"])
+    from sensors.combine import combine
+
+    combine(parts, work / "data")
+    return work / "data"
+
+
+def gatedata_stage(work: Path, run_paper: Path, parts: dict[str, Path], settings, batch_size: int, setup,
                    progress: bool, val_fraction: float = 0.15, seed: int = 0) -> tuple[str, dict]:
-    """HydraFusion's gate dataset and EcoFusion's, cached under work/run (a farm of the paper run)."""
+    """HydraFusion's gate dataset and EcoFusion's, cached under work/run (a farm of the paper run), on
+    the detectors' data and the gate set (no test set: the gates stage never reads it)."""
     from study.eco.data import build_eco_data
     from study.gate_data import GateData
     from study.scoring import frames_for, load_run
 
+    data = study_data(work, parts)
     run = work / "run"
     link_farm(run_paper, run)
     model, run_cfg = load_run(run, "latest", device=setup.device)
     train_idx, _ = frames_for(run_cfg, data, "train")
     gate_idx, _ = frames_for(run_cfg, data, "gate")
-    test_idx, _ = frames_for(run_cfg, data, "test")
+    test_idx, _ = frames_for(run_cfg, data, "test")  # never a test set's: the gate data's view holds none
     gd = GateData(run, data, model)
     gd.ensure(sorted(train_idx + gate_idx + test_idx), batch_size=batch_size, progress=progress)
     eco = build_eco_data(run, data, settings, progress=progress, device=setup.device, val_fraction=val_fraction,
@@ -188,13 +227,14 @@ def gates_stage(work: Path, gatedata_run: Path, data: Path, gates: GatesSection,
     return _digest(digests), {"gates": out, "energy": energy}
 
 
-def evaluate_stage(work: Path, gates_run: Path, run_early: Path | None, data: Path, cfg: StudyConfig, settings,
-                   setup, progress: bool) -> tuple[str, dict]:
-    """Every method on the test split (`study.study_eval`) -> work/results.json (with the device
-    type and precision it ran in)."""
+def evaluate_stage(work: Path, gates_run: Path, run_early: Path | None, parts: dict[str, Path], cfg: StudyConfig,
+                   settings, setup, progress: bool) -> tuple[str, dict]:
+    """Every method on the test split or the test set (`study.study_eval`) -> work/results.json (with
+    the device type and precision it ran in)."""
     from study.device import compute_identity
     from study.study_eval import evaluate_study
 
+    data = study_data(work, parts)
     run = work / "run"
     link_farm(gates_run, run)
     res = evaluate_study(run, run_early, data, cfg, settings, work, setup=setup, progress=progress)
@@ -245,6 +285,10 @@ def stage_identity(name: str, cfg: StudyConfig, setup) -> dict:
         out["model_profile"] = _digest(to_dict(model_profile(cfg.profile)))[:16]
         if cfg.train.init_from:  # the weights it starts from, not their name
             out["init_from_sha256"] = file_sha256(Path(_init_from(cfg.train.init_from)) / "checkpoint.pt")[:16]
+        if cfg.train.detectors:  # the weights it adopts, not their name
+            from study.study_checks import detectors_run
+
+            out["detectors_sha256"] = file_sha256(detectors_run(cfg.train.detectors) / "checkpoint.pt")[:16]
     elif name == "report":
         import study.report
 
@@ -276,10 +320,18 @@ def run_study(cfg: StudyConfig, out: str | Path, until: str = "report", progress
     gen = study.stage("generate", {"data": gcfg.to_dict(), **ident("generate")}, (), generate_stage,
                       gcfg=gcfg, workers=cfg.run.workers, backend=cfg.run.backend, progress=progress)
     data = gen.dir / "data"
+    sets = {"detectors": gen}
+    for part in cfg.data.parts()[1:]:  # the gate and test sets, each its own dataset and stage
+        pcfg = cfg.data.generate_config(cfg.profile, part)
+        sets[part] = study.stage(f"{part}set", {"data": pcfg.to_dict(), **ident("generate")}, (), generate_stage,
+                                 gcfg=pcfg, workers=cfg.run.workers, backend=cfg.run.backend, progress=progress)
+    gate_parts = {p: r.dir / "data" for p, r in sets.items() if p != "test"}
+    all_parts = {p: r.dir / "data" for p, r in sets.items()}
     if last < 1:
         return _finish(study, result, t_start)
 
-    tr = study.stage("train", {"profile": cfg.profile, "train": to_dict(cfg.train), **ident("train")}, (gen,),
+    train_inputs = {k: v for k, v in to_dict(cfg.train).items() if v or k != "detectors"}  # unset: the keys as before
+    tr = study.stage("train", {"profile": cfg.profile, "train": train_inputs, **ident("train")}, (gen,),
                      train_stage, data=data, train_cfg=cfg.train, profile=cfg.profile, setup=setup, say=study.say,
                      progress=progress)
     run_early = tr.dir / "early" if cfg.train.early_fusion else None
@@ -289,21 +341,24 @@ def run_study(cfg: StudyConfig, out: str | Path, until: str = "report", progress
     settings = eco_settings(cfg)
     gdr = study.stage("gatedata", {"eco_max_frames": cfg.gates.eco_max_frames, "fusion": cfg.gates.fusion,
                                    "batch_size": cfg.train.batch_size, "val_fraction": cfg.gates.val_fraction,
-                                   "seed": cfg.gates.seed, **ident("gatedata")}, (tr,),
-                      gatedata_stage, run_paper=tr.dir / "paper", data=data, settings=settings,
+                                   "seed": cfg.gates.seed, **ident("gatedata")},
+                      (tr, *(sets[p] for p in gate_parts if p != "detectors")),
+                      gatedata_stage, run_paper=tr.dir / "paper", parts=gate_parts, settings=settings,
                       batch_size=cfg.train.batch_size, setup=eval_setup, progress=progress,
                       val_fraction=cfg.gates.val_fraction, seed=cfg.gates.seed)
     if last < 3:
         return _finish(study, result, t_start)
 
+    gate_data = gdr.dir / "data" if len(gate_parts) > 1 else data
     gt = study.stage("gates", {"gates": to_dict(cfg.gates), **ident("gates")}, (gdr,), gates_stage,
-                     gatedata_run=gdr.dir / "run", data=data, gates=cfg.gates, settings=settings, setup=eval_setup,
+                     gatedata_run=gdr.dir / "run", data=gate_data, gates=cfg.gates, settings=settings, setup=eval_setup,
                      say=study.say, progress=progress)
     if last < 4:
         return _finish(study, result, t_start)
 
-    ev = study.stage("evaluate", {"evaluate": to_dict(cfg.evaluate), **ident("evaluate")}, (gt, tr),
-                     evaluate_stage, gates_run=gt.dir / "run", run_early=run_early, data=data, cfg=cfg,
+    ev = study.stage("evaluate", {"evaluate": to_dict(cfg.evaluate), **ident("evaluate")},
+                     (gt, tr, *((sets["test"],) if "test" in sets else ())),
+                     evaluate_stage, gates_run=gt.dir / "run", run_early=run_early, parts=all_parts, cfg=cfg,
                      settings=settings, setup=eval_setup, progress=progress)
     if last < 5:
         return _finish(study, result, t_start)

@@ -19,7 +19,8 @@ UNTRAINED_GATES = ("knowledge",)
 
 def check_study_config(cfg) -> None:
     """Refuse (UserError, one line naming the key) a `study.study_config.StudyConfig` whose sections
-    disagree or whose `train.init_from` resolves to nothing."""
+    disagree or whose `train.init_from` or `train.detectors` resolves to nothing (or to detectors of
+    another dataset)."""
     learned = tuple(cfg.gates.gates)
     twice = sorted({g for g in learned if learned.count(g) > 1})
     if twice:
@@ -31,22 +32,49 @@ def check_study_config(cfg) -> None:
                             f"({', '.join(learned) or 'none'}); add it there or use knowledge")
     if cfg.train.init_from:
         init_from_run(cfg.train.init_from)
+    if cfg.train.detectors:
+        adopted = detectors_run(cfg.train.detectors)
+        check_adopted(adopted, cfg.data.generate_config(cfg.profile).to_dict(), cfg.train.branches)
 
 
-def init_from_run(text: str) -> Path:
-    """train.init_from -> the run directory whose checkpoint.pt is whole (UserError otherwise)."""
+def detectors_run(text: str) -> Path:
+    """train.detectors -> the run directory of the detectors to adopt (UserError otherwise)."""
+    return init_from_run(text, "train.detectors")
+
+
+def check_adopted(run: Path, data_config: dict, branches) -> dict:
+    """The adopted run's config.json, refused (UserError) when it was trained on another dataset than
+    the study's `data` (its splits would not be the study's: the detectors would be scored on frames
+    they trained on) or holds other branches than `train.branches`."""
+    import json
+
+    cfg = json.loads((run / "config.json").read_text())
+    theirs = json.loads(json.dumps(cfg.get("data_config") or {}))
+    ours = json.loads(json.dumps(data_config))
+    diff = sorted(k for k in ours.keys() | theirs.keys() if ours.get(k) != theirs.get(k))
+    if diff:
+        raise UserError(f"train.detectors {run}: trained on another dataset than the study's data section (differs in: "
+                        f"{', '.join(diff)}); a study adopts detectors with the data section they were trained on")
+    if branches and tuple(cfg.get("branches", ())) != tuple(branches):
+        raise UserError(f"train.detectors {run}: its branches are {', '.join(cfg.get('branches', ()))}, "
+                        f"train.branches {', '.join(branches)}")
+    return cfg
+
+
+def init_from_run(text: str, key: str = "train.init_from") -> Path:
+    """train.init_from (or `key`) -> the run directory whose checkpoint.pt is whole (UserError otherwise)."""
     from study.checkpoints import checkpoint_problem
     from study.reference_model import resolve_run
 
     try:
         run = resolve_run(text)
     except UserError as exc:
-        raise UserError(f"train.init_from {text!r}: {exc}") from None
+        raise UserError(f"{key} {text!r}: {exc}") from None
     ckpt = run / "checkpoint.pt"
     if not ckpt.is_file():
-        raise UserError(f"train.init_from {text!r}: neither a reference model (models/, `hydrabench model list`) "
+        raise UserError(f"{key} {text!r}: neither a reference model (models/, `hydrabench model list`) "
                         "nor a training run (no checkpoint.pt)")
     problem = checkpoint_problem(ckpt)
     if problem:
-        raise UserError(f"train.init_from {text!r}: {ckpt} {problem}")
+        raise UserError(f"{key} {text!r}: {ckpt} {problem}")
     return run

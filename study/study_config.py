@@ -76,12 +76,47 @@ def _positive(where: str, value, lo=1) -> None:
         raise UserError(f"{where} must be >= {lo}, got {value}")
 
 
+@dataclass(frozen=True)
+class SetSection:
+    """A gate or a test set generated apart from the detectors' data (`data.gate`, `data.test`): the
+    contexts, severities, twins and sensor profile of `data`, with its own size and seed. Its own
+    stage (`gateset`, `testset`) generates it, so enlarging it regenerates only it and reruns only
+    what reads it (a gate set: the gate datasets, the gates and the evaluation; a test set: the
+    evaluation), and retrains no detector (issue 36).
+
+    Fields:
+        frames_per_context: [frames] per context.
+        sequence_length: [frames] per sequence (whole sequences are what the bootstrap draws).
+        seed: the set's seed; differs from `data.seed` and from the other set's (a sequence is
+            identified by its scenario and seed, and one sequence in two sets is refused).
+    """
+
+    frames_per_context: int
+    sequence_length: int = 4
+    seed: int = 1
+
+    def __post_init__(self) -> None:
+        _positive("frames_per_context", self.frames_per_context)
+        _positive("sequence_length", self.sequence_length)
+        _positive("seed", self.seed, 0)
+        if self.frames_per_context % self.sequence_length:
+            raise UserError(f"frames_per_context {self.frames_per_context} is not a whole number of sequences of "
+                            f"{self.sequence_length} frames")
+
+
 @section_of(GenerateConfig)
 class DataSection:
     """The datasets (`sensors.generate.GenerateConfig`): one dataset, split by sequence into train
     and test by the training run; with `twins` every frame also has its clear-weather twin (only
     the condition differs), which the severity sweeps compare against. "all" contexts are the
-    eight."""
+    eight.
+
+    Fields:
+        gate: a gate set (`SetSection`) in place of the detectors' held-out gate split: the gates fit
+            on it and every choice is made on its validation sequences (`gates.val_fraction`).
+        test: a test set (`SetSection`) in place of the detectors' test split: every method is scored
+            on it.
+    Without them the study splits the one dataset (train, gate holdout, test) as before."""
 
     contexts: Shared = ("all",)
     frames_per_context: Shared
@@ -90,13 +125,35 @@ class DataSection:
     severities: Shared
     twins: Shared = True
     seed: Shared
+    gate: SetSection | None = None
+    test: SetSection | None = None
 
-    def generate_config(self, profile: str) -> GenerateConfig:
-        """The GenerateConfig of this section for sensor `profile` (its checks refuse a bad value)."""
+    def __post_init__(self) -> None:
+        seeds = {"data.seed": self.seed}
+        for name in ("gate", "test"):
+            part = getattr(self, name)
+            if part is None:
+                continue
+            if part.seed in seeds.values():
+                other = next(k for k, v in seeds.items() if v == part.seed)
+                raise UserError(f"data.{name}.seed {part.seed} is {other}'s: each set needs its own seed (a sequence "
+                                "is identified by its scenario and seed)")
+            seeds[f"data.{name}.seed"] = part.seed
+
+    def generate_config(self, profile: str, part: str = "detectors") -> GenerateConfig:
+        """The GenerateConfig of this section for sensor `profile` (its checks refuse a bad value):
+        the detectors' dataset, or (`part` "gate" / "test") the gate or test set, which differs from it
+        only in its size and seed."""
         from sim.scenario import CONTEXT_NAMES
 
         contexts = tuple(CONTEXT_NAMES) if tuple(self.contexts) == ("all",) else tuple(self.contexts)
-        return source_config(self, "data", contexts=contexts, profile=profile, severities=tuple(self.severities))
+        own = {} if part == "detectors" else dataclasses.asdict(getattr(self, part))
+        return source_config(self, "data" if part == "detectors" else f"data.{part}", contexts=contexts,
+                             profile=profile, severities=tuple(self.severities), **own)
+
+    def parts(self) -> tuple[str, ...]:
+        """The datasets of the study, in the order a view lists them (`sensors.combine`)."""
+        return ("detectors", *(p for p in ("gate", "test") if getattr(self, p) is not None))
 
 
 @section_of(TrainConfig)
@@ -114,6 +171,11 @@ class TrainSection:
         init_from: a reference model (a name in models/, `study.reference_model`) or a run directory
             whose weights initialise the paper run (`train --init-from`; "" = from scratch). Its
             checkpoint's digest is part of the train stage's key.
+        detectors: adopt finished detectors instead of training the paper run: a reference model
+            (a name in models/) or a training run, trained on this study's `data` (its generation
+            config must be the generated dataset's). Its checkpoint's digest is the train stage's
+            key, so the paper branches are never trained again (""= train them); the early-fusion
+            models still train. The other train fields then apply to the early-fusion run only.
     """
 
     branches: Shared
@@ -131,8 +193,12 @@ class TrainSection:
     gate_holdout: Shared
     model: Shared
     init_from: str = ""
+    detectors: str = ""
 
     def __post_init__(self) -> None:
+        if self.detectors and self.init_from:
+            raise UserError("train.detectors adopts finished detectors; train.init_from starts training from "
+                            "weights: give one of them")
         # TrainConfig checks its fields in `study.train.check_config`, against the dataset, at train
         # time; the study refuses them here, before it generates anything
         from fusion.nets.profile import parse_model_overrides
@@ -330,7 +396,8 @@ class StudyConfig:
     def __post_init__(self) -> None:
         if not self.scale.strip():
             raise UserError("scale must name the study's scale")
-        self.data.generate_config(self.profile)  # contexts, severities, profile: refused here
+        for part in self.data.parts():  # contexts, severities, profile, each set's size: refused here
+            self.data.generate_config(self.profile, part)
         from fusion.nets import load_profile
 
         try:

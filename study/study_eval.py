@@ -159,13 +159,15 @@ def evaluate_study(run, run_early, data, cfg, s, work: Path, setup=None, progres
     record["gate_training"] = gate_training(run, s, learned)
     record["lambda_front"] = lambda_front(eco_tables, ev)
     record["choices"] = log.choices
-    split = "gate split" if val.holdout else "train split"
+    gate_set = "gate" in separate_sets(ev.reader.manifest)
+    split = ("gate set" if gate_set else "gate split") if val.holdout else "train split"
     record["validation"] = {"frames": len(val.indices), "sequences": val.sequences, "carved": val.carved,
                             "holdout": val.holdout,
                             "what": (f"{cfg.gates.val_fraction:g} of the {split}'s sequences per context (seed "
                                      f"{cfg.gates.seed}): the frames every learned gate picks its epoch and objective "
-                                     "on; " + ("sequences the detectors never trained on (train.gate_holdout "
-                                               f"{cfg.train.gate_holdout:g})" if val.holdout else
+                                     "on; " + (("a set generated apart from the detectors' data (data.gate)" if gate_set else
+                                                "sequences the detectors never trained on (train.gate_holdout "
+                                                f"{cfg.train.gate_holdout:g})") if val.holdout else
                                                "the detectors trained on them too")) if val.carved else
                             (f"every fitting frame of the {split}: too few sequences per context to carve a "
                              "validation share, so the selections read the gates' fitting frames (never test frames)")}
@@ -513,7 +515,8 @@ def results_record(ev, setup, e, method: str, run_cfg: dict, data, singles, late
         "dataset": {"frames": len(ev.reader), "train_frames": len(train_idx), "gate_frames": len(gate_idx),
                     "test_frames": len(ev.test),
                     "contexts": ctx_list, "twins": bool(ev.reader.manifest["config"].get("twins")),
-                    "frames_per_context_test": {c: contexts.count(c) for c in ctx_list}},
+                    "frames_per_context_test": {c: contexts.count(c) for c in ctx_list},
+                    "sets": separate_sets(ev.reader.manifest)},
         "machine": machine_description(setup.threads if setup else 1),
         "device": setup.describe() if setup else "cpu",
         "branches": branches, "singles": singles, "late": list(late),
@@ -535,6 +538,16 @@ def results_record(ev, setup, e, method: str, run_cfg: dict, data, singles, late
         "figures": {"figure4": str(Path(eco_tables["figures"][0]).relative_to(work)),
                     "figure5": str(Path(eco_tables["figures"][1]).relative_to(work))},
     }
+
+
+def separate_sets(manifest: dict) -> dict:
+    """The gate and test sets generated apart from the detectors' data (`data.gate`, `data.test`), by
+    part: frames, seed, frames per context, sequence length ({} for one split dataset)."""
+    parts = manifest.get("parts") or {}
+    return {p: {"frames": v["stop"] - v["start"], "seed": v["config"]["seed"],
+                "frames_per_context": v["config"]["frames_per_context"],
+                "sequence_length": v["config"]["sequence_length"]}
+            for p, v in parts.items() if p != "detectors"}
 
 
 def _check(results: dict) -> None:

@@ -83,14 +83,15 @@ def train_eco_gate(run_dir, data, gate: str, cfg: GateTrainConfig, s: EcoSetting
     }
     torch_save_atomic({"name": gate, "options": {**cfg.gate_options(), "sensors": list(ed.sensors)},
                       "configurations": [list(m) for m in configs.members], "state": g.state_dict(),
-                      "data_key": ed.key, "loss": loss, "result": result}, out / "gate.pt")
+                      "data_key": ed.key, "model_key": ed.model_key, "loss": loss, "result": result}, out / "gate.pt")
     write_json_atomic(out / "result.json", result)
     return result
 
 
-def load_eco_gate(run_dir, name: str, model, configs, data_key: str, s: EcoSettings = EcoSettings()):
-    """A trained configuration gate from `s.gate_dir(run_dir, name)`/gate.pt (for this configuration
-    dataset and this L_f)."""
+def load_eco_gate(run_dir, name: str, model, configs, ed, s: EcoSettings = EcoSettings()):
+    """A trained configuration gate from `s.gate_dir(run_dir, name)`/gate.pt, refused unless it was
+    trained on a configuration dataset `ed` (an `EcoData`) of the same network, configurations,
+    fusion and loss (on any frames: a gate fitted on a gate set runs on a test set) and this L_f."""
 
     from fusion.eco.config_gates import build_config_gate
 
@@ -102,7 +103,7 @@ def load_eco_gate(run_dir, name: str, model, configs, data_key: str, s: EcoSetti
     from study.checkpoints import load_checkpoint, load_weights
 
     saved = load_checkpoint(path, ("options", "state"))
-    if saved.get("data_key") != data_key:
+    if saved.get("data_key") != ed.key and saved.get("model_key") != ed.model_key:
         raise UserError(f"{path} was trained on another configuration dataset (checkpoint, configurations, fusion "
                         f"or loss differ); train it again with --fresh")
     if saved.get("loss", dataclasses.asdict(FusedLossSpec())) != dataclasses.asdict(s.loss_spec()):

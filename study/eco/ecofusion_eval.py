@@ -80,7 +80,7 @@ class EcoEval:
             elif g == "knowledge":
                 self.predicted[g] = build_config_gate(g, self.model, self.configs).predict(None, self.metas).numpy()
             else:
-                gate = load_eco_gate(self.run_dir, g, self.model, self.configs, self.ed.key, s)
+                gate = load_eco_gate(self.run_dir, g, self.model, self.configs, self.ed, s)
                 self.predicted[g] = predict_losses(gate, self.features, metas=self.metas)
 
     def _loss_unit(self, train) -> float:
@@ -270,7 +270,7 @@ def execute_ecofusion(run_dir, data, gate: str, lambda_e: float, gamma: float, s
     elif gate == "loss_based":
         g = build_config_gate(gate, model, ev.configs)
     else:
-        g = load_eco_gate(run_dir, gate, model, ev.configs, ev.ed.key)
+        g = load_eco_gate(run_dir, gate, model, ev.configs, ev.ed)
     selector = EcoFusionSelector(g, ev.e, lambda_e, gamma, s.rule, loss_unit=ev.unit_of(gate))
     idx = list(range(len(ev.test)))[: frames or None]
     ds = FrameDataset(data, [ev.test[i] for i in idx], sensors=model.sensors,

@@ -13,6 +13,7 @@ import dataclasses
 import json
 import os
 import re
+import shutil
 import signal
 import subprocess
 import sys
@@ -311,3 +312,41 @@ def test_the_twin_columns_are_scored_on_the_clear_twins(tiny, tmp_path, monkeypa
     twins = [c for c in calls if c[0] and "clear twins" in c[0]]
     assert len(twins) == 2 and all(clear for _, clear in twins), calls  # the paper run and the early model
     assert all(not clear for p, clear in calls if not (p and "clear twins" in p)), calls
+
+
+def test_a_gate_set_and_a_test_set_run_end_to_end_on_the_tiny_detectors(tiny, tmp_path):
+    """data.gate and data.test (issue 36): the tiny study's detectors (its generate and train stages,
+    linked: same keys, so skipped) with a gate set and a test set of their own seeds; the gates fit on
+    the gate set, every choice is made on its validation sequences, every method is scored on the
+    test set, and no detector trains."""
+    from study.study_config import SetSection
+
+    cfg = tiny["cfg"]
+    cfg = dataclasses.replace(
+        cfg, data=dataclasses.replace(cfg.data, gate=SetSection(4, 1, 5), test=SetSection(3, 1, 6)),
+        gates=dataclasses.replace(cfg.gates, gates=("attention",), epochs=1, val_fraction=0.5, compare_targets=False),
+        evaluate=dataclasses.replace(cfg.evaluate, twins=False, bootstrap=0))
+    from study.stage_cache import Study
+
+    out = tmp_path / "sets"
+    Study(cfg, out, progress=False).prepare()
+    for name in ("generate", "train"):
+        src = Path(tiny["first"]["stages"][name]["dir"])
+        shutil.copytree(src, out / "stages" / src.name, symlinks=True, copy_function=os.link)
+    r = run_study(cfg, out, until="evaluate", progress=False)
+    status = {n: s["status"] for n, s in r["stages"].items()}
+    assert status == {"generate": "skipped", "gateset": "ran", "testset": "ran", "train": "skipped",
+                      "gatedata": "ran", "gates": "ran", "evaluate": "ran"}
+    res = json.loads((Path(r["stages"]["evaluate"]["dir"]) / "results.json").read_text())
+    ds = res["dataset"]
+    assert ds["sets"] == {"gate": {"frames": 8, "seed": 5, "frames_per_context": 4, "sequence_length": 1},
+                          "test": {"frames": 6, "seed": 6, "frames_per_context": 3, "sequence_length": 1}}
+    assert ds["test_frames"] == 6 and ds["gate_frames"] == 8 and ds["train_frames"] == 2
+    assert res["validation"]["carved"] and res["validation"]["frames"] == 4  # half the gate set's sequences
+    assert all(c["on"] == "validation" and c["frames"] == 4 for c in res["choices"])
+    for v in res["gate_training"].values():
+        assert v["targets"] == "holdout" and v["train_frames"] == 4
+    view = Path(r["stages"]["evaluate"]["dir"]) / "data"
+    manifest = json.loads((view / "manifest.json").read_text())
+    assert list(manifest["parts"]) == ["detectors", "gate", "test"]
+    assert all((view / s["name"]).resolve().is_dir() for s in manifest["shards"])  # links hold after the rename
