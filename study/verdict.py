@@ -135,7 +135,7 @@ def orders(report: dict) -> list[Order]:
     return holm_per_context(out, singles(report))
 
 
-def _family(o: Order, ss) -> tuple[str, str]:
+def _comparison(o: Order, ss) -> tuple[str, str]:
     """The comparison an order is one context's instance of (late against the best single sensor is
     one comparison, whichever sensor is best in the context)."""
     return (LATE, "best single") if o.a == LATE and o.b in ss else (o.a, o.b)
@@ -148,7 +148,7 @@ def holm_per_context(os_: list[Order], ss) -> list[Order]:
     fams: dict = {}
     for i, o in enumerate(os_):
         if o.group != "all" and o.p is not None:
-            fams.setdefault(_family(o, ss), []).append(i)
+            fams.setdefault(_comparison(o, ss), []).append(i)
     out = list(os_)
     for idx in fams.values():
         for i, p in zip(idx, holm([os_[i].p for i in idx])):
