@@ -96,7 +96,8 @@ def results_block(report: dict, tables: tuple[str, ...] = ("DIR/report.md", "DIR
         for g, rows in per.items():
             a = rows.get("all", {})
             iv = f" (95 % interval {_interval(a['regret_interval'], signed=True)})" if a.get("regret_interval") else ""
-            lines.append(f"- {fam} {g} gate: regret against the oracle {_f(a.get('regret_map'), 4)} mAP{iv}, choice differs "
+            oracle = "the a-posteriori oracle" if r.get("bounds") else "the oracle"
+            lines.append(f"- {fam} {g} gate: regret against {oracle} {_f(a.get('regret_map'), 4)} mAP{iv}, choice differs "
                          f"on {_f(a.get('differs_pct'), 1)} % of the test frames")
     for b, v in r["fusion_regret"].items():
         where = ", ".join(f"{c} ({_f(x, 4)})" for c, x in v["hurts_in"].items()) or "no context"

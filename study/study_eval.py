@@ -13,7 +13,9 @@ chosen branches (a branch depends only on its own sensors' stems; tested in test
 - all branches: the seven fused (HydraFusion "All-Branches (Early + Late)");
 - HydraFusion: a branch gate's top-k per frame (Table 2 (iv)); optimal = the k lowest a-posteriori
   branch losses (the oracle);
-- EcoFusion: a configuration gate's choice at lambda_E, gamma (Eq. 7-9); loss_based = the oracle.
+- EcoFusion: a configuration gate's choice at lambda_E, gamma (Eq. 7-9); loss_based = the oracle;
+- the context oracle: per context, the best constant branch set on that context's test frames (a bound,
+  not a method; `study.bounds`, which also computes every interval, room for context and the coverage).
 
 Besides the papers' tables (HydraFusion 3, 6, 7 from `study.gate_tables.evaluate_all_gates`; EcoFusion
 1-3 and Figures 4-5 from `study.eco.sweep.sweep`) it measures what neither paper has: mAP against
