@@ -19,8 +19,9 @@ import json
 import sys
 from pathlib import Path
 
+from study.bounds import CONTEXT_ORACLE
 from study.scoring import difference_interval
-from study.verdict import answer_sentences
+from study.verdict import answer_sentences, bounds_sentences, holm_size, namer
 
 BEGIN = "<!-- study-results:begin (scripts/readme_results.py writes this block; do not edit by hand) -->"
 END = "<!-- study-results:end -->"
@@ -56,21 +57,26 @@ def results_block(report: dict, tables: tuple[str, ...] = ("DIR/report.md", "DIR
     lines.append("| method | mAP@0.5 | " + " | ".join([*extra, *ds["contexts"]]) + " |")
     lines.append("|---|---|" + "---|" * (len(extra) + len(ds["contexts"])))
     order = [k for k in r["methods"] if k.startswith(("single:", "early:"))] + ["late", "all_branches",
-             f"hydrafusion:{r['hydra_gate']}", "hydrafusion:optimal", f"ecofusion:{r['eco_gate']}", "ecofusion:loss_based"]
+             f"hydrafusion:{r['hydra_gate']}", "hydrafusion:optimal", f"ecofusion:{r['eco_gate']}", "ecofusion:loss_based",
+             CONTEXT_ORACLE]
+    label = namer(report) if r.get("bounds") else str
     for name in order:
         if name not in r["methods"]:
             continue
         row = r["methods"][name]
         cells = [_interval(ci["map"].get(name)), "-" if name == "late" else _interval(difference_interval(ci, name, "late"), signed=True)] if ci else []
         cells += [_f(row["map_per_context"].get(c)) for c in ds["contexts"]]
-        lines.append(f"| {name} | {_f(row['map'])} | " + " | ".join(cells) + " |")
+        lines.append(f"| {label(name)} | {_f(row['map'])} | " + " | ".join(cells) + " |")
     lines.append("")
     if ci:
         iv = r["intervals"]
         lines.append(f"Intervals: {iv['resamples']} draws of the {ci['sequences']} test sequences with replacement, every "
                      "method scored on each draw (paired); a difference whose interval excludes 0 is an order this "
-                     "study resolves.")
+                     "study resolves." + (f" Per context, an order is resolved only if its Holm-adjusted p-value is "
+                                          f"below 0.05 as well (Holm-corrected over {holm_size(report)} per-context "
+                                          "comparisons of each pair)." if holm_size(report) else ""))
         lines.append("")
+        lines += [*bounds_sentences(report), ""] if bounds_sentences(report) else []
         answer = answer_sentences(report)
         if answer:  # the report's opening answer, generated from the intervals (study.verdict)
             lines.append("**What it resolves** (generated from the intervals): " + " ".join(answer))
@@ -89,7 +95,9 @@ def results_block(report: dict, tables: tuple[str, ...] = ("DIR/report.md", "DIR
     for fam, per in r["regret"].items():
         for g, rows in per.items():
             a = rows.get("all", {})
-            lines.append(f"- {fam} {g} gate: regret against the oracle {_f(a.get('regret_map'), 4)} mAP, choice differs "
+            iv = f" (95 % interval {_interval(a['regret_interval'], signed=True)})" if a.get("regret_interval") else ""
+            oracle = "the a-posteriori oracle" if r.get("bounds") else "the oracle"
+            lines.append(f"- {fam} {g} gate: regret against {oracle} {_f(a.get('regret_map'), 4)} mAP{iv}, choice differs "
                          f"on {_f(a.get('differs_pct'), 1)} % of the test frames")
     for b, v in r["fusion_regret"].items():
         where = ", ".join(f"{c} ({_f(x, 4)})" for c, x in v["hurts_in"].items()) or "no context"

@@ -23,9 +23,10 @@ def _map_in(sc: dict, ctx: str):
     return sc["map"] if ctx == "all" else sc["map_per_context"].get(ctx)
 
 
-def hydra_regret(selections: dict, scores: dict, gates, contexts: list[str]) -> dict:
+def hydra_regret(selections: dict, scores: dict, gates, contexts: list[str], k: int | None = None) -> dict:
     """Each HydraFusion gate against the optimal gate, per context and over all frames: both mAPs,
-    the mAP regret and how often the two choose differently."""
+    the mAP regret and how often the two choose differently. `selections` hold each gate's top k
+    (evaluate.k, the k of the mAP rows); `k` is recorded with each row."""
     opt, best = selections["hydrafusion:optimal"], scores["hydrafusion:optimal"]
     out = {}
     for g in gates:
@@ -38,7 +39,7 @@ def hydra_regret(selections: dict, scores: dict, gates, contexts: list[str]) -> 
             a, o = _map_in(sc, ctx), _map_in(best, ctx)
             row[ctx] = {"map": a, "map_oracle": o, "regret_map": None if a is None or o is None else rounded(o - a),
                         "differs_pct": rounded(100.0 * np.mean([selection[k] != opt[k] for k in frames_]), 1),
-                        "frames": len(frames_)}
+                        "frames": len(frames_), "k": k}
         out[g] = row
     return out
 
@@ -109,3 +110,22 @@ def gate_selection_shares(selections: dict, contexts: list[str]) -> dict:
             c: dict(sorted(((k, rounded(100.0 * v / sum(d.values()), 1)) for k, v in d.items()), key=lambda kv: -kv[1])[:5])
             for c, d in sorted(by.items())}
     return shares
+
+
+REGRET_ORACLE = {"hydrafusion": "hydrafusion:optimal", "ecofusion": "ecofusion:loss_based"}
+
+
+def regret_intervals(regret: dict, intervals: dict | None) -> dict:
+    """Add to each regret row (`hydra_regret`, `eco_regret`) the 95 % interval of its mAP regret, oracle
+    minus gate, from the study's bootstrap (the same draws of test sequences as every other
+    interval; `study.scoring.difference_interval`), None without intervals. Returns `regret`."""
+    from study.scoring import difference_interval
+
+    per = (intervals or {}).get("per_context") or {}
+    for fam, gates in regret.items():
+        oracle = REGRET_ORACLE[fam]
+        for g, row in gates.items():
+            for ctx, v in row.items():
+                pg = per.get(ctx)
+                v["regret_interval"] = difference_interval(pg, oracle, f"{fam}:{g}") if pg else None
+    return regret

@@ -16,6 +16,7 @@ from pathlib import Path
 
 from study.numbers import interval_text, number_text
 from study.outputs import write_text_atomic
+from study.report_bounds import add_coverage, add_optimal_appendix, add_room, main_methods, named
 
 REPORT_VERSION = 2
 
@@ -135,8 +136,10 @@ def build(results: dict, context: dict, work: Path, eval_dir: Path) -> tuple[Doc
     doc = Doc()
     add_intro(doc, r, context, tag)
     add_verdict(doc, r, tag, work)
+    add_room(doc, r, tag)
     add_hydra_table2(doc, r, tag)
     add_intervals(doc, r, tag)
+    add_coverage(doc, r, tag)
     add_hydra_table3(doc, r, tag)
     add_hydra_table4(doc, r, tag)
     add_hydra_table5(doc, r, tag)
@@ -150,6 +153,7 @@ def build(results: dict, context: dict, work: Path, eval_dir: Path) -> tuple[Doc
     add_gate_picks(doc, r, tag)
     add_robustness(doc, r, tag)
     add_choices(doc, r, tag)
+    add_optimal_appendix(doc, r, tag)
     add_stages(doc, context, tag)
     summary = {"scale": context["scale"], "meaningless": bool(context.get("meaningless")), "protocol": r["protocol"],
                "dataset": r["dataset"], "machine": r["machine"], "device": r.get("device"), "tag": tag}
@@ -243,7 +247,8 @@ def add_hydra_table2(doc: Doc, r: dict, tag: str) -> None:
             rows.append([label, name, v])
     doc.table(f"mAP@0.5 ({tag})", ["set", "model", "mAP"], rows)
     ctxs = r["dataset"]["contexts"]
-    rows = [[name, v["what"], v["map"], *[v["map_per_context"].get(c) for c in ctxs]] for name, v in r["methods"].items()]
+    rows = [[named(r, name), r["methods"][name]["what"], r["methods"][name]["map"],
+             *[r["methods"][name]["map_per_context"].get(c) for c in ctxs]] for name in main_methods(r)]
     doc.table(f"mAP@0.5 per context, every method ({tag})", ["method", "what", "all", *ctxs], rows)
 
 
@@ -267,7 +272,7 @@ def add_intervals(doc: Doc, r: dict, tag: str) -> None:
             return interval_text(lo_hi or None)
 
         doc.table(f"mAP@0.5: 95 % interval per context ({tag})", ["method", *[f"{g} ({per[g]['sequences']} seq)" for g in groups]],
-                  [[n, *[cell(per[g]["map"].get(n)) for g in groups]] for n in r["methods"]])
+                  [[named(r, n), *[cell(per[g]["map"].get(n)) for g in groups]] for n in main_methods(r)])
         from study.verdict import verdict_sentences
 
         for sentence in verdict_sentences(r):
@@ -275,7 +280,8 @@ def add_intervals(doc: Doc, r: dict, tag: str) -> None:
         if "late" in r["methods"]:
             doc.table(f"mAP@0.5 minus late fusion's: 95 % interval of the paired difference per context ({tag})",
                       ["method", *groups],
-                      [[n, *[cell(difference_interval(per[g], n, "late")) for g in groups]] for n in r["methods"] if n != "late"])
+                      [[named(r, n), *[cell(difference_interval(per[g], n, "late")) for g in groups]]
+                       for n in main_methods(r) if n != "late"])
 
 
 def add_hydra_table3(doc: Doc, r: dict, tag: str) -> None:
@@ -315,6 +321,8 @@ def add_hydra_tables_6_7(doc: Doc, r: dict, tag: str) -> None:
     doc.h(2, "HydraFusion Tables 6 and 7 analogues: gates x fusion x k; branch selection rates")
     rows = []
     for g, per in r["hydra_table6"].items():
+        if f"hydrafusion:{g}" not in main_methods(r):
+            continue  # the appendix shows it
         for f, row in per.items():
             rows.append([g, f, *[row.get(k) for k in ks]])
     doc.table(f"mAP@0.5 per gate, fusion and k ({tag})", ["gate", "fusion", *[f"k={k}" for k in ks]], rows)
@@ -324,6 +332,8 @@ def add_hydra_tables_6_7(doc: Doc, r: dict, tag: str) -> None:
         if k == "all":
             continue
         for g, per in r["hydra_table7"].items():
+            if f"hydrafusion:{g}" not in main_methods(r):
+                continue
             rows.append([k, g, *[per[k].get(b) for b in branches]])
     doc.table(f"Branch selection rate [% of test frames] ({tag})", ["k", "gate", *branches], rows)
 
@@ -473,21 +483,25 @@ def add_gate_regret(doc: Doc, r: dict, tag: str) -> None:
     doc.p(f"HydraFusion: each gate's top-{r['k']} against Optimal gating (the k lowest a-posteriori branch losses); "
           f"EcoFusion at lambda_E {r['lambda_e']:g}: each gate against Loss-based (the a-posteriori L_f). regret = "
           "oracle minus gate (mAP; for L_f gate minus oracle): positive = the gate loses that much; differs = "
-          "percent of frames where the gate's choice is not the oracle's.")
+          "percent of frames where the gate's choice is not the oracle's; the regret's 95 % interval comes from the "
+          "same draws of test sequences as every other interval." +
+          (" Both oracles are a-posteriori oracles (they use the frame's own ground truth, not achievable); "
+           "HydraFusion's optimal gate ranks by losses not comparable between branches (see the appendix)."
+           if r.get("bounds") else ""))
     for fam, per in r["regret"].items():
         for g, rows_ in per.items():
             cols = list(rows_)
-            if fam == "hydrafusion":
-                doc.table(f"{fam} {g} gate against the oracle ({tag})", ["", *cols],
-                          [["mAP", *[rows_[c]["map"] for c in cols]], ["oracle mAP", *[rows_[c]["map_oracle"] for c in cols]],
-                           ["regret (mAP)", *[rows_[c]["regret_map"] for c in cols]],
-                           ["differs [%]", *[rows_[c]["differs_pct"] for c in cols]]])
-            else:
-                doc.table(f"{fam} {g} gate against the oracle ({tag})", ["", *cols],
-                          [["mAP", *[rows_[c]["map"] for c in cols]], ["oracle mAP", *[rows_[c]["map_oracle"] for c in cols]],
-                           ["regret (mAP)", *[rows_[c]["regret_map"] for c in cols]],
-                           ["regret (L_f)", *[rows_[c]["regret_loss"] for c in cols]],
-                           ["differs [%]", *[rows_[c]["differs_pct"] for c in cols]]])
+            rows = [["mAP", *[rows_[c]["map"] for c in cols]], ["oracle mAP", *[rows_[c]["map_oracle"] for c in cols]],
+                    ["regret (mAP)", *[rows_[c]["regret_map"] for c in cols]]]
+            if any("regret_interval" in rows_[c] for c in cols):
+                rows.append(["regret: 95 % interval",
+                             *[interval_text(rows_[c].get("regret_interval"), signed=True) for c in cols]])
+            if fam != "hydrafusion":
+                rows.append(["regret (L_f)", *[rows_[c]["regret_loss"] for c in cols]])
+            rows.append(["differs [%]", *[rows_[c]["differs_pct"] for c in cols]])
+            k = next(iter(rows_.values())).get("k")
+            at = f", top {min(k, len(r['branches']))} (evaluate.k)" if k and fam == "hydrafusion" else ""
+            doc.table(f"{fam} {g} gate against the oracle{at} ({tag})", ["", *cols], rows)
 
 
 def add_fusion_regret(doc: Doc, r: dict, tag: str) -> None:

@@ -13,7 +13,9 @@ chosen branches (a branch depends only on its own sensors' stems; tested in test
 - all branches: the seven fused (HydraFusion "All-Branches (Early + Late)");
 - HydraFusion: a branch gate's top-k per frame (Table 2 (iv)); optimal = the k lowest a-posteriori
   branch losses (the oracle);
-- EcoFusion: a configuration gate's choice at lambda_E, gamma (Eq. 7-9); loss_based = the oracle.
+- EcoFusion: a configuration gate's choice at lambda_E, gamma (Eq. 7-9); loss_based = the oracle;
+- the context oracle: per context, the best constant branch set on that context's test frames (a bound,
+  not a method; `study.bounds`, which also computes every interval, room for context and the coverage).
 
 Besides the papers' tables (HydraFusion 3, 6, 7 from `study.gate_tables.evaluate_all_gates`; EcoFusion
 1-3 and Figures 4-5 from `study.eco.sweep.sweep`) it measures what neither paper has: mAP against
@@ -33,8 +35,16 @@ import numpy as np
 
 from sim.errors import UserError
 from sim.progress import progress as progress_bar
+from study.bounds import best_single_on_validation, evaluate_bounds
 from study.numbers import rounded
-from study.regrets import config_index_of, eco_regret, fusion_regret, gate_selection_shares, hydra_regret
+from study.regrets import (
+    config_index_of,
+    eco_regret,
+    fusion_regret,
+    gate_selection_shares,
+    hydra_regret,
+    regret_intervals,
+)
 
 FUSIONS = ("nms", "soft_nms", "wbf")
 LATE_COMBOS = (("camera_left", "camera_right"), ("camera_left", "camera_right", "lidar"), ("radar", "lidar"),
@@ -142,7 +152,8 @@ def evaluate_study(run, run_early, data, cfg, s, work: Path, setup=None, progres
     early = early_fusion(run_early, data, ev, method, cfg.train.batch_size, setup)
     for b, sc in early.scores.items():
         scores[f"early:{b}"], kinds[f"early:{b}"] = sc, f"early fusion model ({'+'.join(early.sensors[b])})"
-    intervals = (bootstrap_intervals(M, selections, early.fused, ev, e.bootstrap) if e.bootstrap else None)
+    intervals, bounds = evaluate_bounds(M, ev, selections, kinds, scores, early.fused, singles, late, learned,
+                                        e.bootstrap)
     table2, table5 = hydra_tables_2_and_5(M, scores, singles, early.scores, e, val, log)
     twins = clear_twins(ev, early.model, data, cfg.train.batch_size) if e.twins else None
     swept = swept_methods(scores, e)
@@ -152,12 +163,14 @@ def evaluate_study(run, run_early, data, cfg, s, work: Path, setup=None, progres
         hydra_table2=table2, hydra_table4=cost_table(ev, selections), hydra_table5=table5,
         severity=severity_sweeps(M, ev, scores, selections, early.fused, twins, swept, method, progress),
         range_per_context={name: scores[name]["map_vehicles_per_context_range"] for name in swept},
-        regret={"hydrafusion": hydra_regret(selections, scores, hydra_gates, contexts),
-                "ecofusion": eco_regret(ev, eco_config_index, scores, contexts)},
+        regret=regret_intervals({"hydrafusion": hydra_regret(selections, scores, hydra_gates, contexts, k=e.k),
+                                 "ecofusion": eco_regret(ev, eco_config_index, scores, contexts)}, intervals),
         fusion_regret=fusion_regret(M, ev, scores, late, contexts), picks=gate_selection_shares(selections, contexts),
         severity_clear_twins=twins is not None)
     record["gate_training"] = gate_training(run, s, learned)
     record["lambda_front"] = lambda_front(eco_tables, ev)
+    record["bounds"] = bounds
+    record["best_single"] = best_single_on_validation(val, singles, method, log)
     record["choices"] = log.choices
     gate_set = "gate" in separate_sets(ev.reader.manifest)
     split = ("gate set" if gate_set else "gate split") if val.holdout else "train split"
@@ -358,16 +371,6 @@ def early_fusion(run_early, data, ev, method: str, batch_size: int, setup) -> Ea
         out.fused[b] = fuse_frames(per_frame, [b], model.branch_frames, method)
         out.scores[b] = score(out.fused[b], ev.reader, "camera_right", protocol=ev.ed.protocol)
     return out
-
-
-def bootstrap_intervals(M: Methods, selections: dict, early_fused: dict, ev, resamples: int) -> dict:
-    """95 % intervals: whole test sequences drawn with replacement, every method on each draw."""
-    from study.scoring import context_bootstrap
-
-    sources = {name: M.fused(selection) for name, selection in selections.items()}
-    sources.update({f"early:{b}": per for b, per in early_fused.items()})
-    return context_bootstrap(sources, ev.reader, "camera_right", protocol=ev.ed.protocol,
-                             resamples=resamples, classes="all", desc="bootstrap the methods")
 
 
 def hydra_tables_2_and_5(M: Methods, scores: dict, singles, early_scores: dict, e, val: ValidationFrames,

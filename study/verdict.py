@@ -19,20 +19,26 @@ Wiring: both take the report JSON dict or its "results" part (what `study.report
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from math import comb
 from pathlib import Path
 
+from fusion.intervals import holm
+from study.bounds import CONTEXT_ORACLE, OPTIMISTIC, label
 from study.numbers import interval_text
 from study.scoring import difference_interval
 
 LATE = "late"
 ORACLES = ("hydrafusion:optimal", "ecofusion:loss_based", "hydrafusion:knowledge_informed",
-           "ecofusion:knowledge_informed")
+           "ecofusion:knowledge_informed", CONTEXT_ORACLE)
 """Methods that choose with what a car cannot know (the ground truth: the k lowest a-posteriori branch
-losses, the configuration of lowest loss; the simulator's severity and lens cover): bounds on what a
-gate could reach, not methods a car can run, so a sentence never counts them as a win and names them
-"(oracle)"."""
+losses, the configuration of lowest loss; the simulator's severity and lens cover; the best constant
+per context chosen on the test frames): bounds on what a gate could reach, not methods a car can run,
+so a sentence never counts them as a win. A report with bounds (`study.bounds`) names each for what it
+is (`study.bounds.label`); an older one names them "(oracle)"."""
+ALPHA = 0.05
+"""A per-context order is resolved only when its Holm-adjusted p-value is below this (and its
+interval excludes 0)."""
 FEW_SEQUENCES = 8
 """Below this many test sequences a group's intervals are flagged: n sequences drawn with
 replacement give only comb(2n - 1, n) distinct draws (10 for n = 3, 6435 for n = 8), so a
@@ -52,11 +58,17 @@ class Order:
     b: str
     interval: tuple[float, float] | None
     sequences: int
+    p: float | None = None
+    p_holm: float | None = None
+    """The bootstrap p-value of the difference and, per context, its Holm adjustment over the
+    contexts (None: the report stores no p-values, or the group is "all")."""
 
     @property
     def resolved(self) -> bool:
-        """The interval excludes 0 (both bounds on one side of it, neither equal to it)."""
-        return self.interval is not None and (self.interval[0] > 0 or self.interval[1] < 0)
+        """The interval excludes 0 (both bounds on one side of it, neither equal to it) and, where the
+        order was Holm-corrected, the adjusted p-value is below `ALPHA`."""
+        excludes = self.interval is not None and (self.interval[0] > 0 or self.interval[1] < 0)
+        return excludes and (self.p_holm is None or self.p_holm < ALPHA)
 
     @property
     def sign(self) -> int:
@@ -86,9 +98,13 @@ def singles(report: dict) -> list[str]:
 
 
 def best_single(report: dict, group: str) -> str | None:
-    """The single sensor with the highest point mAP in the group (the first in the report's order
-    on a tie), None without single sensors or scores."""
+    """The single sensor chosen on the validation frames for the group (`results.best_single`,
+    `study.bounds.best_single_on_validation`); in a report without that choice, the single sensor
+    with the highest point mAP in the group (the first in the report's order on a tie); None without
+    single sensors or scores."""
     r = _results(report)
+    if group in (r.get("best_single") or {}):
+        return r["best_single"][group]
     scored = [(s, _point(r, s, group)) for s in singles(report)]
     scored = [(s, v) for s, v in scored if v is not None]
     return max(scored, key=lambda sv: sv[1])[0] if scored else None
@@ -105,7 +121,9 @@ def orders(report: dict) -> list[Order]:
 
         def order(a, b, g=g, pg=pg, n=n):
             iv = difference_interval(pg, a, b)
-            return Order(g, a, b, None if iv is None else (float(iv[0]), float(iv[1])), n)
+            p = pg.get("p_value", {})
+            p = p.get(f"{a} - {b}", p.get(f"{b} - {a}"))
+            return Order(g, a, b, None if iv is None else (float(iv[0]), float(iv[1])), n, p)
 
         if LATE in r["methods"]:
             out += [order(m, LATE) for m in r["methods"] if m != LATE]
@@ -114,7 +132,36 @@ def orders(report: dict) -> list[Order]:
                 out.append(order(LATE, best))
         ss = singles(report)
         out += [order(a, b) for i, a in enumerate(ss) for b in ss[i + 1:]]
+    return holm_per_context(out, singles(report))
+
+
+def _comparison(o: Order, ss) -> tuple[str, str]:
+    """The comparison an order is one context's instance of (late against the best single sensor is
+    one comparison, whichever sensor is best in the context)."""
+    return (LATE, "best single") if o.a == LATE and o.b in ss else (o.a, o.b)
+
+
+def holm_per_context(os_: list[Order], ss) -> list[Order]:
+    """Each per-context order with its Holm-adjusted p-value (`fusion.intervals.holm`), adjusted over
+    the contexts' instances of the same comparison; the "all" group and orders without a p-value are
+    left as they are."""
+    fams: dict = {}
+    for i, o in enumerate(os_):
+        if o.group != "all" and o.p is not None:
+            fams.setdefault(_comparison(o, ss), []).append(i)
+    out = list(os_)
+    for idx in fams.values():
+        for i, p in zip(idx, holm([os_[i].p for i in idx])):
+            out[i] = replace(os_[i], p_holm=float(p))
     return out
+
+
+def holm_size(report: dict) -> int | None:
+    """How many per-context comparisons each Holm correction runs over (the contexts with p-values),
+    None when the report stores no p-values."""
+    per = (_results(report).get("intervals") or {}).get("per_context") or {}
+    n = sum(1 for g, v in per.items() if g != "all" and "p_value" in v)
+    return n or None
 
 
 
@@ -122,17 +169,21 @@ def _where(group: str, n: int) -> str:
     return f"Overall ({n} test sequences)" if group == "all" else f"In {group} ({n} test sequences)"
 
 
-def _name(m: str) -> str:
-    return f"{m} (oracle)" if m in ORACLES else m
+def namer(report: dict):
+    """How the report names a method: bounds labelled for what they are (`study.bounds.label`) in a
+    report that records them, "(oracle)" after each of `ORACLES` in an older one."""
+    if "bounds" in _results(report):
+        return label
+    return lambda m: f"{m} (oracle)" if m in ORACLES else m
 
 
-def _listing(os_: list[Order]) -> str:
-    return "; ".join(f"{_name(o.a)} {interval_text(o.interval, signed=True)}" for o in os_)
+def _listing(os_: list[Order], name) -> str:
+    return "; ".join(f"{name(o.a)} {interval_text(o.interval, signed=True)}" for o in os_)
 
 
-def _names(ms) -> str:
+def _names(ms, name) -> str:
     ms = list(ms)
-    return ", ".join(_name(m) for m in ms[:-1]) + (" and " if len(ms) > 1 else "") + _name(ms[-1]) if ms else ""
+    return ", ".join(name(m) for m in ms[:-1]) + (" and " if len(ms) > 1 else "") + name(ms[-1]) if ms else ""
 
 
 def answer_sentences(report: dict) -> list[str]:
@@ -146,21 +197,22 @@ def answer_sentences(report: dict) -> list[str]:
         return []
     os_ = orders(report)
     ss = singles(report)
+    name = namer(report)
     out = []
     if "all" in gs:
         s_vs = [o for o in os_ if o.group == "all" and o.b == LATE and o.a in ss]
         not_below = [o.a for o in s_vs if o.sign >= 0]
         if s_vs:
             out.append("Overall, late fusion beats every single sensor." if not not_below else
-                       f"Overall, late fusion does not beat every single sensor: {_names(not_below)} "
+                       f"Overall, late fusion does not beat every single sensor: {_names(not_below, name)} "
                        f"{'is' if len(not_below) == 1 else 'are'} not resolved below it.")
         others = [o for o in os_ if o.group == "all" and o.b == LATE and o.a not in ss]
         up = [o.a for o in others if o.sign > 0 and o.a not in ORACLES]
         up_oracle = [o.a for o in others if o.sign > 0 and o.a in ORACLES]
-        text = (f"Overall, {_names(up)} {'is' if len(up) == 1 else 'are'} resolved above late fusion" if up else
+        text = (f"Overall, {_names(up, name)} {'is' if len(up) == 1 else 'are'} resolved above late fusion" if up else
                 "Overall, no fused method that runs without ground truth is resolved above late fusion")
         if up_oracle:
-            text += f"; the {'oracle' if len(up_oracle) == 1 else 'oracles'} {', '.join(up_oracle)} " \
+            text += f"; the {'oracle' if len(up_oracle) == 1 else 'oracles'} {', '.join(map(name if 'bounds' in r else str, up_oracle))} " \
                     f"{'is' if len(up_oracle) == 1 else 'are'}"
         out.append(text + ".")
     ctx = [g for g in gs if g != "all"]
@@ -175,7 +227,8 @@ def answer_sentences(report: dict) -> list[str]:
         above = [f"{g} ({best[g].b})" for g in ctx if g in best and best[g].sign > 0]
         below = [f"{g} ({best[g].b})" for g in ctx if g in best and best[g].sign < 0]
         unres = [g for g in ctx if g in best and best[g].sign == 0]
-        out.append("Late fusion against its best single sensor per context: resolved above in "
+        chosen = " (chosen on the validation frames)" if r.get("best_single") else ""
+        out.append(f"Late fusion against its best single sensor per context{chosen}: resolved above in "
                    f"{', '.join(above) or 'no context'}; resolved below in {', '.join(below) or 'no context'}; "
                    f"not resolved in {', '.join(unres) or 'no context'}.")
     return out
@@ -197,9 +250,14 @@ def verdict_sentences(report: dict) -> list[str]:
     head = (f"Resolved means the 95 % interval of a paired difference of mAP@0.5 excludes 0 ({iv['resamples']} draws "
             "of whole test sequences, every method scored on each draw); an interval that holds 0 is not resolved, "
             "whatever the point estimates.")
-    out = []
+    n_holm = holm_size(report)
+    if n_holm:
+        head += (f" Per context, an order is resolved only if its interval excludes 0 and its p-value, Holm-corrected "
+                 f"over the {n_holm} per-context comparisons of the same pair, is below {ALPHA:g}.")
+    out = bounds_sentences(report)
     all_orders = orders(report)
     ss = singles(report)
+    name = namer(report)
     for g in groups(report):
         og = [o for o in all_orders if o.group == g]
         where = _where(g, og[0].sequences if og else r["intervals"]["per_context"][g]["sequences"])
@@ -209,25 +267,26 @@ def verdict_sentences(report: dict) -> list[str]:
             below = [o for o in s_vs if o.sign < 0]
             if s_vs and len(below) == len(s_vs):
                 out.append(f"{where}, late fusion beats every single sensor (single sensor minus late: "
-                           f"{_listing(s_vs)}).")
+                           f"{_listing(s_vs, name)}).")
             elif s_vs:
                 rest = [o for o in s_vs if o.sign >= 0]
                 out.append(f"{where}, late fusion does not beat every single sensor (not resolved below late: "
-                           f"{_listing(rest)}).")
+                           f"{_listing(rest, name)}).")
             best = next((o for o in og if o.a == LATE and o.b in ss), None)
             if best is not None and best.interval is not None:
                 word = {1: "resolved above", -1: "resolved below", 0: "not resolved against"}[best.sign]
-                out.append(f"{where}, late fusion is {word} its best single sensor, {best.b}: "
+                on = " on the validation frames" if g in (r.get("best_single") or {}) else ""
+                out.append(f"{where}, late fusion is {word} its best single sensor{on}, {best.b}: "
                            f"late minus {best.b} {interval_text(best.interval, signed=True)}.")
             others = [o for o in vs_late if o.a not in ss and o.interval is not None]
             above = [o for o in others if o.sign > 0]
             lower = [o for o in others if o.sign < 0]
             unres = [o for o in others if o.sign == 0]
-            out.append(f"{where}, resolved above late fusion: {_listing(above) if above else 'none'}.")
-            out.append(f"{where}, resolved below late fusion: {_listing(lower) if lower else 'none'}.")
+            out.append(f"{where}, resolved above late fusion: {_listing(above, name) if above else 'none'}.")
+            out.append(f"{where}, resolved below late fusion: {_listing(lower, name) if lower else 'none'}.")
             if unres:
                 out.append(f"{where}, not resolved against late fusion (the interval holds 0): "
-                           f"{', '.join(_name(o.a) for o in unres)}.")
+                           f"{', '.join(name(o.a) for o in unres)}.")
         pairs = [o for o in og if o.a in ss and o.b in ss and o.interval is not None]
         if pairs:
             res = [f"{o.a if o.sign > 0 else o.b} above {o.b if o.sign > 0 else o.a} "
@@ -243,6 +302,24 @@ def verdict_sentences(report: dict) -> list[str]:
                    f"{n} sequences drawn with replacement give only {comb(2 * n - 1, n)} distinct draws, so their "
                    "intervals are coarse and likely too narrow.")
     return [*answer_sentences(report), head, *out]
+
+
+def bounds_sentences(report: dict) -> list[str]:
+    """Room for context (`study.bounds`): the context oracle minus all branches overall and per
+    context, with its interval and how optimistic it is; empty in a report without bounds."""
+    r = _results(report)
+    room = (r.get("bounds") or {}).get("room_for_context")
+    if not room:
+        return []
+    a = room.get("all") or {}
+    ctx = [f"{g} {interval_text(v['interval'], signed=True)}" for g, v in room.items() if g != "all"]
+    return [f"Room for context ({label(CONTEXT_ORACLE)} minus all_branches): overall {number(a.get('estimate'))}, "
+            f"95 % interval {interval_text(a.get('interval'), signed=True)}; per context: {'; '.join(ctx)}. "
+            f"{OPTIMISTIC}"]
+
+
+def number(v) -> str:
+    return "-" if v is None else f"{v + 0.0:+.3f}"
 
 
 FAMILY_COLORS = {
@@ -284,6 +361,7 @@ def verdict_figure(report: dict, path: str | Path) -> Path | None:
 
     rank = {m: i for i, m in enumerate(methods)}  # ties and unscored methods keep the report's order
     methods.sort(key=lambda m: (diff(m, "all") is None, -(diff(m, "all") or 0.0), rank[m]))
+    name = namer(report)
     cols = 3
     rows = -(-len(gs) // cols)
     fig, axes = plt.subplots(rows, cols, figsize=(15, 1.2 + 0.34 * len(methods) * rows), dpi=100,
@@ -311,7 +389,7 @@ def verdict_figure(report: dict, path: str | Path) -> Path | None:
         ax.grid(axis="x", color="#dddddd", lw=0.6)
         ax.tick_params(labelsize=8)
         if k % cols == 0:
-            ax.set_yticks(y, [_name(m) for m in methods], fontsize=8)
+            ax.set_yticks(y, [name(m) for m in methods], fontsize=8)
         if k // cols == rows - 1:
             ax.set_xlabel("mAP@0.5 minus late fusion's", fontsize=9)
     for k in range(len(gs), rows * cols):

@@ -1,0 +1,76 @@
+"""Bounds that a selective fusion is measured against, from per-image VOC matchings
+(`fusion.metrics.ImageMatches`), and the bootstrap draws they are resampled with.
+
+A gate that reads only the context (the weather, the kind of road) can do no better than the best
+*constant* choice of branches per context: `best_constant_per_stratum` finds it among candidate
+configurations, `best_constant_map` scores that composite (each image takes the detections of its
+stratum's chosen configuration; AP pooled over all the images, not a mean of the strata's APs).
+Chosen on the frames it is scored on, it is a bound, not a method, and optimistic: with few
+sequences the best of many configurations wins partly by luck. `bootstrap_table` therefore takes
+derived columns that are recomputed on each draw, so the choice is made again inside every draw
+(the honest interval of a max over configurations chosen on the same frames).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Hashable, Mapping, Sequence
+
+import numpy as np
+
+from fusion.metrics import ImageMatches, sequence_draws
+
+Derived = Callable[[Sequence[int]], float]
+"""A statistic recomputed on each draw: the draw's rows (repeats allowed) -> a number."""
+
+
+def composite(matches: Mapping[str, ImageMatches], choice_of_row: Sequence[str]) -> ImageMatches:
+    """The ImageMatches of a per-image choice: row i takes `matches[choice_of_row[i]]`'s row i (all
+    sources matched on the same images, in the same order, over the same classes)."""
+    first = matches[choice_of_row[0]] if len(choice_of_row) else next(iter(matches.values()))
+    return ImageMatches([matches[c].per_image[i] for i, c in enumerate(choice_of_row)], first.classes,
+                        first.interpolation)
+
+
+def _finite(v: float) -> float:
+    return v if np.isfinite(v) else -np.inf
+
+
+def best_constant_per_stratum(matches: Mapping[str, ImageMatches], candidates: Sequence[str], rows: Sequence[int],
+                              strata: Sequence[Hashable]) -> dict:
+    """Per stratum present in `rows`, the candidate with the highest mAP over that stratum's rows
+    (`strata[r]`: row r's stratum; ties and NaN: the first candidate in order wins)."""
+    if not candidates:
+        raise ValueError("best_constant_per_stratum: no candidates")
+    by: dict = {}
+    for r in rows:
+        by.setdefault(strata[r], []).append(r)
+    out = {}
+    for s, rs in by.items():
+        values = [_finite(matches[c].mean_ap(rs)) for c in candidates]
+        out[s] = candidates[int(np.argmax(values))]
+    return out
+
+
+def best_constant_map(matches: Mapping[str, ImageMatches], candidates: Sequence[str], rows: Sequence[int],
+                      strata: Sequence[Hashable]) -> float:
+    """The mAP over `rows` of the best constant per stratum, chosen on those same rows
+    (`best_constant_per_stratum`), each row scored with its stratum's choice."""
+    choice = best_constant_per_stratum(matches, candidates, rows, strata)
+    per_image = {}
+    for r in rows:
+        per_image.setdefault(r, matches[choice[strata[r]]].per_image[r])
+    first = matches[candidates[0]]
+    pooled = ImageMatches([per_image[r] for r in rows], first.classes, first.interpolation)
+    return pooled.mean_ap(range(len(rows)))
+
+
+def bootstrap_table(matches: Mapping[str, ImageMatches], names: Sequence[str], rows_by_sequence: Mapping,
+                    resamples: int, seed: int, derived: Mapping[str, Derived] | None = None) -> np.ndarray:
+    """(resamples, len(names) + len(derived)): each draw of whole sequences with replacement
+    (`fusion.metrics.sequence_draws` over `rows_by_sequence` {sequence: [rows]}, seeded) scored by
+    each source's mAP, then each derived statistic recomputed on the draw's rows."""
+    derived = dict(derived or {})
+    out = np.empty((resamples, len(names) + len(derived)))
+    for i, picks in enumerate(sequence_draws(rows_by_sequence, resamples, seed)):
+        out[i] = [matches[n].mean_ap(picks) for n in names] + [f(picks) for f in derived.values()]
+    return out

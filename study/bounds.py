@@ -1,0 +1,245 @@
+"""The study's bounds, named for what they are, and the intervals that go with them (issue 36).
+
+- The per-frame a-posteriori oracles (`A_POSTERIORI`: HydraFusion's optimal gate, EcoFusion's
+  loss-based one) read the frame's own ground truth: a car cannot run them, they are labelled so
+  (`label`) wherever they appear, and never read as "room" for a gate.
+- The context oracle (`CONTEXT_ORACLE`): per context, the constant branch set among the fixed
+  configurations the study scores (each single sensor, each EcoFusion configuration, late fusion,
+  all branches) with the best mAP on that context's *test* frames, applied to them. It is the bound of
+  any gate that reads only the context; chosen on test, it is a bound, not a method.
+- Room for context (`ROOM`): context oracle minus all branches, with its paired interval. The choice
+  is made again inside every bootstrap draw (`fusion.bounds.bootstrap_table`'s derived column), so the
+  interval carries the luck of a max over configurations; a fixed choice would make it optimistic.
+- `StudyMatches.intervals`: every method's bootstrap intervals (the draws and output of
+  `study.scoring.context_bootstrap`, classes "all") plus each paired difference's p-value
+  (`fusion.intervals.bootstrap_p_value`, for the verdict's Holm correction) and the context oracle.
+- `coverage_record`: the intervals' coverage over disjoint test sets
+  (`study.interval_coverage.coverage_over_sets`).
+- `best_single_on_validation`: the verdict's best single sensor per context, chosen on the
+  validation frames and recorded in the `study.selection.SelectionLog`.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping, Sequence
+
+import numpy as np
+
+from fusion.bounds import best_constant_map, best_constant_per_stratum, bootstrap_table, composite
+from fusion.intervals import bootstrap_p_value, percentile_interval
+from fusion.metrics import ImageMatches
+from study.numbers import rounded, rounded_interval
+
+A_POSTERIORI = ("hydrafusion:optimal", "ecofusion:loss_based")
+A_POSTERIORI_LABEL = "a-posteriori oracle: uses the frame's own ground truth, not achievable"
+CONTEXT_ORACLE = "context_oracle"
+CONTEXT_ORACLE_LABEL = "context oracle (best constant per context, chosen on test: a bound, not a method)"
+ROOM = "room for context"
+ROOM_WHAT = ("context oracle minus all branches: what a gate that reads only the context could add over running "
+             "every branch, at most")
+OPTIMISTIC = ("The context oracle is chosen on the same test frames it is scored on, so its estimate is optimistic; "
+              "its interval chooses the best constant per context again inside every bootstrap draw, which carries "
+              "that luck into the interval (a fixed choice would make it too narrow).")
+OPTIMAL_APPENDIX = ("HydraFusion's optimal gate ranks branches by their summed a-posteriori losses, which are not "
+                    "comparable between BEV branches and camera branches (different heads, different loss scales): "
+                    "its top k is not the best k branches, so it is kept in an appendix, not read as a bound.")
+COVERAGE_SETS = 8
+MIN_SEQUENCES_PER_SET = 2
+"""A disjoint set needs this many sequences of every context for its within-context bootstrap to vary."""
+
+
+def label(name: str) -> str:
+    """`name` with what it is when it is a bound: a-posteriori oracles and the context oracle."""
+    if name in A_POSTERIORI:
+        return f"{name} ({A_POSTERIORI_LABEL})"
+    if name == CONTEXT_ORACLE:
+        return f"{name} ({CONTEXT_ORACLE_LABEL})"
+    return name
+
+
+def candidate_configurations(ev, singles: Sequence[str], late: Sequence[str]) -> dict[str, tuple[str, ...]]:
+    """The constant branch sets the context oracle chooses among: each single sensor, late fusion, all
+    branches and every EcoFusion configuration, {name: branches}, one name per branch set."""
+    out: dict[str, tuple[str, ...]] = {f"single:{b}": (b,) for b in singles}
+    out["late"] = tuple(late)
+    out["all_branches"] = tuple(ev.ed.branches)
+    seen = set(out.values())
+    for m in ev.configs.members:
+        if tuple(m) not in seen:
+            out["+".join(m)] = tuple(m)
+            seen.add(tuple(m))
+    return out
+
+
+class StudyMatches:
+    """Each source's per-frame VOC matching on the test frames (rows in test order, every class),
+    the frames' contexts and sequences: what the bounds, the intervals and the coverage read."""
+
+    def __init__(self, matches: Mapping[str, ImageMatches], contexts: Sequence[str], sequences: Sequence,
+                 candidates: Mapping[str, tuple[str, ...]] | None = None) -> None:
+        self.matches, self.contexts, self.sequences = dict(matches), list(contexts), list(sequences)
+        self.candidates = dict(candidates or {})
+
+    @classmethod
+    def of(cls, sources: Mapping[str, list], candidates: Mapping[str, tuple[str, ...]], candidate_frames: Mapping,
+           reader, protocol) -> StudyMatches:
+        """`sources` and `candidate_frames`: name -> [(meta, Detections)] per test frame, same frames."""
+        from sim.actors import CLASSES
+        from study.scoring import ground_truth
+
+        first = next(iter(sources.values()))
+        metas = [m for m, _ in first]
+        gts = [ground_truth(reader.labels(m["dataset_index"]), "camera_right", None, m, protocol) for m in metas]
+        classes = list(range(1, len(CLASSES) + 1))
+
+        def matched(frames):
+            return ImageMatches.of([{"boxes": d.boxes, "scores": d.scores, "labels": d.labels} for _, d in frames],
+                                   gts, classes=classes)
+
+        matches = {n: matched(f) for n, f in {**candidate_frames, **sources}.items()}
+        return cls(matches, [m["context"] for m in metas], [m["sequence_id"] for m in metas], candidates)
+
+    def context_choice(self, rows: Sequence[int] | None = None) -> dict:
+        """Per context, the candidate of best mAP on `rows` (all test frames by default)."""
+        rows = range(len(self.contexts)) if rows is None else rows
+        return best_constant_per_stratum(self.matches, list(self.candidates), list(rows), self.contexts)
+
+    def context_oracle(self) -> tuple[list[tuple[str, ...]], dict]:
+        """The context oracle's selection (per test frame, its context's chosen branches) and the choice
+        {context: candidate}; its matching is added under `CONTEXT_ORACLE` for the coverage."""
+        choice = self.context_choice()
+        self.matches[CONTEXT_ORACLE] = composite(self.matches, [choice[c] for c in self.contexts])
+        return [self.candidates[choice[c]] for c in self.contexts], choice
+
+    def intervals(self, names: Sequence[str], resamples: int, seed: int = 0) -> dict:
+        """`study.scoring.context_bootstrap`'s record (classes "all") for `names`, the same draws, plus
+        "p_value" per pair; `CONTEXT_ORACLE` among `names` is re-chosen inside every draw."""
+        plain = [n for n in names if n != CONTEXT_ORACLE]
+        derived = {}
+        if CONTEXT_ORACLE in names:
+            cands = list(self.candidates)
+            derived[CONTEXT_ORACLE] = lambda rows: best_constant_map(self.matches, cands, rows, self.contexts)
+        cols = plain + list(derived)
+        groups = {"all": range(len(self.contexts))}
+        for r, c in enumerate(self.contexts):
+            groups.setdefault(c, []).append(r)
+        out = {"resamples": int(resamples), "unit": "sequence", "seed": int(seed), "per_context": {},
+               "context_oracle_rechosen_per_draw": bool(derived)}
+        for g, rows in groups.items():
+            by_seq: dict = {}
+            for r in rows:
+                by_seq.setdefault(self.sequences[r], []).append(r)
+            draws = bootstrap_table(self.matches, plain, by_seq, resamples, seed, derived)
+            out["per_context"][g] = group_record(draws, cols, len(by_seq))
+        return out
+
+
+def group_record(draws: np.ndarray, names: Sequence[str], sequences: int) -> dict:
+    """One group's intervals from its draws (resamples, names): each name's mAP, each pair's
+    difference (stored once, "a - b" in `names`' order) and its two-sided bootstrap p-value."""
+    names = list(names)
+    pairs = [(a, b) for i, a in enumerate(names) for b in names[i + 1:]]
+
+    def diff(a, b):
+        return draws[:, names.index(a)] - draws[:, names.index(b)]
+
+    return {"sequences": int(sequences),
+            "map": {n: rounded_interval(percentile_interval(draws[:, i])) for i, n in enumerate(names)},
+            "difference": {f"{a} - {b}": rounded_interval(percentile_interval(diff(a, b))) for a, b in pairs},
+            "p_value": {f"{a} - {b}": rounded(bootstrap_p_value(diff(a, b))) for a, b in pairs}}
+
+
+def room_for_context(scores: Mapping[str, dict], intervals: dict | None) -> dict:
+    """Context oracle minus all branches per group ("all", then each context): the point difference,
+    its 95 % interval and p-value (None without intervals)."""
+    from study.scoring import difference_interval
+
+    oracle, every = scores[CONTEXT_ORACLE], scores["all_branches"]
+    per = (intervals or {}).get("per_context") or {}
+    out = {}
+    for g in ["all", *sorted(oracle["map_per_context"])]:
+        a = oracle["map"] if g == "all" else oracle["map_per_context"].get(g)
+        b = every["map"] if g == "all" else every["map_per_context"].get(g)
+        pg = per.get(g)
+        p = None
+        if pg and "p_value" in pg:
+            p = pg["p_value"].get(f"{CONTEXT_ORACLE} - all_branches", pg["p_value"].get(f"all_branches - {CONTEXT_ORACLE}"))
+        out[g] = {"estimate": None if a is None or b is None else rounded(a - b),
+                  "interval": difference_interval(pg, CONTEXT_ORACLE, "all_branches") if pg else None, "p_value": p}
+    return out
+
+
+def coverage_sets(contexts: Sequence[str], sequences: Sequence) -> tuple[int, str | None]:
+    """How many disjoint test sets the coverage check can deal (at most `COVERAGE_SETS`, each with
+    `MIN_SEQUENCES_PER_SET` sequences of every context), and why it is skipped (None when it is not)."""
+    per: dict = {}
+    for c, s in zip(contexts, sequences):
+        per.setdefault(c, set()).add(s)
+    fewest = min((len(v) for v in per.values()), default=0)
+    n = min(COVERAGE_SETS, fewest // MIN_SEQUENCES_PER_SET)
+    if n < 2:
+        return n, (f"skipped: the fewest test sequences of a context is {fewest}; two disjoint sets need at least "
+                   f"{2 * MIN_SEQUENCES_PER_SET} of every context ({MIN_SEQUENCES_PER_SET} each, so that a set's "
+                   "bootstrap within a context varies)")
+    return n, None
+
+
+def coverage_record(sm: StudyMatches, pairs: Sequence[tuple[str, str]], resamples: int, seed: int = 0) -> dict:
+    """`study.interval_coverage.coverage_over_sets` over as many disjoint sets as the test set allows
+    (`coverage_sets`), for the pairs whose sources were scored; {"skipped": reason} when it cannot."""
+    from study.interval_coverage import coverage_over_sets
+
+    n, why = coverage_sets(sm.contexts, sm.sequences)
+    pairs = [(a, b) for a, b in pairs if a in sm.matches and b in sm.matches]
+    if why or not pairs:
+        return {"skipped": why or "no pair to check", "sets": n}
+    out = coverage_over_sets(sm.matches, sm.contexts, sm.sequences, pairs, n_sets=n, resamples=resamples, seed=seed)
+    for v in out["pairs"].values():
+        v.pop("per_set", None)
+    out["context_oracle_choice"] = "fixed: chosen once on all test frames" if any(
+        CONTEXT_ORACLE in p for p in pairs) else None
+    return out
+
+
+def best_single_on_validation(val, singles: Sequence[str], method: str, log) -> dict[str, str]:
+    """The best single sensor overall ("all") and per context, by mAP on the validation frames
+    (`study.study_eval.ValidationFrames`), each choice recorded in `log`: {group: "single:<branch>"}."""
+    scored = {b: val.score([(b,)] * len(val.indices), method) for b in singles}
+    contexts = sorted({c for sc in scored.values() for c in sc["map_per_context"]})
+    out = {}
+    for g in ["all", *contexts]:
+        cands = {f"single:{b}": (sc["map"] if g == "all" else sc["map_per_context"].get(g)) for b, sc in scored.items()}
+        if any(v is not None for v in cands.values()):
+            out[g] = log.choose(f"best single sensor ({'overall' if g == 'all' else g}), for the verdict", cands,
+                                val.indices, lower_is_better=False, measure="mAP", sequences=val.sequences)
+    return out
+
+
+def evaluate_bounds(M, ev, selections: dict, kinds: dict, scores: dict, early_fused: dict, singles, late,
+                    learned, resamples: int) -> tuple[dict | None, dict]:
+    """Add the context oracle to `selections`, `kinds` and `scores` (scored by `M.score` like every
+    method), and return the study's intervals (every method and the early models, `StudyMatches.intervals`;
+    None when `resamples` is 0) and the bounds record (the choice, room for context, the coverage).
+    `M`: the study's `study.study_eval.Methods`."""
+    candidates = candidate_configurations(ev, singles, late)
+    sources = {n: M.fused(s) for n, s in selections.items()}
+    sources.update({f"early:{b}": per for b, per in early_fused.items()})
+    cand_frames = {n: M.fused(M.fixed(b)) for n, b in candidates.items() if n not in sources}
+    sm = StudyMatches.of(sources, candidates, cand_frames, ev.reader, ev.ed.protocol)
+    selection, choice = sm.context_oracle()
+    selections[CONTEXT_ORACLE], kinds[CONTEXT_ORACLE] = selection, CONTEXT_ORACLE_LABEL
+    scores[CONTEXT_ORACLE] = M.score(selection)
+    names = [*selections, *[f"early:{b}" for b in early_fused]]
+    intervals = sm.intervals(names, resamples) if resamples else None
+    pairs = [*[(f"hydrafusion:{g}", "late") for g in learned], ("all_branches", "late"), (CONTEXT_ORACLE, "all_branches")]
+    coverage = (coverage_record(sm, pairs, resamples) if resamples else
+                {"skipped": "evaluate.bootstrap = 0: no intervals to check"})
+    record = {"context_oracle": {"what": CONTEXT_ORACLE_LABEL, "chosen_on": "test",
+                                 "choice": {c: {"candidate": n, "branches": list(candidates[n])} for c, n in sorted(choice.items())},
+                                 "candidates": {n: list(b) for n, b in candidates.items()},
+                                 "rechosen_per_draw": intervals is not None},
+              "room_for_context": room_for_context(scores, intervals), "room_what": ROOM_WHAT, "optimistic": OPTIMISTIC,
+              "a_posteriori": {n: A_POSTERIORI_LABEL for n in A_POSTERIORI if n in scores},
+              "optimal_appendix": OPTIMAL_APPENDIX if "hydrafusion:optimal" in scores else None,
+              "coverage": coverage}
+    return intervals, record

@@ -1,0 +1,93 @@
+"""The report's sections on the study's bounds (`study.bounds`): room for context near the top, the
+intervals' coverage over disjoint test sets, and the appendix that keeps HydraFusion's optimal gate
+apart. Called by `study.report.build`; each section is absent from a report made before bounds were
+recorded."""
+
+from __future__ import annotations
+
+from study.bounds import A_POSTERIORI_LABEL, CONTEXT_ORACLE_LABEL, label
+from study.numbers import interval_text, number_text
+
+APPENDIX = ("hydrafusion:optimal",)
+"""Methods a report with bounds shows only in its appendix (`study.bounds.OPTIMAL_APPENDIX` says why)."""
+
+
+def main_methods(r: dict) -> list[str]:
+    """The methods of the report's main tables: all of them, less `APPENDIX` in a report with bounds."""
+    return [m for m in r["methods"] if not (r.get("bounds") and m in APPENDIX)]
+
+
+def named(r: dict, m: str) -> str:
+    """A method's name in a table: labelled when it is a bound (`study.bounds.label`) in a report with bounds."""
+    return label(m) if r.get("bounds") else m
+
+
+def add_room(doc, r: dict, tag: str) -> None:
+    """Room for context: the context oracle minus all branches, overall and per context, with the
+    paired interval and p-value, what the oracle chose per context, and why its interval is optimistic."""
+    b = r.get("bounds")
+    if not b:
+        return
+    room, choice = b["room_for_context"], b["context_oracle"]["choice"]
+    doc.h(2, "Room for context: what a gate reading only the context could add")
+    doc.p(f"The {CONTEXT_ORACLE_LABEL}: per context, the constant branch set with the best mAP@0.5 on that "
+          f"context's test frames, among {len(b['context_oracle']['candidates'])} fixed configurations (each single "
+          "sensor, each EcoFusion configuration, late fusion, all branches). It is the bound of any gate that reads "
+          f"only the context. Room for context = {b['room_what']}. {b['optimistic']} Not a room: the per-frame "
+          f"oracles ({', '.join(b['a_posteriori'])}) are each an {A_POSTERIORI_LABEL}.")
+    doc.table(f"Room for context, context oracle minus all_branches, mAP@0.5 ({tag})",
+              ["group", "chosen constant", "room", "95 % interval", "p"],
+              [[g, "per context" if g == "all" else choice.get(g, {}).get("candidate"), number_text(v["estimate"]),
+                interval_text(v["interval"], signed=True), number_text(v["p_value"])] for g, v in room.items()])
+
+
+def add_coverage(doc, r: dict, tag: str) -> None:
+    """Do the intervals hold? Each pair's coverage over disjoint test sets against what an exact
+    interval would reach, and the spread of the sets' estimates over the bootstrap's standard error."""
+    cov = (r.get("bounds") or {}).get("coverage")
+    if not cov:
+        return
+    doc.h(2, "Do the intervals hold? Coverage over disjoint test sets")
+    if cov.get("skipped"):
+        doc.p(f"Coverage check {cov['skipped']}.")
+        return
+    doc.p(f"The test frames dealt by sequence within each context into {cov['sets']} disjoint sets "
+          f"({', '.join(map(str, cov['sequences_per_set']))} sequences); each set's 95 % interval ({cov['resamples']} "
+          "draws within each context) is checked against the estimate of the other sets pooled. An exact interval "
+          "holds it with the expected share, not 0.95 (the rest's estimate is noisy too; "
+          "`fusion.intervals.expected_rest_coverage`); spread over se near 1 says the interval's width is right, well "
+          "above 1 says it is too narrow. The context oracle here is its choice on all test frames, held fixed.")
+    doc.table(f"Coverage of the paired intervals over {cov['sets']} disjoint test sets ({tag})",
+              ["pair", "covered k/n", "expected if exact", "spread over se"],
+              [[p, f"{v['covered']}/{v['sets']}", number_text(v["expected_if_exact"]), number_text(v["spread_over_se"])]
+               for p, v in cov["pairs"].items()])
+
+
+def add_optimal_appendix(doc, r: dict, tag: str) -> None:
+    """Appendix: the methods kept out of the main tables (HydraFusion's optimal gate), with the reason
+    and every number the main tables would have shown."""
+    b = r.get("bounds")
+    shown = [m for m in APPENDIX if b and m in r["methods"]]
+    if not shown:
+        return
+    from study.scoring import difference_interval
+
+    ctxs = r["dataset"]["contexts"]
+    per = (r.get("intervals") or {}).get("per_context") or {}
+    doc.h(2, "Appendix: HydraFusion's optimal gate")
+    doc.p(f"{b['optimal_appendix']} Its numbers, as the main tables would show them:")
+    doc.table(f"mAP@0.5 per context ({tag})", ["method", "what", "all", *ctxs],
+              [[label(m), r["methods"][m]["what"], r["methods"][m]["map"],
+                *[r["methods"][m]["map_per_context"].get(c) for c in ctxs]] for m in shown])
+    if per:
+        groups = ["all", *[c for c in ctxs if c in per]]
+        doc.table(f"95 % intervals: its mAP@0.5, and minus late fusion's ({tag})", ["", *groups],
+                  [[f"{m} mAP", *[interval_text(per[g]["map"].get(m)) for g in groups]] for m in shown] +
+                  [[f"{m} minus late", *[interval_text(difference_interval(per[g], m, "late"), signed=True)
+                                         for g in groups]] for m in shown if "late" in r["methods"]])
+    ks = sorted({k for v in r["hydra_table6"].get("optimal", {}).values() for k in v}, key=lambda k: (k == "all", k))
+    if ks:
+        doc.table(f"HydraFusion Table 6 row of the optimal gate: mAP@0.5 per fusion and k ({tag})",
+                  ["fusion", *[f"k={k}" for k in ks]],
+                  [[f, *[row.get(k) for k in ks]] for f, row in r["hydra_table6"]["optimal"].items()])
+

@@ -1,0 +1,250 @@
+"""study.bounds and what reads it: the context oracle picks the best constant per context on the test
+frames and is re-chosen in every draw; room for context carries its interval and p-value; the verdict
+Holm-corrects its per-context orders; the regret at k is the oracle's mAP minus the gate's with the
+interval of the same draws; the best single sensor is chosen on the validation frames only; the
+coverage check deals as many sets as the test set allows; the report and README name each bound
+for what it is."""
+
+import importlib.util
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from fusion.metrics import ImageMatches
+from study.bounds import (
+    A_POSTERIORI_LABEL,
+    CONTEXT_ORACLE,
+    CONTEXT_ORACLE_LABEL,
+    StudyMatches,
+    best_single_on_validation,
+    coverage_record,
+    coverage_sets,
+    room_for_context,
+)
+from study.regrets import hydra_regret, regret_intervals
+from study.selection import SelectionLog, TestSplitLeak
+from study.verdict import best_single, orders, verdict_sentences
+
+ROOT = Path(__file__).resolve().parents[2]
+
+
+def _image(rng, q):
+    tp = rng.random() < q
+    fp = rng.random() < 0.5
+    scores = ([0.5 + 0.5 * rng.random()] if tp else []) + ([0.4 * rng.random()] if fp else [])
+    return {1: (np.array(scores, float), np.array([True] * tp + [False] * fp, bool), 1)}
+
+
+QUALITY = {"single:a": {"x": 0.9, "y": 0.2}, "single:b": {"x": 0.2, "y": 0.9}, "all_branches": {"x": 0.6, "y": 0.6},
+           "late": {"x": 0.5, "y": 0.5}}
+
+
+def _study_matches(seqs_per_context=8, frames=4, seed=0) -> StudyMatches:
+    contexts = [c for c in ("x", "y") for _ in range(seqs_per_context * frames)]
+    sequences = [f"{c}{i // frames}" for i, c in enumerate(contexts)]
+    rng = np.random.default_rng(seed)
+    matches = {s: ImageMatches([_image(rng, q[c]) for c in contexts], (1,), "all") for s, q in QUALITY.items()}
+    cands = {"single:a": ("a",), "single:b": ("b",), "late": ("a", "b"), "all_branches": ("a", "b", "ab")}
+    return StudyMatches(matches, contexts, sequences, cands)
+
+
+def test_the_context_oracle_picks_the_best_constant_of_each_context_and_is_rechosen_in_each_draw():
+    sm = _study_matches()
+    selection, choice = sm.context_oracle()
+    assert choice == {"x": "single:a", "y": "single:b"}
+    assert selection == [("a",) if c == "x" else ("b",) for c in sm.contexts]
+    iv = sm.intervals(["single:a", "late", "all_branches", CONTEXT_ORACLE], resamples=60)
+    assert iv["context_oracle_rechosen_per_draw"]
+    for g in ("all", "x", "y"):
+        pg = iv["per_context"][g]
+        assert set(pg["map"]) == {"single:a", "late", "all_branches", CONTEXT_ORACLE}
+        assert set(pg["p_value"]) == set(pg["difference"])
+        # re-chosen in each draw: never below the best candidate on the same draw
+        assert pg["difference"][f"all_branches - {CONTEXT_ORACLE}"][1] <= 0
+    # in a context, the re-chosen oracle is the max over the candidates in each draw: its lower bound is at
+    # least the best constant's
+    assert iv["per_context"]["x"]["map"][CONTEXT_ORACLE][0] >= iv["per_context"]["x"]["map"]["single:a"][0]
+    assert iv["per_context"]["all"]["p_value"][f"all_branches - {CONTEXT_ORACLE}"] < 0.05
+    scores = {CONTEXT_ORACLE: {"map": 0.8, "map_per_context": {"x": 0.85, "y": 0.75}},
+              "all_branches": {"map": 0.6, "map_per_context": {"x": 0.6, "y": 0.6}}}
+    room = room_for_context(scores, iv)
+    assert room["all"]["estimate"] == pytest.approx(0.2) and room["x"]["estimate"] == pytest.approx(0.25)
+    lo, hi = room["all"]["interval"]
+    assert lo > 0 and [-hi, -lo] == iv["per_context"]["all"]["difference"][f"all_branches - {CONTEXT_ORACLE}"]
+    assert room["all"]["p_value"] == iv["per_context"]["all"]["p_value"][f"all_branches - {CONTEXT_ORACLE}"]
+    assert room_for_context(scores, None)["all"]["interval"] is None
+
+
+def test_coverage_deals_as_many_sets_as_the_test_set_allows_or_says_why_not():
+    assert coverage_sets(["x"] * 8 + ["y"] * 8, [f"s{i}" for i in range(16)]) == (4, None)
+    assert coverage_sets(["x"] * 40 + ["y"] * 40, [f"s{i}" for i in range(80)])[0] == 8
+    n, why = coverage_sets(["x"] * 3 + ["y"] * 8, [f"s{i}" for i in range(11)])
+    assert n == 1 and "fewest test sequences of a context is 3" in why
+    sm = _study_matches(seqs_per_context=4)
+    sm.context_oracle()
+    cov = coverage_record(sm, [("all_branches", "late"), (CONTEXT_ORACLE, "all_branches"), ("nope", "late")],
+                          resamples=30)
+    assert cov["sets"] == 2 and set(cov["pairs"]) == {"all_branches - late", f"{CONTEXT_ORACLE} - all_branches"}
+    for v in cov["pairs"].values():
+        assert v["sets"] == 2 and 0 <= v["covered"] <= 2 and 0.5 < v["expected_if_exact"] < 0.95
+    few = coverage_record(_study_matches(seqs_per_context=3), [("all_branches", "late")], resamples=10)
+    assert few["skipped"].startswith("skipped: the fewest test sequences of a context is 3")
+
+
+def _m(all_, **ctx):
+    return {"map": all_, "map_per_context": ctx}
+
+
+CTX = [f"c{i}" for i in range(8)]
+
+
+def _holm_report(p_first: float | None) -> dict:
+    """Eight contexts; hydrafusion:deep's interval against late excludes 0 in c0 only, p = p_first there."""
+    per = {"all": {"sequences": 64, "map": {}, "difference": {"hydrafusion:deep - late": [-0.01, 0.02]}}}
+    for i, c in enumerate(CTX):
+        per[c] = {"sequences": 8, "map": {}, "difference": {"hydrafusion:deep - late": [0.01, 0.05] if i == 0 else [-0.02, 0.03]}}
+        if p_first is not None:
+            per[c]["p_value"] = {"hydrafusion:deep - late": p_first if i == 0 else 0.5}
+    return {"results": {"dataset": {"contexts": CTX}, "singles": [],
+                        "methods": {"late": _m(0.4, **{c: 0.4 for c in CTX}),
+                                    "hydrafusion:deep": _m(0.41, **{c: 0.41 for c in CTX})},
+                        "intervals": {"resamples": 100, "unit": "sequence", "seed": 0, "per_context": per}}}
+
+
+def test_holm_turns_a_resolved_per_context_order_into_not_resolved_when_it_should():
+    def c0(report):
+        return next(o for o in orders(report) if o.group == "c0" and o.a == "hydrafusion:deep")
+
+    assert c0(_holm_report(None)).resolved and c0(_holm_report(None)).p_holm is None  # no p-values: interval only
+    o = c0(_holm_report(0.01))
+    assert o.p == 0.01 and o.p_holm == pytest.approx(0.08) and not o.resolved and o.sign == 0  # 0.01 x 8 contexts
+    s = verdict_sentences(_holm_report(0.01))
+    assert "In c0 (8 test sequences), resolved above late fusion: none." in s
+    assert any("Holm-corrected over the 8 per-context comparisons of the same pair" in x for x in s)
+    kept = c0(_holm_report(0.004))
+    assert kept.p_holm == pytest.approx(0.032) and kept.resolved and kept.sign == 1
+    assert "In c0 (8 test sequences), resolved above late fusion: hydrafusion:deep [+0.010, +0.050]." in \
+        verdict_sentences(_holm_report(0.004))
+    # the overall group is one comparison: not corrected
+    assert next(o for o in orders(_holm_report(0.01)) if o.group == "all").p_holm is None
+
+
+def test_the_regret_at_k_is_the_oracles_map_minus_the_gates_with_the_interval_of_the_same_draws():
+    contexts = ["x", "x", "y", "y"]
+    sel = {"hydrafusion:optimal": [("a", "b")] * 4, "hydrafusion:deep": [("a", "b"), ("a", "c"), ("b", "c"), ("a", "b")]}
+    scores = {"hydrafusion:optimal": _m(0.50, x=0.60, y=0.40), "hydrafusion:deep": _m(0.42, x=0.55, y=0.25)}
+    reg = hydra_regret(sel, scores, ["deep", "optimal"], contexts, k=2)["deep"]
+    # by hand: oracle minus gate; the top-2 choices differ on frames 1 and 2
+    assert reg["all"]["regret_map"] == pytest.approx(0.08) and reg["x"]["regret_map"] == pytest.approx(0.05)
+    assert reg["y"]["regret_map"] == pytest.approx(0.15)
+    assert (reg["x"]["differs_pct"], reg["y"]["differs_pct"], reg["all"]["differs_pct"]) == (50.0, 50.0, 50.0)
+    assert reg["all"]["k"] == 2
+    per = {g: {"sequences": 8, "map": {}, "difference": {"hydrafusion:deep - hydrafusion:optimal": [-0.1 - i, -0.02]}}
+           for i, g in enumerate(("all", "x", "y"))}
+    out = regret_intervals({"hydrafusion": {"deep": reg}}, {"per_context": per})
+    assert out["hydrafusion"]["deep"]["all"]["regret_interval"] == [0.02, 0.1]  # the stored pair turned round
+    assert out["hydrafusion"]["deep"]["y"]["regret_interval"] == [0.02, 2.1]
+    assert regret_intervals({"hydrafusion": {"deep": dict(reg)}}, None)["hydrafusion"]["deep"]["x"]["regret_interval"] is None
+
+
+class FakeValidation:
+    """What `best_single_on_validation` reads of a `study.study_eval.ValidationFrames`."""
+
+    def __init__(self, indices, maps):
+        self.indices, self.sequences, self.maps = list(indices), 4, maps
+
+    def score(self, selection, method):
+        assert len(selection) == len(self.indices)
+        return self.maps[selection[0][0]]
+
+
+def test_the_best_single_sensor_is_chosen_on_validation_and_changing_test_scores_changes_nothing():
+    val = FakeValidation(range(10, 20), {"radar": _m(0.3, x=0.5, y=0.1), "lidar": _m(0.35, x=0.2, y=0.4)})
+    log = SelectionLog.of(range(10))
+    chosen = best_single_on_validation(val, ["radar", "lidar"], "wbf", log)
+    assert chosen == {"all": "single:lidar", "x": "single:radar", "y": "single:lidar"}
+    assert [c["what"] for c in log.choices] == ["best single sensor (overall), for the verdict",
+                                               "best single sensor (x), for the verdict",
+                                               "best single sensor (y), for the verdict"]
+    with pytest.raises(TestSplitLeak):  # the guard refuses test frames
+        best_single_on_validation(FakeValidation(range(5, 15), val.maps), ["radar"], "wbf", SelectionLog.of(range(10)))
+    per = {g: {"sequences": 8, "map": {}, "difference": {"late - single:radar": [0.01, 0.1], "late - single:lidar": [-0.1, 0.1]}}
+           for g in ("all", "x", "y")}
+    report = {"results": {"dataset": {"contexts": ["x", "y"]}, "singles": ["radar", "lidar"], "best_single": chosen,
+                          "methods": {"single:radar": _m(0.3, x=0.3, y=0.3), "single:lidar": _m(0.2, x=0.2, y=0.2),
+                                      "late": _m(0.4, x=0.4, y=0.4)},
+                          "intervals": {"resamples": 10, "unit": "sequence", "seed": 0, "per_context": per}}}
+    before = [(o.group, o.b) for o in orders(report) if o.a == "late"]
+    # test scores that make the other sensor best everywhere: the choice, and so the verdict's order, stay
+    report["results"]["methods"]["single:lidar"] = _m(0.9, x=0.9, y=0.9)
+    assert best_single(report, "x") == "single:radar" and best_single(report, "all") == "single:lidar"
+    assert [(o.group, o.b) for o in orders(report) if o.a == "late"] == before == \
+        [("all", "single:lidar"), ("x", "single:radar"), ("y", "single:lidar")]
+    assert any("its best single sensor on the validation frames, single:radar" in s for s in verdict_sentences(report))
+
+
+def _bounds_report() -> dict:
+    ctx = {"city": 0, "fog": 0}
+    per = {g: {"sequences": 8, "map": {"hydrafusion:optimal": [0.4, 0.6], "late": [0.3, 0.5]},
+               "difference": {"hydrafusion:optimal - late": [0.05, 0.15], "context_oracle - all_branches": [0.01, 0.09],
+                              "ecofusion:loss_based - late": [0.02, 0.2]},
+               "p_value": {"hydrafusion:optimal - late": 0.01, "context_oracle - all_branches": 0.02,
+                           "ecofusion:loss_based - late": 0.01}} for g in ("all", *ctx)}
+    room = {g: {"estimate": 0.05, "interval": [0.01, 0.09], "p_value": 0.02} for g in ("all", *ctx)}
+    methods = {"late": _m(0.4, city=0.5, fog=0.3), "all_branches": _m(0.41, city=0.5, fog=0.32),
+               "hydrafusion:optimal": _m(0.5, city=0.55, fog=0.45), "ecofusion:loss_based": _m(0.47, city=0.52, fog=0.42),
+               CONTEXT_ORACLE: _m(0.46, city=0.55, fog=0.37), "hydrafusion:attention": _m(0.45, city=0.5, fog=0.4),
+               "ecofusion:attention": _m(0.43, city=0.5, fog=0.36)}
+    for n, v in methods.items():
+        v["what"] = n
+    return {"scale": "cpu", "meaningless": False, "results": {
+        "protocol": "reference", "hydra_gate": "attention", "eco_gate": "attention", "lambda_e": 0.01, "gamma": 0.5,
+        "dataset": {"frames": 200, "train_frames": 100, "test_frames": 100, "contexts": list(ctx)},
+        "machine": {"cpu": "AMD EPYC", "threads": 2}, "singles": [], "methods": methods,
+        "intervals": {"resamples": 100, "unit": "sequence", "seed": 0, "per_context": per},
+        "hydra_table4": {}, "hydra_table6": {"optimal": {"wbf": {2: 0.5}}}, "energy_unit": "-",
+        "regret": {"hydrafusion": {"attention": {"all": {"regret_map": 0.05, "differs_pct": 40.0,
+                                                         "regret_interval": [0.01, 0.09]}}}},
+        "fusion_regret": {},
+        "bounds": {"context_oracle": {"choice": {"city": {"candidate": "single:radar"}, "fog": {"candidate": "late"}},
+                                      "candidates": {"single:radar": ["radar"], "late": ["radar", "lidar"]}},
+                   "room_for_context": room, "room_what": "context oracle minus all branches",
+                   "optimistic": "chosen on test: optimistic.", "optimal_appendix": "not comparable.",
+                   "a_posteriori": {"hydrafusion:optimal": A_POSTERIORI_LABEL, "ecofusion:loss_based": A_POSTERIORI_LABEL},
+                   "coverage": {"sets": 4, "sequences_per_set": [4, 4, 4, 4], "resamples": 100, "pairs": {
+                       "all_branches - late": {"covered": 3, "sets": 4, "expected_if_exact": 0.91, "spread_over_se": 1.2}}}}}}
+
+
+def test_the_report_and_the_readme_block_name_each_bound_for_what_it_is(tmp_path):
+    from study.report import Doc
+    from study.report_bounds import add_coverage, add_optimal_appendix, add_room, main_methods
+
+    report = _bounds_report()
+    r = report["results"]
+    doc = Doc()
+    add_room(doc, r, "tag")
+    add_coverage(doc, r, "tag")
+    add_optimal_appendix(doc, r, "tag")
+    md = doc.markdown(tmp_path)
+    assert "Room for context" in md and "| all | per context | 0.050 | [+0.010, +0.090] | 0.020 |" in md
+    assert "| city | single:radar |" in md and "chosen on test: optimistic." in md
+    assert f"each an {A_POSTERIORI_LABEL}" in md
+    assert "| all_branches - late | 3/4 | 0.910 | 1.200 |" in md
+    assert "Appendix: HydraFusion's optimal gate" in md and "not comparable." in md
+    assert "hydrafusion:optimal" not in main_methods(r) and CONTEXT_ORACLE in main_methods(r)
+    s = verdict_sentences(report)
+    assert not [x for x in s if "(oracle)" in x]
+    assert any(f"ecofusion:loss_based ({A_POSTERIORI_LABEL}) [+0.020, +0.200]" in x for x in s)
+    assert any(x.startswith(f"Room for context ({CONTEXT_ORACLE} ({CONTEXT_ORACLE_LABEL}) minus all_branches): overall "
+                            "+0.050, 95 % interval [+0.010, +0.090]") for x in s)
+    spec = importlib.util.spec_from_file_location("readme_results", ROOT / "scripts" / "readme_results.py")
+    rr = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(rr)
+    block = rr.results_block(report)
+    assert f"| hydrafusion:optimal ({A_POSTERIORI_LABEL}) | 0.500 |" in block
+    assert f"| ecofusion:loss_based ({A_POSTERIORI_LABEL}) | 0.470 |" in block
+    assert f"| {CONTEXT_ORACLE} ({CONTEXT_ORACLE_LABEL}) | 0.460 |" in block
+    assert "Room for context" in block and "Holm-corrected over 2 per-context comparisons" in block
+    assert "(95 % interval [+0.010, +0.090])" in block
+    assert "room" not in " ".join(line for line in block.splitlines() if "a-posteriori" in line).lower()
