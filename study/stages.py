@@ -93,11 +93,13 @@ def train_stage(work: Path, data: Path, train_cfg: TrainSection, profile: str, s
     if t.early_fusion:
         runs["early"] = ("early_fusion", t.early_branches)
     digests = {}
-    if t.detectors:
-        say(f"train: paper (adopting the detectors of {t.detectors}: nothing to train)")
-        adopt_detectors(t.detectors, data, work / "paper", t.branches)
-        digests["paper"] = file_sha256(work / "paper" / "checkpoint.pt")
-        runs.pop("paper")
+    adopted = {"paper": t.detectors, "early": t.early_detectors if t.early_fusion else ""}
+    for name, spec in adopted.items():
+        if spec:
+            say(f"train: {name} (adopting the detectors of {spec}: nothing to train)")
+            adopt_detectors(spec, data, work / name, runs[name][1])
+            digests[name] = file_sha256(work / name / "checkpoint.pt")
+            runs.pop(name)
     for name, (bset, branches) in runs.items():
         say(f"train: {name} ({bset} branch set)")
         tc = TrainConfig(data=str(Path(data).resolve()), model_profile=profile, branch_set=bset,
@@ -113,7 +115,8 @@ def train_stage(work: Path, data: Path, train_cfg: TrainSection, profile: str, s
 
 
 def adopt_detectors(spec: str, data: Path, out: Path, branches) -> None:
-    """Copy the detectors of `spec` (train.detectors: a reference model or a training run) into the run
+    """Copy the detectors of `spec` (train.detectors or train.early_detectors: a reference model or a
+    training run) into the run
     directory `out` (config.json and checkpoint.pt; atomic), after checking that they were trained on
     `data` (`study.study_checks.check_adopted`). The copied config names `data` and where the weights
     came from."""
@@ -122,7 +125,7 @@ def adopt_detectors(spec: str, data: Path, out: Path, branches) -> None:
     from sensors.dataset import read_manifest
     from study.study_checks import check_adopted, detectors_run
 
-    src = detectors_run(spec)
+    src = detectors_run(spec, "train.detectors" if out.name == "paper" else "train.early_detectors")
     cfg = check_adopted(src, read_manifest(data)["config"], branches)
     if (out / "checkpoint.pt").is_file() and file_sha256(out / "checkpoint.pt") == file_sha256(src / "checkpoint.pt"):
         return
@@ -285,10 +288,11 @@ def stage_identity(name: str, cfg: StudyConfig, setup) -> dict:
         out["model_profile"] = _digest(to_dict(model_profile(cfg.profile)))[:16]
         if cfg.train.init_from:  # the weights it starts from, not their name
             out["init_from_sha256"] = file_sha256(Path(_init_from(cfg.train.init_from)) / "checkpoint.pt")[:16]
-        if cfg.train.detectors:  # the weights it adopts, not their name
-            from study.study_checks import detectors_run
+        from study.study_checks import detectors_run
 
-            out["detectors_sha256"] = file_sha256(detectors_run(cfg.train.detectors) / "checkpoint.pt")[:16]
+        for key in ("detectors", "early_detectors"):  # the weights it adopts, not their name
+            if getattr(cfg.train, key):
+                out[f"{key}_sha256"] = file_sha256(detectors_run(getattr(cfg.train, key), key) / "checkpoint.pt")[:16]
     elif name == "report":
         import study.report
 
@@ -330,7 +334,8 @@ def run_study(cfg: StudyConfig, out: str | Path, until: str = "report", progress
     if last < 1:
         return _finish(study, result, t_start)
 
-    train_inputs = {k: v for k, v in to_dict(cfg.train).items() if v or k != "detectors"}  # unset: the keys as before
+    train_inputs = {k: v for k, v in to_dict(cfg.train).items()  # unset: the keys as before they existed
+                    if v or k not in ("detectors", "early_detectors")}
     tr = study.stage("train", {"profile": cfg.profile, "train": train_inputs, **ident("train")}, (gen,),
                      train_stage, data=data, train_cfg=cfg.train, profile=cfg.profile, setup=setup, say=study.say,
                      progress=progress)

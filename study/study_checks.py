@@ -32,17 +32,22 @@ def check_study_config(cfg) -> None:
                             f"({', '.join(learned) or 'none'}); add it there or use knowledge")
     if cfg.train.init_from:
         init_from_run(cfg.train.init_from)
+    data = cfg.data.generate_config(cfg.profile).to_dict()
     if cfg.train.detectors:
-        adopted = detectors_run(cfg.train.detectors)
-        check_adopted(adopted, cfg.data.generate_config(cfg.profile).to_dict(), cfg.train.branches)
+        check_adopted(detectors_run(cfg.train.detectors), data, cfg.train.branches)
+    if cfg.train.early_detectors:
+        if not cfg.train.early_fusion:
+            raise UserError("train.early_detectors: train.early_fusion is false (no early-fusion models to adopt)")
+        check_adopted(detectors_run(cfg.train.early_detectors, "train.early_detectors"), data,
+                      cfg.train.early_branches, "train.early_detectors")
 
 
-def detectors_run(text: str) -> Path:
-    """train.detectors -> the run directory of the detectors to adopt (UserError otherwise)."""
-    return init_from_run(text, "train.detectors")
+def detectors_run(text: str, key: str = "train.detectors") -> Path:
+    """train.detectors (or `key`) -> the run directory of the detectors to adopt (UserError otherwise)."""
+    return init_from_run(text, key)
 
 
-def check_adopted(run: Path, data_config: dict, branches) -> dict:
+def check_adopted(run: Path, data_config: dict, branches, key: str = "train.detectors") -> dict:
     """The adopted run's config.json, refused (UserError) when it was trained on another dataset than
     the study's `data` (its splits would not be the study's: the detectors would be scored on frames
     they trained on) or holds other branches than `train.branches`."""
@@ -53,11 +58,11 @@ def check_adopted(run: Path, data_config: dict, branches) -> dict:
     ours = json.loads(json.dumps(data_config))
     diff = sorted(k for k in ours.keys() | theirs.keys() if ours.get(k) != theirs.get(k))
     if diff:
-        raise UserError(f"train.detectors {run}: trained on another dataset than the study's data section (differs in: "
+        raise UserError(f"{key} {run}: trained on another dataset than the study's data section (differs in: "
                         f"{', '.join(diff)}); a study adopts detectors with the data section they were trained on")
     if branches and tuple(cfg.get("branches", ())) != tuple(branches):
-        raise UserError(f"train.detectors {run}: its branches are {', '.join(cfg.get('branches', ()))}, "
-                        f"train.branches {', '.join(branches)}")
+        raise UserError(f"{key} {run}: its branches are {', '.join(cfg.get('branches', ()))}, "
+                        f"{'train.branches' if key == 'train.detectors' else 'train.early_branches'} {', '.join(branches)}")
     return cfg
 
 

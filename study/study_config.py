@@ -175,7 +175,9 @@ class TrainSection:
             (a name in models/) or a training run, trained on this study's `data` (its generation
             config must be the generated dataset's). Its checkpoint's digest is the train stage's
             key, so the paper branches are never trained again (""= train them); the early-fusion
-            models still train. The other train fields then apply to the early-fusion run only.
+            models still train (unless `early_detectors`). The other train fields then apply to what
+            still trains.
+        early_detectors: the same for the early-fusion run (its `early_branches`).
     """
 
     branches: Shared
@@ -194,6 +196,7 @@ class TrainSection:
     model: Shared
     init_from: str = ""
     detectors: str = ""
+    early_detectors: str = ""
 
     def __post_init__(self) -> None:
         if self.detectors and self.init_from:

@@ -165,3 +165,28 @@ def test_the_train_stage_adopts_detectors_and_keys_them_by_digest(tmp_path, monk
                           setup)["detectors_sha256"] != ident["detectors_sha256"]
     with pytest.raises(UserError, match="give one of them"):
         dataclasses.replace(t, init_from="cpu-ref")
+
+
+def test_the_train_stage_adopts_the_early_fusion_models_too(tmp_path, monkeypatch):
+    from study.stages import train_stage
+    from study.study_checks import check_study_config
+
+    cfg = load_study_config("tiny")
+    mine = cfg.data.generate_config(cfg.profile).to_dict()
+    paper = _run_of(tmp_path, mine)
+    early = tmp_path / "early_run"
+    shutil.copytree(paper, early)
+    (early / "config.json").write_text(json.dumps({"data_config": mine, "branches": ["early_radar_lidar"]}))
+    data = tmp_path / "data"
+    monkeypatch.setattr("sensors.dataset.read_manifest", lambda root: {"config": mine} if Path(root) == data else {})
+    monkeypatch.setattr("study.study_checks.init_from_run", lambda text, key="": Path(text))
+    t = dataclasses.replace(cfg.train, detectors=str(paper), early_detectors=str(early))
+    said = []
+    digest, extra = train_stage(tmp_path / "work", data, t, cfg.profile, None, said.append, progress=False)
+    assert sorted(extra["checkpoints_sha256"]) == ["early", "paper"] and len(said) == 2
+    assert json.loads((tmp_path / "work" / "early" / "config.json").read_text())["branches"] == ["early_radar_lidar"]
+    check_study_config(dataclasses.replace(cfg, train=t))
+    with pytest.raises(UserError, match=r"train.early_detectors .*its branches are radar"):
+        check_study_config(dataclasses.replace(cfg, train=dataclasses.replace(t, early_detectors=str(paper))))
+    with pytest.raises(UserError, match="early_fusion is false"):
+        check_study_config(dataclasses.replace(cfg, train=dataclasses.replace(t, early_fusion=False)))
