@@ -181,8 +181,18 @@ def add_intro(doc: Doc, r: dict, context: dict, tag: str) -> None:
         doc.p(f"**These numbers mean nothing**: scale `{scale}` trains for minutes on a handful of frames, to check "
               "that every stage runs; read a `cpu` or `paper` study for results.")
     doc.h(1, f"hydrabench study: selective against fixed fusion (scale {scale})")
-    doc.p(f"{tag}. Metric: {r['metric']}. Late fusion method: {r['fusion']}. Every method is scored on the same "
-          f"{ds['test_frames']} test frames (contexts: {', '.join(ds['contexts'])}).")
+    rule = f" ({r['fusion_rule']})" if r.get("fusion_rule") else ""
+    doc.p(f"{tag}. Metric: {r['metric']}. Late fusion method: {r['fusion']}{rule}. Every method is scored on the "
+          f"same {ds['test_frames']} test frames (contexts: {', '.join(ds['contexts'])}).")
+    one = r.get("one_path")
+    if one:
+        if one["disagreements"]:
+            doc.p(f"**One scoring path broken**: {len(one['disagreements'])} of {one['checked']} table cells show a "
+                  "method with another mAP than its own: " + "; ".join(
+                      f"{d['where']}: {d['shown']} (its own {d['own']})" for d in one["disagreements"]) + ".")
+        else:
+            doc.p(f"One scoring path: the {one['checked']} table cells that show a method ({len(one['methods'])} "
+                  "methods) hold its own mAP (`study.one_path`).")
 
 
 def add_verdict(doc: Doc, r: dict, tag: str, work: Path) -> None:

@@ -361,7 +361,9 @@ def run_study(cfg: StudyConfig, out: str | Path, until: str = "report", progress
     if last < 4:
         return _finish(study, result, t_start)
 
-    ev = study.stage("evaluate", {"evaluate": to_dict(cfg.evaluate), **ident("evaluate")},
+    evaluate_inputs = {k: v for k, v in to_dict(cfg.evaluate).items()  # the default: the keys as before it existed
+                       if not (k == "fusion" and v == "validation")}
+    ev = study.stage("evaluate", {"evaluate": evaluate_inputs, **ident("evaluate")},
                      (gt, tr, *((sets["test"],) if "test" in sets else ())),
                      evaluate_stage, gates_run=gt.dir / "run", run_early=run_early, parts=all_parts, cfg=cfg,
                      settings=settings, setup=eval_setup, progress=progress)

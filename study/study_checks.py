@@ -30,6 +30,9 @@ def check_study_config(cfg) -> None:
         if gate not in UNTRAINED_GATES and gate not in learned:
             raise UserError(f"evaluate.{key}: {gate!r} is not among the gates gates.gates trains "
                             f"({', '.join(learned) or 'none'}); add it there or use knowledge")
+    if cfg.evaluate.fusion != "validation" and cfg.evaluate.fusion != cfg.gates.fusion:
+        raise UserError(f"evaluate.fusion {cfg.evaluate.fusion} is declared for every method, and gates.fusion "
+                        f"{cfg.gates.fusion} would fuse EcoFusion's configurations otherwise: make them the same")
     if cfg.train.init_from:
         init_from_run(cfg.train.init_from)
     data = cfg.data.generate_config(cfg.profile).to_dict()

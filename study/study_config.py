@@ -294,6 +294,10 @@ class EvaluateSection:
         energy_scale: px2 | late | joules (`fusion.eco.optimise.normalise_energy`).
         loss_scale: late | raw: the L_f lambda_E and gamma weigh (`fusion.eco.optimise.normalise_loss`).
         twins: score the clear-weather twins of the test frames too (severity sweeps).
+        fusion: the late fusion of every fused method (issue 36's one declared rule): "validation"
+            (the best late fusion on the validation frames, used for every method; Tables 2 and 3
+            choose per row) or nms | soft-nms | wbf, declared in advance for every method and every
+            table; then gates.fusion (EcoFusion's configurations) must be the same.
         bootstrap: draws of whole test sequences for 95 % intervals of every method's mAP, overall
             and per context, and of every paired difference (`study.scoring.context_bootstrap`;
             0 = none).
@@ -310,6 +314,7 @@ class EvaluateSection:
     loss_scale: str = "late"
     twins: bool = True
     bootstrap: int = 0
+    fusion: str = "validation"
 
     def __post_init__(self) -> None:
         _positive("evaluate.k", self.k)
@@ -323,6 +328,8 @@ class EvaluateSection:
         for name in ("hydra_gate", "eco_gate"):
             if getattr(self, name) not in allowed:
                 raise UserError(f"evaluate.{name} must be {', '.join(allowed)}, got {getattr(self, name)!r}")
+        if self.fusion not in ("validation", "nms", "soft-nms", "wbf"):
+            raise UserError(f"evaluate.fusion must be validation, nms, soft-nms or wbf, got {self.fusion!r}")
         if not 0 <= self.lambda_e <= 1:
             raise UserError(f"evaluate.lambda_e must be in [0, 1], got {self.lambda_e}")
         if not self.gamma >= 0:

@@ -130,14 +130,16 @@ def evaluate_study(run, run_early, data, cfg, s, work: Path, setup=None, progres
     log = SelectionLog.of(ev.test)
     val = ValidationFrames(ev, cfg.gates.val_fraction, cfg.gates.seed, log)
     singles, late = single_and_late(ev)
-    # the late-fusion method of every fused method: the best late fusion on the validation frames
-    method = log.choose("late-fusion method (every fused method of the study)",
-                        {f: val.map(late, f) for f in FUSIONS}, val.indices, lower_is_better=False,
-                        measure="mAP of late fusion", sequences=val.sequences)
+    # the fusion of every fused method: declared in advance (evaluate.fusion), or the best late fusion on
+    # the validation frames
+    declared = declared_fusion(e)
+    method = declared or log.choose("late-fusion method (every fused method of the study)",
+                                    {f: val.map(late, f) for f in FUSIONS}, val.indices, lower_is_better=False,
+                                    measure="mAP of late fusion", sequences=val.sequences)
     # HydraFusion Tables 3, 6, 7: every branch once per frame, each gate's top-k fused afterwards
     hydra_tables = evaluate_all_gates(run, data, gates=tuple(hydra_gates), setup=setup,
                                       batch_size=cfg.train.batch_size, progress=progress)
-    hydra_tables["table3"] = table3_on_validation(run, data, ev, val, hydra_tables, hydra_gates, e.k, log)
+    hydra_tables["table3"] = table3_on_validation(run, data, ev, val, hydra_tables, hydra_gates, e.k, log, declared)
     eco_tables = sweep(run, data, work / "eco", gamma=e.gamma, s=s, gates=eco_gates,
                        fig_gate=e.eco_gate if e.eco_gate in eco_gates else "knowledge", progress=progress, ev=ev)
     M = Methods(ev, method)
@@ -154,7 +156,7 @@ def evaluate_study(run, run_early, data, cfg, s, work: Path, setup=None, progres
         scores[f"early:{b}"], kinds[f"early:{b}"] = sc, f"early fusion model ({'+'.join(early.sensors[b])})"
     intervals, bounds = evaluate_bounds(M, ev, selections, kinds, scores, early.fused, singles, late, learned,
                                         e.bootstrap)
-    table2, table5 = hydra_tables_2_and_5(M, scores, singles, early.scores, e, val, log)
+    table2, table5 = hydra_tables_2_and_5(M, scores, singles, early.scores, e, val, log, declared)
     twins = clear_twins(ev, early.model, data, cfg.train.batch_size) if e.twins else None
     swept = swept_methods(scores, e)
     run_cfg = json.loads((run / "config.json").read_text())
@@ -172,6 +174,9 @@ def evaluate_study(run, run_early, data, cfg, s, work: Path, setup=None, progres
     record["bounds"] = bounds
     record["best_single"] = best_single_on_validation(val, singles, method, log)
     record["choices"] = log.choices
+    record["fusion_rule"] = (f"declared in advance (evaluate.fusion {e.fusion}): every fused method, every table"
+                             if declared else "the best late fusion on the validation frames, for every fused method "
+                             "of the headline; Tables 2 and 3 choose per row on the validation frames")
     gate_set = "gate" in separate_sets(ev.reader.manifest)
     split = ("gate set" if gate_set else "gate split") if val.holdout else "train split"
     record["validation"] = {"frames": len(val.indices), "sequences": val.sequences, "carved": val.carved,
@@ -187,6 +192,9 @@ def evaluate_study(run, run_early, data, cfg, s, work: Path, setup=None, progres
     from study.robustness_table import robustness_table
 
     record["robustness"] = robustness_table(record)  # MultiCorrupt's RA, Robo3D's RR and CE, against late fusion
+    from study.one_path import one_path_record
+
+    record["one_path"] = one_path_record(record)  # every table's cell of a method against its own mAP
     return record
 
 
@@ -226,16 +234,26 @@ class ValidationFrames:
         return self.score([tuple(branches)] * len(self.indices), method)["map"]
 
 
-def table3_on_validation(run, data, ev, val: ValidationFrames, hydra_tables: dict, gates, k: int, log) -> dict:
+def declared_fusion(e) -> str | None:
+    """evaluate.fusion as the fusion's internal name ("soft_nms"), or None: chosen on validation."""
+    return None if e.fusion == "validation" else e.fusion.replace("-", "_")
+
+
+def table3_on_validation(run, data, ev, val: ValidationFrames, hydra_tables: dict, gates, k: int, log,
+                         declared: str | None = None) -> dict:
     """HydraFusion Table 3: per gate, the fusion method whose mAP of the gate's top k is best on the
     validation frames, and that method's test row of Table 6 (the paper picks the best per gate; a
-    pick on the test frames would flatter every gate)."""
+    pick on the test frames would flatter every gate); with a `declared` fusion, that one for every gate."""
     from study.gate_tables import FUSION_LABEL, top_k_selection
 
     branches = list(ev.ed.branches)
     preds = hydra_predictions(run, data, val, gates)
     out = {}
     for g in gates:
+        if declared:
+            label = FUSION_LABEL[declared]
+            out[g] = {"fusion": label, "map": hydra_tables["map_table"][g][label], "chosen_on": "declared in advance"}
+            continue
         selection = top_k_selection(preds[g], branches, k)
         label = FUSION_LABEL[log.choose(f"HydraFusion Table 3: fusion of the {g} gate's top {min(k, len(branches))}",
                                         {f: val.score(selection, f)["map"] for f in FUSIONS}, val.indices,
@@ -374,9 +392,10 @@ def early_fusion(run_early, data, ev, method: str, batch_size: int, setup) -> Ea
 
 
 def hydra_tables_2_and_5(M: Methods, scores: dict, singles, early_scores: dict, e, val: ValidationFrames,
-                         log) -> tuple[dict, dict]:
+                         log, declared: str | None = None) -> tuple[dict, dict]:
     """HydraFusion Table 2 (mAP of each kind of method) and Table 5 (late fusion of sensor combinations
-    by each fusion method, on the test frames; Table 2 takes the method best on the validation frames)."""
+    by each fusion method, on the test frames; Table 2 takes the method best on the validation frames,
+    or the `declared` one)."""
     branches = M.branches
     table2 = {"single_sensors": {b: scores[f"single:{b}"]["map"] for b in singles},
               "early_fusion": {b: sc["map"] for b, sc in early_scores.items()},
@@ -388,7 +407,7 @@ def hydra_tables_2_and_5(M: Methods, scores: dict, singles, early_scores: dict, 
             continue
         row = {f: M.score(M.fixed(combo_branches), f)["map"] for f in FUSIONS}
         table5["+".join(combo_branches)] = row
-        pick = log.choose(f"HydraFusion Table 2: fusion of late {'+'.join(combo_branches)}",
+        pick = declared or log.choose(f"HydraFusion Table 2: fusion of late {'+'.join(combo_branches)}",
                           {f: val.map(combo_branches, f) for f in FUSIONS}, val.indices, lower_is_better=False,
                           measure="mAP", sequences=val.sequences)
         table2["late_fusion"]["+".join(combo_branches)] = row[pick]
