@@ -16,6 +16,13 @@ constant), so a gate trained with any of them is read the same way (argmin of it
     "centred"   mean_c |(s_c - mean_c' s_c') - (L_c - mean_c' L_c')|         (within-frame differences)
     "soft_ce"   -sum_c q_c log p_c,  q = softmax(-L / tau), p = softmax(-s / tau)
     "expected"  sum_c p_c (L_c - min_c' L_c'),  p = softmax(-s / tau)       (expected regret)
+    "best_label" -log p_{c*},  c* = argmin_c L_c,  p = softmax(-s)           (the best choice's label)
+
+"best_label" is the router target of the mixture-of-experts literature: a classifier of which
+choice is best on the frame (the best-configuration label), blind to by how much; its scores are
+logits (argmin of -log p is argmax p), not costs, so it is not minimised by s = L + c. A gate that
+routes by the context label instead is the per-context constant below (`context_choice`): with
+the context known exactly (the simulator's, or a perfect classifier), a lookup per context.
 
 `tau` is in units of L: `default_tau` takes the median over frames of the within-frame standard
 deviation of L, so that q is neither one-hot nor uniform on a typical frame.
@@ -81,6 +88,16 @@ def expected_regret_objective(scores, costs, tau: float = 1.0):
     _check(scores, costs)
     p = torch.softmax(-scores / tau, dim=1)
     return (p * (costs - costs.min(dim=1, keepdim=True).values)).sum(dim=1).mean()
+
+
+@OBJECTIVES.register("best_label")
+def best_label_objective(scores, costs, tau: float = 1.0):
+    """Cross entropy of softmax(-s) against the one-hot label of each frame's cheapest choice (ties:
+    the first), mean over frames; `tau` is not used (a hard label has no temperature)."""
+    import torch
+
+    _check(scores, costs)
+    return torch.nn.functional.cross_entropy(-scores, costs.argmin(dim=1))
 
 
 def default_tau(costs) -> float:

@@ -35,9 +35,12 @@ def test_each_objective_is_its_equation():
     assert np.isclose(float(OBJECTIVES.get("soft_ce")(s, c, tau)), float((-(q * np.log(p)).sum(1)).mean()))
     r = c.numpy() - c.numpy().min(1, keepdims=True)
     assert np.isclose(float(OBJECTIVES.get("expected")(s, c, tau)), float((p * r).sum(1).mean()))
+    p1 = np.exp(-s.numpy()) / np.exp(-s.numpy()).sum(1, keepdims=True)  # the best choice's label, no temperature
+    best = c.numpy().argmin(1)
+    assert np.isclose(float(OBJECTIVES.get("best_label")(s, c, tau)), float(-np.log(p1[np.arange(len(s)), best]).mean()))
 
 
-@pytest.mark.parametrize("name", ["centred", "soft_ce", "expected"])
+@pytest.mark.parametrize("name", ["centred", "soft_ce", "expected", "best_label"])
 def test_decision_objectives_ignore_a_per_frame_shift_of_the_scores(name):
     """Only the within-frame differences matter: adding a frame's difficulty to every score changes nothing."""
     rng = np.random.default_rng(1)
