@@ -227,7 +227,28 @@ def gates_stage(work: Path, gatedata_run: Path, data: Path, gates: GatesSection,
                           progress=progress, n_check=g.energy_check)
     energy = {k: v for k, v in energy.items() if not k.startswith("_")}
     digests["latency"] = file_sha256(run / "eco" / "latency.json")
+    say("gates: each learned gate's own decision time")
+    energy["gate_latency"] = measure_gates(run, data, g, settings, setup, progress)
+    digests["gate_latency"] = file_sha256(run / "eco" / "gate_latency.json")
     return _digest(digests), {"gates": out, "energy": energy}
+
+
+def measure_gates(run: Path, data: Path, g: GatesSection, settings, setup, progress: bool) -> dict:
+    """Each learned gate's own decision time on the latency frames (`study.eco.latency_energy.gate_latency`,
+    one thread as the latency table): HydraFusion's and EcoFusion's."""
+    from study.branch_gate_study import load_trained_gate
+    from study.eco.config_gate_study import load_eco_gate
+    from study.eco.data import eco_splits, open_eco_run
+    from study.eco.latency_energy import gate_latency
+
+    model, cfg, configs, ed = open_eco_run(run, data, settings, 1)
+    _train, test = eco_splits(cfg, data, settings.max_frames)
+    gates = {}
+    for gate in g.gates:
+        gates[f"hydrafusion:{gate}"] = load_trained_gate(run, gate, model)
+        gates[f"ecofusion:{gate}"] = load_eco_gate(run, gate, model, configs, ed, settings)
+    return gate_latency(run, data, gates, test[:g.energy_frames], repeats=g.energy_repeats, threads=1,
+                        progress=progress)
 
 
 def evaluate_stage(work: Path, gates_run: Path, run_early: Path | None, parts: dict[str, Path], cfg: StudyConfig,

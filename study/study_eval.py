@@ -421,8 +421,8 @@ def hydra_tables_2_and_5(M: Methods, scores: dict, singles, early_scores: dict, 
 def cost_table(ev, selections: dict) -> dict:
     """HydraFusion Table 4 analogue: each method's mean latency, energy and branch count per frame.
     A learned gate (deep, attention: HydraFusion's or EcoFusion's) is charged the stems it reads that
-    its chosen branches do not need (`EcoEval.gate_overhead`), as EcoFusion's Table 1 charges them: one
-    accounting for every method of the report."""
+    its chosen branches do not need and its own network's measured time (`EcoEval.gate_overhead`), as
+    EcoFusion's Table 1 charges them: one accounting for every method of the report."""
     from fusion.eco.config_gates import CONFIG_GATES
     from fusion.nets.branch_gates import GATES, trainable_gates
 
@@ -432,11 +432,11 @@ def cost_table(ev, selections: dict) -> dict:
         idx = np.array([index[tuple(m)] for m in selection])
         gate = name.split(":", 1)[1] if name.startswith(("hydrafusion:", "ecofusion:")) else None
         learned = trainable_gates(CONFIG_GATES if name.startswith("ecofusion:") else GATES)
-        extra, _ = ev.gate_overhead(idx, gate if gate in learned else None)
+        extra, _ = ev.gate_overhead(idx, gate if gate in learned else None, name.split(":", 1)[0])
         t = ev.t[idx] + extra
         scale = t / ev.t[idx]  # E = P t at the configuration's own power
         return {"latency_ms": rounded(1000 * t.mean(), 2), "energy_j": rounded((ev.e_raw[idx] * scale).mean()),
-                "energy": rounded((ev.e[idx] * scale).mean()), "gate_stems_ms": rounded(1000 * extra.mean(), 2),
+                "energy": rounded((ev.e[idx] * scale).mean()), "gate_ms": rounded(1000 * extra.mean(), 2),
                 "branches": rounded(np.mean([len(m) for m in selection]), 3)}
 
     return {name: cost(name, selection) for name, selection in selections.items()}

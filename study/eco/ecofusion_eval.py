@@ -112,23 +112,27 @@ class EcoEval:
     def fixed(self, name: str) -> np.ndarray:
         return np.full(len(self.test), self.configs.index(name))
 
-    def gate_overhead(self, choice: np.ndarray, gate: str | None):
+    def gate_overhead(self, choice: np.ndarray, gate: str | None, family: str = "ecofusion"):
         """(seconds, sensors) a gate adds to each frame's configuration: a gate reading stem features
         (deep, attention) runs every stem it reads before it decides, so the stems the chosen
         configuration does not need are extra time (and energy, at the configuration's own power),
         and every sensor it reads must measure (no clock gating for them). The knowledge gate
         decides from external context before any stem runs, and the loss-based oracle is
-        a-posteriori: neither adds anything. The gate network's own few small convolutions are not
-        counted."""
+        a-posteriori: neither adds anything. The gate's own network (pooling and its convolutions)
+        adds its measured time (`study.eco.latency_energy.gate_latency`, `family`:`gate`) where the
+        gates stage measured it."""
         from fusion.eco.config_gates import CONFIG_GATES
         from fusion.nets.branch_gates import gate_sensors, trainable_gates
 
         if gate not in trainable_gates(CONFIG_GATES):
             return np.zeros(len(choice)), [set() for _ in choice]
 
+        from study.eco.latency_energy import read_gate_latency
+
         read = set(gate_sensors(self.model))
         stems = self.latency_model.stems
-        extra = np.array([sum(stems.get(x, 0.0) for x in read - set(self.sensors[c])) for c in choice])
+        own = read_gate_latency(self.run_dir).get(f"{family}:{gate}", 0.0)
+        extra = np.array([own + sum(stems.get(x, 0.0) for x in read - set(self.sensors[c])) for c in choice])
         return extra, [read for _ in choice]
 
     def metrics(self, choice: np.ndarray, per_scene: bool = False, gate: str | None = None) -> dict:
@@ -149,7 +153,7 @@ class EcoEval:
                "energy": round(float(e.mean()), 4),
                "energy_j": round(float(e_raw.mean()), 4),
                "latency_ms": round(1000 * float(t.mean()), 2),
-               "gate_stems_ms": round(1000 * float(extra.mean()), 2),
+               "gate_ms": round(1000 * float(extra.mean()), 2),
                "mean_branches": round(float(np.mean([len(m) for m in selection])), 3)}
         if per_scene:
             measuring = [sorted(set(self.sensors[c]) | r) for c, r in zip(choice, read)]

@@ -1,6 +1,8 @@
 """EcoFusion Eq. 6 measured: each stem, branch and the fusion block timed on real frames
 (`measure_latency`), the additive latency model checked end to end, and each configuration's
-latency and energy (`energy_table`, `hydrabench eco-energy`). See `study.eco`."""
+latency and energy (`energy_table`, `hydrabench eco-energy`); each learned gate's own network timed
+on the same frames (`gate_latency`, RUN/eco/gate_latency.json), so a gate pays for deciding. See
+`study.eco`."""
 
 from __future__ import annotations
 
@@ -70,6 +72,7 @@ def measure_latency(model, data, indices, configs, method: str = "soft_nms", rep
     for m in configs.members:
         by_n[len(m)].append(m)
     timed = _timer(ctr, repeats)
+    load_before = os.getloadavg()
 
     def record(key, table, value):
         t, e = value
@@ -114,7 +117,9 @@ def measure_latency(model, data, indices, configs, method: str = "soft_nms", rep
                        {b: (tuple(br.sensors) if br.fusion == "features" else ()) for b, br in model.branches.items()},
                        {k: float(np.mean(v)) for k, v in energy.items()} if energy is not None else None,
                        {"frames": len(ds), "repeats": repeats, "counter": ctr.name if ctr is not None else None,
-                        "machine": machine_description(threads), "method": method})
+                        "machine": machine_description(threads), "method": method,
+                        "load_average_before": [round(x, 2) for x in load_before],
+                        "load_average_after": [round(x, 2) for x in os.getloadavg()]})
     return lat, additive_check(lat, checked, direct_t, direct_e)
 
 
@@ -214,3 +219,54 @@ def energy_table(run_dir, data, s: EcoSettings = EcoSettings(), threads: int = 1
                               "fusion_ms": {str(k): round(1000 * v, 3) for k, v in lat.fusion.items()}},
             "additive_check": check, "baselines": base, "energy_source": source, "machine": lat.meta.get("machine"),
             "latency_cache": str(path), "_model": lat, "_t": t, "_e": e}
+
+
+GATE_LATENCY = "gate_latency.json"
+"""Under RUN/eco/: each learned gate's own decision time (`gate_latency`)."""
+
+
+def gate_latency(run_dir, data, gates: dict, indices, repeats: int = 3, threads: int = 1, progress: bool = True) -> dict:
+    """Time each gate's own decision on `indices` (batch 1): `gates` {name: gate} with `predict(features,
+    metas)` (a learned HydraFusion gate or EcoFusion configuration gate: pooling of the stem features
+    and its network; the stems themselves are the stems' time, `EcoEval.gate_overhead`). Per gate: the
+    median over frames of each frame's median of `repeats` runs after one warm-up, the 25th and 75th
+    percentiles over frames, with the load average before and after (the machine's other work).
+    Written to RUN/eco/gate_latency.json and returned."""
+    import torch
+
+    from fusion.data import FrameDataset, collate
+    from study.scoring import load_run
+
+    torch.set_num_threads(threads)
+    model, _cfg = load_run(run_dir)
+    ds = FrameDataset(data, list(indices), sensors=model.sensors, bev_size=model.transform.image_size("radar"))
+    timed = _timer(None, repeats)
+    load_before = os.getloadavg()
+    per: dict = defaultdict(list)
+    bar = progress_bar(total=len(ds), desc="gate latency", enabled=progress)
+    with torch.no_grad():
+        for k in range(len(ds)):
+            inputs, _t, metas = collate([ds[k]])
+            feats = model.extract_features(inputs)
+            for name, gate in gates.items():
+                gate.eval()
+                per[name].append(timed(lambda g=gate, f=feats, m=metas: g.predict(f, m))[0])
+            bar.update(1)
+    bar.close()
+    out = {"frames": len(ds), "repeats": repeats, "threads": threads, "machine": machine_description(threads),
+           "load_average_before": [round(x, 2) for x in load_before],
+           "load_average_after": [round(x, 2) for x in os.getloadavg()],
+           "gates": {n: {"median_ms": round(1000 * float(np.median(v)), 3),
+                         "p25_ms": round(1000 * float(np.percentile(v, 25)), 3),
+                         "p75_ms": round(1000 * float(np.percentile(v, 75)), 3)} for n, v in per.items()}}
+    write_json_atomic(Path(run_dir) / "eco" / GATE_LATENCY, out)
+    return out
+
+
+def read_gate_latency(run_dir) -> dict:
+    """{gate name ("hydrafusion:deep", "ecofusion:attention"): seconds} of RUN/eco/gate_latency.json
+    ({} when the gates' own time was not measured)."""
+    path = Path(run_dir) / "eco" / GATE_LATENCY
+    if not path.is_file():
+        return {}
+    return {n: v["median_ms"] / 1000 for n, v in json.loads(path.read_text())["gates"].items()}

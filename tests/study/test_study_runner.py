@@ -102,7 +102,13 @@ def test_every_stage_runs_and_writes_the_report_with_its_tables(tiny):
     assert "Gate targets: held-out gate split against the detectors' training frames" in md
     # a learned gate pays for the stems it reads (Table 4 as EcoFusion Table 1)
     t4 = res["hydra_table4"]
-    assert t4["late"]["gate_stems_ms"] == 0 and all(t4[f"ecofusion:{g}"]["gate_stems_ms"] >= 0 for g in ("deep",))
+    # ... and for its own network, timed on the latency frames (issue 36: the gate's own compute counted)
+    gl = json.loads((Path(first["stages"]["gates"]["dir"]) / "run" / "eco" / "gate_latency.json").read_text())
+    assert set(gl["gates"]) == {f"{f}:{g}" for f in ("hydrafusion", "ecofusion") for g in tiny["cfg"].gates.gates}
+    assert all(v["median_ms"] > 0 for v in gl["gates"].values()) and len(gl["load_average_before"]) == 3
+    for g in tiny["cfg"].gates.gates:
+        assert t4[f"hydrafusion:{g}"]["gate_ms"] >= gl["gates"][f"hydrafusion:{g}"]["median_ms"] - 0.01
+    assert t4["late"]["gate_ms"] == 0 and all(t4[f"ecofusion:{g}"]["gate_ms"] >= 0 for g in ("deep",))
     for g, v in res["lambda_front"]["gates"].items():
         assert v["span_pct"] is None or -100 <= v["span_pct"] <= 100, (g, v)
 
