@@ -410,6 +410,10 @@ def add_gate_training(doc: Doc, r: dict, tag: str) -> None:
           "oracle's (regret), beside the best constant choice and the per-context constant (one choice per context, "
           "both fitted on the gate's fitting frames), and how often the gate's choice differs from the constant's. "
           "A gate adds something when its regret is below both.")
+    if "test" in (r["dataset"].get("sets") or {}):
+        doc.p("With a test set apart from the detectors' data, these regrets are measured by the gates stage on the "
+              "detectors' own test split (frames no gate fitted on, but not the study's test set, which the gates "
+              "stage never reads); every mAP, interval and regret elsewhere in this report is on the test set.")
 
     def row(name, v):
         c = v.get("choice") or {}
