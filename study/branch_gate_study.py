@@ -82,6 +82,9 @@ class GateTrainConfig:
             a car can know: `fusion.nets.branch_gates.context_features`).
         pooling: "grid" (convs on the pooled grid) or "global" (an MLP on each stem channel's
             mean: compact features).
+        fit_frames: fit on at most this many of the fitting frames, whole sequences taken evenly
+            from each context in a seeded order (0 = all): the learning curve over the gate set's
+            size (`study.selection.fewer_frames`); validation and test frames stay the same.
     """
 
     gate: str = "deep"
@@ -103,9 +106,13 @@ class GateTrainConfig:
     select_on: str = "regret"
     context: bool = False
     pooling: str = "grid"
+    fit_frames: int = 0
 
     def __post_init__(self) -> None:
         from fusion.gate_objectives import OBJECTIVES
+
+        if self.fit_frames < 0:
+            raise UserError(f"fit_frames: must be >= 0 (0: every fitting frame), got {self.fit_frames}")
 
         if self.objective != AUTO:
             OBJECTIVES.get(self.objective)  # UserError naming the choices
@@ -329,17 +336,31 @@ OBJECTIVE_LABEL = {"mae": "mean absolute error", "centred": "mean absolute error
 
 
 def choice_table(pred: np.ndarray, y_fit: np.ndarray, y_test: np.ndarray, contexts_fit, contexts_test,
-                 names: list[str]) -> dict:
+                 names: list[str], sequences_test=None, resamples: int = 1000) -> dict:
     """The gate's one choice per test frame (argmin of its predictions) beside the best constant and
     the per-context constant (both fitted on the fitting frames) and the oracle: mean test loss of
-    what each chooses, regret, and how often the gate differs from the constant."""
-    from fusion.gate_objectives import apply_context_choice, choose, constant_choice, context_choice, judge
+    what each chooses, regret, and how often the gate differs from the constant; with the test frames'
+    `sequences_test`, the 95 % intervals of gate minus constant and gate minus per-context constant
+    regret over test sequences (`fusion.gate_objectives.regret_gap`)."""
+    from fusion.gate_objectives import (
+        apply_context_choice,
+        choose,
+        constant_choice,
+        context_choice,
+        judge,
+        regret_gap,
+    )
 
     const = constant_choice(y_fit)
     table = context_choice(y_fit, contexts_fit)
-    j = judge(y_test, choose(pred), const, apply_context_choice(table, contexts_test, const))
-    return {**{k: (round(v, 6) if isinstance(v, float) else v) for k, v in j.items()},
-            "constant": names[const], "per_context_constant": {c: names[i] for c, i in table.items()}}
+    chosen, by_context = choose(pred), apply_context_choice(table, contexts_test, const)
+    j = judge(y_test, chosen, const, by_context)
+    out = {**{k: (round(v, 6) if isinstance(v, float) else v) for k, v in j.items()},
+           "constant": names[const], "per_context_constant": {c: names[i] for c, i in table.items()}}
+    if sequences_test is not None and len(y_test):
+        out["minus_constant"] = regret_gap(y_test, chosen, np.full(len(y_test), const), sequences_test, resamples)
+        out["minus_context"] = regret_gap(y_test, chosen, by_context, sequences_test, resamples)
+    return out
 
 
 def _write_csv(path: Path, rows: list[dict]) -> None:
@@ -374,6 +395,10 @@ def train_gate(run_dir, data, cfg: GateTrainConfig, progress: bool = True, fresh
     reader = DatasetReader(data)
     frames = gate_frames(run_cfg, data, cfg.targets, cfg.val_fraction, cfg.seed, "train-gate")
     fit_idx, val_idx, test_idx = frames.fit, frames.val, frames.test
+    if cfg.fit_frames:
+        from study.selection import fewer_frames
+
+        fit_idx = fewer_frames(reader, fit_idx, cfg.fit_frames, cfg.seed)
     gd = GateData(run_dir, data, model, cfg.checkpoint, cfg.grid)
     out = Path(out) if out is not None else run_dir / "gates" / cfg.gate
     requested = cfg.targets
@@ -405,7 +430,8 @@ def train_gate(run_dir, data, cfg: GateTrainConfig, progress: bool = True, fresh
         "objective_requested": cfg.objective, "objectives": objectives,
         "tau": fitted["tau"], "selected_on": f"validation {cfg.select_on}", "epochs": cfg.epochs,
         "best_epoch": fitted["best_epoch"], "val_mae": fitted["best_val_mae"], "val_regret": fitted["best_val_regret"],
-        "choice": choice_table(pred, y_fit, y_test, contexts[0], contexts[1], branches),
+        "choice": choice_table(pred, y_fit, y_test, contexts[0], contexts[1], branches,
+                               [reader.manifest["frames"][int(i)]["shard"] for i in test_idx]),
         "train_frames": len(fit_idx), "val_frames": len(val_idx), "test_frames": len(test_idx),
         "test_mae": round(mae(pred, y_test), 6),
         "constant_mean_mae": round(mae(np.broadcast_to(mean_c, y_test.shape), y_test), 6),

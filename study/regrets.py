@@ -129,3 +129,29 @@ def regret_intervals(regret: dict, intervals: dict | None) -> dict:
                 pg = per.get(ctx)
                 v["regret_interval"] = difference_interval(pg, oracle, f"{fam}:{g}") if pg else None
     return regret
+
+
+def learning_curve(run, learned) -> dict:
+    """Each learned HydraFusion gate's test regret against the best constant and the per-context
+    constant as its fitting set grows (`GatesSection.curve`; the gates stage's result.json of each
+    size and of the full gate): {gate: [{fit_frames, regret, constant_regret, context_regret,
+    minus_constant, minus_context}, ...]} by fitting frames (intervals over test sequences)."""
+    import json
+    from pathlib import Path
+
+    out = {}
+    for g in learned:
+        d = Path(run) / "gates" / g
+        paths = [d / "result.json", *sorted((d / "curve").glob("*/result.json"))]
+        rows = []
+        for p in paths:
+            if p.is_file():
+                r = json.loads(p.read_text())
+                c = r.get("choice") or {}
+                rows.append({"fit_frames": r["train_frames"], "objective": r.get("objective"),
+                             "regret": c.get("regret"), "constant_regret": c.get("constant_regret"),
+                             "context_regret": c.get("context_regret"), "minus_constant": c.get("minus_constant"),
+                             "minus_context": c.get("minus_context"), "test_frames": r.get("test_frames")})
+        if len(rows) > 1:
+            out[f"hydrafusion:{g}"] = sorted(rows, key=lambda x: x["fit_frames"])
+    return out

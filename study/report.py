@@ -16,7 +16,14 @@ from pathlib import Path
 
 from study.numbers import interval_text, number_text
 from study.outputs import write_text_atomic
-from study.report_bounds import add_coverage, add_optimal_appendix, add_room, main_methods, named
+from study.report_bounds import (
+    add_coverage,
+    add_learning_curve,
+    add_optimal_appendix,
+    add_room,
+    main_methods,
+    named,
+)
 
 REPORT_VERSION = 2
 
@@ -149,6 +156,7 @@ def build(results: dict, context: dict, work: Path, eval_dir: Path) -> tuple[Doc
     add_range_bins(doc, r, tag)
     add_gate_regret(doc, r, tag)
     add_gate_training(doc, r, tag)
+    add_learning_curve(doc, r, tag)
     add_fusion_regret(doc, r, tag)
     add_gate_picks(doc, r, tag)
     add_robustness(doc, r, tag)

@@ -91,3 +91,26 @@ def add_optimal_appendix(doc, r: dict, tag: str) -> None:
                   ["fusion", *[f"k={k}" for k in ks]],
                   [[f, *[row.get(k) for k in ks]] for f, row in r["hydra_table6"]["optimal"].items()])
 
+
+def add_learning_curve(doc, r: dict, tag: str) -> None:
+    """Each learned HydraFusion gate's test regret as its fitting set grows (`study.regrets.learning_curve`),
+    beside the best constant and the per-context constant fitted on the same frames, with the intervals
+    of the differences over test sequences."""
+    curves = r.get("learning_curve")
+    if not curves:
+        return
+    doc.h(2, "Learning curve: gate regret against the constants as the gate set grows")
+    doc.p("Each learned HydraFusion gate trained again on fewer whole sequences per context of its fitting frames "
+          "(`gates.curve`), validated and tested on the same frames as the full gate. Regret: the mean per-branch "
+          "loss of the gate's one choice per frame minus the oracle's; gate minus constant below 0 (interval "
+          "excluding it) = the gate chooses better than the best constant fitted on the same frames.")
+
+    def iv(x):
+        return "-" if not x else f"{number_text(x['estimate'])} {interval_text(x['interval'], signed=True)}"
+
+    rows = [[g, c["fit_frames"], c["objective"], number_text(c["regret"]), number_text(c["constant_regret"]),
+             number_text(c["context_regret"]), iv(c.get("minus_constant")), iv(c.get("minus_context"))]
+            for g, cs in curves.items() for c in cs]
+    doc.table(f"Learning curve of the learned gates' test regret ({tag})",
+              ["gate", "fitting frames", "objective kept", "regret", "best constant's", "per-context constant's",
+               "gate minus constant", "gate minus per-context constant"], rows)

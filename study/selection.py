@@ -97,6 +97,31 @@ def validation_split(reader, indices, fraction: float, seed: int) -> tuple[list[
     return carve_sequences(reader, indices, count, np.random.default_rng([seed, 7]))
 
 
+def fewer_frames(reader, indices, n: int, seed: int) -> list[int]:
+    """About `n` of `indices` as whole sequences (shards), the same number from each context (at least
+    one sequence each), the sequences of a context in a seeded order: a smaller fitting set of the
+    same design, for the gates' learning curve (`GateTrainConfig.fit_frames`). All of them when `n`
+    is not below their number."""
+    from collections import defaultdict
+
+    if n >= len(indices):
+        return sorted(int(i) for i in indices)
+    shards: dict = defaultdict(lambda: defaultdict(list))
+    for i in indices:
+        f = reader.manifest["frames"][int(i)]
+        shards[f["context"]][f["shard"]].append(int(i))
+    rng = np.random.default_rng([seed, 11])
+    out: list[int] = []
+    per_context = n / len(shards)
+    for context in sorted(shards):
+        names = sorted(shards[context])
+        rng.shuffle(names)
+        length = np.mean([len(shards[context][x]) for x in names])
+        for name in names[:max(1, int(round(per_context / length)))]:
+            out.extend(shards[context][name])
+    return sorted(out)
+
+
 @dataclass(frozen=True)
 class GateFrames:
     """A run's frames as its gates use them: `fit` (what a gate learns from), `val` (what its epoch,

@@ -208,6 +208,12 @@ def gates_stage(work: Path, gatedata_run: Path, data: Path, gates: GatesSection,
         say(f"gates: HydraFusion {gate} gate")
         out[f"hydra_{gate}"] = train_gate(run, data, gate_cfg, progress=progress, setup=setup)
         digests[f"hydra_{gate}"] = file_sha256(run / "gates" / gate / "gate.pt")
+        for n in sorted(c for c in g.curve if c < out[f"hydra_{gate}"]["train_frames"]):
+            say(f"gates: HydraFusion {gate} gate on {n} of the fitting frames (the learning curve)")
+            d = run / "gates" / gate / "curve" / str(n)
+            out[f"hydra_{gate}_curve_{n}"] = train_gate(run, data, dataclasses.replace(gate_cfg, fit_frames=n),
+                                                        progress=progress, setup=setup, out=d)
+            digests[f"hydra_{gate}_curve_{n}"] = file_sha256(d / "gate.pt")
         if compare:
             say(f"gates: HydraFusion {gate} gate on the detectors' training frames (the comparison)")
             d = run / "gates" / gate / IN_SAMPLE
@@ -376,7 +382,8 @@ def run_study(cfg: StudyConfig, out: str | Path, until: str = "report", progress
         return _finish(study, result, t_start)
 
     gate_data = gdr.dir / "data" if len(gate_parts) > 1 else data
-    gt = study.stage("gates", {"gates": to_dict(cfg.gates), **ident("gates")}, (gdr,), gates_stage,
+    gates_inputs = {k: v for k, v in to_dict(cfg.gates).items() if v or k != "curve"}  # unset: the keys as before
+    gt = study.stage("gates", {"gates": gates_inputs, **ident("gates")}, (gdr,), gates_stage,
                      gatedata_run=gdr.dir / "run", data=gate_data, gates=cfg.gates, settings=settings, setup=eval_setup,
                      say=study.say, progress=progress)
     if last < 4:

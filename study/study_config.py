@@ -240,6 +240,10 @@ class GatesSection:
             targets change (under RUN/gates/<gate>/in_sample/ and RUN/eco/gates/<gate>/in_sample/).
         eco_max_frames: at most this many frames of each split for EcoFusion (0 = all).
         fusion: late fusion of an EcoFusion configuration (nms | soft-nms | wbf; EcoFusion 4.4: wbf).
+        curve: fitting-frame counts below the gate set's (e.g. [96, 384]) at which each learned
+            HydraFusion gate is trained again on fewer whole sequences per context
+            (`GateTrainConfig.fit_frames`), validated and tested on the same frames: the learning
+            curve of its regret against the best constant and the per-context constant.
         energy_frames, energy_repeats, energy_check: the latency measurement (eco-energy).
     """
 
@@ -258,9 +262,13 @@ class GatesSection:
     energy_frames: int = 3
     energy_repeats: int = 3
     energy_check: int = 12
+    curve: tuple[int, ...] = ()
 
     def __post_init__(self) -> None:
         from fusion.nets.branch_gates import trainable_gates  # the gate registry says which gates learn
+
+        if any(n < 1 for n in self.curve) or len(set(self.curve)) != len(self.curve):
+            raise UserError(f"gates.curve: distinct frame counts >= 1, got {list(self.curve)}")
 
         if bad := [g for g in self.gates if g not in trainable_gates()]:
             raise UserError(f"gates.gates: {bad[0]!r} is not a learned gate (choose from: {', '.join(trainable_gates())})")

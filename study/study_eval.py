@@ -170,6 +170,9 @@ def evaluate_study(run, run_early, data, cfg, s, work: Path, setup=None, progres
         fusion_regret=fusion_regret(M, ev, scores, late, contexts), picks=gate_selection_shares(selections, contexts),
         severity_clear_twins=twins is not None)
     record["gate_training"] = gate_training(run, s, learned)
+    from study.regrets import learning_curve
+
+    record["learning_curve"] = learning_curve(run, learned)
     record["lambda_front"] = lambda_front(eco_tables, ev)
     record["bounds"] = bounds
     record["best_single"] = best_single_on_validation(val, singles, method, log)

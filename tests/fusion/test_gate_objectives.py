@@ -138,3 +138,19 @@ def test_each_objective_learns_a_choice_that_depends_on_a_feature_and_beats_the_
     # the constant's 0.230; expected regret learns slowest (its gradient fades once p is peaked)
     assert j["regret"] < 0.5 * j["constant_regret"], j
     assert (choice == best_test).mean() > 0.6
+
+
+def test_the_regret_gap_is_the_paired_difference_with_a_sequence_interval():
+    from fusion.gate_objectives import regret, regret_gap
+
+    rng = np.random.default_rng(5)
+    costs = rng.uniform(0, 1, (600, 3))
+    costs[:, 0] -= 0.2  # choice 0 is the best constant; a gate that knows the frame beats it
+    best = costs.argmin(1)
+    groups = np.repeat(np.arange(200), 3)  # 200 sequences of 3 frames
+    g = regret_gap(costs, best, np.zeros(600, int), groups, resamples=400)
+    assert g["estimate"] == pytest.approx(regret(costs, best) - regret(costs, np.zeros(600, int)), abs=1e-6)
+    lo, hi = g["interval"]
+    assert lo < g["estimate"] < hi < 0 and g["groups"] == 200  # the oracle regrets less: resolved below 0
+    same = regret_gap(costs, best, best, groups, resamples=50)
+    assert same["estimate"] == 0 and same["interval"] == [0, 0]

@@ -125,3 +125,20 @@ def test_training_with_a_gate_holdout_never_reads_the_gate_split(split_data, tmp
     bad = training.TrainConfig(data=str(split_data), branches=("radar",), branch_set="single", gate_holdout=1.0)
     with pytest.raises(training.UserError, match="gate-holdout"):
         training.train(bad, tmp_path / "bad", progress=False)
+
+
+def test_fewer_frames_takes_whole_sequences_evenly_from_each_context():
+    from study.selection import fewer_frames
+
+    class Reader:  # 2 contexts x 6 sequences of 4 frames
+        manifest = {"frames": [{"context": c, "shard": f"{c}-{s}"} for c in ("fog", "city") for s in range(6)
+                               for _ in range(4)]}
+
+    everything = list(range(48))
+    some = fewer_frames(Reader, everything, 16, seed=0)
+    frames = [Reader.manifest["frames"][i] for i in some]
+    assert len(some) == 16 and {f["context"] for f in frames} == {"fog", "city"}
+    assert all(sum(f["shard"] == s for f in frames) == 4 for s in {f["shard"] for f in frames})  # whole sequences
+    assert sum(f["context"] == "fog" for f in frames) == 8
+    assert fewer_frames(Reader, everything, 16, seed=0) == some and fewer_frames(Reader, everything, 16, seed=1) != some
+    assert fewer_frames(Reader, everything, 100, seed=0) == everything

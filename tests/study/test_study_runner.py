@@ -330,7 +330,8 @@ def test_a_gate_set_and_a_test_set_run_end_to_end_on_the_tiny_detectors(tiny, tm
     cfg = tiny["cfg"]
     cfg = dataclasses.replace(
         cfg, data=dataclasses.replace(cfg.data, gate=SetSection(4, 1, 5), test=SetSection(3, 1, 6)),
-        gates=dataclasses.replace(cfg.gates, gates=("attention",), epochs=1, val_fraction=0.5, compare_targets=False),
+        gates=dataclasses.replace(cfg.gates, gates=("attention",), epochs=1, val_fraction=0.5, compare_targets=False,
+                                  curve=(2,)),
         evaluate=dataclasses.replace(cfg.evaluate, twins=False, bootstrap=0))
     from study.stage_cache import Study
 
@@ -352,6 +353,10 @@ def test_a_gate_set_and_a_test_set_run_end_to_end_on_the_tiny_detectors(tiny, tm
     assert all(c["on"] == "validation" and c["frames"] == 4 for c in res["choices"])
     for v in res["gate_training"].values():
         assert v["targets"] == "holdout" and v["train_frames"] == 4
+    # the learning curve: the gate again on 2 of its 4 fitting frames (one sequence per context), same test frames
+    curve = res["learning_curve"]["hydrafusion:attention"]
+    assert [c["fit_frames"] for c in curve] == [2, 4] and len({c["test_frames"] for c in curve}) == 1
+    assert all(len(c["minus_constant"]["interval"]) == 2 for c in curve)
     view = Path(r["stages"]["evaluate"]["dir"]) / "data"
     manifest = json.loads((view / "manifest.json").read_text())
     assert list(manifest["parts"]) == ["detectors", "gate", "test"]
