@@ -17,11 +17,13 @@ DIR/report.json hold the results.
 examples:
   hydrabench study smoke --out out/smoke                 (minutes; numbers mean nothing)
   hydrabench study cpu --out out/cpu --json > cpu.json   (the first 2-core study: ~75 min on 2 cores)
-  hydrabench study cpu-frontier --out out/cpu-frontier   (the README's: the same with the budget frontier's recipe)
+  hydrabench study cpu-frontier --out out/cpu-frontier   (the same with the budget frontier's recipe)
+  hydrabench study cpu-verdict --out out/cpu-verdict     (its detectors adopted, a gate set and a test set sized
+                                                          to replicate: ~1.5 h)
   hydrabench study cpu-long --out out/cpu-long           (the same at the reference runs' size: days)
   hydrabench study paper --out out/paper --device cuda   (for a GPU)
   hydrabench study my_study.yaml --out out/mine --until train
-presets: configs/study/*.yaml (tiny, smoke, cpu, cpu-frontier, cpu-long, paper); a YAML file takes the same keys (unknown keys
+presets: configs/study/*.yaml (tiny, smoke, cpu, cpu-frontier, cpu-verdict, cpu-long, paper); a YAML file takes the same keys (unknown keys
 are errors).
 """
 
@@ -31,7 +33,7 @@ def add_parser(sub, name, help_text):
 
     p = sub.add_parser(name, help=help_text, description=stages.__doc__, epilog=EPILOG, formatter_class=Formatter)
     p.add_argument("config", metavar="CONFIG", type=study_config,
-                   help="a preset (tiny, smoke, cpu, cpu-frontier, cpu-long, paper) or a YAML file of StudyConfig fields")
+                   help="a preset (tiny, smoke, cpu, cpu-frontier, cpu-verdict, cpu-long, paper) or a YAML file of StudyConfig fields")
     p.add_argument("--out", required=True, type=out_dir,
                    help="study directory (created; an existing study is continued; a folder of other files is refused)")
     p.add_argument("--until", default="report", choices=list(stages.STAGES), help="stop after this stage")
