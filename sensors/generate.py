@@ -9,6 +9,7 @@ the manifest last, so an interrupted run (even kill -9) is completed by running 
 
 from __future__ import annotations
 
+import contextlib
 import math
 import os
 import shutil
@@ -282,6 +283,30 @@ def _start_pool(ctx, workers: int, threads: int):
         signal.pthread_sigmask(signal.SIG_SETMASK, old)
 
 
+@contextlib.contextmanager
+def _ctrl_c_as_flag():
+    """While the pool runs, SIGINT sets an event that the waiting loop turns into KeyboardInterrupt.
+
+    Python raises KeyboardInterrupt wherever the main thread happens to be when the signal's handler
+    runs; inside a finalizer or a weakref callback (the pool's and its results' are many) the
+    exception is printed as "Exception ignored" and lost, and the run went on to the end with exit
+    0. A flag cannot be lost. In a thread other than the main one, or where SIGINT is ignored, the
+    handler is left as it is (the event then never fires)."""
+    import threading
+
+    flag = threading.Event()
+    if threading.current_thread() is not threading.main_thread() or signal.getsignal(signal.SIGINT) is signal.SIG_IGN:
+        yield flag
+        return
+    old = signal.signal(signal.SIGINT, lambda signum, frame: flag.set())
+    try:
+        yield flag
+    finally:
+        signal.signal(signal.SIGINT, old)
+    if flag.is_set():  # a Ctrl-C while the pool was stopping (after the last result): still an interrupt
+        raise KeyboardInterrupt
+
+
 def shard_files(config_dict: dict, spec_dict: dict) -> tuple[dict, dict[str, bytes]]:
     """A Ray task's body (`sensors.ray_backend.run_shards`): render one shard in a scratch
     directory and return (its record, {path relative to the shard directory: bytes})."""
@@ -403,9 +428,13 @@ def generate(config: GenerateConfig, out: str | Path, workers: int = 1, progress
                 method = pool_method
                 ctx = mp.get_context(method)
                 threads = max(1, (os.cpu_count() or 1) // workers)
-                with _start_pool(ctx, workers, threads) as pool:
+                with _ctrl_c_as_flag() as interrupted, _start_pool(ctx, workers, threads) as pool:
                     results = [pool.apply_async(generate_shard, (cfg, asdict(s), str(root))) for s in todo]
                     for r in results:
+                        while not r.ready() and not interrupted.is_set():
+                            r.wait(0.2)
+                        if interrupted.is_set():
+                            raise KeyboardInterrupt
                         collect(r.get())
             bar.close()
             seconds = time.perf_counter() - t0
