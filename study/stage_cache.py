@@ -85,12 +85,17 @@ class Study:
         self.stages_dir.mkdir(parents=True, exist_ok=True)
         write_json_atomic(self.out / MARKER, {"version": STUDY_VERSION, "config": to_dict(self.cfg)}, default=str)
 
+    @staticmethod
+    def key(name: str, inputs: dict) -> str:
+        """The key of stage `name` made of `inputs` (with their "upstream" part): 16 hex digits."""
+        return _digest({"stage": name, "version": STUDY_VERSION, **inputs})[:16]
+
     def stage(self, name: str, inputs: dict, upstream: tuple[StageRecord, ...], func, **kwargs) -> StageRecord:
         """Run `func(work_dir, **kwargs) -> (outputs digest, extra manifest fields)` unless the stage
         with this key is done. The key is made of `inputs` (with what `stage_identity` adds) and the
         key and digest of each `upstream` stage; see the module docstring."""
         inputs = {**inputs, "upstream": {r.name: {"key": r.key, "digest": r.digest} for r in upstream}}
-        key = _digest({"stage": name, "version": STUDY_VERSION, **inputs})[:16]
+        key = self.key(name, inputs)
         final = self.stages_dir / f"{name}-{key}"
         partial = self.stages_dir / f"{name}-{key}.partial"
         rec = StageRecord(name, key, final)

@@ -40,7 +40,7 @@ from sim.config import to_dict
 from sim.errors import UserError
 from study.gate_data import file_sha256
 from study.outputs import atomic_path, write_json_atomic
-from study.stage_cache import Study, _digest, link_farm
+from study.stage_cache import StageRecord, Study, _digest, link_farm
 
 if TYPE_CHECKING:  # the config imports torch (TrainConfig); `hydrabench study --help` reads STAGES from here
     from study.study_config import GatesSection, StudyConfig, TrainSection
@@ -81,6 +81,22 @@ def generate_stage(work: Path, gcfg, workers: int, backend: str, progress: bool)
     generate(gcfg, work / "data", workers=workers, progress=progress, backend=backend)
     manifest = work / "data" / "manifest.json"
     return file_sha256(manifest), {"frames": len(json.loads(manifest.read_text())["frames"])}
+
+
+def _paper_view(tr: StageRecord, inputs: dict, gen: StageRecord) -> StageRecord:
+    """The train stage as the gate stages read it: the paper's branches alone. With
+    `train.early_fusion` its record is the key and digest the train stage would have without the
+    early-fusion model (the same inputs with early_fusion false and no train.early_detectors), so
+    that adding, adopting or retraining the early-fusion model reruns only the evaluation, never the
+    gate data and gates of the same paper detectors. Without early fusion it is the train stage."""
+    t = inputs["train"]
+    if not t.get("early_fusion"):
+        return tr
+    paper_only = {**inputs, "train": {k: v for k, v in {**t, "early_fusion": False}.items() if k != "early_detectors"}}
+    paper_only = {k: v for k, v in paper_only.items() if k != "early_detectors_sha256"}
+    key = Study.key("train", {**paper_only, "upstream": {gen.name: {"key": gen.key, "digest": gen.digest}}})
+    paper_sha = tr.manifest["checkpoints_sha256"]["paper"]
+    return StageRecord(tr.name, key, tr.dir, tr.status, tr.seconds, _digest({"paper": paper_sha}), tr.manifest)
 
 
 def train_stage(work: Path, data: Path, train_cfg: TrainSection, profile: str, setup, say,
@@ -367,6 +383,7 @@ def run_study(cfg: StudyConfig, out: str | Path, until: str = "report", progress
                      train_stage, data=data, train_cfg=cfg.train, profile=cfg.profile, setup=setup, say=study.say,
                      progress=progress)
     run_early = tr.dir / "early" if cfg.train.early_fusion else None
+    tr_paper = _paper_view(tr, {"profile": cfg.profile, "train": train_inputs, **ident("train")}, gen)
     if last < 2:
         return _finish(study, result, t_start)
 
@@ -374,7 +391,7 @@ def run_study(cfg: StudyConfig, out: str | Path, until: str = "report", progress
     gdr = study.stage("gatedata", {"eco_max_frames": cfg.gates.eco_max_frames, "fusion": cfg.gates.fusion,
                                    "batch_size": cfg.train.batch_size, "val_fraction": cfg.gates.val_fraction,
                                    "seed": cfg.gates.seed, **ident("gatedata")},
-                      (tr, *(sets[p] for p in gate_parts if p != "detectors")),
+                      (tr_paper, *(sets[p] for p in gate_parts if p != "detectors")),
                       gatedata_stage, run_paper=tr.dir / "paper", parts=gate_parts, settings=settings,
                       batch_size=cfg.train.batch_size, setup=eval_setup, progress=progress,
                       val_fraction=cfg.gates.val_fraction, seed=cfg.gates.seed)

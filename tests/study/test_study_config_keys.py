@@ -39,6 +39,8 @@ def config_keys(preset: str, out: Path, patch) -> dict:
             if name == "report":
                 for f in ("report.md", "report.html", "report.json"):
                     (work_dir / f).write_text("{}")
+            if name == "train":  # the paper's checkpoint digest: what the gate stages read (stages._paper_view)
+                return f"digest-of-{name}", {"checkpoints_sha256": {"paper": "digest-of-paper"}}
             return f"digest-of-{name}", {}
         return work
 

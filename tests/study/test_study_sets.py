@@ -36,6 +36,10 @@ def fake_stages(monkeypatch):
             if name == "report":
                 for f in ("report.md", "report.html", "report.json"):
                     (work_dir / f).write_text("{}")
+            if name == "train":  # as train_stage: the digest of its checkpoints' digests
+                t = kwargs["train_cfg"]
+                cps = {"paper": "sha-of-paper", **({"early": f"sha-of-early-{t.epochs}"} if t.early_fusion else {})}
+                return stage_cache._digest(cps), {"checkpoints_sha256": cps}
             return f"digest-of-{work_dir.name.split('-')[0]}", {}
 
         return work
@@ -79,6 +83,24 @@ def test_enlarging_the_gate_set_reruns_the_gates_and_below_and_trains_nothing(fa
     fake_stages.clear()
     run_study(_with_sets(load_study_config("tiny"), gate=SetSection(8, 2, 11)), tmp_path / "s", progress=False)
     assert fake_stages == ["gateset", "gatedata", "gates", "evaluate", "report"]
+
+
+def test_adding_or_retraining_the_early_fusion_model_reruns_no_gate_stage(fake_stages, tmp_path):
+    """The gate stages read the paper's branches alone (`stages._paper_view`): the early-fusion
+    model is evaluated, never read by the gate data or the gates."""
+    tiny = _with_sets(load_study_config("tiny"))
+    without = dataclasses.replace(tiny, train=dataclasses.replace(tiny.train, early_fusion=False))
+    first = run_study(without, tmp_path / "s", progress=False)
+    fake_stages.clear()
+    second = run_study(tiny, tmp_path / "s", progress=False)
+    assert fake_stages == ["train", "evaluate", "report"]
+    fake_stages.clear()
+    longer = dataclasses.replace(tiny, train=dataclasses.replace(tiny.train, epochs=tiny.train.epochs + 1))
+    run_study(longer, tmp_path / "s", progress=False)  # the paper's branches train again too: everything below
+    assert fake_stages == ["train", "gatedata", "gates", "evaluate", "report"]
+    for name in ("gatedata", "gates"):
+        assert second["stages"][name]["key"] == first["stages"][name]["key"], name
+    assert second["stages"]["train"]["key"] != first["stages"]["train"]["key"]
 
 
 def test_a_study_without_sets_has_the_stages_it_had(fake_stages, tmp_path):
