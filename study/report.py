@@ -149,6 +149,7 @@ def build(results: dict, context: dict, work: Path, eval_dir: Path) -> tuple[Doc
     add_coverage(doc, r, tag)
     add_hydra_table3(doc, r, tag)
     add_hydra_table4(doc, r, tag)
+    front = add_energy_front(doc, r, tag, work)
     add_hydra_table5(doc, r, tag)
     add_hydra_tables_6_7(doc, r, tag)
     add_eco_tables(doc, r, tag, eval_dir)
@@ -164,7 +165,8 @@ def build(results: dict, context: dict, work: Path, eval_dir: Path) -> tuple[Doc
     add_optimal_appendix(doc, r, tag)
     add_stages(doc, context, tag)
     summary = {"scale": context["scale"], "meaningless": bool(context.get("meaningless")), "protocol": r["protocol"],
-               "dataset": r["dataset"], "machine": r["machine"], "device": r.get("device"), "tag": tag}
+               "dataset": r["dataset"], "machine": r["machine"], "device": r.get("device"), "tag": tag,
+               **({"energy_front": front} if front else {})}
     return doc, summary
 
 
@@ -323,6 +325,35 @@ def add_hydra_table4(doc: Doc, r: dict, tag: str) -> None:
                                               "energy (lambda_E scale)"],
               [[n, v["branches"], v["latency_ms"], v.get("gate_ms", v.get("gate_stems_ms", 0.0)), v["energy_j"],
                 v["energy"]] for n, v in r["hydra_table4"].items()])
+
+
+def add_energy_front(doc: Doc, r: dict, tag: str, work: Path) -> dict | None:
+    """The mAP-energy front of the fixed configurations with every gate placed on it
+    (`study.energy_front`); returns the record for report.json (None without costs or intervals)."""
+    from study.energy_front import energy_front, front_figure, front_sentence
+
+    front = energy_front(r)
+    if front is None:
+        return None
+    doc.h(2, "The mAP-energy front: where a gate is worth running")
+    doc.p("A gate is worth running only where it lies above what a fixed configuration gives for the same "
+          "energy or less. Fixed configurations: the methods that run the same branches on every frame (each single "
+          "sensor, late fusion, all_branches, the early-fusion models where measured); their front is the Pareto "
+          "set of (energy, mAP). Each other method is compared, by the study's paired sequence bootstrap, with the "
+          "most accurate fixed configuration that costs no more (against); time-sharing between two front "
+          "configurations would reach the chord between them, given as a point value (not scored, no interval). "
+          "Energy: Table 4's mean per frame. A fixed configuration's energy is the same on every frame; a gate's "
+          "varies with its choices, and its between-sequence interval is not computed (per-frame choices are not "
+          "stored), so energy carries no interval here. " + front_sentence(front))
+    doc.table(f"Each method against the front at its energy, mAP@0.5 ({tag})",
+              ["method", "energy [lambda_E scale]", "mAP", "against (front)", "minus against", "95 % interval",
+               "minus chord (point)", "verdict"],
+              [[p["what"], p["energy"], p["map"], p["against"] or "-", number_text(p["point"]),
+                interval_text(p["minus_front"], signed=True), number_text(p["minus_chord"]), p["verdict"]]
+               for p in front["placed"].values()])
+    path = front_figure(front, work / "energy_front.png")
+    doc.img(f"mAP@0.5 against energy: the fixed configurations' front and every method placed on it ({tag})", path)
+    return front
 
 
 def add_hydra_table5(doc: Doc, r: dict, tag: str) -> None:
