@@ -8,7 +8,9 @@ beside it; then, in the right camera, with one late-fusion method (`--fusion`, f
 - selective: HydraFusion's gates (Table 2 (iv)): each frame's top-k branches by the gate's
   predicted loss, fused. `knowledge` reads the frame's context label; `deep` and `attention` read
   the stem features (trained with `hydrabench train-gate`); `optimal` reads the frame's own
-  a-posteriori branch losses (the oracle: no deployable gate does better at choosing by loss).
+  a-posteriori branch losses (it uses the frame's own ground truth, so it is not achievable; and
+  it is no bound either: BEV and camera branch losses are not comparable, so its top k is not the
+  best k, `study.bounds.OPTIMAL_APPENDIX`).
 
 Every method is scored on the same frames (VOC mAP@0.5, all classes, the run's protocol) and
 compared with `late` by the paired sequence bootstrap (`study.scoring.context_bootstrap`): whole
@@ -72,7 +74,8 @@ def compare(run_dir, data, *, gates=GATES, k: int = 2, fusion: str = "soft-nms",
     for g in trained:
         name = f"hydrafusion:{g}"
         kinds[name] = (f"{g} gate, top {k} of {len(branches)} per frame"
-                       + (" (oracle: reads each frame's own losses)" if g == "optimal" else ""))
+                       + (" (a-posteriori: reads each frame's own ground-truth losses, not achievable)"
+                          if g == "optimal" else ""))
         selections[name] = gp.selection(g, k)
     sources = {name: fuse_selection(gp.per_frame, selection, frames, method) for name, selection in selections.items()}
     scores = {n: score(s, reader, "camera_right", protocol=protocol) for n, s in sources.items()}

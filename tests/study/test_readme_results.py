@@ -511,6 +511,21 @@ def test_the_compare_tables_of_the_reference_model_are_their_files():
     assert f"{min(seqs)} to {max(seqs)} per condition and severity" in doc.read_text()
 
 
+def test_make_demos_comparison_table_is_its_file():
+    """docs/reference_model.md: make demo's `hydrabench compare cpu-frontier demo/test` (issue 36,
+    item 8: 64 sequences, seed 1 fixed in advance), from results/compare_cpu_frontier_demo_2026-12-05.json;
+    the Makefile runs that model."""
+    doc = ROOT / "docs" / "reference_model.md"
+    demo = _load("compare_cpu_frontier_demo_2026-12-05.json")
+    rows = table(doc, "| method | mAP@0.5 (make demo's 192 frames, `cpu-frontier`) |")
+    assert set(rows) == set(demo["methods"]) and demo["frames"] == 192 and demo["sequences"] == 64
+    assert demo["run"].split("/")[-1].startswith("cpu-frontier-") and not demo["gates_not_trained"]
+    for name, m in demo["methods"].items():
+        assert rows[name] == [f"{m['map']:.3f}", _cmp_cell(m.get("minus_late")), _cmp_cell(m.get("minus_all_branches"))]
+    assert "hydrabench compare cpu-frontier $(DEMO)/test" in (ROOT / "Makefile").read_text()
+    assert "--seed 1 " in next(x for x in (ROOT / "Makefile").read_text().splitlines() if "$(DEMO)/test --" in x)
+
+
 def test_the_readme_names_only_report_files_the_repository_has():
     import re
 
