@@ -27,7 +27,7 @@ import numpy as np
 
 from fusion.bounds import best_constant_map, best_constant_per_stratum, bootstrap_table, composite
 from fusion.intervals import bootstrap_p_value, percentile_interval
-from fusion.metrics import ImageMatches
+from fusion.metrics import ImageMatches, sequence_draws
 from study.numbers import rounded, rounded_interval
 
 A_POSTERIORI = ("hydrafusion:optimal", "ecofusion:loss_based")
@@ -134,6 +134,38 @@ class StudyMatches:
         return out
 
 
+def front_record(sm: StudyMatches, scores: Mapping[str, dict], placed: Sequence[str],
+                 energy: Mapping[str, np.ndarray], resamples: int, seed: int = 0) -> dict:
+    """What `study.energy_front` draws the mAP-energy front from: every fixed configuration (the
+    context oracle's candidates: each single sensor, each EcoFusion configuration, late fusion, all
+    branches) and every method `placed` on the front, each with its mAP, its mean energy per frame
+    (`energy`: per test frame, rows in test order) and their 95 % intervals, and each pair's mAP
+    difference; all from the same draws of whole test sequences as the study's overall intervals
+    (all test frames, `seed`), the context oracle re-chosen inside each draw. A method's mAP is its
+    score (`scores`), a configuration that is no method's is scored from its matching, as the context
+    oracle's candidates are."""
+    names = [*sm.candidates, *[n for n in placed if n not in sm.candidates]]
+    plain = [n for n in names if n != CONTEXT_ORACLE]
+    derived = {}
+    if CONTEXT_ORACLE in names:
+        cands = list(sm.candidates)
+        derived[CONTEXT_ORACLE] = lambda rows: best_constant_map(sm.matches, cands, rows, sm.contexts)
+    cols = plain + list(derived)
+    by_seq: dict = {}
+    for r, q in enumerate(sm.sequences):
+        by_seq.setdefault(q, []).append(r)
+    rec = group_record(bootstrap_table(sm.matches, plain, by_seq, resamples, seed, derived), cols, len(by_seq))
+    e_draws = np.array([[float(np.mean(energy[n][picks])) for n in cols]
+                        for picks in sequence_draws(by_seq, resamples, seed)])
+    everything = list(range(len(sm.contexts)))
+    return {"configurations": {n: list(b) for n, b in sm.candidates.items()}, "placed": list(placed),
+            "map_point": {n: rounded(scores[n]["map"] if n in scores else sm.matches[n].mean_ap(everything))
+                          for n in cols},
+            "energy_point": {n: rounded(float(np.mean(energy[n]))) for n in cols},
+            "energy_ci95": {n: rounded_interval(percentile_interval(e_draws[:, i])) for i, n in enumerate(cols)},
+            **rec, "resamples": int(resamples), "seed": int(seed)}
+
+
 def group_record(draws: np.ndarray, names: Sequence[str], sequences: int) -> dict:
     """One group's intervals from its draws (resamples, names): each name's mAP, each pair's
     difference (stored once, "a - b" in `names`' order) and its two-sided bootstrap p-value."""
@@ -216,7 +248,7 @@ def best_single_on_validation(val, singles: Sequence[str], method: str, log) -> 
 
 
 def evaluate_bounds(M, ev, selections: dict, kinds: dict, scores: dict, early_fused: dict, singles, late,
-                    learned, resamples: int) -> tuple[dict | None, dict]:
+                    learned, resamples: int, energy_of=None) -> tuple[dict | None, dict]:
     """Add the context oracle to `selections`, `kinds` and `scores` (scored by `M.score` like every
     method), and return the study's intervals (every method and the early models, `StudyMatches.intervals`;
     None when `resamples` is 0) and the bounds record (the choice, room for context, the coverage).
@@ -242,4 +274,8 @@ def evaluate_bounds(M, ev, selections: dict, kinds: dict, scores: dict, early_fu
               "a_posteriori": {n: A_POSTERIORI_LABEL for n in A_POSTERIORI if n in scores},
               "optimal_appendix": OPTIMAL_APPENDIX if "hydrafusion:optimal" in scores else None,
               "coverage": coverage}
+    if energy_of is not None and resamples:  # the mAP-energy front (`study.energy_front`)
+        placed = [n for n in selections if n not in candidates]
+        per = {**{n: M.fixed(b) for n, b in candidates.items()}, **{n: selections[n] for n in placed}}
+        record["front"] = front_record(sm, scores, placed, {n: energy_of(n, sel) for n, sel in per.items()}, resamples)
     return intervals, record

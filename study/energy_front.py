@@ -74,8 +74,13 @@ def chord(fixed: dict, front: list[str], energy: float) -> float:
 def energy_front(report: dict) -> dict | None:
     """{"fixed": {name: {energy, map, ci95, on_front}}, "front": [names], "placed": {name: {energy,
     map, ci95, against, minus_front, verdict, what}}, "energy_unit"}; None without a cost table or
-    overall intervals."""
+    overall intervals. From the evaluation's front record (`study.bounds.front_record`: every
+    EcoFusion configuration among the fixed ones, energy intervals) where it has one, otherwise
+    from the methods of the cost table (a report made before that record)."""
     r = _results(report)
+    rec = (r.get("bounds") or {}).get("front")
+    if rec:
+        return _from_record(rec, r)
     costs = r.get("hydra_table4") or {}
     overall = ((r.get("intervals") or {}).get("per_context") or {}).get("all")
     if not costs or not overall:
@@ -92,23 +97,45 @@ def energy_front(report: dict) -> dict | None:
     front = pareto({n: (p["energy"], p["map"]) for n, p in fixed.items()})
     for n, p in fixed.items():
         p["on_front"] = n in front
-    placed = {}
-    for n in named:
-        if n in fixed:
-            continue
-        p = point(n)
-        cheaper = [f for f in front if fixed[f]["energy"] <= p["energy"]]
-        against = cheaper[-1] if cheaper else None  # the front is sorted by energy, accuracy rising
-        iv = _difference(diffs, n, against) if against else None
-        verdict = ("cheaper than every fixed configuration" if against is None else
-                   "no interval" if iv is None else
-                   "above the front" if iv[0] > 0 else "below the front" if iv[1] < 0 else "not resolved")
-        placed[n] = {**p, "against": against, "minus_front": iv, "verdict": verdict, "what": label(n),
-                     "minus_chord": round(p["map"] - chord(fixed, front, p["energy"]), 4),
-                     "bound": n in A_POSTERIORI or n == CONTEXT_ORACLE,
-                     "point": None if against is None else round(p["map"] - fixed[against]["map"], 4)}
+    placed = {n: _placed(n, point(n), fixed, front, diffs) for n in named if n not in fixed}
     return {"fixed": fixed, "front": front, "placed": placed, "energy_unit": r.get("energy_unit", ""),
-            "sequences": overall.get("sequences")}
+            "sequences": overall.get("sequences"),
+            "configurations": "the fixed methods of the cost table (a report made before every EcoFusion configuration "
+                              "was scored for the front)"}
+
+
+def _from_record(rec: dict, r: dict) -> dict:
+    """`energy_front` from `study.bounds.front_record`: the fixed configurations are its
+    configurations (each single sensor, each EcoFusion configuration, late fusion, all branches)."""
+    diffs = rec["difference"]
+
+    def point(name: str) -> dict:
+        return {"energy": rec["energy_point"][name], "energy_ci95": rec["energy_ci95"][name],
+                "map": rec["map_point"][name], "ci95": rec["map"][name]}
+
+    fixed = {n: point(n) for n in rec["configurations"]}
+    front = pareto({n: (p["energy"], p["map"]) for n, p in fixed.items()})
+    for n, p in fixed.items():
+        p["on_front"] = n in front
+    return {"fixed": fixed, "front": front, "placed": {n: _placed(n, point(n), fixed, front, diffs)
+                                                       for n in rec["placed"]},
+            "energy_unit": r.get("energy_unit", ""), "sequences": rec.get("sequences"),
+            "configurations": "every fixed branch set: each single sensor, each EcoFusion configuration, late "
+                              "fusion, all branches"}
+
+
+def _placed(n: str, p: dict, fixed: dict, front: list[str], diffs: dict) -> dict:
+    """Method `n` (its point `p`) against the most accurate front configuration no dearer than it."""
+    cheaper = [f for f in front if fixed[f]["energy"] <= p["energy"]]
+    against = cheaper[-1] if cheaper else None  # the front is sorted by energy, accuracy rising
+    iv = _difference(diffs, n, against) if against else None
+    verdict = ("cheaper than every fixed configuration" if against is None else
+               "no interval" if iv is None else
+               "above the front" if iv[0] > 0 else "below the front" if iv[1] < 0 else "not resolved")
+    return {**p, "against": against, "minus_front": iv, "verdict": verdict, "what": label(n),
+            "minus_chord": round(p["map"] - chord(fixed, front, p["energy"]), 4),
+            "bound": n in A_POSTERIORI or n == CONTEXT_ORACLE,
+            "point": None if against is None else round(p["map"] - fixed[against]["map"], 4)}
 
 
 def front_sentence(front: dict) -> str:
@@ -128,9 +155,11 @@ def front_sentence(front: dict) -> str:
 
 
 def front_figure(front: dict, path: str | Path, title: str = "") -> Path:
-    """mAP@0.5 against energy: the fixed configurations (squares, the front joined as a staircase),
+    """mAP@0.5 against energy: the fixed configurations (squares, the front joined as a staircase;
+    branch sets off the front and not a single sensor, late or all_branches: small, grey, unnamed),
     every other method placed on it (circles: filled above the front, hollow not resolved, crossed
-    below; grey: bounds that no deployable gate reaches). Vertical bars: 95 % intervals of mAP."""
+    below; grey: bounds that no deployable gate reaches). Bars: 95 % intervals of mAP (vertical)
+    and of energy (horizontal, where the evaluation drew them)."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -147,12 +176,14 @@ def front_figure(front: dict, path: str | Path, title: str = "") -> Path:
     ax.step([*xs, right], [*ys, ys[-1]], where="post", color="black", lw=1.2, alpha=0.7,
             label="front of the fixed configurations")
     for n, p in fx.items():
-        color = FAMILY_COLORS.get(n.split(":", 1)[0], "#444444")
-        if p["ci95"]:
+        named = p["on_front"] or is_fixed(n)  # the front, the singles, late, all_branches; other branch sets unnamed
+        color = FAMILY_COLORS.get(n.split(":", 1)[0], "#444444") if is_fixed(n) else "#bbbbbb"
+        if p["ci95"] and named:
             ax.plot([p["energy"]] * 2, p["ci95"], color=color, lw=1.6, alpha=0.8)
-        ax.plot(p["energy"], p["map"], "s", ms=8, color=color, markeredgecolor="black",
+        ax.plot(p["energy"], p["map"], "s", ms=8 if named else 6, color=color, markeredgecolor="black",
                 markeredgewidth=1.2 if p["on_front"] else 0.4)
-        ax.annotate(n, (p["energy"], p["map"]), textcoords="offset points", xytext=(6, -4), fontsize=8)
+        if named:
+            ax.annotate(n, (p["energy"], p["map"]), textcoords="offset points", xytext=(6, -4), fontsize=8)
     if len(xs) > 1:
         ax.plot(xs, ys, ls="--", color="black", lw=0.8, alpha=0.5,
                 label="time-sharing between front neighbours (point values)")
@@ -164,6 +195,8 @@ def front_figure(front: dict, path: str | Path, title: str = "") -> Path:
         x = p["energy"] * (1 + 0.006 * (i % 3))  # a hair apart: gates at nearly the same energy
         if p["ci95"]:
             ax.plot([x] * 2, p["ci95"], color=color, lw=1.6, alpha=0.8)
+        if p.get("energy_ci95"):
+            ax.plot(p["energy_ci95"], [p["map"]] * 2, color=color, lw=1.6, alpha=0.8)
         marker = "X" if p["verdict"] == "below the front" else "o"
         face = color if p["verdict"] in ("above the front", "below the front") else "white"
         ax.plot(x, p["map"], marker, ms=8, color=color, markerfacecolor=face, markeredgewidth=1.6)

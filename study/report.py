@@ -336,19 +336,22 @@ def add_energy_front(doc: Doc, r: dict, tag: str, work: Path) -> dict | None:
     if front is None:
         return None
     doc.h(2, "The mAP-energy front: where a gate is worth running")
+    with_e = any(p.get("energy_ci95") for p in front["placed"].values())
     doc.p("A gate is worth running only where it lies above what a fixed configuration gives for the same "
-          "energy or less. Fixed configurations: the methods that run the same branches on every frame (each single "
-          "sensor, late fusion, all_branches, the early-fusion models where measured); their front is the Pareto "
+          f"energy or less. Fixed configurations: {front['configurations']}; their front is the Pareto "
           "set of (energy, mAP). Each other method is compared, by the study's paired sequence bootstrap, with the "
           "most accurate fixed configuration that costs no more (against); time-sharing between two front "
           "configurations would reach the chord between them, given as a point value (not scored, no interval). "
-          "Energy: Table 4's mean per frame. A fixed configuration's energy is the same on every frame; a gate's "
-          "varies with its choices, and its between-sequence interval is not computed (per-frame choices are not "
-          "stored), so energy carries no interval here. " + front_sentence(front))
+          "Energy: mean per frame, charged as in Table 4. " +
+          ("Its 95 % interval comes from the same draws of whole test sequences as the mAP's (a fixed "
+           "configuration's energy is the same on every frame, so its interval is a point). " if with_e else
+           "A gate's energy varies with its choices; this report's evaluation drew no interval for it. ")
+          + front_sentence(front))
     doc.table(f"Each method against the front at its energy, mAP@0.5 ({tag})",
-              ["method", "energy [lambda_E scale]", "mAP", "against (front)", "minus against", "95 % interval",
-               "minus chord (point)", "verdict"],
-              [[p["what"], p["energy"], p["map"], p["against"] or "-", number_text(p["point"]),
+              ["method", "energy [lambda_E scale]", "energy 95 %", "mAP", "against (front)", "minus against",
+               "95 % interval", "minus chord (point)", "verdict"],
+              [[p["what"], p["energy"], interval_text(p.get("energy_ci95")), p["map"], p["against"] or "-",
+                number_text(p["point"]),
                 interval_text(p["minus_front"], signed=True), number_text(p["minus_chord"]), p["verdict"]]
                for p in front["placed"].values()])
     path = front_figure(front, work / "energy_front.png")

@@ -154,8 +154,9 @@ def evaluate_study(run, run_early, data, cfg, s, work: Path, setup=None, progres
     early = early_fusion(run_early, data, ev, method, cfg.train.batch_size, setup)
     for b, sc in early.scores.items():
         scores[f"early:{b}"], kinds[f"early:{b}"] = sc, f"early fusion model ({'+'.join(early.sensors[b])})"
+    index = config_index_of(ev)
     intervals, bounds = evaluate_bounds(M, ev, selections, kinds, scores, early.fused, singles, late, learned,
-                                        e.bootstrap)
+                                        e.bootstrap, energy_of=lambda n, sel: frame_costs(ev, n, sel, index)[2])
     table2, table5 = hydra_tables_2_and_5(M, scores, singles, early.scores, e, val, log, declared)
     twins = clear_twins(ev, early.model, data, cfg.train.batch_size) if e.twins else None
     swept = swept_methods(scores, e)
@@ -426,23 +427,31 @@ def cost_table(ev, selections: dict) -> dict:
     A learned gate (deep, attention: HydraFusion's or EcoFusion's) is charged the stems it reads that
     its chosen branches do not need and its own network's measured time (`EcoEval.gate_overhead`), as
     EcoFusion's Table 1 charges them: one accounting for every method of the report."""
-    from fusion.eco.config_gates import CONFIG_GATES
-    from fusion.nets.branch_gates import GATES, trainable_gates
-
     index = config_index_of(ev)
 
     def cost(name, selection) -> dict:
-        idx = np.array([index[tuple(m)] for m in selection])
-        gate = name.split(":", 1)[1] if name.startswith(("hydrafusion:", "ecofusion:")) else None
-        learned = trainable_gates(CONFIG_GATES if name.startswith("ecofusion:") else GATES)
-        extra, _ = ev.gate_overhead(idx, gate if gate in learned else None, name.split(":", 1)[0])
-        t = ev.t[idx] + extra
-        scale = t / ev.t[idx]  # E = P t at the configuration's own power
-        return {"latency_ms": rounded(1000 * t.mean(), 2), "energy_j": rounded((ev.e_raw[idx] * scale).mean()),
-                "energy": rounded((ev.e[idx] * scale).mean()), "gate_ms": rounded(1000 * extra.mean(), 2),
+        t, e_raw, e, extra = frame_costs(ev, name, selection, index)
+        return {"latency_ms": rounded(1000 * t.mean(), 2), "energy_j": rounded(e_raw.mean()),
+                "energy": rounded(e.mean()), "gate_ms": rounded(1000 * extra.mean(), 2),
                 "branches": rounded(np.mean([len(m) for m in selection]), 3)}
 
     return {name: cost(name, selection) for name, selection in selections.items()}
+
+
+def frame_costs(ev, name: str, selection, index: dict | None = None):
+    """Per test frame: latency [s], energy [J], energy (lambda_E scale) and the gate's own time [s]
+    of method `name` running `selection`, as `cost_table` charges them."""
+    from fusion.eco.config_gates import CONFIG_GATES
+    from fusion.nets.branch_gates import GATES, trainable_gates
+
+    index = config_index_of(ev) if index is None else index
+    idx = np.array([index[tuple(m)] for m in selection])
+    gate = name.split(":", 1)[1] if name.startswith(("hydrafusion:", "ecofusion:")) else None
+    learned = trainable_gates(CONFIG_GATES if name.startswith("ecofusion:") else GATES)
+    extra, _ = ev.gate_overhead(idx, gate if gate in learned else None, name.split(":", 1)[0])
+    t = ev.t[idx] + extra
+    scale = t / ev.t[idx]  # E = P t at the configuration's own power
+    return t, ev.e_raw[idx] * scale, ev.e[idx] * scale, extra
 
 
 @dataclass
