@@ -138,7 +138,7 @@ def _f(v, nd: int) -> str:
 
 
 def test_the_readmes_block_is_what_the_script_makes_of_the_stored_cpu_study():
-    report = RESULTS / "study_cpu_frontier" / "report.json"
+    report = RESULTS / "study_cpu_verdict" / "report.json"
     assert rr.main([str(report), "--readme", str(ROOT / "README.md"), "--check"]) == 0, \
         f"README.md's results block is stale: python scripts/readme_results.py {report.relative_to(ROOT)}"
 

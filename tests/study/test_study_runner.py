@@ -175,6 +175,28 @@ def test_report_numbers_follow_their_definitions(tiny):
     assert r["range_per_context"]["late"] == m["late"]["map_vehicles_per_context_range"]
 
 
+def test_the_front_record_places_every_gate_among_every_fixed_branch_set(tiny):
+    """bounds.front (`study.bounds.front_record`): every EcoFusion configuration is a fixed one; a
+    method's mAP is its own score, its energy Table 4's; a fixed configuration's energy interval is a
+    point (the same branches on every frame); the report's front is drawn from it."""
+    report = json.loads((tiny["out"] / "report.json").read_text())
+    r = report["results"]
+    f = r["bounds"]["front"]
+    assert set(f["configurations"]) >= {"single:radar", "late", "all_branches"} and len(f["configurations"]) > 5
+    assert "context_oracle" in f["placed"] and "hydrafusion:attention" in f["placed"]
+    for n in f["placed"] + ["single:radar", "late", "all_branches"]:
+        if n in r["methods"]:
+            assert f["map_point"][n] == r["methods"][n]["map"], n
+        if n in r["hydra_table4"]:
+            assert f["energy_point"][n] == pytest.approx(r["hydra_table4"][n]["energy"], abs=1e-3), n
+        assert len(f["map"][n]) == 2 and f["difference"], n
+    for n in f["configurations"]:
+        lo, hi = f["energy_ci95"][n]
+        assert lo == hi == f["energy_point"][n], n
+    front = report["energy_front"]
+    assert set(front["fixed"]) == set(f["configurations"]) and set(front["placed"]) == set(f["placed"])
+
+
 def test_a_second_run_does_no_work_and_json_is_one_object(tiny, capsys):
     from study.cli import main
 
