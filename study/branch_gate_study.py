@@ -39,6 +39,11 @@ from study.device import resolve_device
 from study.gate_data import GateData, cached_sha256, checkpoint_path
 from study.outputs import atomic_path, torch_save_atomic, write_json_atomic
 
+IN_SAMPLE = "in_sample"
+"""Where (under a gate's directory) the study saves the same gate trained on the detectors' own
+training frames, beside the one trained on the gate split. Here, not in `study.study_eval`, so that
+the gates stage's code (its key) holds no evaluation code."""
+
 SELECT_ON = ("regret", "mae")
 AUTO = "auto"
 """GateTrainConfig.objective: every objective, the best on validation regret kept."""

@@ -210,8 +210,8 @@ def gates_stage(work: Path, gatedata_run: Path, data: Path, gates: GatesSection,
     g = gates
     run = work / "run"
     link_farm(gatedata_run, run)
+    from study.branch_gate_study import IN_SAMPLE
     from study.scoring import frames_for
-    from study.study_eval import IN_SAMPLE
 
     run_cfg = json.loads((run / "config.json").read_text())
     compare = g.compare_targets and g.targets != "train" and bool(frames_for(run_cfg, data, "gate")[0])

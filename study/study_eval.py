@@ -36,6 +36,7 @@ import numpy as np
 from sim.errors import UserError
 from sim.progress import progress as progress_bar
 from study.bounds import best_single_on_validation, evaluate_bounds
+from study.branch_gate_study import IN_SAMPLE
 from study.numbers import rounded
 from study.regrets import (
     config_index_of,
@@ -288,9 +289,6 @@ def gate_training(run, s, learned) -> dict:
     return out
 
 
-IN_SAMPLE = "in_sample"
-"""Where (under a gate's directory) the study saves the same gate trained on the detectors' own
-training frames, beside the one trained on the gate split."""
 
 
 def lambda_front(eco_tables: dict, ev) -> dict:

@@ -160,3 +160,20 @@ def test_train_model_overrides_and_init_from_are_checked_and_keyed(tmp_path, mon
     again = stage_identity("train", dataclasses.replace(cfg, train=dataclasses.replace(cfg.train, init_from=str(other))),
                            setup)
     assert again["init_from_sha256"] == warm["init_from_sha256"]
+
+
+def test_no_stage_above_evaluate_holds_evaluation_code_in_its_key():
+    """A change to the evaluation (study.study_eval, study.bounds, the report) reruns evaluate and
+    report only: the gates stage once imported a string constant from study.study_eval, and every
+    change of the evaluation retrained the gates."""
+    import inspect
+    import textwrap
+
+    import study.stages as st
+    from study.code_identity import _imports, closure
+
+    evaluation = {"study.study_eval", "study.bounds", "study.report", "study.energy_front", "study.verdict"}
+    for name in ("generate", "train", "gatedata", "gates"):
+        modules, func = st.STAGE_CODE[name]
+        entry = set(modules) | set(_imports(func.__module__, textwrap.dedent(inspect.getsource(func))))
+        assert not evaluation & set(closure(sorted(entry))), name
