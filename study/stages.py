@@ -90,8 +90,8 @@ def _paper_view(tr: StageRecord, inputs: dict, gen: StageRecord) -> StageRecord:
     that adding, adopting or retraining the early-fusion model reruns only the evaluation, never the
     gate data and gates of the same paper detectors. Without early fusion it is the train stage."""
     t = inputs["train"]
-    if not t.get("early_fusion"):
-        return tr
+    if not t.get("early_fusion") or "paper" not in tr.manifest.get("checkpoints_sha256", {}):
+        return tr  # (a train stage that recorded no checkpoint digests: read whole, as before)
     paper_only = {**inputs, "train": {k: v for k, v in {**t, "early_fusion": False}.items() if k != "early_detectors"}}
     paper_only = {k: v for k, v in paper_only.items() if k != "early_detectors_sha256"}
     key = Study.key("train", {**paper_only, "upstream": {gen.name: {"key": gen.key, "digest": gen.digest}}})
