@@ -114,11 +114,7 @@ class StudyMatches:
     def intervals(self, names: Sequence[str], resamples: int, seed: int = 0) -> dict:
         """`study.scoring.context_bootstrap`'s record (classes "all") for `names`, the same draws, plus
         "p_value" per pair; `CONTEXT_ORACLE` among `names` is re-chosen inside every draw."""
-        plain = [n for n in names if n != CONTEXT_ORACLE]
-        derived = {}
-        if CONTEXT_ORACLE in names:
-            cands = list(self.candidates)
-            derived[CONTEXT_ORACLE] = lambda rows: best_constant_map(self.matches, cands, rows, self.contexts)
+        plain, derived = self.columns(names)
         cols = plain + list(derived)
         groups = {"all": range(len(self.contexts))}
         for r, c in enumerate(self.contexts):
@@ -126,12 +122,27 @@ class StudyMatches:
         out = {"resamples": int(resamples), "unit": "sequence", "seed": int(seed), "per_context": {},
                "context_oracle_rechosen_per_draw": bool(derived)}
         for g, rows in groups.items():
-            by_seq: dict = {}
-            for r in rows:
-                by_seq.setdefault(self.sequences[r], []).append(r)
+            by_seq = self.by_sequence(rows)
             draws = bootstrap_table(self.matches, plain, by_seq, resamples, seed, derived)
             out["per_context"][g] = group_record(draws, cols, len(by_seq))
         return out
+
+    def columns(self, names: Sequence[str]) -> tuple[list[str], dict]:
+        """(the names scored from their matching, {CONTEXT_ORACLE: its statistic re-chosen on a draw's
+        rows} when it is among `names`)."""
+        plain = [n for n in names if n != CONTEXT_ORACLE]
+        derived = {}
+        if CONTEXT_ORACLE in names:
+            cands = list(self.candidates)
+            derived[CONTEXT_ORACLE] = lambda rows: best_constant_map(self.matches, cands, rows, self.contexts)
+        return plain, derived
+
+    def by_sequence(self, rows) -> dict:
+        """{sequence: [rows]} of `rows`: the unit the bootstrap draws."""
+        by_seq: dict = {}
+        for r in rows:
+            by_seq.setdefault(self.sequences[r], []).append(r)
+        return by_seq
 
 
 def front_record(sm: StudyMatches, scores: Mapping[str, dict], placed: Sequence[str],
@@ -145,15 +156,9 @@ def front_record(sm: StudyMatches, scores: Mapping[str, dict], placed: Sequence[
     score (`scores`), a configuration that is no method's is scored from its matching, as the context
     oracle's candidates are."""
     names = [*sm.candidates, *[n for n in placed if n not in sm.candidates]]
-    plain = [n for n in names if n != CONTEXT_ORACLE]
-    derived = {}
-    if CONTEXT_ORACLE in names:
-        cands = list(sm.candidates)
-        derived[CONTEXT_ORACLE] = lambda rows: best_constant_map(sm.matches, cands, rows, sm.contexts)
+    plain, derived = sm.columns(names)
     cols = plain + list(derived)
-    by_seq: dict = {}
-    for r, q in enumerate(sm.sequences):
-        by_seq.setdefault(q, []).append(r)
+    by_seq = sm.by_sequence(range(len(sm.sequences)))
     rec = group_record(bootstrap_table(sm.matches, plain, by_seq, resamples, seed, derived), cols, len(by_seq))
     e_draws = np.array([[float(np.mean(energy[n][picks])) for n in cols]
                         for picks in sequence_draws(by_seq, resamples, seed)])

@@ -114,3 +114,35 @@ def add_learning_curve(doc, r: dict, tag: str) -> None:
     doc.table(f"Learning curve of the learned gates' test regret ({tag})",
               ["gate", "fitting frames", "objective kept", "regret", "best constant's", "per-context constant's",
                "gate minus constant", "gate minus per-context constant"], rows)
+
+
+def add_energy_front(doc, r: dict, tag: str, work) -> dict | None:
+    """The mAP-energy front of the fixed configurations with every gate placed on it
+    (`study.energy_front`); returns the record for report.json (None without costs or intervals)."""
+    from study.energy_front import energy_front, front_figure, front_sentence
+
+    front = energy_front(r)
+    if front is None:
+        return None
+    doc.h(2, "The mAP-energy front: where a gate is worth running")
+    with_e = any(p.get("energy_ci95") for p in front["placed"].values())
+    doc.p("A gate is worth running only where it lies above what a fixed configuration gives for the same "
+          f"energy or less. Fixed configurations: {front['configurations']}; their front is the Pareto "
+          "set of (energy, mAP). Each other method is compared, by the study's paired sequence bootstrap, with the "
+          "most accurate fixed configuration that costs no more (against); time-sharing between two front "
+          "configurations would reach the chord between them, given as a point value (not scored, no interval). "
+          "Energy: mean per frame, charged as in Table 4. " +
+          ("Its 95 % interval comes from the same draws of whole test sequences as the mAP's (a fixed "
+           "configuration's energy is the same on every frame, so its interval is a point). " if with_e else
+           "A gate's energy varies with its choices; this report's evaluation drew no interval for it. ")
+          + front_sentence(front))
+    doc.table(f"Each method against the front at its energy, mAP@0.5 ({tag})",
+              ["method", "energy [lambda_E scale]", "energy 95 %", "mAP", "against (front)", "minus against",
+               "95 % interval", "minus chord (point)", "verdict"],
+              [[p["what"], p["energy"], interval_text(p.get("energy_ci95")), p["map"], p["against"] or "-",
+                number_text(p["point"]),
+                interval_text(p["minus_front"], signed=True), number_text(p["minus_chord"]), p["verdict"]]
+               for p in front["placed"].values()])
+    path = front_figure(front, work / "energy_front.png")
+    doc.img(f"mAP@0.5 against energy: the fixed configurations' front and every method placed on it ({tag})", path)
+    return front
