@@ -102,7 +102,45 @@ def results_block(report: dict, tables: tuple[str, ...] = ("DIR/report.md", "DIR
     for b, v in r["fusion_regret"].items():
         where = ", ".join(f"{c} ({_f(x, 4)})" for c, x in v["hurts_in"].items()) or "no context"
         lines.append(f"- fusing {b} costs mAP in: {where}")
+    lines += crossover_lines(r)
     return "\n".join(lines)
+
+
+def crossover_lines(r: dict) -> list[str]:
+    """The crossover per sensor and condition (all branches) and the physical knowledge gate (issue 37)."""
+    rec, pg = r.get("crossover"), r.get("physical_gate")
+    if not rec:
+        return []
+    from study.crossover_study import crossing_text, summary_rows
+
+    rows = [x for x in summary_rows(rec) if x["base"] == "all_branches"]
+    lines = ["", f"Where fusing a sensor stops paying (all branches with minus without it, on a sweep set of "
+                 f"{rec['frames_per_step']} frames per condition and level, seeds "
+                 f"{', '.join(str(v) for v in rec['level_seeds'].values())}; the zero crossing [95 % interval], the "
+                 "mildest level resolved below 0):", "",
+             "| condition | " + " | ".join(dict.fromkeys(x["sensor"] for x in rows)) + " |",
+             "|---|" + "---|" * len(dict.fromkeys(x["sensor"] for x in rows))]
+    for cond in rec["conditions"]:
+        cells = []
+        for x in rows:
+            if x["condition"] != cond:
+                continue
+            first = "" if x["first_resolved_below"] is None else f"; resolved from {x['first_resolved_below']:.3g}"
+            cells.append(crossing_text(x) + first)
+        lines.append(f"| {cond} | " + " | ".join(cells) + " |")
+    if pg:
+        me = pg["comparison"].get("physical_gate", {})
+        rules = "; ".join(x["text"] for x in pg["rules"]) or ("no rule: no all-branches curve goes below zero"
+                                                           if not pg["candidates"] else
+                                                           "no rule: none beat running every branch on validation")
+        kn = pg["comparison"].get("hydrafusion:knowledge", {})
+        lines += ["", f"Physical knowledge gate (rules from these crossovers, thresholds chosen on validation: {rules}): "
+                      f"mAP {_f(me.get('map'))}, minus late {_interval(me.get('minus_late_interval'), signed=True)}, "
+                      f"minus all_branches {_interval(me.get('minus_all_branches_interval'), signed=True)}, minus "
+                      f"HydraFusion's knowledge gate {_interval(me.get('minus_hydrafusion:knowledge_interval'), signed=True)}"
+                      f" (whose mAP is {_f(kn.get('map'))}); energy {_f(me.get('energy'))} against all_branches' "
+                      f"{_f(pg['comparison'].get('all_branches', {}).get('energy'))} (lambda_E scale)."]
+    return lines
 
 
 def learned_gate_lines(r: dict, ci) -> list[str]:

@@ -1,6 +1,9 @@
 """`hydrabench study`: the whole HydraFusion + EcoFusion comparison as cached, resumable stages.
 
-    generate -> train -> gatedata -> gates -> evaluate -> report
+    generate -> train -> gatedata -> gates -> crossover -> evaluate -> report
+
+(crossover only with a `crossover` section: the severity sweep on a set of its own, whose measured
+crossovers give the evaluation's physical knowledge gate its rules; issue 37.)
 
 Each stage is a function of its config section (`StudyConfig`) and of the digests of the stages it
 reads. Its key is the SHA-256 of both; its output lives in `DIR/stages/<stage>-<key>/` with a
@@ -45,7 +48,7 @@ from study.stage_cache import StageRecord, Study, _digest, link_farm
 if TYPE_CHECKING:  # the config imports torch (TrainConfig); `hydrabench study --help` reads STAGES from here
     from study.study_config import GatesSection, StudyConfig, TrainSection
 
-STAGES = ("generate", "train", "gatedata", "gates", "evaluate", "report")
+STAGES = ("generate", "train", "gatedata", "gates", "crossover", "evaluate", "report")
 
 
 def _device_setup(cfg: StudyConfig):
@@ -273,17 +276,29 @@ def measure_gates(run: Path, data: Path, g: GatesSection, settings, setup, progr
                         progress=progress)
 
 
+def crossover_stage(work: Path, run_paper: Path, cfg: StudyConfig, setup, progress: bool) -> tuple[str, dict]:
+    """The severity sweep on its own sweep set (`study.crossover_study`) -> work/crossover.json and
+    its figures."""
+    from study.crossover_study import run_crossover
+
+    rec = run_crossover(work, run_paper, cfg.crossover, cfg.profile, cfg.crossover.fusion, setup, cfg.run.workers,
+                        cfg.run.backend, cfg.train.batch_size, progress)
+    return file_sha256(work / "crossover.json"), {"frames": rec["frames"], "figures": rec["figures"]}
+
+
 def evaluate_stage(work: Path, gates_run: Path, run_early: Path | None, parts: dict[str, Path], cfg: StudyConfig,
-                   settings, setup, progress: bool) -> tuple[str, dict]:
+                   settings, setup, progress: bool, crossover: Path | None = None) -> tuple[str, dict]:
     """Every method on the test split or the test set (`study.study_eval`) -> work/results.json (with
-    the device type and precision it ran in)."""
+    the device type and precision it ran in); with the crossover stage's record, the physical
+    knowledge gate too."""
     from study.device import compute_identity
     from study.study_eval import evaluate_study
 
     data = study_data(work, parts)
     run = work / "run"
     link_farm(gates_run, run)
-    res = evaluate_study(run, run_early, data, cfg, settings, work, setup=setup, progress=progress)
+    cross = json.loads(Path(crossover).read_text()) if crossover is not None else None
+    res = evaluate_study(run, run_early, data, cfg, settings, work, setup=setup, progress=progress, crossover=cross)
     res["compute"] = compute_identity(setup)
     write_json_atomic(work / "results.json", res, default=str)
     return file_sha256(work / "results.json"), {}
@@ -303,6 +318,7 @@ STAGE_CODE = {
     "train": (("study.train",), train_stage),
     "gatedata": (("study.scoring", "study.eco.data", "study.gate_data"), gatedata_stage),
     "gates": (("study.eco.latency_energy", "study.eco.config_gate_study", "study.branch_gate_study"), gates_stage),
+    "crossover": (("study.crossover_study",), crossover_stage),
     "evaluate": (("study.study_eval",), evaluate_stage),
     "report": (("study.report",), report_stage),
 }
@@ -319,7 +335,7 @@ def stage_identity(name: str, cfg: StudyConfig, setup) -> dict:
     modules, func = STAGE_CODE[name]
     out = {"code": code_digest(modules, (func,))[:16],
            "compute": compute_identity(device="cpu") if name in ("generate", "report") else compute_identity(setup)}
-    if name == "generate":
+    if name in ("generate", "crossover"):  # crossover generates its sweep set
         import sensors
         from sensors.rig import load_profile as sensor_profile
 
@@ -403,16 +419,25 @@ def run_study(cfg: StudyConfig, out: str | Path, until: str = "report", progress
     gt = study.stage("gates", {"gates": gates_inputs, **ident("gates")}, (gdr,), gates_stage,
                      gatedata_run=gdr.dir / "run", data=gate_data, gates=cfg.gates, settings=settings, setup=eval_setup,
                      say=study.say, progress=progress)
-    if last < 4:
+    if last < STAGES.index("crossover"):
+        return _finish(study, result, t_start)
+
+    cx = None
+    if cfg.crossover is not None:
+        cx = study.stage("crossover", {"crossover": to_dict(cfg.crossover), "profile": cfg.profile,
+                                       "batch_size": cfg.train.batch_size, **ident("crossover")}, (tr_paper,),
+                         crossover_stage, run_paper=tr.dir / "paper", cfg=cfg, setup=eval_setup, progress=progress)
+    if last < STAGES.index("evaluate"):
         return _finish(study, result, t_start)
 
     evaluate_inputs = {k: v for k, v in to_dict(cfg.evaluate).items()  # the default: the keys as before it existed
                        if not (k == "fusion" and v == "validation")}
     ev = study.stage("evaluate", {"evaluate": evaluate_inputs, **ident("evaluate")},
-                     (gt, tr, *((sets["test"],) if "test" in sets else ())),
+                     (gt, tr, *((sets["test"],) if "test" in sets else ()), *((cx,) if cx else ())),
                      evaluate_stage, gates_run=gt.dir / "run", run_early=run_early, parts=all_parts, cfg=cfg,
-                     settings=settings, setup=eval_setup, progress=progress)
-    if last < 5:
+                     settings=settings, setup=eval_setup, progress=progress,
+                     **({"crossover": cx.dir / "crossover.json"} if cx else {}))
+    if last < STAGES.index("report"):
         return _finish(study, result, t_start)
 
     context = {"scale": cfg.scale, "meaningless": cfg.meaningless, "config": to_dict(cfg),

@@ -357,6 +357,67 @@ class EvaluateSection:
 
 
 @dataclass(frozen=True)
+class CrossoverSection:
+    """The crossover sweep (issue 37, `study.crossover_study`): at what physical severity fusing each
+    sensor stops paying, on a sweep set of its own; its crossovers give the physical knowledge gate
+    its rules (`study.physical_gate_study`), scored in the evaluation beside every other method.
+
+    Fields:
+        frames_per_step: [frames] per condition and severity level (whole sequences of
+            `sequence_length`): each step's with-minus-without interval is drawn from its own
+            sequences only.
+        sequence_length: [frames] per sequence.
+        frame_rate_hz: recording rate within a sequence [Hz] (as the detectors' data).
+        seed: the sweep set's seed; level s is generated with seed + s, so seed + 1 .. seed + 5 must
+            differ from every other set's seed.
+        severities: the levels swept (1..5); each is a dataset of its own, as large as the others.
+        conditions: the conditions swept (fog, rain, snow, night).
+        fusion: the late fusion of every with and without set (nms | soft-nms | wbf), declared in
+            advance; when evaluate.fusion is declared it must be the same.
+        bootstrap: draws of whole sequences per step (95 % intervals and the crossing's interval).
+        level: the intervals' coverage.
+    """
+
+    frames_per_step: int = 96
+    sequence_length: int = 3
+    frame_rate_hz: float = 2.0
+    seed: int = 3000
+    severities: tuple[int, ...] = (1, 2, 3, 4, 5)
+    conditions: tuple[str, ...] = ("fog", "rain", "snow", "night")
+    fusion: str = "soft-nms"
+    bootstrap: int = 500
+    level: float = 0.95
+
+    def __post_init__(self) -> None:
+        from fusion.physical_gate import CAR_QUANTITY
+
+        _positive("crossover.frames_per_step", self.frames_per_step)
+        _positive("crossover.sequence_length", self.sequence_length)
+        _positive("crossover.seed", self.seed, 0)
+        _positive("crossover.bootstrap", self.bootstrap)
+        if self.frames_per_step % self.sequence_length:
+            raise UserError(f"crossover.frames_per_step {self.frames_per_step} is not a whole number of sequences of "
+                            f"{self.sequence_length} frames")
+        if not self.severities or any(isinstance(s, bool) or s not in (1, 2, 3, 4, 5) for s in self.severities) \
+                or list(self.severities) != sorted(set(self.severities)):
+            raise UserError(f"crossover.severities must be distinct levels 1..5 in increasing order, got "
+                            f"{list(self.severities)}")
+        bad = [c for c in self.conditions if c not in CAR_QUANTITY]
+        if bad or not self.conditions or len(set(self.conditions)) != len(self.conditions):
+            raise UserError(f"crossover.conditions must be distinct names of {', '.join(CAR_QUANTITY)}, got "
+                            f"{list(self.conditions)}")
+        if self.fusion not in ("nms", "soft-nms", "wbf"):
+            raise UserError(f"crossover.fusion must be nms, soft-nms or wbf, got {self.fusion!r}")
+        if not 0.5 <= self.level < 1:
+            raise UserError(f"crossover.level must be in [0.5, 1), got {self.level}")
+
+    def seeds(self) -> list[int]:
+        from study.crossover_study import level_seed
+
+        return [level_seed(self.seed, s) for s in self.severities]
+
+
+@dataclass(frozen=True)
 class RunSection:
     """Where and how fast the stages run. The resolved device type and precision are part of the
     keys of the stages that run networks; threads, workers and backend of none.
@@ -400,6 +461,8 @@ class StudyConfig:
             in its first line.
         profile: sensor and model profile (cpu | paper).
         data, train, gates, evaluate, run: the sections above.
+        crossover: the crossover sweep and the physical knowledge gate (`CrossoverSection`); none
+            without it (no crossover stage runs).
     """
 
     scale: str = "custom"
@@ -410,6 +473,7 @@ class StudyConfig:
     gates: GatesSection = field(default_factory=GatesSection)
     evaluate: EvaluateSection = field(default_factory=EvaluateSection)
     run: RunSection = field(default_factory=RunSection)
+    crossover: CrossoverSection | None = None
 
     def __post_init__(self) -> None:
         if not self.scale.strip():
@@ -427,6 +491,16 @@ class StudyConfig:
             raise UserError(f"train.branches: unknown branch {bad[0]!r} (choose from: {', '.join(paper)})")
         if len(set(self.train.branches)) != len(self.train.branches):
             raise UserError("train.branches names a branch twice")
+        if self.crossover is not None:
+            seeds = [self.data.seed, *(getattr(self.data, p).seed for p in ("gate", "test") if getattr(self.data, p))]
+            clash = sorted(set(seeds) & set(self.crossover.seeds()))
+            if clash:
+                raise UserError(f"crossover.seed {self.crossover.seed}: its levels' seeds (seed + severity) include "
+                                f"{clash[0]}, another set's seed; each set needs its own")
+            e = self.evaluate.fusion
+            if e != "validation" and e != self.crossover.fusion:
+                raise UserError(f"crossover.fusion {self.crossover.fusion!r} differs from evaluate.fusion {e!r}: one "
+                                "declared fusion for every method")
 
 
 def load_study_config(spec: str) -> StudyConfig:

@@ -112,9 +112,11 @@ def hydra_predictions(run, data, frames, gates) -> dict[str, np.ndarray]:
 
 
 
-def evaluate_study(run, run_early, data, cfg, s, work: Path, setup=None, progress: bool = True) -> dict:
+def evaluate_study(run, run_early, data, cfg, s, work: Path, setup=None, progress: bool = True,
+                   crossover: dict | None = None) -> dict:
     """Every number of the study's report (module docstring). `cfg`: the StudyConfig; `s`: its
-    EcoSettings; figures are written under `work`."""
+    EcoSettings; figures are written under `work`; `crossover`: the crossover stage's record, whose
+    crossovers give the physical knowledge gate its rules (`study.physical_gate_study`)."""
     from fusion.eco.config_gates import CONFIG_GATES
     from fusion.nets.branch_gates import trainable_gates
     from study.eco.ecofusion_eval import GATE_ORDER, EcoEval
@@ -151,6 +153,9 @@ def evaluate_study(run, run_early, data, cfg, s, work: Path, setup=None, progres
     eco_config_index, eco_kinds = eco_gate_configurations(ev, eco_gates, e.lambda_e, e.gamma)
     selections |= hydra_selections | {f"ecofusion:{g}": [ev.configs.members[c] for c in ch] for g, ch in eco_config_index.items()}
     kinds |= hydra_kinds | eco_kinds
+    from study.physical_gate_study import add_physical_gate, comparison
+
+    physical = add_physical_gate(crossover, selections, kinds, ev, val, method, log)  # issue 37 (None without)
     scores = score_methods(M, selections, progress)
     early = early_fusion(run_early, data, ev, method, cfg.train.batch_size, setup)
     for b, sc in early.scores.items():
@@ -177,6 +182,8 @@ def evaluate_study(run, run_early, data, cfg, s, work: Path, setup=None, progres
     record["learning_curve"] = learning_curve(run, learned)
     record["lambda_front"] = lambda_front(eco_tables, ev)
     record["bounds"] = bounds
+    if physical is not None:
+        record |= {"physical_gate": physical | {"comparison": comparison(record)}, "crossover": crossover}
     record["best_single"] = best_single_on_validation(val, singles, method, log)
     record["choices"] = log.choices
     record["fusion_rule"] = (f"declared in advance (evaluate.fusion {e.fusion}): every fused method, every table"

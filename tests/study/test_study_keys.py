@@ -92,7 +92,10 @@ def test_changed_code_of_a_module_reruns_the_first_stage_that_runs_it_and_below(
     def changed():
         monkeypatch.setattr(ci, "read_module", lambda m: real(m) + ("\n_CHANGED = 1\n" if m == module else ""))
 
-    assert _rerun(tmp_path, fake_stages, monkeypatch, changed) == list(STAGES[STAGES.index(first):])
+    below = list(STAGES[STAGES.index(first):])
+    if first in ("gatedata", "gates"):  # the crossover stage reads the detectors and its own sweep set only
+        below.remove("crossover")
+    assert _rerun(tmp_path, fake_stages, monkeypatch, changed) == below
 
 
 def test_a_changed_comment_or_docstring_reruns_nothing(fake_stages, tmp_path, monkeypatch):

@@ -222,9 +222,9 @@ def test_changing_a_downstream_field_reruns_only_the_stages_below_it(tiny):
     r = run_study(changed, out)
     status = {n: s["status"] for n, s in r["stages"].items()}
     assert status == {"generate": "skipped", "train": "skipped", "gatedata": "skipped", "gates": "skipped",
-                      "evaluate": "ran", "report": "ran"}
+                      "crossover": "skipped", "evaluate": "ran", "report": "ran"}
     assert r["report_json"]["results"]["lambda_e"] == 0.05
-    for n in ("generate", "train", "gatedata", "gates"):
+    for n in ("generate", "train", "gatedata", "gates", "crossover"):
         assert r["stages"][n]["key"] == tiny["first"]["stages"][n]["key"]
     # back to the original config: every stage is cached again, and the report is the original's
     again = run_study(cfg, out, progress=False)
@@ -359,13 +359,13 @@ def test_a_gate_set_and_a_test_set_run_end_to_end_on_the_tiny_detectors(tiny, tm
 
     out = tmp_path / "sets"
     Study(cfg, out, progress=False).prepare()
-    for name in ("generate", "train"):
+    for name in ("generate", "train", "crossover"):
         src = Path(tiny["first"]["stages"][name]["dir"])
         shutil.copytree(src, out / "stages" / src.name, symlinks=True, copy_function=os.link)
     r = run_study(cfg, out, until="evaluate", progress=False)
     status = {n: s["status"] for n, s in r["stages"].items()}
     assert status == {"generate": "skipped", "gateset": "ran", "testset": "ran", "train": "skipped",
-                      "gatedata": "ran", "gates": "ran", "evaluate": "ran"}
+                      "gatedata": "ran", "gates": "ran", "crossover": "skipped", "evaluate": "ran"}
     res = json.loads((Path(r["stages"]["evaluate"]["dir"]) / "results.json").read_text())
     ds = res["dataset"]
     assert ds["sets"] == {"gate": {"frames": 8, "seed": 5, "frames_per_context": 4, "sequence_length": 1},
@@ -383,3 +383,38 @@ def test_a_gate_set_and_a_test_set_run_end_to_end_on_the_tiny_detectors(tiny, tm
     manifest = json.loads((view / "manifest.json").read_text())
     assert list(manifest["parts"]) == ["detectors", "gate", "test"]
     assert all((view / s["name"]).resolve().is_dir() for s in manifest["shards"])  # links hold after the rename
+
+
+def test_the_crossover_stage_sweeps_its_own_set_and_the_physical_gate_is_scored_like_every_method(tiny):
+    """Issue 37 at its smallest: the sweep set (one dataset per level, its own seeds, clear twins), every
+    curve of every condition, the figures, and the physical knowledge gate in the evaluation: its
+    thresholds chosen on validation frames, its mAP in the methods, its comparison and report sections."""
+    first = tiny["first"]
+    cx = Path(first["stages"]["crossover"]["dir"])
+    rec = json.loads((cx / "crossover.json").read_text())
+    sec = tiny["cfg"].crossover
+    assert rec["level_seeds"] == {"1": 41, "5": 45} and rec["frames"] == len(sec.conditions) * len(sec.severities)
+    for s in sec.severities:
+        m = json.loads((cx / "levels" / f"severity-{s}" / "manifest.json").read_text())
+        assert m["config"]["seed"] == 40 + s and m["config"]["twins"] and m["config"]["severities"] == [s]
+    assert set(rec["conditions"]) == set(sec.conditions)
+    for cond, c in rec["conditions"].items():
+        assert [st["severity"] for st in c["steps"]] == [1, 5], cond
+        xs = [st["x"] for st in c["steps"]]
+        assert (xs[0] > xs[1]) if c["worse"] == "lower" else (xs[0] < xs[1]), (cond, xs)  # mild to strong
+        for base in ("late", "all_branches"):
+            assert set(c["curves"][base]) == {"camera_right", "lidar", "radar"}, (cond, base)
+            for cur in c["curves"][base].values():
+                assert len(cur["estimate"]) == 2 and cur["crossing_kind"] in ("crossed", "at_mildest", "none")
+    assert all((cx / f).stat().st_size > 10_000 for f in rec["figures"])
+    res = json.loads((tiny["out"] / "report.json").read_text())["results"]
+    assert "physical_gate" in res["methods"] and res["crossover"]["level_seeds"] == rec["level_seeds"]
+    pg = res["physical_gate"]
+    assert pg["reads"] == ["illuminance_lux", "rain_mm_h", "snow_mm_h", "visibility_m"]
+    choice = [c for c in res["choices"] if c["what"].startswith("physical knowledge gate")]
+    assert len(choice) == 1 and choice[0]["on"] == "validation"
+    comp = pg["comparison"]
+    assert comp["physical_gate"]["map"] == res["methods"]["physical_gate"]["map"]
+    assert comp["physical_gate"]["energy"] == res["hydra_table4"]["physical_gate"]["energy"]
+    md = (tiny["out"] / "report.md").read_text()
+    assert "When fusing a sensor stops paying" in md and "A knowledge gate from the measured crossovers" in md

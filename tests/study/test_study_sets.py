@@ -69,7 +69,8 @@ def _with_sets(cfg, gate=GATE, test=TEST):
 def test_enlarging_the_test_set_reruns_only_its_generation_and_evaluation(fake_stages, tmp_path):
     cfg = _with_sets(load_study_config("tiny"))
     first = run_study(cfg, tmp_path / "s", progress=False)
-    assert fake_stages == ["generate", "gateset", "testset", "train", "gatedata", "gates", "evaluate", "report"]
+    assert fake_stages == ["generate", "gateset", "testset", "train", "gatedata", "gates", "crossover", "evaluate",
+                           "report"]
     fake_stages.clear()
     bigger = _with_sets(load_study_config("tiny"), test=SetSection(8, 2, 12))
     again = run_study(bigger, tmp_path / "s", progress=False)
@@ -97,10 +98,23 @@ def test_adding_or_retraining_the_early_fusion_model_reruns_no_gate_stage(fake_s
     fake_stages.clear()
     longer = dataclasses.replace(tiny, train=dataclasses.replace(tiny.train, epochs=tiny.train.epochs + 1))
     run_study(longer, tmp_path / "s", progress=False)  # the paper's branches train again too: everything below
-    assert fake_stages == ["train", "gatedata", "gates", "evaluate", "report"]
+    assert fake_stages == ["train", "gatedata", "gates", "crossover", "evaluate", "report"]
     for name in ("gatedata", "gates"):
         assert second["stages"][name]["key"] == first["stages"][name]["key"], name
     assert second["stages"]["train"]["key"] != first["stages"]["train"]["key"]
+
+
+def test_a_larger_sweep_set_reruns_the_crossover_and_the_evaluation_only_and_none_runs_without_it(fake_stages,
+                                                                                                  tmp_path):
+    tiny = _with_sets(load_study_config("tiny"))
+    run_study(tiny, tmp_path / "s", progress=False)
+    fake_stages.clear()
+    more = dataclasses.replace(tiny, crossover=dataclasses.replace(tiny.crossover, frames_per_step=2))
+    run_study(more, tmp_path / "s", progress=False)
+    assert fake_stages == ["crossover", "evaluate", "report"]
+    fake_stages.clear()
+    run_study(dataclasses.replace(tiny, crossover=None), tmp_path / "s2", progress=False)
+    assert "crossover" not in fake_stages and "evaluate" in fake_stages
 
 
 def test_a_study_without_sets_has_the_stages_it_had(fake_stages, tmp_path):

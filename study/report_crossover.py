@@ -1,0 +1,90 @@
+"""The report's sections on issue 37: the crossover severity of each sensor (`study.crossover_study`)
+and the physical knowledge gate built from it (`study.physical_gate_study`)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+from study.numbers import interval_text, number_text
+
+
+def _signed(v) -> str:
+    return "-" if v is None else f"{v:+.3f}"
+
+
+def add_crossover(doc, r: dict, tag: str, work: Path) -> dict | None:
+    """Tables of every crossover and the figure; returns the summary rows for report.json (None
+    when the study has no crossover stage)."""
+    rec = r.get("crossover")
+    if not rec:
+        return None
+    from study.crossover_study import BASE_LABEL, crossing_text, plot_crossovers, summary_rows
+
+    doc.h(2, "When fusing a sensor stops paying: the crossover severity")
+    hw = rec["half_width"]
+    doc.p(f"On a sweep set of its own (seeds {', '.join(str(v) for v in rec['level_seeds'].values())}, never the test "
+          f"set): {rec['frames_per_step']} frames per condition and severity level, in sequences of "
+          f"{rec['sequence_length']}, each with its clear twin. At each level, each base fusion is scored with and "
+          f"without each sensor (fused by {rec['fusion']}, all-class mAP@0.5), and the difference is drawn "
+          f"{rec['resamples']} times by whole sequences of that level. The crossover is where the difference goes "
+          "below zero: the mildest level whose interval lies wholly below zero (resolved), and the zero crossing "
+          "of the estimate, interpolated on the quantity's axis, with the percentile interval of the draws' own "
+          "crossings ('open' where more than 2.5 % of the draws never cross, or already cross at the mildest "
+          "level). The axis is what a car measures: visibility, rain and snow rate, illuminance. "
+          f"Per-level intervals are {number_text(hw['median'])} wide on each side at the median "
+          f"(largest {number_text(hw['max'])}): a sensor's worth smaller than that is not resolved at one level.")
+    rows = summary_rows(rec)
+    for base in ("late", "all_branches"):
+        doc.table(f"Crossover per sensor and condition, {BASE_LABEL[base]}: the zero crossing [95 % interval], the "
+                  f"mildest level resolved below 0, with minus without on the clear twins ({tag})",
+                  ["condition", "sensor", "crossing", "resolved below 0 from", "clear twins: with - without"],
+                  [[x["condition"], x["sensor"], crossing_text(x),
+                    "-" if x["first_resolved_below"] is None else f"{x['first_resolved_below']:.3g} {x['unit']}",
+                    f"{_signed(x['clear']['estimate'])} {interval_text(x['clear']['interval'], signed=True)}"]
+                   for x in rows if x["base"] == base])
+    for cond, c in rec["conditions"].items():
+        doc.table(f"{cond}: with minus without each sensor per level ({c['quantity']} in {c['unit']}, median of the "
+                  f"level's frames), estimate [95 % interval] ({tag})",
+                  ["base", "sensor", *[f"{s['x']:.3g} ({s['frames']} fr)" for s in c["steps"]]],
+                  [[base, sensor, *[f"{_signed(e)} {interval_text(iv, signed=True)}"
+                                    for e, iv in zip(cur["estimate"], cur["interval"])]]
+                   for base, per in c["curves"].items() for sensor, cur in per.items()])
+    paths = plot_crossovers(rec, work, f"{rec['machine']['cpu']}, {rec['machine']['cores']} cores")
+    doc.img(f"With minus without each sensor against the physical severity ({tag})", paths[0])
+    return {"rows": rows, "half_width": hw, "frames_per_step": rec["frames_per_step"]}
+
+
+def add_physical_gate(doc, r: dict, tag: str) -> dict | None:
+    """The physical knowledge gate's rules and its comparison on the test frames."""
+    pg = r.get("physical_gate")
+    if not pg:
+        return None
+    doc.h(2, "A knowledge gate from the measured crossovers")
+    rules = "; ".join(x["text"] for x in pg["rules"]) or ("no rule: no all-branches curve goes below zero"
+                                                           if not pg["candidates"] else
+                                                           "no rule: none beat running every branch on validation")
+    doc.p("Rules: one per sensor and condition whose all-branches curve goes below zero on the sweep set; each "
+          "threshold chosen among that crossover's readings (the rule off, the crossing, the mildest level resolved "
+          "below zero, the crossing interval's ends) by the gate's mAP on the gate set's "
+          f"{pg['chosen_on']['frames']} validation frames ({pg['chosen_on']['sequences']} sequences), one rule at a "
+          "time. The gate reads only the weather a car measures (" + ", ".join(pg["reads"]) + f"). Chosen: {rules}. "
+          "Beside it: HydraFusion's hand-written knowledge gate, the learned gates, late fusion, all branches and "
+          "the context oracle (chosen on test: a bound). Regret: the context oracle's margin over the method.")
+    comp = pg["comparison"]
+    doc.table(f"The physical knowledge gate and the others on the test frames, all-class mAP@0.5 ({tag})",
+              ["method", "mAP", "minus late", "95 % interval", "regret vs context oracle", "95 % interval",
+               "energy", "branches"],
+              [[name, number_text(v["map"]), _signed(v["minus_late"]),
+                interval_text(v["minus_late_interval"], signed=True),
+                _signed(v["regret_vs_context_oracle"]), interval_text(v["regret_interval"], signed=True),
+                number_text(v["energy"]), number_text(v["branches"])] for name, v in comp.items()])
+    me = comp.get("physical_gate", {})
+    extra = [f"minus {o}: {_signed(me.get(f'minus_{o}'))} "
+             f"{interval_text(me.get(f'minus_{o}_interval'), signed=True)}"
+             for o in ("hydrafusion:knowledge", "all_branches") if f"minus_{o}" in me]
+    if extra:
+        doc.p("The physical gate " + "; ".join(extra) + ".")
+    share = pg["selection_share_per_context"]
+    doc.table(f"What the physical gate runs, share of test frames per context ({tag})", ["context", "branch sets"],
+              [[ctx, ", ".join(f"{k} {100 * v:.0f} %" for k, v in per.items())] for ctx, per in share.items()])
+    return {"rules": pg["rules"], "comparison": comp}
