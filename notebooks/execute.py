@@ -1,7 +1,7 @@
 """Execute the teaching notebooks top to bottom and store them with their outputs, so that a reader who
 opens one on GitHub sees its figures.
 
-    HYDRABENCH_CACHE=out/cache python notebooks/execute.py                 (all three)
+    HYDRABENCH_CACHE=out/cache python notebooks/execute.py                 (all four)
     python notebooks/execute.py notebooks/02_degradation_physics.ipynb     (one)
 
 Notebook 03 reads the study in $HYDRABENCH_STUDY, by default the committed results/study_cpu

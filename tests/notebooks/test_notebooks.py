@@ -146,12 +146,34 @@ def test_selective_fusion_notebook_reads_a_tiny_study_and_answers_its_three_ques
     assert "lambda_E 0 -> 1" in text and "selection - late" in text and "hurts in" in text
 
 
+def test_when_to_drop_a_sensor_notebook_derives_the_crossover_and_reads_a_studys(monkeypatch, shared_cache,
+                                                                                  cache_lock):
+    """04 on the tiny study: the covariance argument's crossover in closed form equals its Monte Carlo
+    check (the notebook asserts it within 5 %), and the study's measured crossovers and physical gate
+    are read and shown. The visibility is restated here: r2* = r1 + 2 r2_hat, MOR* = 6 d / ln(r2* / r2_hat)."""
+    from study.stages import run_study
+    from study.study_config import load_study_config
+
+    study = Path(os.environ.get("HYDRABENCH_TINY_STUDY") or shared_cache / "study-tiny")
+    with cache_lock("study-tiny"):
+        run_study(load_study_config("tiny"), study, progress=False)
+    monkeypatch.setenv("HYDRABENCH_STUDY", str(study))
+    nb = run_notebook("04_when_to_drop_a_sensor.ipynb", monkeypatch, shared_cache)
+    assert not [o for o in _outputs(nb) if o.get("output_type") == "error"]
+    assert len([o for o in _outputs(nb) if "image/png" in o.get("data", {})]) >= 2  # WLS worth, the crossovers
+    text = "".join(o.get("text", "") for o in _outputs(nb) if o.get("output_type") == "stream")
+    mor = 6 * 40.0 / math.log((1.0 + 2 * 0.25) / 0.25)
+    assert f"MOR* = {mor:.1f} m" in text and "THESE NUMBERS MEAN NOTHING" in text
+    assert "late: with minus without each sensor" in text and "camera in fog, all_branches: measured" in text
+    assert "physical_gate" in text and "hydrafusion:knowledge" in text
+
+
 def _outputs(nb) -> list:
     return [o for c in nb.cells if c.cell_type == "code" for o in c.get("outputs", [])]
 
 
 @pytest.mark.parametrize("name, figures", [("01_fusion_theory.ipynb", 5), ("02_degradation_physics.ipynb", 5),
-                                           ("03_selective_fusion.ipynb", 3)])
+                                           ("03_selective_fusion.ipynb", 3), ("04_when_to_drop_a_sensor.ipynb", 2)])
 def test_notebooks_are_stored_executed_with_their_figures(name, figures):
     """Stored as one top-to-bottom run: every code cell executed in order, its figures as PNG, no error, no
     per-cell timing metadata (a diff of a rerun shows what changed, not when), a size GitHub renders."""
