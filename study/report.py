@@ -16,7 +16,7 @@ from pathlib import Path
 
 from study.numbers import interval_text, number_text
 from study.outputs import write_text_atomic
-from study.report_crossover import add_crossover, add_physical_gate
+from study.report_crossover import add_crossover, add_physical_gate, add_transitions
 from study.report_bounds import (
     add_coverage,
     add_energy_front,
@@ -158,6 +158,7 @@ def build(results: dict, context: dict, work: Path, eval_dir: Path) -> tuple[Doc
     add_severity(doc, r, tag, work)
     crossover = add_crossover(doc, r, tag, work)
     physical = add_physical_gate(doc, r, tag)
+    transitions = add_transitions(doc, r, tag, work)
     add_range_bins(doc, r, tag)
     add_gate_regret(doc, r, tag)
     add_gate_training(doc, r, tag)
@@ -171,7 +172,8 @@ def build(results: dict, context: dict, work: Path, eval_dir: Path) -> tuple[Doc
     summary = {"scale": context["scale"], "meaningless": bool(context.get("meaningless")), "protocol": r["protocol"],
                "dataset": r["dataset"], "machine": r["machine"], "device": r.get("device"), "tag": tag,
                **({"energy_front": front} if front else {}), **({"crossover": crossover} if crossover else {}),
-               **({"physical_gate": physical} if physical else {})}
+               **({"physical_gate": physical} if physical else {}),
+               **({"transitions": transitions} if transitions else {})}
     return doc, summary
 
 

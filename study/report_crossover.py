@@ -88,3 +88,47 @@ def add_physical_gate(doc, r: dict, tag: str) -> dict | None:
     doc.table(f"What the physical gate runs, share of test frames per context ({tag})", ["context", "branch sets"],
               [[ctx, ", ".join(f"{k} {100 * v:.0f} %" for k, v in per.items())] for ctx, per in share.items()])
     return {"rules": pg["rules"], "comparison": comp}
+
+
+def add_transitions(doc, r: dict, tag: str, work: Path) -> dict | None:
+    """The learned gates with memory on weather that changes (`study.transition_study`)."""
+    tx = r.get("transitions")
+    if not tx:
+        return None
+    import shutil
+
+    doc.h(2, "Weather that changes: gates with memory")
+    doc.p(f"A transition set of its own: {tx['sequences']['test']} test and {tx['sequences']['validation']} validation "
+          f"sequences of {tx['sequence_seconds']:g} s at {tx['frame_rate_hz']:g} Hz whose weather ramps "
+          f"({', '.join(tx['kinds'])}) in {', '.join(tx['conditions'])}, to severity {tx['severities']}. Cost of a "
+          f"branch on a frame: {tx['cost']}; regret: the chosen branch's cost minus the frame's best. Transition "
+          f"windows: frames within {tx['radius']} of a change of the best branch. Each gate's hysteresis margin and "
+          "EMA weight are chosen on the validation sequences (mean regret); intervals redraw the test sequences, "
+          "paired with the per-frame gate. Clock gating (EcoFusion 5.5.2): a sensor no chosen branch reads is "
+          f"switched off and woken one measurement period before it gives data again ("
+          + ", ".join(f"{k} {v} frame(s)" for k, v in tx["wake_frames"].items() if k in ("camera_right", "lidar", "radar"))
+          + "). The best constant is the "
+          f"branch of lowest mean cost on validation ({tx['best_constant']}); the a-posteriori oracle reads the "
+          "frame's ground truth (not achievable; its switches are shown for scale). Not built: a recurrent gate.")
+    for g, rec in tx["gates"].items():
+        rows = []
+        for v, s in rec["variants"].items():
+            rows.append([v, number_text(s["regret"]), interval_text(s["regret_interval"]),
+                         number_text(s["regret_transitions"]),
+                         _signed(s.get("regret_minus_per-frame")), interval_text(s.get("regret_minus_per-frame_interval"), signed=True),
+                         _signed(s.get("regret_transitions_minus_per-frame")),
+                         interval_text(s.get("regret_transitions_minus_per-frame_interval"), signed=True),
+                         number_text(s["lag_mean_frames"]), number_text(s["lag_censored_share"]),
+                         number_text(s["switches_per_minute"]), number_text(s["wakes_per_minute"]),
+                         s["frames_waiting_for_a_sensor"]])
+        doc.table(f"{g} over the test sequences: regret, lag and switches per variant (margin {rec['margin']:g}, "
+                  f"alpha {rec['alpha']:g}, chosen on validation) ({tag})",
+                  ["variant", "regret", "95 %", "regret in transitions", "minus per-frame", "95 %",
+                   "in transitions minus per-frame", "95 %", "lag [frames]", "lag censored", "switches / min",
+                   "wake-ups / min", "frames waiting"], rows)
+    src = Path(tx.get("figures_dir", ""))
+    for f in tx.get("figures", []):
+        if (src / f).is_file():
+            shutil.copyfile(src / f, work / f)
+            doc.img(f"One test sequence: the weather and each variant's branch per frame ({tag})", work / f)
+    return {g: rec["variants"] for g, rec in tx["gates"].items()}

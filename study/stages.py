@@ -1,9 +1,10 @@
 """`hydrabench study`: the whole HydraFusion + EcoFusion comparison as cached, resumable stages.
 
-    generate -> train -> gatedata -> gates -> crossover -> evaluate -> report
+    generate -> train -> gatedata -> gates -> crossover -> evaluate -> transitions -> report
 
 (crossover only with a `crossover` section: the severity sweep on a set of its own, whose measured
-crossovers give the evaluation's physical knowledge gate its rules; issue 37.)
+crossovers give the evaluation's physical knowledge gate its rules; transitions only with a
+`transitions` section: the learned gates with memory on sequences whose weather ramps; issue 37.)
 
 Each stage is a function of its config section (`StudyConfig`) and of the digests of the stages it
 reads. Its key is the SHA-256 of both; its output lives in `DIR/stages/<stage>-<key>/` with a
@@ -48,7 +49,7 @@ from study.stage_cache import StageRecord, Study, _digest, link_farm
 if TYPE_CHECKING:  # the config imports torch (TrainConfig); `hydrabench study --help` reads STAGES from here
     from study.study_config import GatesSection, StudyConfig, TrainSection
 
-STAGES = ("generate", "train", "gatedata", "gates", "crossover", "evaluate", "report")
+STAGES = ("generate", "train", "gatedata", "gates", "crossover", "evaluate", "transitions", "report")
 
 
 def _device_setup(cfg: StudyConfig):
@@ -304,11 +305,27 @@ def evaluate_stage(work: Path, gates_run: Path, run_early: Path | None, parts: d
     return file_sha256(work / "results.json"), {}
 
 
-def report_stage(work: Path, results_dir: Path, context: dict, rel_to: Path) -> tuple[str, dict]:
-    """report.md, report.html and report.json of the evaluation's results."""
+def transitions_stage(work: Path, gates_run: Path, cfg: StudyConfig, setup, progress: bool) -> tuple[str, dict]:
+    """The learned gates with memory on the transition set (`study.transition_study`) ->
+    work/transitions.json and its figures."""
+    from study.transition_study import run_transitions
+
+    link_farm(gates_run, work / "run")
+    rec = run_transitions(work, work / "run", cfg.transitions, tuple(cfg.gates.gates), cfg.profile, setup,
+                          cfg.run.workers, cfg.run.backend, cfg.train.batch_size, progress)
+    return file_sha256(work / "transitions.json"), {"frames": rec["frames"], "figures": rec["figures"]}
+
+
+def report_stage(work: Path, results_dir: Path, context: dict, rel_to: Path,
+                 transitions: Path | None = None) -> tuple[str, dict]:
+    """report.md, report.html and report.json of the evaluation's results (and of the transitions
+    stage's, when the study has one)."""
     from study.report import write_report
 
     results = json.loads((Path(results_dir) / "results.json").read_text())
+    if transitions is not None:
+        results["transitions"] = json.loads(Path(transitions).read_text())
+        results["transitions"]["figures_dir"] = str(Path(transitions).parent)
     write_report(results, context, work, results_dir, rel_to=rel_to)
     return file_sha256(work / "report.json"), {"files": sorted(p.name for p in work.iterdir())}
 
@@ -319,6 +336,7 @@ STAGE_CODE = {
     "gatedata": (("study.scoring", "study.eco.data", "study.gate_data"), gatedata_stage),
     "gates": (("study.eco.latency_energy", "study.eco.config_gate_study", "study.branch_gate_study"), gates_stage),
     "crossover": (("study.crossover_study",), crossover_stage),
+    "transitions": (("study.transition_study",), transitions_stage),
     "evaluate": (("study.study_eval",), evaluate_stage),
     "report": (("study.report",), report_stage),
 }
@@ -335,7 +353,7 @@ def stage_identity(name: str, cfg: StudyConfig, setup) -> dict:
     modules, func = STAGE_CODE[name]
     out = {"code": code_digest(modules, (func,))[:16],
            "compute": compute_identity(device="cpu") if name in ("generate", "report") else compute_identity(setup)}
-    if name in ("generate", "crossover"):  # crossover generates its sweep set
+    if name in ("generate", "crossover", "transitions"):  # these two generate their own sets
         import sensors
         from sensors.rig import load_profile as sensor_profile
 
@@ -437,14 +455,20 @@ def run_study(cfg: StudyConfig, out: str | Path, until: str = "report", progress
                      evaluate_stage, gates_run=gt.dir / "run", run_early=run_early, parts=all_parts, cfg=cfg,
                      settings=settings, setup=eval_setup, progress=progress,
                      **({"crossover": cx.dir / "crossover.json"} if cx else {}))
+    tx = None
+    if cfg.transitions is not None and last >= STAGES.index("transitions"):
+        tx = study.stage("transitions", {"transitions": to_dict(cfg.transitions), "profile": cfg.profile,
+                                         "batch_size": cfg.train.batch_size, **ident("transitions")}, (gt,),
+                         transitions_stage, gates_run=gt.dir / "run", cfg=cfg, setup=eval_setup, progress=progress)
     if last < STAGES.index("report"):
         return _finish(study, result, t_start)
 
     context = {"scale": cfg.scale, "meaningless": cfg.meaningless, "config": to_dict(cfg),
                "stages": {n: r.manifest for n, r in study.records.items()},
                "stage_dirs": {n: str(r.dir) for n, r in study.records.items()}}
-    rp = study.stage("report", {"scale": cfg.scale, "meaningless": cfg.meaningless, **ident("report")}, (ev,),
-                     report_stage, results_dir=ev.dir, context=context, rel_to=study.out)
+    rp = study.stage("report", {"scale": cfg.scale, "meaningless": cfg.meaningless, **ident("report")},
+                     (ev, *((tx,) if tx else ())), report_stage, results_dir=ev.dir, context=context, rel_to=study.out,
+                     **({"transitions": tx.dir / "transitions.json"} if tx else {}))
     for name in ("report.md", "report.html", "report.json"):
         with atomic_path(study.out / name) as tmp:
             shutil.copyfile(rp.dir / name, tmp)

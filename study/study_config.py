@@ -418,6 +418,70 @@ class CrossoverSection:
 
 
 @dataclass(frozen=True)
+class TransitionsSection:
+    """Gates with memory on weather that changes (issue 37 item 3, `study.transition_study`): a set of
+    long sequences whose weather ramps, one dataset per (part, kind), validation and test parts with
+    their own seeds; each learned HydraFusion gate per frame, with hysteresis and with an EMA of its
+    scores (each parameter chosen on the validation part), the best constant and the a-posteriori
+    oracle, scored per test sequence.
+
+    Fields:
+        duration_s: [s] per sequence (issue 37: at least 30 s).
+        frame_rate_hz: [Hz] within a sequence.
+        sequences: per condition and kind, in the test part.
+        validation_sequences: per condition and kind, in the validation part.
+        conditions: those with a ramp (fog, rain, snow; night has none).
+        kinds: onset | clearing | bank.
+        severities: the levels the ramps reach (drawn per sequence).
+        seed: the part and kind datasets get seed + 10 * kind index (+ 5 for validation).
+        radius: [frames] either side of a change of the best branch: the transition window.
+        margins: hysteresis margins (in predicted-loss units) chosen among on validation.
+        alphas: EMA weights of the newest frame chosen among on validation (1 = no memory).
+        bootstrap: draws of test sequences for the intervals.
+    """
+
+    duration_s: float = 30.0
+    frame_rate_hz: float = 2.0
+    sequences: int = 2
+    validation_sequences: int = 1
+    conditions: tuple[str, ...] = ("fog", "rain", "snow")
+    kinds: tuple[str, ...] = ("onset", "clearing", "bank")
+    severities: tuple[int, ...] = (4, 5)
+    seed: int = 4000
+    radius: int = 3
+    margins: tuple[float, ...] = (0.0, 0.02, 0.05, 0.1, 0.2)
+    alphas: tuple[float, ...] = (1.0, 0.7, 0.5, 0.3, 0.2)
+    bootstrap: int = 500
+
+    def __post_init__(self) -> None:
+        from study.transition_study import check_kinds
+
+        check_kinds(self.kinds)
+        _positive("transitions.sequences", self.sequences)
+        _positive("transitions.validation_sequences", self.validation_sequences)
+        _positive("transitions.bootstrap", self.bootstrap)
+        _positive("transitions.radius", self.radius, 0)
+        _positive("transitions.seed", self.seed, 0)
+        if not (self.duration_s > 0 and self.frame_rate_hz > 0) or round(self.duration_s * self.frame_rate_hz) < 2:
+            raise UserError("transitions: duration_s x frame_rate_hz must give at least 2 frames per sequence")
+        bad = [c for c in self.conditions if c not in ("fog", "rain", "snow")]
+        if bad or not self.conditions or len(set(self.conditions)) != len(self.conditions):
+            raise UserError(f"transitions.conditions must be distinct names of fog, rain, snow (night has no ramp), "
+                            f"got {list(self.conditions)}")
+        if not self.severities or any(isinstance(v, bool) or v not in (1, 2, 3, 4, 5) for v in self.severities):
+            raise UserError(f"transitions.severities must be levels 1..5, got {list(self.severities)}")
+        if not self.margins or any(m < 0 for m in self.margins):
+            raise UserError(f"transitions.margins must be >= 0, got {list(self.margins)}")
+        if not self.alphas or any(not 0 < a <= 1 for a in self.alphas):
+            raise UserError(f"transitions.alphas must be in (0, 1], got {list(self.alphas)}")
+
+    def seeds(self) -> list[int]:
+        from study.transition_study import PARTS, part_seed
+
+        return [part_seed(self.seed, p, k) for p in PARTS for k in self.kinds]
+
+
+@dataclass(frozen=True)
 class RunSection:
     """Where and how fast the stages run. The resolved device type and precision are part of the
     keys of the stages that run networks; threads, workers and backend of none.
@@ -463,6 +527,8 @@ class StudyConfig:
         data, train, gates, evaluate, run: the sections above.
         crossover: the crossover sweep and the physical knowledge gate (`CrossoverSection`); none
             without it (no crossover stage runs).
+        transitions: gates with memory on weather that changes (`TransitionsSection`); none without
+            it (no transitions stage runs).
     """
 
     scale: str = "custom"
@@ -474,6 +540,7 @@ class StudyConfig:
     evaluate: EvaluateSection = field(default_factory=EvaluateSection)
     run: RunSection = field(default_factory=RunSection)
     crossover: CrossoverSection | None = None
+    transitions: TransitionsSection | None = None
 
     def __post_init__(self) -> None:
         if not self.scale.strip():
@@ -491,12 +558,18 @@ class StudyConfig:
             raise UserError(f"train.branches: unknown branch {bad[0]!r} (choose from: {', '.join(paper)})")
         if len(set(self.train.branches)) != len(self.train.branches):
             raise UserError("train.branches names a branch twice")
-        if self.crossover is not None:
-            seeds = [self.data.seed, *(getattr(self.data, p).seed for p in ("gate", "test") if getattr(self.data, p))]
-            clash = sorted(set(seeds) & set(self.crossover.seeds()))
+        seeds = {self.data.seed: "data.seed", **{getattr(self.data, p).seed: f"data.{p}.seed"
+                                                   for p in ("gate", "test") if getattr(self.data, p)}}
+        for name in ("crossover", "transitions"):
+            sec = getattr(self, name)
+            if sec is None:
+                continue
+            clash = sorted(set(seeds) & set(sec.seeds()))
             if clash:
-                raise UserError(f"crossover.seed {self.crossover.seed}: its levels' seeds (seed + severity) include "
-                                f"{clash[0]}, another set's seed; each set needs its own")
+                raise UserError(f"{name}.seed {sec.seed}: its sets' seeds include {clash[0]}, {seeds[clash[0]]}; "
+                                "each set needs its own")
+            seeds.update({v: f"{name}.seed" for v in sec.seeds()})
+        if self.crossover is not None:
             e = self.evaluate.fusion
             if e != "validation" and e != self.crossover.fusion:
                 raise UserError(f"crossover.fusion {self.crossover.fusion!r} differs from evaluate.fusion {e!r}: one "

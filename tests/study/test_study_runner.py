@@ -222,9 +222,9 @@ def test_changing_a_downstream_field_reruns_only_the_stages_below_it(tiny):
     r = run_study(changed, out)
     status = {n: s["status"] for n, s in r["stages"].items()}
     assert status == {"generate": "skipped", "train": "skipped", "gatedata": "skipped", "gates": "skipped",
-                      "crossover": "skipped", "evaluate": "ran", "report": "ran"}
+                      "crossover": "skipped", "evaluate": "ran", "transitions": "skipped", "report": "ran"}
     assert r["report_json"]["results"]["lambda_e"] == 0.05
-    for n in ("generate", "train", "gatedata", "gates", "crossover"):
+    for n in ("generate", "train", "gatedata", "gates", "crossover", "transitions"):
         assert r["stages"][n]["key"] == tiny["first"]["stages"][n]["key"]
     # back to the original config: every stage is cached again, and the report is the original's
     again = run_study(cfg, out, progress=False)
@@ -418,3 +418,30 @@ def test_the_crossover_stage_sweeps_its_own_set_and_the_physical_gate_is_scored_
     assert comp["physical_gate"]["energy"] == res["hydra_table4"]["physical_gate"]["energy"]
     md = (tiny["out"] / "report.md").read_text()
     assert "When fusing a sensor stops paying" in md and "A knowledge gate from the measured crossovers" in md
+
+
+def test_the_transitions_stage_scores_each_learned_gate_with_memory_on_ramping_weather(tiny):
+    """Issue 37 item 3 at its smallest: the transition set (one dataset per part and kind, their own
+    seeds), each learned gate's variants with their parameters chosen on the validation part, the
+    per-sequence scores and the report's section."""
+    first = tiny["first"]
+    tx_dir = Path(first["stages"]["transitions"]["dir"])
+    tx = json.loads((tx_dir / "transitions.json").read_text())
+    sec = tiny["cfg"].transitions
+    assert tx["seeds"] == {"validation-onset": 65, "validation-bank": 85, "test-onset": 60, "test-bank": 80}
+    for name, seed in tx["seeds"].items():
+        m = json.loads((tx_dir / "sets" / name / "manifest.json").read_text())
+        assert m["config"]["seed"] == seed and m["config"]["transitions"] == [name.split("-")[1]]
+        assert m["config"]["sequence_length"] == round(sec.duration_s * sec.frame_rate_hz)
+    assert tx["sequences"] == {"validation": 2, "test": 2}
+    assert set(tx["gates"]) == {f"hydrafusion:{g}" for g in tiny["cfg"].gates.gates}
+    for g, rec in tx["gates"].items():
+        assert rec["margin"] in sec.margins and rec["alpha"] in sec.alphas
+        assert set(rec["margin_trace"]) == {str(m) for m in sec.margins}
+        v = rec["variants"]
+        assert list(v)[0] == "per-frame" and "a-posteriori oracle" in v
+        assert v["a-posteriori oracle"]["regret"] == 0.0
+        assert all(x["regret"] >= 0 for x in v.values())
+    assert all((tx_dir / f).stat().st_size > 5_000 for f in tx["figures"])
+    md = (tiny["out"] / "report.md").read_text()
+    assert "Weather that changes: gates with memory" in md
