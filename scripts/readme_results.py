@@ -102,8 +102,26 @@ def results_block(report: dict, tables: tuple[str, ...] = ("DIR/report.md", "DIR
     for b, v in r["fusion_regret"].items():
         where = ", ".join(f"{c} ({_f(x, 4)})" for c, x in v["hurts_in"].items()) or "no context"
         lines.append(f"- fusing {b} costs mAP in: {where}")
-    lines += crossover_lines(r)
+    lines += crossover_lines(r) + transition_lines(r)
     return "\n".join(lines)
+
+
+def transition_lines(r: dict) -> list[str]:
+    """Each learned gate with memory against itself per frame on weather that ramps (issue 37)."""
+    tx = r.get("transitions")
+    if not tx or not tx.get("gates"):
+        return []
+    lines = ["", f"Weather that changes ({tx['sequences']['test']} test sequences of {tx['sequence_seconds']:g} s, "
+                 f"{', '.join(tx['kinds'])}; per-branch-loss regret, top 1; margin and EMA weight chosen on "
+                 f"{tx['sequences']['validation']} validation sequences):", "",
+             "| gate | variant | regret | in transitions | minus per-frame: 95 % interval | lag [frames] | "
+             "switches / min |", "|---|---|---|---|---|---|---|"]
+    for g, rec in tx["gates"].items():
+        for v, x in rec["variants"].items():
+            lines.append(f"| {g} | {v} | {_f(x['regret'], 4)} | {_f(x['regret_transitions'], 4)} | "
+                         f"{_interval(x.get('regret_minus_per-frame_interval'), signed=True)} | "
+                         f"{_f(x['lag_mean_frames'], 2)} | {_f(x['switches_per_minute'], 1)} |")
+    return lines
 
 
 def crossover_lines(r: dict) -> list[str]:
