@@ -108,11 +108,11 @@ def _matches(per_frame: list, sets: Mapping[str, tuple], frames: dict, method: s
 
 
 def _interval(values: np.ndarray, level: float) -> list | None:
-    v = values[np.isfinite(values)]
-    if not len(v):
-        return None
-    tail = 50.0 * (1.0 - level)
-    return [float(np.percentile(v, tail)), float(np.percentile(v, 100 - tail))]
+    """`fusion.intervals.percentile_interval` as a list (what the JSON record holds)."""
+    from fusion.intervals import percentile_interval
+
+    iv = percentile_interval(values, level)
+    return None if iv is None else list(iv)
 
 
 def curves_record(metas: Sequence[Mapping], matches: Mapping, twin_matches: Mapping, sets: Mapping[str, dict],
