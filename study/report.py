@@ -16,7 +16,6 @@ from pathlib import Path
 
 from study.numbers import interval_text, number_text
 from study.outputs import write_text_atomic
-from study.report_crossover import add_crossover, add_physical_gate, add_transitions
 from study.report_bounds import (
     add_coverage,
     add_energy_front,
@@ -26,6 +25,7 @@ from study.report_bounds import (
     main_methods,
     named,
 )
+from study.report_crossover import add_crossover, add_physical_gate, add_transitions
 
 REPORT_VERSION = 2
 

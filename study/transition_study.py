@@ -166,7 +166,7 @@ def plot_sequence(path: Path, title: str, x: np.ndarray, quantity: str, choices:
     if quantity in ("visibility_m", "illuminance_lux"):
         axes[0].set_yscale("log")
     ax = axes[1]
-    for i, (name, ch) in enumerate(rows.items()):
+    for i, ch in enumerate(rows.values()):
         ax.scatter(t, np.full(len(t), i) + (np.asarray(ch) - (len(branches) - 1) / 2) * 0.12, s=6,
                    c=[f"C{int(c)}" for c in ch])
     ax.set_yticks(range(len(rows)), list(rows), fontsize=8)

@@ -37,7 +37,7 @@ def _sweep(condition, quantity, values, seqs=6, per=2):
     metas = []
     for level, x in enumerate(values, start=1):
         for s in range(seqs):
-            for f in range(per):
+            for _ in range(per):
                 metas.append({"context": condition, "severity": level, "sequence_id": f"{condition}-{level}-{s}",
                               "weather": {quantity: x * (1 + 0.01 * s)}})
     return metas

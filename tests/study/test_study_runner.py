@@ -435,7 +435,7 @@ def test_the_transitions_stage_scores_each_learned_gate_with_memory_on_ramping_w
         assert m["config"]["sequence_length"] == round(sec.duration_s * sec.frame_rate_hz)
     assert tx["sequences"] == {"validation": 2, "test": 2}
     assert set(tx["gates"]) == {f"hydrafusion:{g}" for g in tiny["cfg"].gates.gates}
-    for g, rec in tx["gates"].items():
+    for rec in tx["gates"].values():
         assert rec["margin"] in sec.margins and rec["alpha"] in sec.alphas
         assert set(rec["margin_trace"]) == {str(m) for m in sec.margins}
         v = rec["variants"]
