@@ -106,9 +106,11 @@ def _interval(values: np.ndarray, resamples: int, seed: int) -> list | None:
     v = np.asarray([x for x in values if x is not None and np.isfinite(x)], dtype=float)
     if len(v) < 2:
         return None
+    from fusion.intervals import percentile_interval
+
     rng = np.random.default_rng(seed)
     means = v[rng.integers(0, len(v), size=(resamples, len(v)))].mean(axis=1)
-    return [round(float(np.percentile(means, 2.5)), 6), round(float(np.percentile(means, 97.5)), 6)]
+    return [round(x, 6) for x in percentile_interval(means)]
 
 
 def score_variants(costs: Mapping[str, np.ndarray], choices: Mapping[str, Mapping[str, np.ndarray]],
@@ -220,9 +222,9 @@ def run_transitions(work: Path, run: Path, sec, learned: Sequence[str], profile:
     costs = {p: {s: losses[rr] for s, rr in seqs[p].items()} for p in PARTS}
     val_rows = [r for rr in seqs["validation"].values() for r in rr]
     constant = int(np.argmin(losses[val_rows].mean(axis=0)))
-    rates = {"camera_right": load_profile(profile).camera.rate_hz, "camera_left": load_profile(profile).camera.rate_hz,
-             "lidar": load_profile(profile).lidar.rate_hz, "fwd_lidar": load_profile(profile).lidar.rate_hz,
-             "radar": load_profile(profile).radar.rate_hz}
+    rig = load_profile(profile)
+    rates = {"camera_right": rig.camera.rate_hz, "camera_left": rig.camera.rate_hz, "lidar": rig.lidar.rate_hz,
+             "fwd_lidar": rig.lidar.rate_hz, "radar": rig.radar.rate_hz}
     wake = wake_frames_of(rates, sec.frame_rate_hz)
     sensors_of = model.branch_sensors
     record = {"what": "gates with memory on weather that changes (issue 37 item 3)", "branches": branches,
