@@ -109,7 +109,25 @@ def add_transitions(doc, r: dict, tag: str, work: Path) -> dict | None:
           + ", ".join(f"{k} {v} frame(s)" for k, v in tx["wake_frames"].items() if k in ("camera_right", "lidar", "radar"))
           + "). The best constant is the "
           f"branch of lowest mean cost on validation ({tx['best_constant']}); the a-posteriori oracle reads the "
-          "frame's ground truth (not achievable; its switches are shown for scale). Not built: a recurrent gate.")
+          "frame's ground truth (not achievable; its switches are shown for scale).")
+    rc = tx["gates"].get("recurrent")
+    if rc:
+        tr = rc["training"]
+        doc.p(f"The recurrent gate (item 3 (c)): a GRU of {tr['parameters']} parameters over each frame's stem channel "
+              f"means, trained on the gate set's {tr['fit_sequences']} fitting sequences of "
+              f"{', '.join(str(n) for n in tr['sequence_frames'])} frames, epoch {tr['best_epoch']} kept "
+              + (f"on its {tr['val_sequences']} validation sequences (top-1 regret {tr['val_regret']:.4f})"
+                 if tr.get("val_regret") is not None else "(the last: the gate set has no validation sequences)")
+              + "; on a transition sequence it runs over "
+              + ("the whole sequence" if not rc["window"] else f"the last {rc['window']} frames")
+              + " (chosen on the validation part among "
+              + ", ".join(("whole" if w == "0" else w) for w in rc["window_trace"]) + "). Its \"per-frame\" row is "
+              f"the same network over one frame (no memory); its own step takes {rc['step_ms']:.3f} ms.")
+    en = tx.get("energy")
+    if en:
+        doc.p(f"Energy per frame: compute ({en['scale']} scale) = {en['compute']}; sensors = {en['sensors']}. A "
+              "learned gate reads every stem, so every sensor keeps measuring whatever it chooses; the clock-gated "
+              "column is what its choices alone would draw.")
     for g, rec in tx["gates"].items():
         rows = []
         for v, s in rec["variants"].items():
@@ -120,12 +138,24 @@ def add_transitions(doc, r: dict, tag: str, work: Path) -> dict | None:
                          interval_text(s.get("regret_transitions_minus_per-frame_interval"), signed=True),
                          number_text(s["lag_mean_frames"]), number_text(s["lag_censored_share"]),
                          number_text(s["switches_per_minute"]), number_text(s["wakes_per_minute"]),
-                         s["frames_waiting_for_a_sensor"]])
-        doc.table(f"{g} over the test sequences: regret, lag and switches per variant (margin {rec['margin']:g}, "
-                  f"alpha {rec['alpha']:g}, chosen on validation) ({tag})",
+                         s["frames_waiting_for_a_sensor"], number_text(s.get("energy_compute")),
+                         number_text(s.get("energy_sensors_j")),
+                         number_text(s.get("energy_sensors_clock_gated_by_choice_j"))])
+        chosen = (("the whole sequence" if not rec["window"] else f"window {rec['window']}") if g == "recurrent"
+                  else f"margin {rec['margin']:g}, alpha {rec['alpha']:g}")
+        doc.table(f"{g} over the test sequences: regret, lag, switches and energy per variant ({chosen}, chosen on "
+                  f"validation) ({tag})",
                   ["variant", "regret", "95 %", "regret in transitions", "minus per-frame", "95 %",
                    "in transitions minus per-frame", "95 %", "lag [frames]", "lag censored", "switches / min",
-                   "wake-ups / min", "frames waiting"], rows)
+                   "wake-ups / min", "frames waiting", "compute energy", "sensors [J]", "sensors clock-gated [J]"],
+                  rows)
+        if g == "recurrent":
+            x = next(s for v, s in rec["variants"].items() if v.startswith("recurrent ("))
+            if x.get("regret_minus_deep_interval"):
+                doc.p(f"The recurrent gate minus the deep gate per frame: regret {_signed(x['regret_minus_deep'])} "
+                      f"{interval_text(x['regret_minus_deep_interval'], signed=True)}, in transitions "
+                      f"{_signed(x.get('regret_transitions_minus_deep'))} "
+                      f"{interval_text(x.get('regret_transitions_minus_deep_interval'), signed=True)} ({tag}).")
     src = Path(tx.get("figures_dir", ""))
     for f in tx.get("figures", []):
         if (src / f).is_file():

@@ -305,14 +305,17 @@ def evaluate_stage(work: Path, gates_run: Path, run_early: Path | None, parts: d
     return file_sha256(work / "results.json"), {}
 
 
-def transitions_stage(work: Path, gates_run: Path, cfg: StudyConfig, setup, progress: bool) -> tuple[str, dict]:
+def transitions_stage(work: Path, gates_run: Path, cfg: StudyConfig, setup, progress: bool,
+                      gate_data: Path | None = None) -> tuple[str, dict]:
     """The learned gates with memory on the transition set (`study.transition_study`) ->
-    work/transitions.json and its figures."""
+    work/transitions.json and its figures; the recurrent gate trains on `gate_data` (the gate set the
+    gates stage fitted on)."""
     from study.transition_study import run_transitions
 
     link_farm(gates_run, work / "run")
     rec = run_transitions(work, work / "run", cfg.transitions, tuple(cfg.gates.gates), cfg.profile, setup,
-                          cfg.run.workers, cfg.run.backend, cfg.train.batch_size, progress)
+                          cfg.run.workers, cfg.run.backend, cfg.train.batch_size, progress, gate_data=gate_data,
+                          gates=cfg.gates, settings=eco_settings(cfg))
     return file_sha256(work / "transitions.json"), {"frames": rec["frames"], "figures": rec["figures"]}
 
 
@@ -459,7 +462,8 @@ def run_study(cfg: StudyConfig, out: str | Path, until: str = "report", progress
     if cfg.transitions is not None and last >= STAGES.index("transitions"):
         tx = study.stage("transitions", {"transitions": to_dict(cfg.transitions), "profile": cfg.profile,
                                          "batch_size": cfg.train.batch_size, **ident("transitions")}, (gt,),
-                         transitions_stage, gates_run=gt.dir / "run", cfg=cfg, setup=eval_setup, progress=progress)
+                         transitions_stage, gates_run=gt.dir / "run", cfg=cfg, setup=eval_setup, progress=progress,
+                         gate_data=gate_data)
     if last < STAGES.index("report"):
         return _finish(study, result, t_start)
 

@@ -438,6 +438,11 @@ class TransitionsSection:
         margins: hysteresis margins (in predicted-loss units) chosen among on validation.
         alphas: EMA weights of the newest frame chosen among on validation (1 = no memory).
         bootstrap: draws of test sequences for the intervals.
+        recurrent_epochs: epochs of the recurrent gate (`fusion.nets.recurrent_gate`) on the gate set's
+            fitting sequences (the epoch kept: lowest regret on its validation sequences); 0: none.
+        recurrent_hidden: its GRU state width.
+        windows: [frames] how much of the past the recurrent gate runs over on a transition sequence,
+            chosen among on the validation part (0: the whole sequence from its first frame).
     """
 
     duration_s: float = 30.0
@@ -452,28 +457,14 @@ class TransitionsSection:
     margins: tuple[float, ...] = (0.0, 0.02, 0.05, 0.1, 0.2)
     alphas: tuple[float, ...] = (1.0, 0.7, 0.5, 0.3, 0.2)
     bootstrap: int = 500
+    recurrent_epochs: int = 60
+    recurrent_hidden: int = 32
+    windows: tuple[int, ...] = (2, 4, 8, 0)
 
     def __post_init__(self) -> None:
-        from study.transition_study import check_kinds
+        from study.transition_study import check_section
 
-        check_kinds(self.kinds)
-        _positive("transitions.sequences", self.sequences)
-        _positive("transitions.validation_sequences", self.validation_sequences)
-        _positive("transitions.bootstrap", self.bootstrap)
-        _positive("transitions.radius", self.radius, 0)
-        _positive("transitions.seed", self.seed, 0)
-        if not (self.duration_s > 0 and self.frame_rate_hz > 0) or round(self.duration_s * self.frame_rate_hz) < 2:
-            raise UserError("transitions: duration_s x frame_rate_hz must give at least 2 frames per sequence")
-        bad = [c for c in self.conditions if c not in ("fog", "rain", "snow")]
-        if bad or not self.conditions or len(set(self.conditions)) != len(self.conditions):
-            raise UserError(f"transitions.conditions must be distinct names of fog, rain, snow (night has no ramp), "
-                            f"got {list(self.conditions)}")
-        if not self.severities or any(isinstance(v, bool) or v not in (1, 2, 3, 4, 5) for v in self.severities):
-            raise UserError(f"transitions.severities must be levels 1..5, got {list(self.severities)}")
-        if not self.margins or any(m < 0 for m in self.margins):
-            raise UserError(f"transitions.margins must be >= 0, got {list(self.margins)}")
-        if not self.alphas or any(not 0 < a <= 1 for a in self.alphas):
-            raise UserError(f"transitions.alphas must be in (0, 1], got {list(self.alphas)}")
+        check_section(self)
 
     def seeds(self) -> list[int]:
         from study.transition_study import PARTS, part_seed

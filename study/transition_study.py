@@ -25,12 +25,25 @@ per-frame gate). Clock gating over time (EcoFusion 5.5.2, `fusion.temporal.clock
 sensors a variant's choices want, each woken one full measurement period before it gives data, the
 wake-ups and the frames a wanted sensor was still waking counted.
 
-Not here: a recurrent gate over stem features trained on sequences (issue 37 item 3 (c)).
+The recurrent gate (issue 37 item 3 (c), `fusion.nets.recurrent_gate`): a GRU over each frame's stem
+channel means, trained on the gate set's fitting sequences (the epoch kept on its validation
+sequences), run on a transition sequence over the last `window` frames (chosen on the validation
+part) and, as its own memoryless twin, over one frame. Its entry is scored against that twin
+("per-frame") and against the deep gate per frame.
+
+Energy per variant (`variant_energy`): per frame, the compute energy of the chosen branch plus the
+stems the gate reads and the gate's own measured time (E = P t on the study's energy scale, PX2 J by
+default), and the sensors' energy (EcoFusion Eq. 10 over one fused frame, the paper's Table 3
+period): with the gate's reads (a gate that reads a sensor's stem keeps it measuring: every sensor,
+for these learned gates), and with clock gating by the choice alone (what the schedule of wake-ups
+draws, a waking sensor at full power with no data: the saving a gate would get that did not read
+the sensors it switches off).
 """
 
 from __future__ import annotations
 
 from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -151,6 +164,137 @@ def score_variants(costs: Mapping[str, np.ndarray], choices: Mapping[str, Mappin
     return out
 
 
+def variant_energy(choices: Mapping[str, Mapping[str, np.ndarray]], compute: Sequence[float],
+                   wanted: Mapping[str, Mapping[str, list]], wake: Mapping[str, int], read: Sequence[str]) -> dict:
+    """Per variant: the mean per frame over the test sequences of the compute energy of its chosen
+    branch (`compute[b]`, on the study's energy scale), of the sensors' energy with the gate's `read`
+    sensors kept measuring, and with clock gating by the choice alone (`fusion.temporal.clock_schedule`,
+    a waking sensor at full power); in joules of EcoFusion Eq. 10 over one fused frame."""
+    from fusion.eco.energy import total_energy
+    from fusion.temporal import clock_schedule
+
+    compute = np.asarray(compute, dtype=float)
+    out = {}
+    for v, per in choices.items():
+        comp, with_reads, by_choice = [], [], []
+        for s, ch in per.items():
+            sched = clock_schedule(wanted[v][s], wake)
+            comp.extend(compute[np.asarray(ch, dtype=int)])
+            for powered in sched.powered:
+                by_choice.append(total_energy(0.0, powered, "clock"))
+                with_reads.append(total_energy(0.0, sorted(set(powered) | set(read)), "clock"))
+        out[v] = {"energy_compute": round(float(np.mean(comp)), 4),
+                  "energy_sensors_j": round(float(np.mean(with_reads)), 4),
+                  "energy_sensors_clock_gated_by_choice_j": round(float(np.mean(by_choice)), 4)}
+    return out
+
+
+def branch_compute_energy(run: Path, branches: Sequence[str], branch_sensors: Mapping[str, Sequence[str]],
+                          read: Sequence[str], gate_seconds: float, settings) -> list[float]:
+    """Per branch, the compute energy of a frame on which a gate reading the stems of `read` (and
+    taking `gate_seconds` of its own) chose that branch alone: the latency model of the gates stage
+    (RUN/eco/latency.json, the same table as the study's energy), E = P t (or the counter's measured
+    energies scaled by time), on the study's energy scale relative to late fusion of `branches`."""
+    import json
+
+    from fusion.eco.energy import LatencyModel, configuration_energy, power_model
+    from fusion.eco.optimise import normalise_energy
+
+    path = Path(run) / "eco" / "latency.json"
+    if not path.is_file():
+        raise UserError(f"{path}: no latency table (the gates stage measures it)")
+    lat = LatencyModel.from_dict(json.loads(path.read_text())["model"])
+    configs = [[b] for b in branches] + [list(branches)]
+    t, e, _source = configuration_energy(lat, configs, power_model(settings.power))
+    extra = np.array([gate_seconds + sum(lat.stems.get(x, 0.0) for x in set(read) - set(branch_sensors[b]))
+                      for b in branches])
+    e_b = e[:-1] * (t[:-1] + extra) / t[:-1]
+    return [float(x) for x in normalise_energy(e_b, float(e[-1]), settings.energy_scale)]
+
+
+def gate_set_sequences(reader, indices: Sequence[int], x: np.ndarray, y: np.ndarray) -> list[tuple]:
+    """[(features (T, F), losses (T, n))] per sequence of the frames `indices` (rows of x and y in that
+    order), frames in time order, sequences in order of their first index."""
+    metas = [reader.meta(int(i)) for i in indices]
+    return [(x[rows], y[rows]) for rows in sequences(metas).values()]
+
+
+def train_recurrent(out: Path, run: Path, gate_data: Path, model, gates, sec, progress: bool):
+    """The recurrent gate on the gate set's fitting sequences (the gates' own split: `gates.targets`,
+    `val_fraction`, `seed`), its epoch kept on the validation sequences; saved in out/gate.pt with its
+    history (reused when its settings match)."""
+    import json
+    import sys
+
+    import torch
+
+    from fusion.nets.recurrent_gate import RecurrentGate, channel_means, fit_recurrent
+    from sensors.dataset import DatasetReader
+    from study.checkpoints import load_checkpoint
+    from study.gate_data import GateData
+    from study.outputs import torch_save_atomic, write_json_atomic
+    from study.selection import gate_frames
+
+    run_cfg = json.loads((Path(run) / "config.json").read_text())
+    frames = gate_frames(run_cfg, gate_data, gates.targets, gates.val_fraction, gates.seed, "transitions")
+    reader = DatasetReader(gate_data)
+    gd = GateData(run, gate_data, model)
+    gd.ensure(frames.fit + frames.val, progress=progress)
+    parts = {}
+    for name, idx in (("fit", frames.fit), ("val", frames.val)):
+        x, y = gd.load(idx)
+        parts[name] = gate_set_sequences(reader, idx, channel_means(x), y)
+    settings = {"epochs": sec.recurrent_epochs, "hidden": sec.recurrent_hidden, "seed": gates.seed,
+                "data_key": gd.key, "fit_frames": len(frames.fit), "val_frames": len(frames.val)}
+    n_in = parts["fit"][0][0].shape[1]
+    gate = RecurrentGate(n_in, len(model.branches), hidden=sec.recurrent_hidden)
+    path = out / "gate.pt"
+    if path.is_file():
+        saved = load_checkpoint(path, ("settings", "state", "info"))
+        if saved["settings"] == settings:
+            gate.load_state_dict(saved["state"])
+            return gate.eval(), saved["info"]
+    torch.manual_seed(gates.seed)
+    gate = RecurrentGate(n_in, len(model.branches), hidden=sec.recurrent_hidden)
+
+    def say(epoch, row):
+        if progress:
+            val = "" if row["val_regret"] is None else f", validation regret {row['val_regret']:.4f}"
+            sys.stderr.write(f"recurrent gate: epoch {epoch}/{sec.recurrent_epochs}, training MAE "
+                             f"{row['train_mae']:.4f}{val}\n")
+
+    info = fit_recurrent(gate, parts["fit"], parts["val"], epochs=sec.recurrent_epochs, seed=gates.seed, progress=say)
+    info.update(fit_sequences=len(parts["fit"]), val_sequences=len(parts["val"]), inputs=n_in,
+                sequence_frames=sorted({len(x) for x, _ in parts["fit"]}), parameters=sum(
+                    p.numel() for p in gate.parameters()))
+    out.mkdir(parents=True, exist_ok=True)
+    torch_save_atomic({"settings": settings, "state": gate.state_dict(), "info": info}, path)
+    write_json_atomic(out / "history.json", info)
+    return gate.eval(), info
+
+
+def time_recurrent_step(gate, repeats: int = 200) -> float:
+    """[s] the median of `repeats` single-frame steps of the GRU gate (one thread, state carried), the
+    gate's own time per frame when it runs along a sequence."""
+    import time
+
+    import torch
+
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)
+    try:
+        x = torch.zeros(1, 1, gate.input_mean.numel())
+        h, times = None, []
+        with torch.no_grad():
+            for _ in range(repeats + 10):
+                t0 = time.perf_counter()
+                _, h = gate(x, h)
+                times.append(time.perf_counter() - t0)
+        return float(np.median(times[10:]))
+    finally:
+        torch.set_num_threads(threads)
+
+
 def plot_sequence(path: Path, title: str, x: np.ndarray, quantity: str, choices: Mapping[str, np.ndarray],
                   best: np.ndarray, branches: Sequence[str], frame_rate_hz: float) -> Path:
     """One sequence: the weather quantity over time, and below it each variant's branch per frame
@@ -183,20 +327,68 @@ def plot_sequence(path: Path, title: str, x: np.ndarray, quantity: str, choices:
     return path
 
 
-def run_transitions(work: Path, run: Path, sec, learned: Sequence[str], profile: str, setup, workers: int,
-                    backend: str, batch_size: int, progress: bool) -> dict:
-    """The stage: the transition set, the per-branch losses and each learned gate's predictions on
-    it, every variant chosen on validation and scored on test -> work/transitions.json and figures.
-    `run`: the gates stage's run, farmed into the stage's folder (its gate data cache lands there)."""
-    from fusion.physical_gate import CAR_QUANTITY
+@dataclass
+class TransitionSet:
+    """What every gate's entry is scored on: the transition set's per-branch costs and sequences, the
+    learned gates' predictions and the features, with what energy and clock gating need."""
+
+    work: Path
+    run: Path
+    sec: object
+    branches: list
+    sensors_of: dict
+    metas: list
+    manifest: dict
+    seqs: dict
+    costs: dict
+    preds: dict
+    feats: np.ndarray
+    constant: int
+    wake: dict
+    read_all: list
+    own: dict
+    settings: object
+
+    def baselines(self) -> dict:
+        test = self.costs["test"]
+        return {f"best constant ({self.branches[self.constant]})": {s: np.full(len(c), self.constant)
+                                                                    for s, c in test.items()},
+                "a-posteriori oracle": {s: np.argmin(c, axis=1) for s, c in test.items()}}
+
+    def wanted(self, choices) -> dict:
+        return {v: {s: [sorted(self.sensors_of[self.branches[int(b)]]) for b in ch] for s, ch in per.items()}
+                for v, per in choices.items()}
+
+    def score(self, choices, seconds_of, reference: str = "per-frame") -> dict:
+        """score_variants over the test sequences, with each variant's energy (`variant_energy`) when the
+        study's energy settings are given: the baselines read no stem and take no gate time, the gate's
+        variants read every stem it reads and take `seconds_of(variant)` of their own."""
+        sec, wanted = self.sec, self.wanted(choices)
+        scored = score_variants(self.costs["test"], choices, wanted, self.wake, sec.radius, sec.frame_rate_hz,
+                                sec.bootstrap, 0, reference=reference)
+        if self.settings is not None:
+            for v in choices:
+                gate = not v.startswith(("best constant", "a-posteriori"))
+                read = self.read_all if gate else []
+                compute = branch_compute_energy(self.run, self.branches, self.sensors_of, read,
+                                                seconds_of(v) if gate else 0.0, self.settings)
+                scored[v].update(variant_energy({v: choices[v]}, compute, wanted, self.wake, read)[v])
+        return scored
+
+
+def load_transition_set(work: Path, run: Path, sec, learned: Sequence[str], profile: str, setup, workers: int,
+                        backend: str, batch_size: int, progress: bool, settings) -> tuple[TransitionSet, object]:
+    """Generate the transition set (one dataset per part and kind), its gate data under `run`, each
+    learned gate's predictions on it -> (the set, the run's network)."""
+    from fusion.nets.branch_gates import gate_sensors
     from fusion.temporal import wake_frames_of
     from sensors.combine import combine, part_indices
     from sensors.dataset import DatasetReader
     from sensors.generate import generate
     from sensors.rig import load_profile
     from study.branch_gate_study import load_trained_gate, predict_losses
+    from study.eco.latency_energy import read_gate_latency
     from study.gate_data import GateData
-    from study.outputs import write_json_atomic
     from study.scoring import load_run
 
     parts = {}
@@ -221,53 +413,166 @@ def run_transitions(work: Path, run: Path, sec, learned: Sequence[str], profile:
     seqs = {p: {s: [rows_of[p][i] for i in rr] for s, rr in seqs[p].items()} for p in PARTS}
     costs = {p: {s: losses[rr] for s, rr in seqs[p].items()} for p in PARTS}
     val_rows = [r for rr in seqs["validation"].values() for r in rr]
-    constant = int(np.argmin(losses[val_rows].mean(axis=0)))
     rig = load_profile(profile)
     rates = {"camera_right": rig.camera.rate_hz, "camera_left": rig.camera.rate_hz, "lidar": rig.lidar.rate_hz,
              "fwd_lidar": rig.lidar.rate_hz, "radar": rig.radar.rate_hz}
-    wake = wake_frames_of(rates, sec.frame_rate_hz)
-    sensors_of = model.branch_sensors
-    record = {"what": "gates with memory on weather that changes (issue 37 item 3)", "branches": branches,
-              "frames": len(every), "sequence_seconds": sec.duration_s, "frame_rate_hz": sec.frame_rate_hz,
+    return TransitionSet(work=work, run=run, sec=sec, branches=branches, sensors_of=dict(model.branch_sensors),
+                         metas=metas, manifest=manifest, seqs=seqs, costs=costs, preds=preds, feats=feats,
+                         constant=int(np.argmin(losses[val_rows].mean(axis=0))),
+                         wake=wake_frames_of(rates, sec.frame_rate_hz), read_all=list(gate_sensors(model)),
+                         own=read_gate_latency(run), settings=settings), model
+
+
+def learned_entry(ts: TransitionSet, g: str) -> tuple[dict, str]:
+    """One learned HydraFusion gate per frame, with hysteresis and with an EMA (each parameter chosen on
+    validation), beside the baselines; and the figure of one test sequence."""
+    from fusion.physical_gate import CAR_QUANTITY
+    from sensors.combine import part_indices
+
+    sec, seqs = ts.sec, ts.seqs
+    scores = {p: {s: ts.preds[g][rr] for s, rr in seqs[p].items()} for p in PARTS}
+    margin, m_trace = choose_parameter(ts.costs["validation"], scores["validation"], "hysteresis", sec.margins)
+    alpha, a_trace = choose_parameter(ts.costs["validation"], scores["validation"], "ema", sec.alphas)
+    test = ts.costs["test"]
+    choices = {"per-frame": {s: variant_choices(scores["test"][s], "per-frame", None) for s in test},
+               f"hysteresis (margin {margin:g})": {s: variant_choices(scores["test"][s], "hysteresis", margin)
+                                                   for s in test},
+               f"EMA (alpha {alpha:g})": {s: variant_choices(scores["test"][s], "ema", alpha) for s in test},
+               **ts.baselines()}
+    scored = ts.score(choices, lambda v: ts.own.get(f"hydrafusion:{g}", 0.0))
+    entry = {"chosen_on": "validation sequences (mean regret)", "margin": margin, "alpha": alpha,
+             "margin_trace": m_trace, "alpha_trace": a_trace, "variants": scored}
+    shown = set(part_indices(ts.manifest, f"test-{'bank' if 'bank' in sec.kinds else sec.kinds[0]}"))
+    s0 = next(s for s, rr in seqs["test"].items() if rr[0] in shown)
+    cond = ts.metas[seqs["test"][s0][0]]["context"]
+    quantity = CAR_QUANTITY.get(cond, ("visibility_m",))[0]
+    x = np.array([ts.metas[r]["weather"][quantity] for r in seqs["test"][s0]])
+    fig = plot_sequence(ts.work / f"transition_{g}.png",
+                        f"hydrafusion:{g} over one test sequence ({cond}); colour: the branch chosen",
+                        x, quantity, {v: ch[s0] for v, ch in choices.items() if v != "a-posteriori oracle"},
+                        np.argmin(test[s0], axis=1), ts.branches, sec.frame_rate_hz)
+    return entry, fig.name
+
+
+def recurrent_entry(ts: TransitionSet, model, gate_data: Path, gates, learned: Sequence[str], progress: bool) -> dict:
+    """The recurrent gate: trained on the gate set's sequences, its window chosen on the validation
+    part, scored beside its memoryless twin ("per-frame"), the deep gate per frame and the baselines."""
+    from fusion.nets.recurrent_gate import channel_means
+
+    sec, seqs, costs = ts.sec, ts.seqs, ts.costs
+    gate, info = train_recurrent(ts.work / "recurrent", ts.run, gate_data, model, gates, sec, progress)
+    means = channel_means(ts.feats)
+
+    def choice(part, window):
+        return {s: np.argmin(gate.predict_sequence(means[rr], None if window == 0 else window), axis=1)
+                for s, rr in seqs[part].items()}
+
+    trace = {}
+    for w in sec.windows:
+        ch = choice("validation", w)
+        trace[w] = float(np.mean([sequence_scores_regret(costs["validation"][s], ch[s]) for s in ch]))
+    window = min(sec.windows, key=lambda w: trace[w])
+    name = f"recurrent ({'whole sequence' if window == 0 else f'window {window}'})"
+    deep = "deep" if "deep" in learned else (learned[0] if learned else None)
+    ref = f"hydrafusion:{deep} per-frame"
+    choices = {"per-frame": choice("test", 1), name: choice("test", window)}
+    if deep is not None:
+        choices[ref] = {s: variant_choices(ts.preds[deep][rr], "per-frame", None) for s, rr in seqs["test"].items()}
+    choices.update(ts.baselines())
+    step = time_recurrent_step(gate)
+    steps = {"per-frame": 1, name: window or 1}  # a window is run again from a zero state each frame
+
+    def seconds(v):
+        return steps[v] * step if v in steps else ts.own.get(f"hydrafusion:{deep}", 0.0)
+
+    scored = ts.score(choices, seconds)
+    if deep is not None:
+        vs = ts.score({ref: choices[ref], name: choices[name]}, seconds, reference=ref)
+        for key in ("regret", "regret_transitions"):
+            for tail in ("", "_interval"):
+                scored[name][f"{key}_minus_deep{tail}"] = vs[name][f"{key}_minus_{ref}{tail}"]
+    return {"chosen_on": "validation sequences (mean regret)", "window": window,
+            "window_trace": {str(w): round(m, 6) for w, m in trace.items()},
+            "trained_on": "the gate set's fitting sequences; epoch kept on its validation sequences (top-1 regret)",
+            "training": {k: v for k, v in info.items() if k != "history"}, "history": info["history"],
+            "step_ms": round(1000 * step, 4), "variants": scored}
+
+
+def run_transitions(work: Path, run: Path, sec, learned: Sequence[str], profile: str, setup, workers: int,
+                    backend: str, batch_size: int, progress: bool, gate_data: Path | None = None, gates=None,
+                    settings=None) -> dict:
+    """The stage: the transition set, the per-branch losses and each learned gate's predictions on
+    it, every variant chosen on validation and scored on test -> work/transitions.json and figures.
+    `run`: the gates stage's run, farmed into the stage's folder (its gate data cache lands there).
+    `gate_data`, `gates` (`GatesSection`): the gate set and its split, on which the recurrent gate
+    trains (none without them, or with `sec.recurrent_epochs` 0); `settings` (`EcoSettings`): the
+    energy scale and power model (energy per variant; none without)."""
+    from study.outputs import write_json_atomic
+
+    ts, model = load_transition_set(work, run, sec, learned, profile, setup, workers, backend, batch_size, progress,
+                                    settings)
+    record = {"what": "gates with memory on weather that changes (issue 37 item 3)", "branches": ts.branches,
+              "frames": len(ts.metas), "sequence_seconds": sec.duration_s, "frame_rate_hz": sec.frame_rate_hz,
               "kinds": list(sec.kinds), "conditions": list(sec.conditions), "severities": list(sec.severities),
-              "sequences": {p: len(seqs[p]) for p in PARTS},
+              "sequences": {p: len(ts.seqs[p]) for p in PARTS},
               "seeds": {n: c.seed for n, c in transition_configs(sec, profile).items()},
-              "radius": sec.radius, "wake_frames": wake, "best_constant": branches[constant],
+              "radius": sec.radius, "wake_frames": ts.wake, "best_constant": ts.branches[ts.constant],
               "cost": "per-branch loss against the frame's ground truth (top 1, as the study's regret)",
-              "gates": {}}
-    figures = []
+              "gates": {}, "figures": []}
     for g in learned:
-        scores = {p: {s: preds[g][rr] for s, rr in seqs[p].items()} for p in PARTS}
-        margin, m_trace = choose_parameter(costs["validation"], scores["validation"], "hysteresis", sec.margins)
-        alpha, a_trace = choose_parameter(costs["validation"], scores["validation"], "ema", sec.alphas)
-        test = costs["test"]
-        choices = {"per-frame": {s: variant_choices(scores["test"][s], "per-frame", None) for s in test},
-                   f"hysteresis (margin {margin:g})": {s: variant_choices(scores["test"][s], "hysteresis", margin)
-                                                       for s in test},
-                   f"EMA (alpha {alpha:g})": {s: variant_choices(scores["test"][s], "ema", alpha) for s in test},
-                   f"best constant ({branches[constant]})": {s: np.full(len(c), constant) for s, c in test.items()},
-                   "a-posteriori oracle": {s: np.argmin(c, axis=1) for s, c in test.items()}}
-        wanted = {v: {s: [sorted(sensors_of[branches[int(b)]]) for b in ch] for s, ch in per.items()}
-                  for v, per in choices.items()}
-        scored = score_variants(test, choices, wanted, wake, sec.radius, sec.frame_rate_hz, sec.bootstrap, 0)
-        record["gates"][f"hydrafusion:{g}"] = {"chosen_on": "validation sequences (mean regret)", "margin": margin,
-                                               "alpha": alpha, "margin_trace": m_trace, "alpha_trace": a_trace,
-                                               "variants": scored}
-        shown = set(part_indices(manifest, f"test-{'bank' if 'bank' in sec.kinds else sec.kinds[0]}"))
-        s0 = next(s for s, rr in seqs["test"].items() if rr[0] in shown)
-        cond = metas[seqs["test"][s0][0]]["context"]
-        quantity = CAR_QUANTITY.get(cond, ("visibility_m",))[0]
-        x = np.array([metas[r]["weather"][quantity] for r in seqs["test"][s0]])
-        figures.append(plot_sequence(work / f"transition_{g}.png",
-                                     f"hydrafusion:{g} over one test sequence ({cond}); colour: the branch chosen",
-                                     x, quantity, {v: ch[s0] for v, ch in choices.items() if v != "a-posteriori oracle"},
-                                     np.argmin(test[s0], axis=1), branches, sec.frame_rate_hz).name)
-    record["figures"] = figures
+        record["gates"][f"hydrafusion:{g}"], fig = learned_entry(ts, g)
+        record["figures"].append(fig)
+    if gate_data is not None and gates is not None and sec.recurrent_epochs > 0:
+        record["gates"]["recurrent"] = recurrent_entry(ts, model, gate_data, gates, learned, progress)
+    record["energy"] = None if settings is None else {
+        "scale": settings.energy_scale, "power": settings.power,
+        "compute": "chosen branch + the stems the gate reads + the gate's own measured time (E = P t)",
+        "sensors": "EcoFusion Eq. 10 over one fused frame (J): with the gate's reads measuring, and clock-gated "
+                   "by the choice alone (a waking sensor at full power)"}
     write_json_atomic(work / "transitions.json", record)
     return record
+
+
+def sequence_scores_regret(costs, choice) -> float:
+    from fusion.temporal import sequence_scores
+
+    return sequence_scores(costs, choice)["regret"]
 
 
 def check_kinds(kinds: Sequence[str]) -> None:
     bad = [k for k in kinds if k not in KINDS]
     if bad or not kinds or len(set(kinds)) != len(kinds):
         raise UserError(f"transitions.kinds must be distinct names of {', '.join(KINDS)}, got {list(kinds)}")
+
+
+def check_section(sec) -> None:
+    """UserError for a `transitions:` section (`study.study_config.TransitionsSection`) out of range."""
+
+    def _positive(where: str, value, lo=1) -> None:
+        if value < lo:
+            raise UserError(f"{where} must be >= {lo}, got {value}")
+
+    check_kinds(sec.kinds)
+    _positive("transitions.sequences", sec.sequences)
+    _positive("transitions.validation_sequences", sec.validation_sequences)
+    _positive("transitions.bootstrap", sec.bootstrap)
+    _positive("transitions.radius", sec.radius, 0)
+    _positive("transitions.seed", sec.seed, 0)
+    if not (sec.duration_s > 0 and sec.frame_rate_hz > 0) or round(sec.duration_s * sec.frame_rate_hz) < 2:
+        raise UserError("transitions: duration_s x frame_rate_hz must give at least 2 frames per sequence")
+    bad = [c for c in sec.conditions if c not in ("fog", "rain", "snow")]
+    if bad or not sec.conditions or len(set(sec.conditions)) != len(sec.conditions):
+        raise UserError(f"transitions.conditions must be distinct names of fog, rain, snow (night has no ramp), "
+                        f"got {list(sec.conditions)}")
+    if not sec.severities or any(isinstance(v, bool) or v not in (1, 2, 3, 4, 5) for v in sec.severities):
+        raise UserError(f"transitions.severities must be levels 1..5, got {list(sec.severities)}")
+    if not sec.margins or any(m < 0 for m in sec.margins):
+        raise UserError(f"transitions.margins must be >= 0, got {list(sec.margins)}")
+    if not sec.alphas or any(not 0 < a <= 1 for a in sec.alphas):
+        raise UserError(f"transitions.alphas must be in (0, 1], got {list(sec.alphas)}")
+    _positive("transitions.recurrent_epochs", sec.recurrent_epochs, 0)
+    _positive("transitions.recurrent_hidden", sec.recurrent_hidden)
+    if not sec.windows or any(isinstance(w, bool) or not isinstance(w, int) or w < 0 for w in sec.windows) \
+            or len(set(sec.windows)) != len(sec.windows):
+        raise UserError(f"transitions.windows must be distinct whole numbers of frames >= 0 (0: the whole "
+                        f"sequence), got {list(sec.windows)}")

@@ -117,3 +117,27 @@ def shared_dataset(cache_lock):
         return out
 
     return get
+
+
+# ------------------------------------------------------------------------------------------------
+# Disk: the suite trains and checkpoints real networks (100-500 MB a run directory) and generates
+# datasets; kept until the session ends, that is about 9 GB, more than a CI machine may have left
+# beside the 5.5 GB venv (a CI run failed writing a checkpoint). pyproject's
+# `tmp_path_retention_policy = "failed"` removes a passed test's tmp_path at its teardown; this
+# removes what a module's own fixtures made with tmp_path_factory once the module is done, when
+# none of its tests failed (a failure keeps everything, to look at). The session cache is kept.
+
+
+@pytest.fixture(scope="module", autouse=True)
+def _module_temp_removed_when_done(request, tmp_path_factory):
+    import shutil
+
+    base = tmp_path_factory.getbasetemp()
+    before = set(base.iterdir())
+    failed = request.session.testsfailed
+    yield
+    if request.session.testsfailed != failed:
+        return
+    for path in set(base.iterdir()) - before:
+        if path.name != "hydrabench-cache" and path.is_dir() and not path.is_symlink():
+            shutil.rmtree(path, ignore_errors=True)

@@ -434,8 +434,28 @@ def test_the_transitions_stage_scores_each_learned_gate_with_memory_on_ramping_w
         assert m["config"]["seed"] == seed and m["config"]["transitions"] == [name.split("-")[1]]
         assert m["config"]["sequence_length"] == round(sec.duration_s * sec.frame_rate_hz)
     assert tx["sequences"] == {"validation": 2, "test": 2}
-    assert set(tx["gates"]) == {f"hydrafusion:{g}" for g in tiny["cfg"].gates.gates}
-    for rec in tx["gates"].values():
+    assert set(tx["gates"]) == {f"hydrafusion:{g}" for g in tiny["cfg"].gates.gates} | {"recurrent"}
+    rec = tx["gates"]["recurrent"]  # item 3 (c): trained on the gate set's sequences, its window on validation
+    assert rec["window"] in sec.windows and set(rec["window_trace"]) == {str(w) for w in sec.windows}
+    assert rec["training"]["fit_sequences"] > 0 and rec["training"]["sequence_frames"] == [tiny["cfg"].data.sequence_length]
+    assert rec["training"]["kept_by"].startswith("last epoch")  # tiny's gates have no validation frames
+    assert [r["epoch"] for r in rec["history"]] == list(range(sec.recurrent_epochs + 1))
+    assert 0 <= rec["training"]["best_epoch"] <= sec.recurrent_epochs and rec["step_ms"] > 0
+    v = rec["variants"]
+    chosen = next(k for k in v if k.startswith("recurrent ("))
+    assert {"per-frame", "hydrafusion:deep per-frame", "a-posteriori oracle"} <= set(v)
+    assert v[chosen]["regret_minus_deep_interval"] is not None
+    assert tx["energy"]["scale"] == tiny["cfg"].evaluate.energy_scale
+    for x in (y for r in tx["gates"].values() for y in r["variants"].values()):  # energy per variant
+        assert x["energy_compute"] > 0 and x["energy_sensors_j"] >= x["energy_sensors_clock_gated_by_choice_j"] > 0
+    for g in tiny["cfg"].gates.gates:  # a gate that reads every stem keeps every sensor measuring
+        v = tx["gates"][f"hydrafusion:{g}"]["variants"]
+        assert len({x["energy_sensors_j"] for k, x in v.items() if not k.startswith(("best", "a-post"))}) == 1
+        const = next(k for k in v if k.startswith("best constant"))
+        assert v[const]["energy_sensors_j"] == v[const]["energy_sensors_clock_gated_by_choice_j"]
+    for g, rec in tx["gates"].items():
+        if g == "recurrent":
+            continue
         assert rec["margin"] in sec.margins and rec["alpha"] in sec.alphas
         assert set(rec["margin_trace"]) == {str(m) for m in sec.margins}
         v = rec["variants"]
