@@ -461,7 +461,9 @@ def run_study(cfg: StudyConfig, out: str | Path, until: str = "report", progress
     tx = None
     if cfg.transitions is not None and last >= STAGES.index("transitions"):
         tx = study.stage("transitions", {"transitions": to_dict(cfg.transitions), "profile": cfg.profile,
-                                         "batch_size": cfg.train.batch_size, **ident("transitions")}, (gt,),
+                                         "batch_size": cfg.train.batch_size,
+                                         "energy": {"power": cfg.evaluate.power, "scale": cfg.evaluate.energy_scale},
+                                         **ident("transitions")}, (gt,),
                          transitions_stage, gates_run=gt.dir / "run", cfg=cfg, setup=eval_setup, progress=progress,
                          gate_data=gate_data)
     if last < STAGES.index("report"):
