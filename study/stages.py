@@ -305,6 +305,13 @@ def evaluate_stage(work: Path, gates_run: Path, run_early: Path | None, parts: d
     return file_sha256(work / "results.json"), {}
 
 
+def transitions_inputs(cfg: StudyConfig) -> dict:
+    """The config part of the transitions stage's key: its section, the profile, the batch size and the
+    evaluation's power model and energy scale (its energy per variant)."""
+    return {"transitions": to_dict(cfg.transitions), "profile": cfg.profile, "batch_size": cfg.train.batch_size,
+            "energy": {"power": cfg.evaluate.power, "scale": cfg.evaluate.energy_scale}}
+
+
 def transitions_stage(work: Path, gates_run: Path, cfg: StudyConfig, setup, progress: bool,
                       gate_data: Path | None = None) -> tuple[str, dict]:
     """The learned gates with memory on the transition set (`study.transition_study`) ->
@@ -460,10 +467,7 @@ def run_study(cfg: StudyConfig, out: str | Path, until: str = "report", progress
                      **({"crossover": cx.dir / "crossover.json"} if cx else {}))
     tx = None
     if cfg.transitions is not None and last >= STAGES.index("transitions"):
-        tx = study.stage("transitions", {"transitions": to_dict(cfg.transitions), "profile": cfg.profile,
-                                         "batch_size": cfg.train.batch_size,
-                                         "energy": {"power": cfg.evaluate.power, "scale": cfg.evaluate.energy_scale},
-                                         **ident("transitions")}, (gt,),
+        tx = study.stage("transitions", {**transitions_inputs(cfg), **ident("transitions")}, (gt,),
                          transitions_stage, gates_run=gt.dir / "run", cfg=cfg, setup=eval_setup, progress=progress,
                          gate_data=gate_data)
     if last < STAGES.index("report"):
