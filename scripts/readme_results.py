@@ -116,11 +116,26 @@ def transition_lines(r: dict) -> list[str]:
                  f"{tx['sequences']['validation']} validation sequences):", "",
              "| gate | variant | regret | in transitions | minus per-frame: 95 % interval | lag [frames] | "
              "switches / min |", "|---|---|---|---|---|---|---|"]
+    baselines = {}  # the best constant and the oracle are the same in every gate's table: shown once, last
     for g, rec in tx["gates"].items():
         for v, x in rec["variants"].items():
+            if v.startswith(("best constant", "a-posteriori")) or v.startswith("hydrafusion:"):
+                baselines.setdefault(v, x)
+                continue
             lines.append(f"| {g} | {v} | {_f(x['regret'], 4)} | {_f(x['regret_transitions'], 4)} | "
                          f"{_interval(x.get('regret_minus_per-frame_interval'), signed=True)} | "
                          f"{_f(x['lag_mean_frames'], 2)} | {_f(x['switches_per_minute'], 1)} |")
+    for v, x in baselines.items():
+        if not v.startswith("hydrafusion:"):
+            lines.append(f"| - | {v} | {_f(x['regret'], 4)} | {_f(x['regret_transitions'], 4)} | - | "
+                         f"{_f(x['lag_mean_frames'], 2)} | {_f(x['switches_per_minute'], 1)} |")
+    rc = tx["gates"].get("recurrent")
+    x = next((x for v, x in (rc or {}).get("variants", {}).items() if v.startswith("recurrent (")), None)
+    if x and x.get("regret_minus_deep_interval"):
+        lines += ["", f"Recurrent gate (a GRU over stem channel means, trained on the gate set's sequences; "
+                      f"\"per-frame\" is the same network over one frame) minus the deep gate per frame: regret "
+                      f"{_interval(x['regret_minus_deep_interval'], signed=True)}, in transitions "
+                      f"{_interval(x.get('regret_transitions_minus_deep_interval'), signed=True)}."]
     return lines
 
 
