@@ -24,6 +24,16 @@ logits (argmin of -log p is argmax p), not costs, so it is not minimised by s = 
 routes by the context label instead is the per-context constant below (`context_choice`): with
 the context known exactly (the simulator's, or a perfect classifier), a lookup per context.
 
+The other router target of the literature, weather-conditioned routing, classifies the frame's
+context (weather, light, road) from the sensors and routes by it. `context_targets` gives it as a
+cost target: each fitting frame's target is its context's row of the per-context table M (mean
+cost of every choice over that context's fitting frames), so a gate regressing it (`mae`) learns
+which of the 8 table rows its frame's features look like: a classifier over the contexts with the
+lookup folded into its output (the minimiser of the expected error is the posterior-weighted
+median row), whose argmin and ranking are those of the context it recognises. Its targets hold
+the context label and nothing of the frame's own costs, unlike the objectives above; a context the
+fitting frames lack gets the mean row.
+
 `tau` is in units of L: `default_tau` takes the median over frames of the within-frame standard
 deviation of L, so that q is neither one-hot nor uniform on a typical frame.
 
@@ -146,6 +156,23 @@ def context_choice(costs_fit, contexts_fit: Sequence[str]) -> dict[str, int]:
     if len(contexts_fit) != len(costs_fit):
         raise ValueError(f"contexts_fit: expected {len(costs_fit)} entries, got {len(contexts_fit)}")
     return {str(c): constant_choice(costs_fit[contexts_fit == c]) for c in sorted(set(contexts_fit.tolist()))}
+
+
+def context_targets(costs_fit, contexts_fit: Sequence[str], contexts: Sequence[str] | None = None) -> np.ndarray:
+    """(B, n) the per-context table's row of each frame of `contexts` (default: `contexts_fit`):
+    the mean cost of every choice over the fitting frames of that frame's context; the mean over
+    all fitting frames for a context they lack. The router target of a context classifier (module doc)."""
+    costs_fit = np.asarray(costs_fit, np.float64)
+    contexts_fit = np.asarray(contexts_fit).astype(str)
+    if costs_fit.ndim != 2 or not len(costs_fit):
+        raise ValueError(f"costs_fit: expected a non-empty (B, n) array, got shape {costs_fit.shape}")
+    if len(contexts_fit) != len(costs_fit):
+        raise ValueError(f"contexts_fit: expected {len(costs_fit)} entries, got {len(contexts_fit)}")
+    rows = {c: costs_fit[contexts_fit == c].mean(axis=0) for c in set(contexts_fit.tolist())}
+    fallback = costs_fit.mean(axis=0)
+    wanted = contexts_fit if contexts is None else np.asarray(contexts).astype(str)
+    return np.stack([rows.get(c, fallback) for c in wanted.tolist()]) if len(wanted) else \
+        np.zeros((0, costs_fit.shape[1]))
 
 
 def apply_context_choice(table: Mapping[str, int], contexts: Sequence[str], fallback: int) -> np.ndarray:

@@ -47,6 +47,8 @@ the gates stage's code (its key) holds no evaluation code."""
 SELECT_ON = ("regret", "mae")
 AUTO = "auto"
 """GateTrainConfig.objective: every objective, the best on validation regret kept."""
+ROUTER = "context"
+"""GateTrainConfig.objective: the context router, `mae` on `fusion.gate_objectives.context_targets`."""
 
 
 # ----- training -------------------------------------------------------------------------------
@@ -76,8 +78,10 @@ class GateTrainConfig:
         threads: torch CPU threads (0: the cores available).
         objective: what the gate is trained on (`fusion.gate_objectives.OBJECTIVES`): "mae" (the
             papers' regression of each choice's loss), "centred", "soft_ce" or "expected" (the
-            decision: see that module); "auto" (the default) trains one gate per objective and
-            keeps the one with the lowest validation regret (`fit_objectives`), so the objective is
+            decision: see that module), "best_label" (a classifier of the frame's best choice),
+            or ROUTER "context" (a classifier of the frame's context, routing by the per-context
+            table: `fit_objectives`); "auto" (the default) trains one gate per objective and keeps
+            the one with the lowest validation regret (`fit_objectives`), so the objective is
             chosen on validation frames, never on test frames.
         tau: temperature of "soft_ce" and "expected", in loss units (0: `default_tau` of the
             fitting frames' losses, recorded in the result).
@@ -119,7 +123,7 @@ class GateTrainConfig:
         if self.fit_frames < 0:
             raise UserError(f"fit_frames: must be >= 0 (0: every fitting frame), got {self.fit_frames}")
 
-        if self.objective != AUTO:
+        if self.objective not in (AUTO, ROUTER):
             OBJECTIVES.get(self.objective)  # UserError naming the choices
         from study.selection import TARGETS
 
@@ -299,31 +303,44 @@ def resume_state(ckpt: Path, settings: dict, fresh: bool, what: str, progress: b
 
 
 def fit_objectives(build, x_fit, y_fit, x_val, y_val, cfg: GateTrainConfig, out: Path, settings: dict, fresh: bool,
-                   what: str, progress: bool = True, extra: dict | None = None, net=lambda g: g):
+                   what: str, progress: bool = True, extra: dict | None = None, net=lambda g: g,
+                   contexts_fit=None):
     """Fit a gate from `build()` on `cfg.objective`, or with "auto" one per objective (each in
     out/objectives/<name>/, resumable; the kept one's metrics.csv copied to out/), keeping the lowest
-    validation regret (ties: the first in `OBJECTIVES` order). Without validation frames "auto" has
-    nothing to choose on and trains "mae", the papers', in out/. `net(gate)` is the module
-    `fit_gate` trains. Returns (gate, fit_gate's result of the kept one, {objective: its
-    validation regret, MAE, epoch and tau}, the kept objective)."""
+    validation regret (ties: the first in `OBJECTIVES` order). With "auto" and the fitting frames'
+    `contexts_fit`, one more candidate, ROUTER ("context"): the context classifier of weather-
+    conditioned routing, `mae` on each fitting frame's context row of the per-context table
+    (`fusion.gate_objectives.context_targets`), judged like the others by its validation regret on
+    the frames' own costs. Without validation frames "auto" has nothing to choose on and trains
+    "mae", the papers', in out/. `net(gate)` is the module `fit_gate` trains. Returns (gate,
+    fit_gate's result of the kept one, {objective: its validation regret, MAE, epoch and tau}, the
+    kept objective)."""
     import torch
 
-    from fusion.gate_objectives import OBJECTIVES
+    from fusion.gate_objectives import OBJECTIVES, context_targets
 
     several = cfg.objective == AUTO and len(x_val) > 0
     names = list(OBJECTIVES.names()) if several else ["mae" if cfg.objective == AUTO else cfg.objective]
+    if several and contexts_fit is not None:
+        names.append(ROUTER)
+    if ROUTER in names and contexts_fit is None:
+        raise ValueError(f"objective {ROUTER!r}: needs the fitting frames' contexts (contexts_fit)")
     fits, gates = {}, {}
     for name in names:
         sub = out / "objectives" / name if several else out
         sub.mkdir(parents=True, exist_ok=True)
-        c = dataclasses.replace(cfg, objective=name)
-        state = resume_state(sub / "checkpoint.pt", {**settings, "objective": name}, fresh, what, progress)
+        router = name == ROUTER
+        c = dataclasses.replace(cfg, objective="mae" if router else name)
+        targets = context_targets(y_fit, contexts_fit).astype(y_fit.dtype) if router else y_fit
+        tag = {"router": ROUTER} if router else {}  # in the checkpoint: a router resumes only as one
+        state = resume_state(sub / "checkpoint.pt", {**settings, "objective": c.objective, **tag}, fresh, what,
+                             progress)
         torch.manual_seed(cfg.seed)
         gate = build()
         if progress and len(names) > 1:
             sys.stderr.write(f"{what}: objective {name}\n")
-        fits[name] = fit_gate(net(gate), x_fit, y_fit, x_val, y_val, c, out=sub, progress=progress, state=state,
-                              extra=extra)
+        fits[name] = fit_gate(net(gate), x_fit, targets, x_val, y_val, c, out=sub, progress=progress, state=state,
+                              extra={**(extra or {}), **tag})
         gates[name] = gate
     scored = {n: f["best_val_regret"] for n, f in fits.items() if f["best_val_regret"] is not None}
     kept = min(scored, key=scored.get) if scored else names[0]
@@ -337,7 +354,9 @@ def fit_objectives(build, x_fit, y_fit, x_val, y_val, cfg: GateTrainConfig, out:
 
 
 OBJECTIVE_LABEL = {"mae": "mean absolute error", "centred": "mean absolute error of the within-frame differences",
-                   "soft_ce": "cross entropy against softmax(-L / tau)", "expected": "expected regret under softmax(-s / tau)"}
+                   "soft_ce": "cross entropy against softmax(-L / tau)", "expected": "expected regret under softmax(-s / tau)",
+                   "best_label": "cross entropy against the best choice's label",
+                   ROUTER: "mean absolute error against the frame's context row of the per-context table"}
 
 
 def choice_table(pred: np.ndarray, y_fit: np.ndarray, y_test: np.ndarray, contexts_fit, contexts_test,
@@ -418,15 +437,15 @@ def train_gate(run_dir, data, cfg: GateTrainConfig, progress: bool = True, fresh
     out.mkdir(parents=True, exist_ok=True)
     if setup.is_cuda:
         model.cpu()  # build_gate reads the model's layout; the gate trains on the CPU
+    contexts = [[reader.manifest["frames"][int(i)]["context"] for i in idx] for idx in (fit_idx, test_idx)]
     gate, fitted, objectives, objective = fit_objectives(
         lambda: build_gate(cfg.gate, model, sensors=list(gd.sensors), **cfg.gate_options()),
         x_fit, y_fit, x_val, y_val, cfg, out, settings, fresh, f"{cfg.gate} gate", progress,
-        extra={"data_key": gd.key})
+        extra={"data_key": gd.key}, contexts_fit=contexts[0])
 
     pred = predict_losses(gate, x_test)
     mean_c, median_c = y_fit.mean(axis=0), np.median(y_fit, axis=0)
     branches = list(model.branches)
-    contexts = [[reader.manifest["frames"][int(i)]["context"] for i in idx] for idx in (fit_idx, test_idx)]
     result = {
         "gate": cfg.gate, "run": str(run_dir), "data": str(data), "checkpoint": cfg.checkpoint,
         "optimizer": "Adam", "lr": cfg.lr, "loss": OBJECTIVE_LABEL[objective], "objective": objective,

@@ -426,7 +426,11 @@ def add_gate_training(doc: Doc, r: dict, tag: str) -> None:
           "cost (per-branch loss for HydraFusion, L_f for EcoFusion) of the gate's one choice per frame minus the "
           "oracle's (regret), beside the best constant choice and the per-context constant (one choice per context, "
           "both fitted on the gate's fitting frames), and how often the gate's choice differs from the constant's. "
-          "A gate adds something when its regret is below both.")
+          "A gate adds something when its regret is below both. Two candidates are the router targets of the "
+          "literature (issue 36 item 7): 'best_label' classifies which choice is best on the frame (the "
+          "best-configuration label), 'context' classifies the frame's context as weather-conditioned routing does "
+          "(it regresses its context's row of the per-context table, so it routes as the context it recognises); "
+          "each is kept or dropped by its validation regret like the loss objectives.")
     if "test" in (r["dataset"].get("sets") or {}):
         doc.p("With a test set apart from the detectors' data, these regrets are measured by the gates stage on the "
               "detectors' own test split (frames no gate fitted on, but not the study's test set, which the gates "

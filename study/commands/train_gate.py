@@ -37,11 +37,14 @@ def add_objective_args(p) -> None:
     """--objective, --tau and --select-on (train-gate and eco-train-gate; fusion.gate_objectives)."""
     from fusion.gate_objectives import OBJECTIVES
 
-    p.add_argument("--objective", default=branch_gate_study.AUTO, choices=[branch_gate_study.AUTO, *OBJECTIVES.names()],
+    p.add_argument("--objective", default=branch_gate_study.AUTO,
+                   choices=[branch_gate_study.AUTO, *OBJECTIVES.names(), branch_gate_study.ROUTER],
                    help="what the gate learns: mae regresses each choice's loss (the papers'); centred its "
                         "difference from the frame's mean; soft_ce the soft ranking softmax(-L/tau); expected the "
-                        "expected regret of its choice; auto (default) trains one gate per objective and keeps the "
-                        "lowest regret on the validation sequences")
+                        "expected regret of its choice; best_label classifies the frame's best choice; context "
+                        "classifies the frame's context and routes by the per-context table (weather-conditioned "
+                        "routing); auto (default) trains one gate per objective and keeps the lowest regret on the "
+                        "validation sequences")
     p.add_argument("--tau", type=nonneg_float, default=0.0,
                    help="temperature of soft_ce and expected, in loss units (0: the median within-frame spread)")
     p.add_argument("--targets", default="auto", choices=["auto", "holdout", "train"],

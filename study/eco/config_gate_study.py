@@ -52,14 +52,15 @@ def train_eco_gate(run_dir, data, gate: str, cfg: GateTrainConfig, s: EcoSetting
     if cfg.context:  # the frames' context labels as constant planes after the pooled features
         x_fit, x_val, x_test = with_frame_context(reader, (x_fit, fit_idx), (x_val, val_idx), (x_test, test))
     out.mkdir(parents=True, exist_ok=True)
+    meta = reader.manifest["frames"]
+    contexts = [[meta[int(i)]["context"] for i in idx] for idx in (fit_idx, test)]
     g, fitted, objectives, objective = fit_objectives(
         lambda: build_config_gate(gate, model, configs, sensors=list(ed.sensors), **cfg.gate_options()),
         x_fit, y_fit, x_val, y_val, dataclasses.replace(cfg, gate=gate), out, settings, fresh,
-        f"{gate} configuration gate", progress, extra={"data_key": ed.key, "loss": loss}, net=lambda c: c.net)
+        f"{gate} configuration gate", progress, extra={"data_key": ed.key, "loss": loss}, net=lambda c: c.net,
+        contexts_fit=contexts[0])
     pred = predict_losses(g, x_test)
     mean_c = y_fit.mean(axis=0)
-    meta = reader.manifest["frames"]
-    contexts = [[meta[int(i)]["context"] for i in idx] for idx in (fit_idx, test)]
     from fusion.eco.optimise import select
 
     zero = np.zeros(len(configs))

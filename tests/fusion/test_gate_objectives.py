@@ -154,3 +154,18 @@ def test_the_regret_gap_is_the_paired_difference_with_a_sequence_interval():
     assert lo < g["estimate"] < hi < 0 and g["groups"] == 200  # the oracle regrets less: resolved below 0
     same = regret_gap(costs, best, best, groups, resamples=50)
     assert same["estimate"] == 0 and same["interval"] == [0, 0]
+
+
+def test_context_targets_are_the_per_context_mean_rows_with_the_overall_mean_for_an_unseen_context():
+    from fusion.gate_objectives import context_targets
+
+    costs = np.array([[1.0, 2.0], [3.0, 4.0], [10.0, 0.0], [0.0, 6.0]])
+    contexts = ["fog", "fog", "city", "night"]
+    rows = context_targets(costs, contexts)
+    np.testing.assert_allclose(rows, [[2, 3], [2, 3], [10, 0], [0, 6]])
+    np.testing.assert_allclose(context_targets(costs, contexts, ["city", "snow"]), [[10, 0], [3.5, 3.0]])
+    assert context_targets(costs, contexts, []).shape == (0, 2)
+    with pytest.raises(ValueError, match="contexts_fit"):
+        context_targets(costs, contexts[:3])
+    with pytest.raises(ValueError, match="costs_fit"):
+        context_targets(np.zeros((0, 2)), [])

@@ -220,3 +220,76 @@ def test_gate_input_options_are_checked_and_saved_gates_without_them_load():
     with pytest.raises(ValueError, match="context planes"):
         GATES.get("deep")(branch_sensors=BRANCHES, branch_frames={b: "bev" for b in BRANCHES}, sensors=SENSORS,
                           grid=(8, 16), context=True).predict_prepared(torch.zeros(2, 128, 8, 16))
+
+
+def context_visible(n, seed):
+    """Frames of four contexts whose lidar channels show the context (a level per context in the top
+    rows) and whose per-branch losses are the context's profile plus per-frame noise (sd 0.3) larger
+    than the profile's differences (0.2-0.4): each frame's own best branch is mostly noise, its
+    context's best is not (radar in fog and snow, lidar in city and rural)."""
+    rng = np.random.default_rng(seed)
+    names = ["city", "fog", "rural", "snow"]
+    profile = {"city": (1.0, 0.6, 0.8), "fog": (0.7, 1.1, 0.9), "rural": (1.0, 0.7, 0.9), "snow": (0.8, 1.2, 1.0)}
+    ctx = [names[i] for i in rng.integers(0, len(names), n)]
+    x = rng.normal(0, 1, (n, 128, 8, 16))
+    x[:, 64:, :4, :] += np.array([2.0 * names.index(c) for c in ctx])[:, None, None, None]
+    y = np.array([profile[c] for c in ctx]) + rng.normal(0, 0.3, (n, 3))
+    return x.astype(np.float16), y.astype(np.float32), ctx
+
+
+def test_the_context_router_learns_the_context_table_and_is_kept_or_dropped_by_validation_regret(tmp_path):
+    """Issue 36 item 7: with the fitting frames' contexts, "auto" trains one more candidate, the
+    context classifier ("context": MAE against each frame's context row of the per-context table);
+    its choice is the table's for the context the features show, so its test regret is near the
+    per-context constant's and far below the best constant's; its targets are the table's rows, not
+    the frame's own (noisy) costs; it is judged on the validation frames' own costs like the others,
+    and it resumes as a router (its checkpoint is tagged)."""
+    from fusion.gate_objectives import (
+        OBJECTIVES,
+        apply_context_choice,
+        choose,
+        constant_choice,
+        context_choice,
+        context_targets,
+        regret,
+    )
+    from study.branch_gate_study import OBJECTIVE_LABEL, ROUTER
+
+    (xf, yf, cf), (xv, yv, cv), (xt, yt, ct) = (context_visible(n, s) for n, s in ((512, 1), (128, 2), (512, 3)))
+    cfg = dataclasses.replace(CFG, objective="auto", epochs=6)
+    settings = {**dataclasses.asdict(cfg), "data_key": "synthetic"}
+    gate, fitted, table, kept = fit_objectives(lambda: gate_of("deep"), xf, yf, xv, yv, cfg, tmp_path, settings,
+                                               False, "deep gate", progress=False, contexts_fit=cf,
+                                               extra={"data_key": "synthetic"})
+    assert list(table) == [*OBJECTIVES.names(), ROUTER] and set(OBJECTIVE_LABEL) >= set(table)
+    assert kept == min(table, key=lambda n: table[n]["val_regret"])
+    # the router alone, rebuilt from its checkpoint's best state
+    state = torch.load(tmp_path / "objectives" / ROUTER / "checkpoint.pt", weights_only=False)
+    assert state["router"] == ROUTER and state["config"]["objective"] == "mae"
+    router = gate_of("deep")
+    router.load_state_dict(state["best_state"])
+    by_table = apply_context_choice(context_choice(yf, cf), ct, constant_choice(yf))
+    r_router, r_table = regret(yt, choose(predict_losses(router, xt))), regret(yt, by_table)
+    r_const = regret(yt, np.full(len(yt), constant_choice(yf)))
+    assert r_table < 0.8 * r_const, (r_table, r_const)  # the context is worth knowing here
+    assert r_router < r_table + 0.25 * (r_const - r_table), (r_router, r_table, r_const)
+    # the targets: the table's rows (the frame's own costs shuffled within its context change nothing)
+    rows = context_targets(yf, cf)
+    assert rows.shape == yf.shape and np.allclose(rows[np.array(cf) == "fog"], yf[np.array(cf) == "fog"].mean(0))
+    shuffled = yf.copy()
+    for c in set(cf):
+        idx = np.flatnonzero(np.array(cf) == c)
+        shuffled[idx] = yf[np.random.default_rng(1).permutation(idx)]
+    assert not np.array_equal(shuffled, yf) and np.allclose(context_targets(shuffled, cf), rows, atol=1e-6)
+    # resumed as it was: the same table, the same kept objective
+    again = fit_objectives(lambda: gate_of("deep"), xf, yf, xv, yv, cfg, tmp_path, settings, False, "deep gate",
+                           progress=False, contexts_fit=cf, extra={"data_key": "synthetic"})
+    assert again[2] == table and again[3] == kept
+    # --objective context: the router alone (it needs the contexts)
+    alone = dataclasses.replace(cfg, objective=ROUTER, epochs=1)
+    with pytest.raises(ValueError, match="contexts_fit"):
+        fit_objectives(lambda: gate_of("deep"), xf, yf, xv, yv, alone, tmp_path / "alone", settings, False, "deep gate",
+                       progress=False)
+    one = fit_objectives(lambda: gate_of("deep"), xf, yf, xv, yv, alone, tmp_path / "alone", settings, False,
+                         "deep gate", progress=False, contexts_fit=cf)
+    assert one[3] == ROUTER and list(one[2]) == [ROUTER] and (tmp_path / "alone" / "checkpoint.pt").exists()
