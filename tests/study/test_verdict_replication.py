@@ -1,0 +1,91 @@
+"""study.verdict_replication: two reports' pairs compared on synthetic reports with known answers, the
+script's extract reads back the same comparison, and the stored replication agrees with the stored
+verdict it names."""
+
+import json
+import math
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+from study.verdict_replication import HEADLINE, pair_difference, replicate
+
+ROOT = Path(__file__).resolve().parents[2]
+VERDICT = ROOT / "results" / "study_cpu_verdict"
+
+
+def report(maps: dict, diffs: dict, fog: dict | None = None) -> dict:
+    """A report's results with methods' mAP (overall; per context fog when given) and intervals of
+    the listed pairs ("a - b": [lo, hi]) overall and in fog."""
+    methods = {m: {"map": v, "map_per_context": {"fog": (fog or maps)[m]}} for m, v in maps.items()}
+    per = {"all": {"difference": diffs}, "fog": {"difference": diffs}}
+    return {"methods": methods, "intervals": {"per_context": per}, "dataset": {"sets": {"test": {"seed": 1}}},
+            "machine": {"cpu": "x"}}
+
+
+def test_the_other_order_of_a_pair_is_its_negative_and_a_missing_method_gives_none():
+    r = report({"late": 0.30, "all_branches": 0.34}, {"late - all_branches": [-0.05, -0.02]})
+    est, iv = pair_difference(r, "all_branches", "late")
+    assert est == pytest.approx(0.04) and iv == [0.02, 0.05]
+    assert pair_difference(r, "late", "all_branches") == (pytest.approx(-0.04), [-0.05, -0.02])
+    assert pair_difference(r, "late", "physical_gate") is None
+
+
+def test_agreement_contradiction_and_resolution_counts_on_known_pairs():
+    """Pair 1: a +0.04 [0.02, 0.06], b +0.01 [-0.01, 0.03] -> |0.03| <= hypot(0.02, 0.02) = 0.028? no:
+    disagree; resolved in a only. Pair 2: a resolved above, b resolved below: a contradiction."""
+    a = report({"late": 0.30, "all_branches": 0.34, "hydrafusion:deep": 0.32},
+               {"all_branches - late": [0.02, 0.06], "hydrafusion:deep - late": [0.01, 0.03]})
+    b = report({"late": 0.30, "all_branches": 0.31, "hydrafusion:deep": 0.28},
+               {"all_branches - late": [-0.01, 0.03], "hydrafusion:deep - late": [-0.03, -0.01]})
+    r = replicate(a, b)
+    rows = {(x["pair"], x["context"]): x for x in r["pairs"]}
+    one = rows[("all_branches - late", "all")]
+    assert one["half_width"] == pytest.approx(math.hypot(0.02, 0.02), abs=1e-6)
+    assert not one["agree"] and one["resolved_a"] == 1 and one["resolved_b"] == 0
+    assert not one["b_in_a"] and one["a_in_b"] is False  # 0.04 is outside [-0.01, 0.03]
+    two = rows[("hydrafusion:deep - late", "all")]
+    assert two["resolved_a"] == 1 and two["resolved_b"] == -1
+    s = r["summary"]
+    assert s["pairs"] == 4 and s["contradictions"] == 2 and s["resolved_in_a"] == 4
+    assert s["resolved_in_both_same_way"] == 0 and s["agreement_rate"] == 0.0
+    assert [h["pair"] for h in r["headline"]] == ["all_branches - late", "hydrafusion:deep - late"]
+
+
+def test_a_report_against_itself_agrees_everywhere_and_resolves_the_same_way():
+    res = json.loads((VERDICT / "report.json").read_text())["results"]
+    r = replicate(res, res)
+    s = r["summary"]
+    assert s["agreement_rate"] == 1.0 and s["contradictions"] == 0
+    assert s["resolved_in_a"] == s["resolved_in_b"] == s["resolved_in_both_same_way"] > 0
+    assert len(r["headline"]) == len(HEADLINE)  # the stored verdict holds every headline method
+
+
+def test_the_stored_replication_is_what_the_script_computes_from_the_verdict_and_the_extract(tmp_path):
+    """results/study_cpu_verdict/replication_test2002.json (the comparison) comes from the stored
+    verdict and the stored extract of the replication's report; the extract is of another test set."""
+    stored = VERDICT / "replication_test2002.json"
+    extract = VERDICT / "report_test2002_extract.json"
+    if not stored.exists():
+        pytest.skip("no stored replication")
+    out = tmp_path / "again.json"
+    subprocess.run([sys.executable, str(ROOT / "scripts" / "verdict_replication.py"), str(VERDICT / "report.json"),
+                    str(extract), "--out", str(out)], check=True, capture_output=True, cwd=ROOT)
+    assert json.loads(out.read_text()) == json.loads(stored.read_text())
+    s = json.loads(stored.read_text())["summary"]
+    assert s["test_sets"][0]["seed"] != s["test_sets"][1]["seed"]
+
+
+def test_the_extract_holds_what_the_comparison_reads(tmp_path):
+    res = json.loads((VERDICT / "report.json").read_text())
+    (tmp_path / "r.json").write_text(json.dumps(res))
+    subprocess.run([sys.executable, str(ROOT / "scripts" / "verdict_replication.py"), str(tmp_path / "r.json"),
+                    str(tmp_path / "r.json"), "--out", str(tmp_path / "full.json"), "--extract",
+                    str(tmp_path / "x.json")], check=True, capture_output=True, cwd=ROOT)
+    subprocess.run([sys.executable, str(ROOT / "scripts" / "verdict_replication.py"), str(tmp_path / "r.json"),
+                    str(tmp_path / "x.json"), "--out", str(tmp_path / "from_extract.json")], check=True,
+                   capture_output=True, cwd=ROOT)
+    assert json.loads((tmp_path / "full.json").read_text()) == json.loads((tmp_path / "from_extract.json").read_text())
+    assert (tmp_path / "x.json").stat().st_size < 0.6 * (tmp_path / "r.json").stat().st_size
