@@ -82,3 +82,23 @@ def test_the_script_reads_a_report_and_a_record(tmp_path):
     bad = subprocess.run([sys.executable, "scripts/crossover_replication.py", str(out), str(out)],
                          capture_output=True, text=True, cwd=ROOT, timeout=120)
     assert bad.returncode != 0 and "not a crossover record" in bad.stderr
+
+
+def test_the_crossover_is_the_same_on_another_cpu():
+    """results/study_cpu_verdict/crossover_amd.json: the verdict's crossover stage run again with the
+    same sweep seeds on an AMD EPYC (the verdict's ran on an Intel Xeon with AMX); every level's
+    estimate and interval within 1e-3 of the verdict's, the same crossings, and the stored comparison
+    is what the script computes."""
+    verdict = json.loads((RESULTS / "report.json").read_text())["results"]["crossover"]
+    amd = json.loads((RESULTS / "crossover_amd.json").read_text())
+    assert verdict["level_seeds"] == amd["level_seeds"] and verdict["machine"]["cpu"] != amd["machine"]["cpu"]
+    r = replicate(verdict, amd)
+    assert r["summary"]["levels"] == 120 and r["summary"]["contradictions"] == 0
+    assert max(abs(x["difference"]) for x in r["levels"]) < 1e-3
+    assert r["summary"]["resolved_in_a"] == r["summary"]["resolved_in_b"] == r["summary"]["resolved_in_both_same_way"]
+    for c in r["crossings"]:
+        assert c["same_kind"], c
+        if c["a"]["crossing"] is not None:
+            assert c["b"]["crossing"] == pytest.approx(c["a"]["crossing"], rel=1e-3), c
+    stored = json.loads((RESULTS / "crossover_cross_cpu.json").read_text())
+    assert json.loads(json.dumps(r)) == stored
