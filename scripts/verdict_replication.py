@@ -13,7 +13,8 @@ gates train again only if their code or the machine's compute identity changed):
 Prints the summary (`study.verdict_replication.replicate`: the share of (pair, context) estimates
 whose two values agree within their intervals, about 0.95 when the intervals are right; pairs
 resolved in one report and the other; contradictions), the headline pairs side by side, the gates'
-kept objectives and the physical gate's rules; `--out` writes the whole comparison as JSON,
+kept objectives and the physical gate's rules; `--out` writes the comparison as JSON (every row too
+with `--pairs`),
 `--extract` what of B the comparison reads (methods' mAP, intervals, gates, rules: a few hundred kB
 instead of the whole report), so that the comparison can be checked again without B's report.
 """
@@ -56,7 +57,9 @@ def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("a", type=Path, help="the first report (report.json, or an extract)")
     p.add_argument("b", type=Path, help="the second, scored on an independent test set")
-    p.add_argument("--out", type=Path, help="write the whole comparison here (JSON)")
+    p.add_argument("--out", type=Path, help="write the comparison here (JSON): summary, headline pairs, gates, rules; "
+                                            "with --pairs also every (pair, context) row")
+    p.add_argument("--pairs", action="store_true", help="with --out: every (pair, context) row too")
     p.add_argument("--extract", type=Path, help="write what the comparison reads of B here (JSON)")
     args = p.parse_args(argv)
     ra, rb = load_results(args.a), load_results(args.b)
@@ -76,7 +79,8 @@ def main(argv=None) -> int:
               f"objective {g['objectives_b']}")
     print(f"physical gate rules: A {r['physical_gate_rules'][0]}; B {r['physical_gate_rules'][1]}")
     if args.out:
-        args.out.write_text(json.dumps(r, indent=1) + "\n")
+        out = r if args.pairs else {k: v for k, v in r.items() if k != "pairs"}
+        args.out.write_text(json.dumps(out, indent=1) + "\n")
         print(f"wrote {args.out}", file=sys.stderr)
     if args.extract:
         args.extract.write_text(json.dumps(extract(rb), indent=1) + "\n")
