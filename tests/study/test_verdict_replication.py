@@ -90,3 +90,21 @@ def test_the_extract_holds_what_the_comparison_reads(tmp_path):
                    capture_output=True, cwd=ROOT)
     assert json.loads((tmp_path / "full.json").read_text()) == json.loads((tmp_path / "from_extract.json").read_text())
     assert (tmp_path / "x.json").stat().st_size < 0.6 * (tmp_path / "r.json").stat().st_size
+
+
+def test_compare_scores_the_fixed_methods_of_the_replication_as_the_study_did():
+    """results/study_cpu_verdict/compare_cpu_frontier_test2002.json: `hydrabench compare cpu-frontier
+    TESTSET-2002 --k 2 --fusion soft-nms --gates knowledge,deep,attention --json` on the replication's
+    test set. The detectors are the study's, so every method that reads no learned gate has the
+    study's mAP and interval (one scoring path across commands); the learned gates are the reference
+    model's (trained on the Intel machine) against the study's (trained again on the AMD one)."""
+    compare = json.loads((VERDICT / "compare_cpu_frontier_test2002.json").read_text())
+    study = json.loads((VERDICT / "report_test2002_extract.json").read_text())["results"]
+    assert compare["sequences"] == 384 and compare["fusion"] == "soft-nms" and compare["k"] == 2
+    for name in ("single:radar", "single:camera_right", "single:lidar", "late", "all_branches",
+                 "hydrafusion:knowledge"):
+        assert compare["methods"][name]["map"] == study["methods"][name]["map"], name
+    est, iv = pair_difference(study, "all_branches", "late")
+    assert compare["methods"]["all_branches"]["minus_late"]["ci95"] == pytest.approx(iv, abs=1e-4)
+    for gate in ("hydrafusion:deep", "hydrafusion:attention"):  # other gates, not the same numbers
+        assert abs(compare["methods"][gate]["map"] - study["methods"][gate]["map"]) < 0.01, gate
