@@ -108,3 +108,19 @@ def test_compare_scores_the_fixed_methods_of_the_replication_as_the_study_did():
     assert compare["methods"]["all_branches"]["minus_late"]["ci95"] == pytest.approx(iv, abs=1e-4)
     for gate in ("hydrafusion:deep", "hydrafusion:attention"):  # other gates, not the same numbers
         assert abs(compare["methods"][gate]["map"] - study["methods"][gate]["map"]) < 0.01, gate
+
+
+def test_the_verdicts_test_set_scores_the_same_on_another_cpu():
+    """results/study_cpu_verdict/compare_cpu_frontier_test2001_amd.json: `hydrabench compare` of the
+    reference model (the verdict's detectors and its Intel-trained HydraFusion gates) on the verdict's
+    own test set (seed 2001), run on an AMD EPYC: every method within 1e-3 mAP of the stored verdict
+    (Intel Xeon), every interval of minus late fusion within 1e-3 at both ends. Not to the bit: the
+    two CPUs round differently."""
+    compare = json.loads((VERDICT / "compare_cpu_frontier_test2001_amd.json").read_text())
+    verdict = json.loads((VERDICT / "report.json").read_text())["results"]
+    assert compare["sequences"] == 384 and verdict["dataset"]["sets"]["test"]["seed"] == 2001
+    assert len(compare["methods"]) == 8
+    for name, row in compare["methods"].items():
+        assert row["map"] == pytest.approx(verdict["methods"][name]["map"], abs=1e-3), name
+        if name != "late":
+            assert row["minus_late"]["ci95"] == pytest.approx(pair_difference(verdict, name, "late")[1], abs=1e-3), name
