@@ -40,10 +40,11 @@ def verdict(iv) -> str:
 
 def compare(run_dir, data, *, gates=GATES, k: int = 2, fusion: str = "soft-nms", split: str = "auto",
             resamples: int = 500, batch_size: int = 4, setup=None, progress: bool = True,
-            twins: bool = False) -> dict:
+            twins: bool = False, coverage_deals: int = 0) -> dict:
     """The comparison of the module docstring -> a JSON-able dict: per method its kind, mAP, vehicle
     mAP, mAP per context, and mAP minus late fusion with its 95 % interval and verdict, overall and
-    per context. `twins`: also each method's robustness on the clear-weather twins (`robustness`)."""
+    per context. `twins`: also each method's robustness on the clear-weather twins (`robustness`).
+    `coverage_deals`: also check the intervals on this test set (`coverage`)."""
     from study.gate_tables import _setup, gate_pass, parse_k, selection_rates
     from study.scoring import context_bootstrap, difference_interval, fuse_selection, fusion_method, score
     from study.train import run_protocol
@@ -107,6 +108,7 @@ def compare(run_dir, data, *, gates=GATES, k: int = 2, fusion: str = "soft-nms",
     if twins:
         rob = robustness(run_dir, data, model, reader, gp, selections, sources, [g for g in trained if g != "optimal"],
                          k, method, protocol, indices, resamples, batch_size, progress)
+    cov = coverage(sources, reader, protocol, coverage_deals, resamples, progress) if coverage_deals else None
     return {
         "run": str(run_dir), "data": str(data), "split": used_split, "frames": len(gp.per_frame),
         "sequences": boot["per_context"]["all"]["sequences"] if boot else None, "contexts": contexts,
@@ -115,7 +117,25 @@ def compare(run_dir, data, *, gates=GATES, k: int = 2, fusion: str = "soft-nms",
         "bootstrap": {"resamples": resamples, "unit": "sequence"} if boot else None,
         "metric": "VOC all-point AP at IoU 0.5, every class with ground truth, right camera",
         **({"robustness": rob} if rob is not None else {}),
+        **({"coverage": cov} if cov is not None else {}),
     }
+
+
+def coverage(sources: dict, reader, protocol, deals: int, resamples: int, progress: bool = True) -> dict:
+    """Do the intervals of minus late fusion hold on this test set? The test set dealt `deals` times
+    into as many disjoint sets as it allows (`study.bounds.coverage_sets`), each set's interval
+    against the pooled rest's estimate (`study.interval_coverage.coverage_over_deals`), for every
+    method but the single sensors; {"skipped": why} when the test set is too small."""
+    from study.bounds import StudyMatches, coverage_sets
+    from study.interval_coverage import coverage_over_deals
+
+    sm = StudyMatches.of(sources, {}, {}, reader, protocol)
+    n, why = coverage_sets(sm.contexts, sm.sequences)
+    if why:
+        return {"skipped": why, "sets": n}
+    pairs = [(m, "late") for m in sources if m != "late" and not m.startswith("single:")]
+    return coverage_over_deals(sm.matches, sm.contexts, sm.sequences, pairs, n_sets=n, deals=deals,
+                               resamples=max(1, resamples), progress=progress)
 
 
 def robustness(run_dir, data, model, reader, gp, selections, sources, twin_gates, k, method, protocol, indices,
@@ -247,6 +267,16 @@ def format_table(r: dict) -> str:
         lines.append("not trained on this run (hydrabench train-gate): " + ", ".join(r["gates_not_trained"]))
     if "robustness" in r:
         lines.append(format_robustness(r))
+    cov = r.get("coverage")
+    if cov and "skipped" in cov:
+        lines.append(f"interval coverage: skipped ({cov['skipped']})")
+    elif cov:
+        lines.append(f"interval coverage: the test set dealt {cov['deals']} times into {cov['sets']} disjoint sets; each "
+                     f"set's 95 % interval against the rest's estimate (exact intervals: about "
+                     f"{next(iter(cov['pairs'].values()))['expected_if_exact']:.3f})")
+        for name, v in cov["pairs"].items():
+            lines.append(f"  {name:36s} covered {v['covered']}/{v['sets']} ({v['coverage']:.3f}), between-set spread / "
+                         f"bootstrap se {number_text(v['spread_over_se_mean'])}")
     return "\n".join(lines)
 
 

@@ -8,6 +8,7 @@ from pathlib import Path
 from study.cli import (
     Formatter,
     bootstrap_int,
+    count_int,
     dataset_dir,
     emit,
     module_doc,
@@ -45,6 +46,11 @@ def add_parser(sub, name, help_text):
                    help="also run every method on the clear-weather twins (a dataset generated with --twins): per "
                    "condition and severity the vehicle mAP kept, RA = degraded / clear with its interval, the "
                    "severity's physical value, and per method mRA, mRR and mCE against late fusion")
+    p.add_argument("--coverage-deals", type=count_int, default=0, metavar="N",
+                   help="also check the intervals on this test set: deal it N times into disjoint sets of at least "
+                        "6 sequences per context (up to 8 sets) and count how often each set's 95 %% interval of "
+                        "minus late fusion holds the other sets' estimate (about 0.93 for exact intervals); "
+                        "0 (default): no check")
     p.add_argument("--batch-size", type=pos_int, default=4, help="frames per forward pass")
     p.add_argument("--plot", type=out_file(".png", ".pdf", ".svg"), default=None,
                    help="also draw each method's mAP minus late fusion with its interval")
@@ -64,7 +70,7 @@ def run(args) -> int:
         raise UserError(f"--gates: unknown gate {bad[0]!r} (choose from: {', '.join(GATES)})")
     r = compare(Path(args.run_dir), Path(args.data), gates=gates, k=args.k, fusion=args.fusion, split=args.split,
                 resamples=args.bootstrap, batch_size=args.batch_size, setup=resolve_device(args, purpose="eval"),
-                twins=args.twins)
+                twins=args.twins, coverage_deals=args.coverage_deals)
     if args.plot:
         from study.compare import plot_compare
 

@@ -180,8 +180,10 @@ def test_warm_start_from_a_model_of_another_width_is_one_line(exported, data, tm
 def test_compare_scores_fixed_and_gated_fusion_with_paired_intervals(exported, data, capsys):
     model_dir, _, _ = exported
     assert main(["compare", str(model_dir), str(data), "--bootstrap", "40", "--gates", "knowledge,deep,optimal",
-                 "--threads", "1", "--json"]) == 0
+                 "--threads", "1", "--coverage-deals", "2", "--json"]) == 0
     r = json.loads(capsys.readouterr().out)
+    # a coverage check needs at least 2 sets of 6 sequences of every context: refused by name on a tiny set
+    assert "skipped" in r["coverage"] and "two disjoint sets need" in r["coverage"]["skipped"]
     names = list(r["methods"])
     assert names == ["single:radar", "single:camera_right", "single:lidar", "late", "all_branches",
                      "hydrafusion:knowledge", "hydrafusion:deep", "hydrafusion:optimal"]
