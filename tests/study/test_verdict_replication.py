@@ -124,3 +124,16 @@ def test_the_verdicts_test_set_scores_the_same_on_another_cpu():
         assert row["map"] == pytest.approx(verdict["methods"][name]["map"], abs=1e-3), name
         if name != "late":
             assert row["minus_late"]["ci95"] == pytest.approx(pair_difference(verdict, name, "late")[1], abs=1e-3), name
+
+
+@pytest.mark.parametrize("name", ["compare_cpu_frontier_test2001_amd.json", "compare_cpu_frontier_test2002.json"])
+def test_the_stored_coverage_over_deals_is_whole(name):
+    """`compare --coverage-deals 10` on both test sets (docs/results.md quotes them): 10 deals of 8
+    sets of 48 sequences, each pair's pooled count the sum of its deals', every method but the single
+    sensors checked against late fusion."""
+    cov = json.loads((VERDICT / name).read_text())["coverage"]
+    assert cov["deals"] == 10 and cov["sets"] == 8 and cov["sequences_per_set"] == [48] * 8
+    assert set(cov["pairs"]) == {"all_branches - late", "hydrafusion:knowledge - late", "hydrafusion:deep - late",
+                                 "hydrafusion:attention - late"}
+    for v in cov["pairs"].values():
+        assert v["sets"] == 80 and v["covered"] == sum(v["covered_per_deal"]) and v["coverage"] == v["covered"] / 80
