@@ -40,11 +40,12 @@ def verdict(iv) -> str:
 
 def compare(run_dir, data, *, gates=GATES, k: int = 2, fusion: str = "soft-nms", split: str = "auto",
             resamples: int = 500, batch_size: int = 4, setup=None, progress: bool = True,
-            twins: bool = False, coverage_deals: int = 0) -> dict:
+            twins: bool = False, coverage_deals: int = 0, coverage_designs=("sequence",)) -> dict:
     """The comparison of the module docstring -> a JSON-able dict: per method its kind, mAP, vehicle
     mAP, mAP per context, and mAP minus late fusion with its 95 % interval and verdict, overall and
     per context. `twins`: also each method's robustness on the clear-weather twins (`robustness`).
-    `coverage_deals`: also check the intervals on this test set (`coverage`)."""
+    `coverage_deals`: also check the intervals on this test set (`coverage`), by each bootstrap design
+    in `coverage_designs` (`fusion.intervals.DESIGNS`)."""
     from study.gate_tables import _setup, gate_pass, parse_k, selection_rates
     from study.scoring import context_bootstrap, difference_interval, fuse_selection, fusion_method, score
     from study.train import run_protocol
@@ -108,7 +109,8 @@ def compare(run_dir, data, *, gates=GATES, k: int = 2, fusion: str = "soft-nms",
     if twins:
         rob = robustness(run_dir, data, model, reader, gp, selections, sources, [g for g in trained if g != "optimal"],
                          k, method, protocol, indices, resamples, batch_size, progress)
-    cov = coverage(sources, reader, protocol, coverage_deals, resamples, progress) if coverage_deals else None
+    cov = (coverage(sources, reader, protocol, coverage_deals, resamples, progress, coverage_designs)
+           if coverage_deals else None)
     return {
         "run": str(run_dir), "data": str(data), "split": used_split, "frames": len(gp.per_frame),
         "sequences": boot["per_context"]["all"]["sequences"] if boot else None, "contexts": contexts,
@@ -121,11 +123,12 @@ def compare(run_dir, data, *, gates=GATES, k: int = 2, fusion: str = "soft-nms",
     }
 
 
-def coverage(sources: dict, reader, protocol, deals: int, resamples: int, progress: bool = True) -> dict:
+def coverage(sources: dict, reader, protocol, deals: int, resamples: int, progress: bool = True,
+             designs=("sequence",)) -> dict:
     """Do the intervals of minus late fusion hold on this test set? The test set dealt `deals` times
     into as many disjoint sets as it allows (`study.bounds.coverage_sets`), each set's interval
-    against the pooled rest's estimate (`study.interval_coverage.coverage_over_deals`), for every
-    method but the single sensors; {"skipped": why} when the test set is too small."""
+    against the pooled rest's estimate (`study.interval_coverage.coverage_over_deals`, once per bootstrap
+    design in `designs`), for every method but the single sensors; {"skipped": why} when the test set is too small."""
     from study.bounds import StudyMatches, coverage_sets
     from study.interval_coverage import coverage_over_deals
 
@@ -135,7 +138,7 @@ def coverage(sources: dict, reader, protocol, deals: int, resamples: int, progre
         return {"skipped": why, "sets": n}
     pairs = [(m, "late") for m in sources if m != "late" and not m.startswith("single:")]
     return coverage_over_deals(sm.matches, sm.contexts, sm.sequences, pairs, n_sets=n, deals=deals,
-                               resamples=max(1, resamples), progress=progress)
+                               resamples=max(1, resamples), designs=designs, progress=progress)
 
 
 def robustness(run_dir, data, model, reader, gp, selections, sources, twin_gates, k, method, protocol, indices,
@@ -271,12 +274,16 @@ def format_table(r: dict) -> str:
     if cov and "skipped" in cov:
         lines.append(f"interval coverage: skipped ({cov['skipped']})")
     elif cov:
+        first = next(iter(next(iter(cov["designs"].values()))["pairs"].values()))
         lines.append(f"interval coverage: the test set dealt {cov['deals']} times into {cov['sets']} disjoint sets; each "
                      f"set's 95 % interval against the rest's estimate (exact intervals: about "
-                     f"{next(iter(cov['pairs'].values()))['expected_if_exact']:.3f})")
-        for name, v in cov["pairs"].items():
-            lines.append(f"  {name:36s} covered {v['covered']}/{v['sets']} ({v['coverage']:.3f}), between-set spread / "
-                         f"bootstrap se {number_text(v['spread_over_se_mean'])}")
+                     f"{first['expected_if_exact']:.3f})")
+        for design, rec in cov["designs"].items():
+            lines.append(f"  bootstrap: {design}")
+            for name, v in rec["pairs"].items():
+                lines.append(f"    {name:34s} covered {v['covered']}/{v['sets']} ({v['coverage']:.3f}), between-set "
+                             f"spread / bootstrap se {number_text(v['spread_over_se_mean'])}, mean width "
+                             f"{number_text(v['mean_width'])}")
     return "\n".join(lines)
 
 

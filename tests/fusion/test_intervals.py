@@ -11,12 +11,14 @@ from fusion.intervals import (
     benjamini_hochberg,
     bootstrap_p_value,
     coverage,
+    design_draws,
     expected_rest_coverage,
     holm,
     leave_one_out_means,
     percentile_interval,
     stratified_sequence_draws,
 )
+from fusion.metrics import sequence_draws
 
 
 def test_holm_is_the_step_down_formula():
@@ -117,3 +119,35 @@ def test_stratified_draws_keep_the_design_and_its_variance():
     assert flat_se > 5 * strat_se
     with pytest.raises(ValueError):
         next(stratified_sequence_draws({"a": {}}, 1, 0))
+
+
+def test_rescaled_draws_give_the_designs_variance_at_few_sequences_per_stratum():
+    """Rao and Wu's bootstrap with m_h = n_h - 1: with 6 sequences per context (a coverage check's
+    sets), drawing 6 of 6 gives the mean a standard error sqrt(5 / 6) of the design's (s_h^2 / n_h,
+    s_h^2 with n_h - 1 in its denominator), drawing 5 of 6 gives the design's own."""
+    rng = np.random.default_rng(3)
+    n, h = 6, 4
+    by = {f"c{s}": {f"c{s}q{i}": [s * n + i] for i in range(n)} for s in range(h)}
+    values = rng.normal(0.0, 1.0, n * h) + np.repeat(np.arange(h) * 5.0, n)
+    design_se = math.sqrt(sum(np.var(values[s * n:(s + 1) * n], ddof=1) / n for s in range(h))) / h
+    plain = np.std([values[d].mean() for d in stratified_sequence_draws(by, 6000, seed=2)])
+    draws = list(stratified_sequence_draws(by, 6000, seed=2, rescaled=True))
+    assert all(len(d) == (n - 1) * h and all(sum(k // n == s for k in d) == n - 1 for s in range(h)) for d in draws[:50])
+    rescaled = np.std([values[d].mean() for d in draws])
+    assert plain == pytest.approx(design_se * math.sqrt((n - 1) / n), rel=0.04)
+    assert rescaled == pytest.approx(design_se, rel=0.04)
+    # a stratum of one sequence is drawn once (there is nothing to rescale)
+    one = next(stratified_sequence_draws({"a": {"q": [0, 1]}, "b": {"r": [2], "s": [3]}}, 1, 0, rescaled=True))
+    assert sorted(one)[:2] == [0, 1] and len(one) == 3
+
+
+def test_design_draws_dispatch_and_pool():
+    by = {"fog": {"f0": [0, 1], "f1": [2, 3]}, "city": {"c0": [4, 5]}}
+    assert list(design_draws(by, 4, seed=5, design="sequence")) == list(sequence_draws(
+        {"c0": [4, 5], "f0": [0, 1], "f1": [2, 3]}, 4, 5))
+    assert list(design_draws(by, 4, seed=5, design="stratified")) == list(stratified_sequence_draws(by, 4, 5))
+    assert list(design_draws(by, 4, seed=5, design="rescaled")) == list(stratified_sequence_draws(by, 4, 5, True))
+    with pytest.raises(ValueError, match="design"):
+        design_draws(by, 4, 5, design="flat")
+    with pytest.raises(ValueError, match="more than one stratum"):
+        design_draws({"a": {"q": [0]}, "b": {"q": [1]}}, 4, 5, design="sequence")

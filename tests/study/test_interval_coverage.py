@@ -69,22 +69,45 @@ def test_coverage_over_deals_pools_the_deals_each_one_as_coverage_over_sets_scor
     """Deal d is coverage_over_sets with seed + d; the pooled count is their sum."""
     matches, contexts, sequences = _toy(seed=3)
     out = coverage_over_deals(matches, contexts, sequences, [("a", "b")], n_sets=8, deals=5, resamples=80, seed=10)
-    pair = out["pairs"]["a - b"]
+    assert list(out["designs"]) == ["sequence"]  # the default: the bootstrap the study reports
+    pair = out["designs"]["sequence"]["pairs"]["a - b"]
     each = [coverage_over_sets(matches, contexts, sequences, [("a", "b")], n_sets=8, resamples=80, seed=10 + d)
             ["pairs"]["a - b"] for d in range(5)]
     assert pair["covered_per_deal"] == [e["covered"] for e in each] and pair["sets"] == 40
     assert pair["covered"] == sum(e["covered"] for e in each) and pair["coverage"] == pair["covered"] / 40
     assert pair["spread_over_se_mean"] == pytest.approx(np.mean([e["spread_over_se"] for e in each]))
+    widths = [p["interval"][1] - p["interval"][0] for e in each for p in e["per_set"]]
+    assert pair["mean_width"] == pytest.approx(np.mean(widths))
     assert out["deals"] == 5 and out["sequences_per_set"] == [8] * 8
 
 
-def test_a_bootstrap_within_contexts_is_narrow_when_a_set_holds_few_sequences_of_each():
-    """Why a coverage check on small sets reads low (measured, issue 36 item 4): the bootstrap within
+def test_a_bootstrap_within_contexts_is_narrow_when_a_set_holds_few_sequences_of_each_and_rescaling_fixes_it():
+    """Why a coverage check on small sets read low (measured, issue 36 item 4): the bootstrap within
     each context draws n of a context's n sequences, whose variance is (n - 1) / n of the sampling
-    variance, so with 2 sequences of a context per set the sets' estimates spread 1.5 times the
-    bootstrap's standard error and 6 deals of 8 sets cover 0.79; with 12 per context the spread is
-    0.9 and the coverage 0.94 (an exact interval: 0.933). The study's sets hold 6 per context."""
+    variance, so with 2 sequences of a context per set the sets' estimates spread 1.5 times that
+    bootstrap's standard error and 6 deals of 8 sets cover 0.79; drawing n - 1 of n (Rao and Wu's
+    rescaled bootstrap) brings the spread to 1.07 and the coverage to 0.875, and the bootstrap from
+    all of a set's sequences (the study's) lies between. With 12 per context every design is close:
+    spread about 0.9, coverage 0.94 (an exact interval: 0.933). The same deals and draw seeds for every
+    design, so the designs differ only in the draws."""
+    designs = ("sequence", "stratified", "rescaled")
     few, many = (coverage_over_deals(*_toy(n_seq=n, seed=3), [("a", "b")], n_sets=8, deals=6, resamples=200,
-                                     seed=10)["pairs"]["a - b"] for n in (16, 96))
-    assert few["spread_over_se_mean"] > 1.3 and few["coverage"] < 0.85, few
-    assert many["spread_over_se_mean"] < 1.1 and many["coverage"] >= 0.9, many
+                                     seed=10, designs=designs)["designs"] for n in (16, 96))
+    few = {d: few[d]["pairs"]["a - b"] for d in designs}
+    many = {d: many[d]["pairs"]["a - b"] for d in designs}
+    assert few["stratified"]["spread_over_se_mean"] > 1.3 and few["stratified"]["coverage"] < 0.85, few
+    assert few["rescaled"]["spread_over_se_mean"] < 1.15 and few["rescaled"]["coverage"] >= 0.85, few
+    assert few["rescaled"]["mean_width"] > 1.2 * few["stratified"]["mean_width"]  # sqrt(2 / 1) in theory
+    assert few["stratified"]["spread_over_se_mean"] > few["sequence"]["spread_over_se_mean"] \
+        > few["rescaled"]["spread_over_se_mean"], few
+    for d in designs:
+        assert many[d]["spread_over_se_mean"] < 1.1 and many[d]["coverage"] >= 0.9, (d, many)
+    # the estimates and the rest's do not depend on the design
+    assert len({few[d]["all"] for d in designs}) == 1
+
+
+def test_coverage_over_deals_refuses_an_unknown_design():
+    with pytest.raises(ValueError, match="design"):
+        coverage_over_deals(*_toy(n_seq=16), [("a", "b")], n_sets=8, deals=1, resamples=5, designs=("flat",))
+    with pytest.raises(ValueError, match="design"):
+        coverage_over_sets(*_toy(n_seq=16), [("a", "b")], n_sets=8, resamples=5, design="flat")

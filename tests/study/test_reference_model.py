@@ -184,6 +184,8 @@ def test_compare_scores_fixed_and_gated_fusion_with_paired_intervals(exported, d
     r = json.loads(capsys.readouterr().out)
     # a coverage check needs at least 2 sets of 6 sequences of every context: refused by name on a tiny set
     assert "skipped" in r["coverage"] and "two disjoint sets need" in r["coverage"]["skipped"]
+    assert main(["compare", str(model_dir), str(data), "--coverage-design", "sequence,flat"]) == 2
+    _one_line_error(capsys, "--coverage-design: unknown design 'flat'")
     names = list(r["methods"])
     assert names == ["single:radar", "single:camera_right", "single:lidar", "late", "all_branches",
                      "hydrafusion:knowledge", "hydrafusion:deep", "hydrafusion:optimal"]
