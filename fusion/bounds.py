@@ -13,7 +13,7 @@ derived columns that are recomputed on each draw, so the choice is made again in
 
 from __future__ import annotations
 
-from collections.abc import Callable, Hashable, Mapping, Sequence
+from collections.abc import Callable, Hashable, Iterable, Mapping, Sequence
 
 import numpy as np
 
@@ -65,12 +65,20 @@ def best_constant_map(matches: Mapping[str, ImageMatches], candidates: Sequence[
 
 
 def bootstrap_table(matches: Mapping[str, ImageMatches], names: Sequence[str], rows_by_sequence: Mapping,
-                    resamples: int, seed: int, derived: Mapping[str, Derived] | None = None) -> np.ndarray:
+                    resamples: int, seed: int, derived: Mapping[str, Derived] | None = None,
+                    draws: Iterable[Sequence[int]] | None = None) -> np.ndarray:
     """(resamples, len(names) + len(derived)): each draw of whole sequences with replacement
-    (`fusion.metrics.sequence_draws` over `rows_by_sequence` {sequence: [rows]}, seeded) scored by
-    each source's mAP, then each derived statistic recomputed on the draw's rows."""
+    (`fusion.metrics.sequence_draws` over `rows_by_sequence` {sequence: [rows]}, seeded; or the
+    `draws` given, rows per draw, e.g. `fusion.intervals.design_draws`) scored by each source's mAP,
+    then each derived statistic recomputed on the draw's rows."""
     derived = dict(derived or {})
     out = np.empty((resamples, len(names) + len(derived)))
-    for i, picks in enumerate(sequence_draws(rows_by_sequence, resamples, seed)):
+    picks_of = sequence_draws(rows_by_sequence, resamples, seed) if draws is None else draws
+    i = -1
+    for i, picks in enumerate(picks_of):
+        if i >= resamples:
+            raise ValueError(f"bootstrap_table: more than {resamples} draws given")
         out[i] = [matches[n].mean_ap(picks) for n in names] + [f(picks) for f in derived.values()]
+    if i + 1 != resamples:
+        raise ValueError(f"bootstrap_table: {i + 1} draws given, {resamples} expected")
     return out

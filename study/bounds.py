@@ -26,8 +26,8 @@ from collections.abc import Mapping, Sequence
 import numpy as np
 
 from fusion.bounds import best_constant_map, best_constant_per_stratum, bootstrap_table, composite
-from fusion.intervals import bootstrap_p_value, percentile_interval
-from fusion.metrics import ImageMatches, sequence_draws
+from fusion.intervals import bootstrap_p_value, design_draws, percentile_interval
+from fusion.metrics import ImageMatches
 from study.numbers import rounded, rounded_interval
 
 A_POSTERIORI = ("hydrafusion:optimal", "ecofusion:loss_based")
@@ -111,21 +111,32 @@ class StudyMatches:
         self.matches[CONTEXT_ORACLE] = composite(self.matches, [choice[c] for c in self.contexts])
         return [self.candidates[choice[c]] for c in self.contexts], choice
 
-    def intervals(self, names: Sequence[str], resamples: int, seed: int = 0) -> dict:
+    def intervals(self, names: Sequence[str], resamples: int, seed: int = 0, design: str = "sequence") -> dict:
         """`study.scoring.context_bootstrap`'s record (classes "all") for `names`, the same draws, plus
-        "p_value" per pair; `CONTEXT_ORACLE` among `names` is re-chosen inside every draw."""
+        "p_value" per pair; `CONTEXT_ORACLE` among `names` is re-chosen inside every draw. `design`:
+        how sequences are drawn (`fusion.intervals.DESIGNS`; within one context "sequence" and
+        "stratified" are the same draws)."""
         plain, derived = self.columns(names)
         cols = plain + list(derived)
         groups = {"all": range(len(self.contexts))}
         for r, c in enumerate(self.contexts):
             groups.setdefault(c, []).append(r)
-        out = {"resamples": int(resamples), "unit": "sequence", "seed": int(seed), "per_context": {},
-               "context_oracle_rechosen_per_draw": bool(derived)}
+        out = {"resamples": int(resamples), "unit": "sequence", "design": design, "seed": int(seed),
+               "per_context": {}, "context_oracle_rechosen_per_draw": bool(derived)}
         for g, rows in groups.items():
             by_seq = self.by_sequence(rows)
-            draws = bootstrap_table(self.matches, plain, by_seq, resamples, seed, derived)
+            draws = bootstrap_table(self.matches, plain, by_seq, resamples, seed, derived,
+                                    draws=self.draws(rows, resamples, seed, design))
             out["per_context"][g] = group_record(draws, cols, len(by_seq))
         return out
+
+    def draws(self, rows, resamples: int, seed: int, design: str = "sequence"):
+        """Draws of whole sequences of `rows` by `design` (`fusion.intervals.design_draws`, strata: the
+        contexts). "sequence" gives exactly `fusion.metrics.sequence_draws` over `by_sequence(rows)`."""
+        by: dict = {}
+        for r in rows:
+            by.setdefault(self.contexts[r], {}).setdefault(self.sequences[r], []).append(r)
+        return design_draws(by, resamples, seed, design)
 
     def columns(self, names: Sequence[str]) -> tuple[list[str], dict]:
         """(the names scored from their matching, {CONTEXT_ORACLE: its statistic re-chosen on a draw's
@@ -146,7 +157,7 @@ class StudyMatches:
 
 
 def front_record(sm: StudyMatches, scores: Mapping[str, dict], placed: Sequence[str],
-                 energy: Mapping[str, np.ndarray], resamples: int, seed: int = 0) -> dict:
+                 energy: Mapping[str, np.ndarray], resamples: int, seed: int = 0, design: str = "sequence") -> dict:
     """What `study.energy_front` draws the mAP-energy front from: every fixed configuration (the
     context oracle's candidates: each single sensor, each EcoFusion configuration, late fusion, all
     branches) and every method `placed` on the front, each with its mAP, its mean energy per frame
@@ -158,17 +169,19 @@ def front_record(sm: StudyMatches, scores: Mapping[str, dict], placed: Sequence[
     names = [*sm.candidates, *[n for n in placed if n not in sm.candidates]]
     plain, derived = sm.columns(names)
     cols = plain + list(derived)
-    by_seq = sm.by_sequence(range(len(sm.sequences)))
-    rec = group_record(bootstrap_table(sm.matches, plain, by_seq, resamples, seed, derived), cols, len(by_seq))
-    e_draws = np.array([[float(np.mean(energy[n][picks])) for n in cols]
-                        for picks in sequence_draws(by_seq, resamples, seed)])
+    everything = range(len(sm.sequences))
+    by_seq = sm.by_sequence(everything)
+    picks_of = list(sm.draws(everything, resamples, seed, design))
+    rec = group_record(bootstrap_table(sm.matches, plain, by_seq, resamples, seed, derived, draws=picks_of), cols,
+                       len(by_seq))
+    e_draws = np.array([[float(np.mean(energy[n][picks])) for n in cols] for picks in picks_of])
     everything = list(range(len(sm.contexts)))
     return {"configurations": {n: list(b) for n, b in sm.candidates.items()}, "placed": list(placed),
             "map_point": {n: rounded(scores[n]["map"] if n in scores else sm.matches[n].mean_ap(everything))
                           for n in cols},
             "energy_point": {n: rounded(float(np.mean(energy[n]))) for n in cols},
             "energy_ci95": {n: rounded_interval(percentile_interval(e_draws[:, i])) for i, n in enumerate(cols)},
-            **rec, "resamples": int(resamples), "seed": int(seed)}
+            **rec, "resamples": int(resamples), "seed": int(seed), "design": design}
 
 
 def group_record(draws: np.ndarray, names: Sequence[str], sequences: int) -> dict:
@@ -221,7 +234,8 @@ def coverage_sets(contexts: Sequence[str], sequences: Sequence) -> tuple[int, st
     return n, None
 
 
-def coverage_record(sm: StudyMatches, pairs: Sequence[tuple[str, str]], resamples: int, seed: int = 0) -> dict:
+def coverage_record(sm: StudyMatches, pairs: Sequence[tuple[str, str]], resamples: int, seed: int = 0,
+                    design: str = "sequence") -> dict:
     """`study.interval_coverage.coverage_over_sets` over as many disjoint sets as the test set allows
     (`coverage_sets`), for the pairs whose sources were scored; {"skipped": reason} when it cannot."""
     from study.interval_coverage import coverage_over_sets
@@ -230,7 +244,8 @@ def coverage_record(sm: StudyMatches, pairs: Sequence[tuple[str, str]], resample
     pairs = [(a, b) for a, b in pairs if a in sm.matches and b in sm.matches]
     if why or not pairs:
         return {"skipped": why or "no pair to check", "sets": n}
-    out = coverage_over_sets(sm.matches, sm.contexts, sm.sequences, pairs, n_sets=n, resamples=resamples, seed=seed)
+    out = coverage_over_sets(sm.matches, sm.contexts, sm.sequences, pairs, n_sets=n, resamples=resamples, seed=seed,
+                             design=design)
     for v in out["pairs"].values():
         v.pop("per_set", None)
     out["context_oracle_choice"] = "fixed: chosen once on all test frames" if any(
@@ -253,11 +268,12 @@ def best_single_on_validation(val, singles: Sequence[str], method: str, log) -> 
 
 
 def evaluate_bounds(M, ev, selections: dict, kinds: dict, scores: dict, early_fused: dict, singles, late,
-                    learned, resamples: int, energy_of=None) -> tuple[dict | None, dict]:
+                    learned, resamples: int, energy_of=None, design: str = "sequence") -> tuple[dict | None, dict]:
     """Add the context oracle to `selections`, `kinds` and `scores` (scored by `M.score` like every
     method), and return the study's intervals (every method and the early models, `StudyMatches.intervals`;
     None when `resamples` is 0) and the bounds record (the choice, room for context, the coverage).
-    `M`: the study's `study.study_eval.Methods`."""
+    `M`: the study's `study.study_eval.Methods`; `design`: how the intervals draw sequences
+    (`fusion.intervals.DESIGNS`), the coverage check the same."""
     candidates = candidate_configurations(ev, singles, late)
     sources = {n: M.fused(s) for n, s in selections.items()}
     sources.update({f"early:{b}": per for b, per in early_fused.items()})
@@ -267,9 +283,9 @@ def evaluate_bounds(M, ev, selections: dict, kinds: dict, scores: dict, early_fu
     selections[CONTEXT_ORACLE], kinds[CONTEXT_ORACLE] = selection, CONTEXT_ORACLE_LABEL
     scores[CONTEXT_ORACLE] = M.score(selection)
     names = [*selections, *[f"early:{b}" for b in early_fused]]
-    intervals = sm.intervals(names, resamples) if resamples else None
+    intervals = sm.intervals(names, resamples, design=design) if resamples else None
     pairs = [*[(f"hydrafusion:{g}", "late") for g in learned], ("all_branches", "late"), (CONTEXT_ORACLE, "all_branches")]
-    coverage = (coverage_record(sm, pairs, resamples) if resamples else
+    coverage = (coverage_record(sm, pairs, resamples, design=design) if resamples else
                 {"skipped": "evaluate.bootstrap = 0: no intervals to check"})
     record = {"context_oracle": {"what": CONTEXT_ORACLE_LABEL, "chosen_on": "test",
                                  "choice": {c: {"candidate": n, "branches": list(candidates[n])} for c, n in sorted(choice.items())},
@@ -282,5 +298,6 @@ def evaluate_bounds(M, ev, selections: dict, kinds: dict, scores: dict, early_fu
     if energy_of is not None and resamples:  # the mAP-energy front (`study.energy_front`)
         placed = [n for n in selections if n not in candidates]
         per = {**{n: M.fixed(b) for n, b in candidates.items()}, **{n: selections[n] for n in placed}}
-        record["front"] = front_record(sm, scores, placed, {n: energy_of(n, sel) for n, sel in per.items()}, resamples)
+        record["front"] = front_record(sm, scores, placed, {n: energy_of(n, sel) for n, sel in per.items()},
+                                       resamples, design=design)
     return intervals, record

@@ -40,12 +40,13 @@ def verdict(iv) -> str:
 
 def compare(run_dir, data, *, gates=GATES, k: int = 2, fusion: str = "soft-nms", split: str = "auto",
             resamples: int = 500, batch_size: int = 4, setup=None, progress: bool = True,
-            twins: bool = False, coverage_deals: int = 0, coverage_designs=("sequence",)) -> dict:
+            twins: bool = False, coverage_deals: int = 0, coverage_designs=("sequence",),
+            interval: str = "sequence") -> dict:
     """The comparison of the module docstring -> a JSON-able dict: per method its kind, mAP, vehicle
     mAP, mAP per context, and mAP minus late fusion with its 95 % interval and verdict, overall and
     per context. `twins`: also each method's robustness on the clear-weather twins (`robustness`).
     `coverage_deals`: also check the intervals on this test set (`coverage`), by each bootstrap design
-    in `coverage_designs` (`fusion.intervals.DESIGNS`)."""
+    in `coverage_designs` (`fusion.intervals.DESIGNS`); `interval`: the design of the reported intervals."""
     from study.gate_tables import _setup, gate_pass, parse_k, selection_rates
     from study.scoring import context_bootstrap, difference_interval, fuse_selection, fusion_method, score
     from study.train import run_protocol
@@ -82,7 +83,7 @@ def compare(run_dir, data, *, gates=GATES, k: int = 2, fusion: str = "soft-nms",
     sources = {name: fuse_selection(gp.per_frame, selection, frames, method) for name, selection in selections.items()}
     scores = {n: score(s, reader, "camera_right", protocol=protocol) for n, s in sources.items()}
     boot = (context_bootstrap(sources, reader, "camera_right", protocol=protocol, resamples=resamples,
-                              classes="all", desc="bootstrap the methods") if resamples else None)
+                              classes="all", desc="bootstrap the methods", design=interval) if resamples else None)
     contexts = sorted({m["context"] for m, _ in gp.per_frame})
     methods = {}
     for name in selections:
@@ -116,7 +117,7 @@ def compare(run_dir, data, *, gates=GATES, k: int = 2, fusion: str = "soft-nms",
         "sequences": boot["per_context"]["all"]["sequences"] if boot else None, "contexts": contexts,
         "fusion": fusion, "k": k, "protocol": protocol, "branches": branches, "gates": trained,
         "gates_not_trained": skipped, "methods": methods, "selection_rate_pct": rates, "best_gate": best,
-        "bootstrap": {"resamples": resamples, "unit": "sequence"} if boot else None,
+        "bootstrap": {"resamples": resamples, "unit": "sequence", "design": interval} if boot else None,
         "metric": "VOC all-point AP at IoU 0.5, every class with ground truth, right camera",
         **({"robustness": rob} if rob is not None else {}),
         **({"coverage": cov} if cov is not None else {}),

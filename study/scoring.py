@@ -12,8 +12,9 @@ import torch
 from torch.utils.data import DataLoader
 
 from fusion.data import FrameDataset, collate, hold_out_sequences, split_by_sequence
+from fusion.intervals import design_draws
 from fusion.late import Detections, fuse
-from fusion.metrics import ImageMatches, evaluate_detections, sequence_draws
+from fusion.metrics import ImageMatches, evaluate_detections
 from fusion.robustness import twin_relative_accuracy
 from sensors.dataset import DatasetReader
 from sensors.rig import Calibration
@@ -432,14 +433,17 @@ def paired_bootstrap(deg_frames: list, clr_frames: list, reader, clear_reader, f
 
 
 def context_bootstrap(sources: dict, reader, frame: str = "camera_right", protocol=None, resamples: int = 200,
-                      seed: int = 0, desc: str = "bootstrap contexts", classes: str = "vehicles") -> dict:
+                      seed: int = 0, desc: str = "bootstrap contexts", classes: str = "vehicles",
+                      design: str = "sequence") -> dict:
     """95 % intervals of each source's mAP (`classes`: "vehicles", the four vehicle classes, as
     `map_vehicles`; "all", every class, as `map`), overall and per context, and of the difference
     between every two sources, from draws of whole sequences with replacement (within each context;
     overall, from all sequences). `sources`: name -> per-frame detections in `frame`, all on the
     same frames (e.g. each branch alone and the fused result). Each draw scores every source on the
     same frames, so a difference's interval is paired: one that excludes 0 says the order of the two
-    would hold on another draw of sequences like these. Percentile intervals; seeded.
+    would hold on another draw of sequences like these. Percentile intervals; seeded. `design`: how
+    sequences are drawn (`fusion.intervals.design_draws`, strata: the contexts; "sequence", the
+    default, draws from all of a group's sequences).
     """
     from sim.progress import progress as progress_bar
 
@@ -463,18 +467,18 @@ def context_bootstrap(sources: dict, reader, frame: str = "camera_right", protoc
         groups.setdefault(meta_of[k]["context"], []).append(k)
     pairs = [(a, b) for i, a in enumerate(names) for b in names[i + 1:]]
 
-    out = {"resamples": int(resamples), "unit": "sequence", "seed": int(seed), "per_context": {}}
+    out = {"resamples": int(resamples), "unit": "sequence", "design": design, "seed": int(seed), "per_context": {}}
     with progress_bar(total=resamples * len(groups), desc=desc, unit="draw") as bar:
         for g, ks in groups.items():
-            by_seq = defaultdict(list)
+            by: dict = {}
             for k in ks:
-                by_seq[meta_of[k]["sequence_id"]].append(row[k])
+                by.setdefault(meta_of[k]["context"], {}).setdefault(meta_of[k]["sequence_id"], []).append(row[k])
             draws = np.empty((resamples, len(names)))
-            for r, picks in enumerate(sequence_draws(by_seq, resamples, seed)):
+            for r, picks in enumerate(design_draws(by, resamples, seed, design)):
                 draws[r] = [matches[n].mean_ap(picks) for n in names]
                 bar.update(1)
             out["per_context"][g] = {
-                "sequences": len(by_seq),
+                "sequences": sum(len(v) for v in by.values()),
                 key: {n: _interval(draws[:, i]) for i, n in enumerate(names)},
                 "difference": {f"{a} - {b}": _interval(draws[:, names.index(a)] - draws[:, names.index(b)])
                                for a, b in pairs},

@@ -459,7 +459,7 @@ def run_study(cfg: StudyConfig, out: str | Path, until: str = "report", progress
         return _finish(study, result, t_start)
 
     evaluate_inputs = {k: v for k, v in to_dict(cfg.evaluate).items()  # the default: the keys as before it existed
-                       if not (k == "fusion" and v == "validation")}
+                       if not (k == "fusion" and v == "validation") and not (k == "interval" and v == "sequence")}
     ev = study.stage("evaluate", {"evaluate": evaluate_inputs, **ident("evaluate")},
                      (gt, tr, *((sets["test"],) if "test" in sets else ()), *((cx,) if cx else ())),
                      evaluate_stage, gates_run=gt.dir / "run", run_early=run_early, parts=all_parts, cfg=cfg,

@@ -309,6 +309,10 @@ class EvaluateSection:
         bootstrap: draws of whole test sequences for 95 % intervals of every method's mAP, overall
             and per context, and of every paired difference (`study.scoring.context_bootstrap`;
             0 = none).
+        interval: how the bootstrap draws test sequences (`fusion.intervals.DESIGNS`): "sequence",
+            from all of them (each context's count varies between draws, though a test set holds a
+            fixed number of each); "stratified", each context's n of its n; "rescaled", n - 1 of its n
+            (Rao and Wu 1988: the design's variance at any n). The coverage check checks the same.
     """
 
     k: int = 3
@@ -323,6 +327,7 @@ class EvaluateSection:
     twins: bool = True
     bootstrap: int = 0
     fusion: str = "validation"
+    interval: str = "sequence"
 
     def __post_init__(self) -> None:
         _positive("evaluate.k", self.k)
@@ -338,6 +343,10 @@ class EvaluateSection:
                 raise UserError(f"evaluate.{name} must be {', '.join(allowed)}, got {getattr(self, name)!r}")
         if self.fusion not in ("validation", "nms", "soft-nms", "wbf"):
             raise UserError(f"evaluate.fusion must be validation, nms, soft-nms or wbf, got {self.fusion!r}")
+        from fusion.intervals import DESIGNS
+
+        if self.interval not in DESIGNS:
+            raise UserError(f"evaluate.interval must be {', '.join(DESIGNS)}, got {self.interval!r}")
         if not 0 <= self.lambda_e <= 1:
             raise UserError(f"evaluate.lambda_e must be in [0, 1], got {self.lambda_e}")
         if not self.gamma >= 0:

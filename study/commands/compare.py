@@ -51,11 +51,13 @@ def add_parser(sub, name, help_text):
                         "6 sequences per context (up to 8 sets) and count how often each set's 95 %% interval of "
                         "minus late fusion holds the other sets' estimate (about 0.93 for exact intervals); "
                         "0 (default): no check")
-    p.add_argument("--coverage-design", default="sequence", metavar="D[,D...]",
-                   help="which bootstraps the coverage check runs on each set, on the same deals: sequence (whole "
-                        "sequences from all of a set's: the intervals this command and the study report), "
-                        "stratified (n of each context's n sequences), rescaled (n - 1 of them, Rao and Wu 1988: "
-                        "the design's variance at few sequences per context); comma-separated for several")
+    p.add_argument("--interval", default="sequence", choices=["sequence", "stratified", "rescaled"],
+                   help="how the bootstrap draws test sequences: sequence (from all of them), stratified (each "
+                        "context's n of its n, as a test set is built), rescaled (n - 1 of its n, Rao and Wu 1988: "
+                        "the design's variance even at few sequences per context)")
+    p.add_argument("--coverage-design", default=None, metavar="D[,D...]",
+                   help="which bootstraps the coverage check runs on each set, on the same deals (sequence, "
+                        "stratified, rescaled; comma-separated for several) [--interval's]")
     p.add_argument("--batch-size", type=pos_int, default=4, help="frames per forward pass")
     p.add_argument("--plot", type=out_file(".png", ".pdf", ".svg"), default=None,
                    help="also draw each method's mAP minus late fusion with its interval")
@@ -75,14 +77,14 @@ def run(args) -> int:
         raise UserError(f"--gates: unknown gate {bad[0]!r} (choose from: {', '.join(GATES)})")
     from fusion.intervals import DESIGNS
 
-    designs = [d for d in args.coverage_design.split(",") if d]
+    designs = [d for d in (args.coverage_design or args.interval).split(",") if d]
     bad = [d for d in designs if d not in DESIGNS] or ([] if designs else [""])
     if bad:
         raise UserError(f"--coverage-design: unknown design {bad[0]!r} (choose from: {', '.join(DESIGNS)})")
     r = compare(Path(args.run_dir), Path(args.data), gates=gates, k=args.k, fusion=args.fusion, split=args.split,
                 resamples=args.bootstrap, batch_size=args.batch_size, setup=resolve_device(args, purpose="eval"),
                 twins=args.twins, coverage_deals=args.coverage_deals,
-                coverage_designs=designs)
+                coverage_designs=designs, interval=args.interval)
     if args.plot:
         from study.compare import plot_compare
 

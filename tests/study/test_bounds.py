@@ -248,3 +248,42 @@ def test_the_report_and_the_readme_block_name_each_bound_for_what_it_is(tmp_path
     assert "Room for context" in block and "Holm-corrected over 2 per-context comparisons" in block
     assert "(95 % interval [+0.010, +0.090])" in block
     assert "room" not in " ".join(line for line in block.splitlines() if "a-posteriori" in line).lower()
+
+
+def test_the_intervals_draw_by_the_declared_design_and_sequence_is_the_draws_they_always_had():
+    """evaluate.interval: "sequence" (the default) gives exactly the draws of whole sequences from all
+    test sequences the study always made, so a study keyed before the option existed reads the same;
+    "stratified" keeps each context's count in every draw, "rescaled" draws one fewer of each; the
+    front and the coverage record say which design they drew by."""
+    from fusion.metrics import sequence_draws
+
+    sm = _study_matches(seqs_per_context=6)
+    rows = range(len(sm.contexts))
+    assert list(sm.draws(rows, 7, 3)) == list(sequence_draws(sm.by_sequence(rows), 7, 3))
+    per_ctx = {"x": 6, "y": 6}
+    for design, less in (("stratified", 0), ("rescaled", 1)):
+        for d in sm.draws(rows, 20, 3, design):
+            seqs = [sm.sequences[r] for r in d]
+            assert all(sum(1 for s in seqs[::4] if s.startswith(c)) == n - less for c, n in per_ctx.items())
+    names = ["single:a", "late", "all_branches"]
+    plain = sm.intervals(names, resamples=40)
+    assert plain == sm.intervals(names, resamples=40, design="sequence") and plain["design"] == "sequence"
+    strat = sm.intervals(names, resamples=40, design="stratified")
+    # within one context the two designs are the same draws
+    assert strat["per_context"]["x"]["map"] == plain["per_context"]["x"]["map"]
+    assert strat["design"] == "stratified" and strat["per_context"]["all"] != plain["per_context"]["all"]
+    with pytest.raises(ValueError, match="design"):
+        sm.intervals(names, resamples=5, design="flat")
+    cov = coverage_record(_study_matches(seqs_per_context=16), [("all_branches", "late")], resamples=20,
+                          design="rescaled")
+    assert cov["design"] == "rescaled"
+
+
+def test_evaluate_interval_is_validated():
+    from sim.errors import UserError
+    from study.study_config import EvaluateSection
+
+    assert EvaluateSection().interval == "sequence"
+    assert EvaluateSection(interval="rescaled").interval == "rescaled"
+    with pytest.raises(UserError, match="evaluate.interval must be sequence, stratified, rescaled"):
+        EvaluateSection(interval="flat")

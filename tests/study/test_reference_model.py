@@ -211,6 +211,15 @@ def test_compare_scores_fixed_and_gated_fusion_with_paired_intervals(exported, d
                  "--fusion", "soft-nms", "--threads", "1", "--json"]) == 0
     ev = json.loads(capsys.readouterr().out)
     assert ev["map"] == pytest.approx(r["methods"]["late"]["map"], abs=1e-4)
+    # --interval: the same scores, drawn by another design, and the record says which
+    assert r["bootstrap"]["design"] == "sequence"
+    assert main(["compare", str(model_dir), str(data), "--bootstrap", "40", "--gates", "knowledge,deep,optimal",
+                 "--threads", "1", "--interval", "rescaled", "--json"]) == 0
+    rescaled = json.loads(capsys.readouterr().out)
+    assert rescaled["bootstrap"]["design"] == "rescaled"
+    assert {n: v["map"] for n, v in rescaled["methods"].items()} == {n: v["map"] for n, v in r["methods"].items()}
+    assert any(rescaled["methods"][n]["minus_late"]["ci95"] != r["methods"][n]["minus_late"]["ci95"]
+               for n in r["methods"] if n != "late")
 
 
 def test_verdict_reads_the_interval():
