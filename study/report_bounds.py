@@ -51,9 +51,13 @@ def add_coverage(doc, r: dict, tag: str) -> None:
     if cov.get("skipped"):
         doc.p(f"Coverage check {cov['skipped']}.")
         return
+    design = cov.get("design", "stratified")  # a report made before the designs drew within each context
+    drawn = {"sequence": "draws of whole sequences from all of the set's, as the reported intervals",
+             "stratified": "draws within each context, n of n",
+             "rescaled": "draws within each context, n - 1 of n (Rao and Wu)"}.get(design, design)
     doc.p(f"The test frames dealt by sequence within each context into {cov['sets']} disjoint sets "
           f"({', '.join(map(str, cov['sequences_per_set']))} sequences); each set's 95 % interval ({cov['resamples']} "
-          "draws within each context) is checked against the estimate of the other sets pooled. An exact interval "
+          f"{drawn}) is checked against the estimate of the other sets pooled. An exact interval "
           "holds it with the expected share, not 0.95 (the rest's estimate is noisy too; "
           "`fusion.intervals.expected_rest_coverage`); spread over se near 1 says the interval's width is right, well "
           "above 1 says it is too narrow. The context oracle here is its choice on all test frames, held fixed.")

@@ -438,7 +438,7 @@ def context_bootstrap(sources: dict, reader, frame: str = "camera_right", protoc
     """95 % intervals of each source's mAP (`classes`: "vehicles", the four vehicle classes, as
     `map_vehicles`; "all", every class, as `map`), overall and per context, and of the difference
     between every two sources, from draws of whole sequences with replacement (within each context;
-    overall, from all sequences). `sources`: name -> per-frame detections in `frame`, all on the
+    overall, from all sequences, by default). `sources`: name -> per-frame detections in `frame`, all on the
     same frames (e.g. each branch alone and the fused result). Each draw scores every source on the
     same frames, so a difference's interval is paired: one that excludes 0 says the order of the two
     would hold on another draw of sequences like these. Percentile intervals; seeded. `design`: how

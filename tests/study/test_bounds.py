@@ -231,6 +231,11 @@ def test_the_report_and_the_readme_block_name_each_bound_for_what_it_is(tmp_path
     assert "| city | single:radar |" in md and "chosen on test: optimistic." in md
     assert f"each an {A_POSTERIORI_LABEL}" in md
     assert "| all_branches - late | 3/4 | 0.910 | 1.200 |" in md
+    assert "draws within each context, n of n" in md  # a report from before the designs: it drew so
+    r["bounds"]["coverage"]["design"] = "sequence"
+    doc = Doc()
+    add_coverage(doc, r, "tag")
+    assert "draws of whole sequences from all of the set's, as the reported intervals" in doc.markdown(tmp_path)
     assert "Appendix: HydraFusion's optimal gate" in md and "not comparable." in md
     assert "hydrafusion:optimal" not in main_methods(r) and CONTEXT_ORACLE in main_methods(r)
     s = verdict_sentences(report)

@@ -94,8 +94,8 @@ def test_the_extract_holds_what_the_comparison_reads(tmp_path):
 
 def test_compare_scores_the_fixed_methods_of_the_replication_as_the_study_did():
     """results/study_cpu_verdict/compare_cpu_frontier_test2002.json: `hydrabench compare cpu-frontier
-    TESTSET-2002 --k 2 --fusion soft-nms --gates knowledge,deep,attention --json` on the replication's
-    test set. The detectors are the study's, so every method that reads no learned gate has the
+    TESTSET-2002 --split all --coverage-deals 10 --coverage-design sequence,stratified,rescaled --json`
+    (k 2, soft-nms: the defaults) on the replication's test set. The detectors are the study's, so every method that reads no learned gate has the
     study's mAP and interval (one scoring path across commands); the learned gates are the reference
     model's (trained on the Intel machine) against the study's (trained again on the AMD one)."""
     compare = json.loads((VERDICT / "compare_cpu_frontier_test2002.json").read_text())
@@ -119,21 +119,39 @@ def test_the_verdicts_test_set_scores_the_same_on_another_cpu():
     compare = json.loads((VERDICT / "compare_cpu_frontier_test2001_amd.json").read_text())
     verdict = json.loads((VERDICT / "report.json").read_text())["results"]
     assert compare["sequences"] == 384 and verdict["dataset"]["sets"]["test"]["seed"] == 2001
-    assert len(compare["methods"]) == 8
+    assert len(compare["methods"]) == 9  # the default gates, the a-posteriori optimal one among them
     for name, row in compare["methods"].items():
         assert row["map"] == pytest.approx(verdict["methods"][name]["map"], abs=1e-3), name
         if name != "late":
             assert row["minus_late"]["ci95"] == pytest.approx(pair_difference(verdict, name, "late")[1], abs=1e-3), name
 
 
-@pytest.mark.parametrize("name", ["compare_cpu_frontier_test2001_amd.json", "compare_cpu_frontier_test2002.json"])
+STRATIFIED_BEFORE = {  # the same command before --coverage-design, whose only bootstrap was "stratified"
+    "compare_cpu_frontier_test2001_amd.json": {"all_branches - late": 74, "hydrafusion:knowledge - late": 72,
+                                               "hydrafusion:deep - late": 67, "hydrafusion:attention - late": 68},
+    "compare_cpu_frontier_test2002.json": {"all_branches - late": 73, "hydrafusion:knowledge - late": 74,
+                                           "hydrafusion:deep - late": 73, "hydrafusion:attention - late": 70},
+}
+
+
+@pytest.mark.parametrize("name", sorted(STRATIFIED_BEFORE))
 def test_the_stored_coverage_over_deals_is_whole(name):
-    """`compare --coverage-deals 10` on both test sets (docs/results.md quotes them): 10 deals of 8
-    sets of 48 sequences, each pair's pooled count the sum of its deals', every method but the single
-    sensors checked against late fusion."""
+    """`compare --coverage-deals 10 --coverage-design sequence,stratified,rescaled` on both test sets
+    (docs/results.md quotes them): 10 deals of 8 sets of 48 sequences, the same deals and draw seeds
+    for each design, each pair's pooled count the sum of its deals', every method but the single
+    sensors checked against late fusion. The stratified counts are those of the run made before the
+    designs existed (same seeds: the same draws), and the estimates do not depend on the design."""
     cov = json.loads((VERDICT / name).read_text())["coverage"]
     assert cov["deals"] == 10 and cov["sets"] == 8 and cov["sequences_per_set"] == [48] * 8
-    assert set(cov["pairs"]) == {"all_branches - late", "hydrafusion:knowledge - late", "hydrafusion:deep - late",
-                                 "hydrafusion:attention - late"}
-    for v in cov["pairs"].values():
-        assert v["sets"] == 80 and v["covered"] == sum(v["covered_per_deal"]) and v["coverage"] == v["covered"] / 80
+    assert list(cov["designs"]) == ["sequence", "stratified", "rescaled"]
+    pairs = {"all_branches - late", "hydrafusion:knowledge - late", "hydrafusion:deep - late",
+             "hydrafusion:attention - late", "hydrafusion:optimal - late"}
+    for rec in cov["designs"].values():
+        assert set(rec["pairs"]) == pairs
+        for v in rec["pairs"].values():
+            assert v["sets"] == 80 and v["covered"] == sum(v["covered_per_deal"]) and v["coverage"] == v["covered"] / 80
+            assert v["mean_width"] > 0
+    assert {p: v["covered"] for p, v in cov["designs"]["stratified"]["pairs"].items()
+            if p in STRATIFIED_BEFORE[name]} == STRATIFIED_BEFORE[name]
+    for p in pairs:
+        assert len({rec["pairs"][p]["all"] for rec in cov["designs"].values()}) == 1
