@@ -77,10 +77,11 @@ def run(args) -> int:
         raise UserError(f"--gates: unknown gate {bad[0]!r} (choose from: {', '.join(GATES)})")
     from fusion.intervals import DESIGNS
 
-    designs = [d for d in (args.coverage_design or args.interval).split(",") if d]
-    bad = [d for d in designs if d not in DESIGNS] or ([] if designs else [""])
+    designs = (args.interval if args.coverage_design is None else args.coverage_design).split(",")
+    bad = [d for d in designs if d not in DESIGNS]
     if bad:
-        raise UserError(f"--coverage-design: unknown design {bad[0]!r} (choose from: {', '.join(DESIGNS)})")
+        raise UserError(f"--coverage-design: unknown design {bad[0]!r} (choose from: {', '.join(DESIGNS)}, "
+                        "comma-separated)")
     r = compare(Path(args.run_dir), Path(args.data), gates=gates, k=args.k, fusion=args.fusion, split=args.split,
                 resamples=args.bootstrap, batch_size=args.batch_size, setup=resolve_device(args, purpose="eval"),
                 twins=args.twins, coverage_deals=args.coverage_deals,

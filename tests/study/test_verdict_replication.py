@@ -171,3 +171,21 @@ def test_the_rescaled_intervals_score_the_same_and_are_about_as_wide(name):
         if m != "late":
             a, b = v["minus_late"]["ci95"], seq["methods"][m]["minus_late"]["ci95"]
             assert 0.85 < (a[1] - a[0]) / (b[1] - b[0]) < 1.25, m
+
+
+def test_the_readme_quotes_the_stored_coverage_counts():
+    """The README's "Do the intervals hold?" sentence: per design, the range of sets covered of 80 over
+    the gates' and all_branches' pairs, on test set 2001 and on test set 2002."""
+    readme = (ROOT / "README.md").read_text()
+    issue_pairs = ("all_branches - late", "hydrafusion:knowledge - late", "hydrafusion:deep - late",
+                   "hydrafusion:attention - late")
+
+    def counts(name, design):
+        pairs = json.loads((VERDICT / name).read_text())["coverage"]["designs"][design]["pairs"]
+        c = [pairs[p]["covered"] for p in issue_pairs]
+        return f"{min(c)}-{max(c)}"
+
+    a, b = "compare_cpu_frontier_test2001_amd.json", "compare_cpu_frontier_test2002.json"
+    text = " ".join(readme.split())
+    assert f"{counts(a, 'sequence')} times of 80 on this test set and {counts(b, 'sequence')} on a second one" in text
+    assert f"(`--interval rescaled`) {counts(a, 'rescaled')} and {counts(b, 'rescaled')}" in text
