@@ -95,6 +95,14 @@ def design_draws(by_stratum: Mapping[Hashable, Mapping[Hashable, Sequence]], res
     return sequence_draws(pooled, resamples, seed)
 
 
+def resolved_sign(interval) -> int:
+    """+1 / -1 when an interval excludes 0 above / below, 0 when it holds 0 (or is missing): the order a
+    difference's interval resolves."""
+    if not interval or interval[0] is None or interval[1] is None:
+        return 0
+    return 1 if interval[0] > 0 else -1 if interval[1] < 0 else 0
+
+
 def percentile_interval(values, level: float = 0.95) -> tuple[float, float] | None:
     """The central `level` percentile interval of the finite values (None when none is finite)."""
     if not 0.0 < level < 1.0:

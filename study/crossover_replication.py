@@ -17,14 +17,9 @@ from __future__ import annotations
 import math
 from collections.abc import Mapping
 
+from fusion.intervals import resolved_sign
+
 SIDES = ("late", "all_branches")
-
-
-def _sign(interval) -> int:
-    """+1 / -1 when a 95 % interval excludes 0 above / below, 0 when it holds 0 (or is missing)."""
-    if not interval or interval[0] is None or interval[1] is None:
-        return 0
-    return 1 if interval[0] > 0 else -1 if interval[1] < 0 else 0
 
 
 def inside(x: float | None, interval, worse: str) -> bool | None:
@@ -65,7 +60,7 @@ def replicate(a: Mapping, b: Mapping) -> dict:
                     levels.append({"condition": cond, "base": base, "sensor": sensor, "level": i + 1,
                                    "x_a": cur_a["steps"][i], "x_b": cur_b["steps"][i], "a": ea, "b": eb,
                                    "difference": round(ea - eb, 6), "half_width": round(half, 6),
-                                   "agree": abs(ea - eb) <= half, "resolved_a": _sign(ia), "resolved_b": _sign(ib)})
+                                   "agree": abs(ea - eb) <= half, "resolved_a": resolved_sign(ia), "resolved_b": resolved_sign(ib)})
                 crossings.append({"condition": cond, "base": base, "sensor": sensor, "unit": ca["unit"],
                                   "a": {k: cur_a[k] for k in ("crossing", "crossing_kind", "crossing_interval",
                                                               "first_resolved_below")},

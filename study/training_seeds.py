@@ -23,13 +23,12 @@ from __future__ import annotations
 import statistics
 from collections.abc import Mapping, Sequence
 
+from fusion.intervals import resolved_sign
 from study.verdict_replication import HEADLINE, pair_difference
 
 
 def _verdict(interval) -> str:
-    if not interval or None in interval:
-        return "not resolved"
-    return "above" if interval[0] > 0 else "below" if interval[1] < 0 else "not resolved"
+    return {1: "above", -1: "below", 0: "not resolved"}[resolved_sign(interval)]
 
 
 def headline_rows(reports: Mapping[str, Mapping], pairs: Sequence[tuple[str, str]] = HEADLINE) -> list[dict]:

@@ -21,6 +21,8 @@ from __future__ import annotations
 import math
 from collections.abc import Mapping
 
+from fusion.intervals import resolved_sign
+
 HEADLINE = (
     ("all_branches", "late"),
     ("hydrafusion:deep", "late"),
@@ -37,12 +39,6 @@ HEADLINE = (
     ("late", "single:radar"),
 )
 """The pairs the README block and the closing notes quote, as (a, b) for a - b."""
-
-
-def _sign(interval) -> int:
-    if not interval or None in interval:
-        return 0
-    return 1 if interval[0] > 0 else -1 if interval[1] < 0 else 0
 
 
 def pair_difference(results: Mapping, a: str, b: str, context: str = "all") -> tuple[float, list[float]] | None:
@@ -85,7 +81,7 @@ def compare_pair(ra: Mapping, rb: Mapping, a: str, b: str, context: str = "all")
     half = math.hypot((ia[1] - ia[0]) / 2, (ib[1] - ib[0]) / 2)
     return {"pair": f"{a} - {b}", "context": context, "a": ea, "interval_a": ia, "b": eb, "interval_b": ib,
             "difference": round(ea - eb, 6), "half_width": round(half, 6), "agree": abs(ea - eb) <= half,
-            "b_in_a": _inside(eb, ia), "a_in_b": _inside(ea, ib), "resolved_a": _sign(ia), "resolved_b": _sign(ib)}
+            "b_in_a": _inside(eb, ia), "a_in_b": _inside(ea, ib), "resolved_a": resolved_sign(ia), "resolved_b": resolved_sign(ib)}
 
 
 def replicate(ra: Mapping, rb: Mapping) -> dict:

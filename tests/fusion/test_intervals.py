@@ -151,3 +151,11 @@ def test_design_draws_dispatch_and_pool():
         design_draws(by, 4, 5, design="flat")
     with pytest.raises(ValueError, match="more than one stratum"):
         design_draws({"a": {"q": [0]}, "b": {"q": [1]}}, 4, 5, design="sequence")
+
+
+def test_resolved_sign_reads_the_order_an_interval_resolves():
+    from fusion.intervals import resolved_sign
+
+    assert resolved_sign([0.01, 0.02]) == 1 and resolved_sign([-0.02, -0.01]) == -1
+    assert resolved_sign([-0.01, 0.02]) == 0 and resolved_sign([0.0, 0.02]) == 0
+    assert resolved_sign(None) == 0 and resolved_sign([None, 0.1]) == 0 and resolved_sign([]) == 0
