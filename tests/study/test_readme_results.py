@@ -153,7 +153,15 @@ def test_the_numbers_the_readme_and_docs_quote_from_the_cpu_study_are_its():
     rep = _load("study_cpu_verdict/replication_test2002.json")
     quoted = [f"{h['b']:+.3f}" for h in rep["headline"]] + [f"{x:+.3f}" for h in rep["headline"] for x in h["interval_b"]]
     quoted.append(f"{rep['summary']['agreement_rate']:.3f}")
-    assert len(numbers) >= 5 and not [n for n in numbers if n not in block and n not in quoted], numbers
+    # ... or one of the second detector seed's (results/study_cpu_verdict/training_seeds.json)
+    seeds = _load("study_cpu_verdict/training_seeds.json")
+    for row in seeds["headline"]:
+        for c in row["per"].values():
+            quoted += [f"{c['estimate']:+.3f}", *(f"{x:+.3f}" for x in c["ci95"])]
+    for name in ("training", "test_set"):
+        quoted += [f"{seeds[name][k]:.2f}" for k in ("median_ratio", "max_ratio")]
+    in_block = set(re.findall(r"[-+]?\d+\.\d+", block))  # whole numbers, not substrings ("0.43" of "0.430")
+    assert len(numbers) >= 5 and not [n for n in numbers if n not in in_block and n not in quoted], numbers
     # docs/results.md's reading: every 3-decimal interval is one of the report's (any context, any pair)
     intervals = _load("study_cpu/report.json")["results"]["intervals"]["per_context"]
     stored = {f"[{lo:+.3f}, {hi:+.3f}]" for ctx in intervals.values() for kind in ("map", "difference")

@@ -70,3 +70,41 @@ def test_the_script_prints_writes_and_refuses(tmp_path):
     bad = subprocess.run([*cmd[:-2], "--seeds", "s0,t"], capture_output=True, text=True, cwd=ROOT,
                          env={"PYTHONPATH": str(ROOT)})
     assert bad.returncode == 2 and "not scored on the same test set" in bad.stderr
+
+
+STORED = ROOT / "results" / "study_cpu_verdict"
+LABELS = {"seed 0, test set 2001 (Intel)": "seed0_test2001", "seed 0, test set 2002": "seed0",
+          "seed 1, test set 2002": "seed1"}
+
+
+def test_the_stored_record_is_what_the_script_makes_of_the_stored_reports(tmp_path):
+    """results/study_cpu_verdict/training_seeds.json, recomputed from the reports it was made of (the
+    stored verdict, the replication's extract and the second seed's extract)."""
+    cmd = [sys.executable, str(ROOT / "scripts" / "training_seeds.py"),
+           "--report", f"seed0={STORED / 'report_test2002_extract.json'}",
+           "--report", f"seed1={STORED / 'report_seed1_test2002_extract.json'}",
+           "--report", f"seed0_test2001={STORED / 'report.json'}",
+           "--seeds", "seed0,seed1", "--test-sets", "seed0,seed0_test2001", "--out", str(tmp_path / "again.json")]
+    done = subprocess.run(cmd, capture_output=True, text=True, cwd=ROOT, env={"PYTHONPATH": str(ROOT)})
+    assert done.returncode == 0, done.stderr
+    assert json.loads((tmp_path / "again.json").read_text()) == json.loads((STORED / "training_seeds.json").read_text())
+
+
+def test_the_readme_shows_both_seeds_headline_rows_as_stored():
+    rec = json.loads((STORED / "training_seeds.json").read_text())
+    lines = (ROOT / "README.md").read_text().splitlines()
+    head = [i for i, x in enumerate(lines) if x.startswith("| headline pair | seed 0, test set 2001 (Intel) |")]
+    assert len(head) == 1
+    header = [c.strip() for c in lines[head[0]].strip("|").split("|")][1:]
+    assert set(header) == set(LABELS)
+    rows = {}
+    for line in lines[head[0] + 2:]:
+        if not line.startswith("|"):
+            break
+        cells = [c.strip() for c in line.strip("|").split("|")]
+        rows[cells[0]] = dict(zip(header, cells[1:]))
+    assert set(rows) == {r["pair"] for r in rec["headline"]}
+    for r in rec["headline"]:
+        for col, label in LABELS.items():
+            c = r["per"][label]
+            assert rows[r["pair"]][col] == f"{c['estimate']:+.3f} [{c['ci95'][0]:+.3f}, {c['ci95'][1]:+.3f}]", (r, col)
