@@ -18,6 +18,15 @@ def rounded(v, digits: int = 4) -> float | None:
     return round(float(v), digits)
 
 
+def significant(v, digits: int = 3) -> float | None:
+    """`v` kept to `digits` significant figures (a ratio or a time whose size varies by orders of
+    magnitude between machines: 0.0641 and 1.93 both keep their three figures, where a fixed two
+    decimals would move 0.0641 by 6 %); None when `v` is None, NaN or infinite."""
+    if v is None or not math.isfinite(float(v)):
+        return None
+    return float(f"{float(v):.{digits}g}")
+
+
 def rounded_interval(iv, digits: int = 4) -> list | None:
     """An interval (lo, hi) as [rounded(lo), rounded(hi)]; None stays None."""
     return None if iv is None else [rounded(iv[0], digits), rounded(iv[1], digits)]

@@ -22,6 +22,7 @@ import time
 import numpy as np
 
 from study.bench.scale import cpu_model
+from study.numbers import significant
 
 
 def synthetic_batch(model, batch: int, seed: int) -> tuple[dict, list]:
@@ -138,9 +139,9 @@ def bench_amp(profile: str = "cpu", branches: tuple[str, ...] = (), batch: int =
         "parameters_m": round(sum(p.numel() for p in model.parameters()) / 1e6, 1), "batch": batch,
         "frames": "dataset " + str(data) if data else "synthetic", "steps": steps, "warmup_steps": warmup,
         "native_bf16": native, "native_bf16_reason": why, "amp_auto_picks": "bf16" if native else "fp32",
-        "step_s": {p: round(v, 3) for p, v in median.items()},
-        "step_s_all": {p: [round(x, 3) for x in v] for p, v in seconds.items()},
-        "speedup_bf16": round(median["fp32"] / median["bf16"], 2),
+        "step_s": {p: significant(v, 4) for p, v in median.items()},
+        "step_s_all": {p: [significant(x, 4) for x in v] for p, v in seconds.items()},
+        "speedup_bf16": significant(median["fp32"] / median["bf16"], 3),
         "loss_per_step": loss,
         "final_loss": {p: v[-1] for p, v in loss.items()},
         "final_loss_relative_difference": round(abs(loss["bf16"][-1] - loss["fp32"][-1]) / max(abs(loss["fp32"][-1]), 1e-12), 4),

@@ -1,6 +1,8 @@
 """`hydrabench bench amp` on a tiny network: both precisions train from the same weights on the same
 frames, the report says what --amp auto picks on this CPU and why."""
 
+import statistics
+
 import pytest
 
 from sim.errors import UserError
@@ -15,7 +17,11 @@ def test_bench_amp_measures_both_precisions_from_the_same_start():
     r = bench_amp("cpu", ("radar",), batch=2, steps=2, warmup=1, threads=1, overrides=TINY)
     assert r["branches"] == ["radar"] and r["threads"] == 1
     assert all(len(r["step_s_all"][p]) == 2 and min(r["step_s_all"][p]) > 0 for p in ("fp32", "bf16"))
-    assert r["speedup_bf16"] == pytest.approx(r["step_s"]["fp32"] / r["step_s"]["bf16"], rel=0.05)
+    # the stored speedup is the ratio of the medians of the stored step times, kept to 3 significant
+    # figures (times to 4), whatever its size: 0.064 where bf16 is emulated, about 2 with AMX
+    median = {p: statistics.median(r["step_s_all"][p]) for p in ("fp32", "bf16")}
+    assert r["speedup_bf16"] == pytest.approx(median["fp32"] / median["bf16"], rel=6e-3)
+    assert r["speedup_bf16"] == float(f"{r['speedup_bf16']:.3g}")
     fp32, bf16 = r["loss_per_step"]["fp32"], r["loss_per_step"]["bf16"]
     assert len(fp32) == len(bf16) == 3
     # the same weights, frames and sampling: the first losses differ by bf16 rounding of the backbone only

@@ -5,7 +5,7 @@ import math
 import numpy as np
 
 from study.gate_tables import selection_rates
-from study.numbers import interval_text, number_text, rounded, rounded_interval
+from study.numbers import interval_text, number_text, rounded, rounded_interval, significant
 
 
 def test_rounded_keeps_four_decimals_and_maps_what_json_cannot_hold_to_none():
@@ -29,3 +29,9 @@ def test_selection_rates_are_percent_of_frames_to_a_tenth():
     assert selection_rates(frames, ["radar", "lidar", "camera_right"]) == {"radar": 66.7, "lidar": 66.7,
                                                                            "camera_right": 0.0}
     assert selection_rates([], ["radar"]) == {"radar": 0.0}
+
+
+def test_significant_keeps_figures_not_decimals():
+    # a ratio far below 1 keeps its three figures: two fixed decimals would move 0.0641 to 0.06 (6 %)
+    assert significant(0.064149) == 0.0641 and significant(1.9349) == 1.93 and significant(123.456, 4) == 123.5
+    assert significant(None) is None and significant(float("nan")) is None and significant(float("inf")) is None
