@@ -397,6 +397,8 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "generate": ("study.commands.dataset:add_generate", "generate a sharded sensor dataset (cameras, lidar, radar, labels)"),
     "verify": ("study.commands.dataset:add_verify", "check a dataset whole: what every command checks first, and each shard's checksum"),
     "export-coco": ("study.commands.dataset:add_export", "write a dataset's FWD labels as COCO JSON"),
+    "export": ("study.commands.export:add_parser", "write a dataset in another tool's format: nuscenes (every sensor, "
+               "3D boxes, splits; the nuScenes devkit loads it) or coco (one camera's FWD labels)"),
     "labels": ("study.commands.labels:add_parser", "what each evaluation protocol asks a detector to find (counts per range bin)"),
     "stages": ("study.commands.stages:add_parser", "a digest of every generation stage for one frame, to compare two machines"),
     "show": ("study.commands.dataset:add_show", "draw one frame of a dataset with every sensor and its labels"),
