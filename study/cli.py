@@ -152,6 +152,20 @@ def holdout_fraction(text: str) -> float:
     return v
 
 
+def open_fraction(text: str) -> float:
+    """An argparse type: a share strictly between 0 and 1 (a split with something on both sides)."""
+    try:
+        v = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a number, got {text!r}") from None
+    if not 0.0 < v < 1.0:
+        raise argparse.ArgumentTypeError(f"must be in (0, 1), got {text}")
+    return v
+
+
+_typed(open_fraction, "float", lo=0.0, hi=1.0, lo_open=True)
+
+
 def pool_grid(text: str) -> tuple[int, int]:
     """An argparse type: the ROWSxCOLS grid stem features are pooled to (`8x16`), at least 4x4."""
     try:

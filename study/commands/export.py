@@ -2,20 +2,16 @@
 
 from __future__ import annotations
 
-import argparse
-
-from study.cli import Formatter, dataset_dir, emit, holdout_fraction, nonneg_int, out_dir, out_file
-
-
-def open_fraction(text: str) -> float:
-    """An argparse type: a share strictly between 0 and 1 (a split with both sides)."""
-    try:
-        v = float(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected a number, got {text!r}") from None
-    if not 0.0 < v < 1.0:
-        raise argparse.ArgumentTypeError(f"must be in (0, 1), got {text}")
-    return v
+from study.cli import (
+    Formatter,
+    dataset_dir,
+    emit,
+    holdout_fraction,
+    nonneg_int,
+    open_fraction,
+    out_dir,
+    out_file,
+)
 
 NUSCENES_EPILOG = """\
 Writes DIR/v1.0-hydrabench/ (the thirteen nuScenes tables and splits.json), DIR/samples/ (CAM_FRONT =
