@@ -18,9 +18,10 @@ export SDL_VIDEODRIVER := offscreen
 
 venv: $(STAMP)
 
-$(STAMP): requirements.lock constraints.txt pyproject.toml
+$(STAMP): requirements.lock requirements-nodeps.txt constraints.txt pyproject.toml
 	@test -x $(BIN)/python || $(PYTHON) -m venv $(VENV)
 	$(BIN)/python -m pip install --quiet -r requirements.lock -c constraints.txt
+	$(BIN)/python -m pip install --quiet --no-deps -r requirements-nodeps.txt
 	$(BIN)/python -m pip install --quiet --no-deps --no-build-isolation -e .
 	@touch $(STAMP)
 
@@ -53,7 +54,7 @@ test: $(STAMP)
 lock:
 	rm -rf /tmp/hydrabench-lock && $(PYTHON) -m venv /tmp/hydrabench-lock
 	/tmp/hydrabench-lock/bin/pip install --quiet -r requirements.txt -c constraints.txt
-	/tmp/hydrabench-lock/bin/pip freeze | grep -v '^-e' > requirements.lock
+	/tmp/hydrabench-lock/bin/pip freeze | grep -v '^-e' > requirements.lock  # requirements-nodeps.txt stays out
 
 clean-venv:
 	rm -rf $(VENV)

@@ -152,6 +152,20 @@ def holdout_fraction(text: str) -> float:
     return v
 
 
+def open_fraction(text: str) -> float:
+    """An argparse type: a share strictly between 0 and 1 (a split with something on both sides)."""
+    try:
+        v = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a number, got {text!r}") from None
+    if not 0.0 < v < 1.0:
+        raise argparse.ArgumentTypeError(f"must be in (0, 1), got {text}")
+    return v
+
+
+_typed(open_fraction, "float", lo=0.0, hi=1.0, lo_open=True)
+
+
 def pool_grid(text: str) -> tuple[int, int]:
     """An argparse type: the ROWSxCOLS grid stem features are pooled to (`8x16`), at least 4x4."""
     try:
@@ -397,6 +411,8 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "generate": ("study.commands.dataset:add_generate", "generate a sharded sensor dataset (cameras, lidar, radar, labels)"),
     "verify": ("study.commands.dataset:add_verify", "check a dataset whole: what every command checks first, and each shard's checksum"),
     "export-coco": ("study.commands.dataset:add_export", "write a dataset's FWD labels as COCO JSON"),
+    "export": ("study.commands.export:add_parser", "write a dataset in another tool's format: nuscenes (every sensor, "
+               "3D boxes, splits; the nuScenes devkit loads it) or coco (one camera's FWD labels)"),
     "labels": ("study.commands.labels:add_parser", "what each evaluation protocol asks a detector to find (counts per range bin)"),
     "stages": ("study.commands.stages:add_parser", "a digest of every generation stage for one frame, to compare two machines"),
     "show": ("study.commands.dataset:add_show", "draw one frame of a dataset with every sensor and its labels"),
