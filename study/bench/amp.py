@@ -152,7 +152,7 @@ def bench_amp(profile: str = "cpu", branches: tuple[str, ...] = (), batch: int =
 
 def amp_parity(data: str, out, profile: str = "cpu", branches: tuple[str, ...] = ("radar",), epochs: int = 2,
                batch: int = 4, lr: float = 0.02, warmup: int = 60, threads: int = 0, seed: int = 0,
-               bootstrap: int = 200, progress: bool = True) -> dict:
+               bootstrap: int = 200, progress: bool = True, model_overrides: tuple[str, ...] = ()) -> dict:
     """`hydrabench bench amp-parity`: the same training run twice on `data`, in fp32 and in bf16
     autocast (`train --amp off` / `--amp bf16`: the same initial weights, frames, order and learning
     rate), each in `out/<precision>/` (resumable), then both scored on the run's test split: each
@@ -161,7 +161,8 @@ def amp_parity(data: str, out, profile: str = "cpu", branches: tuple[str, ...] =
     (`study.scoring.context_bootstrap`). Parity: an interval that holds 0 and is narrow. The two runs
     do not follow the same trajectory (bf16 rounding changes every step after the first), so the
     difference also holds run-to-run variation, which is what a user of either precision gets.
-    Also: each run's training seconds (process wall time) and final epoch loss."""
+    Also: each run's training seconds (process wall time) and final epoch loss. `model_overrides`: `KEY=VALUE`
+    overrides of the model profile for both runs (`TrainConfig.model`)."""
     import csv
     import json
     import time
@@ -200,7 +201,7 @@ def amp_parity(data: str, out, profile: str = "cpu", branches: tuple[str, ...] =
     for precision, amp in (("fp32", "off"), ("bf16", "bf16")):
         cfg = TrainConfig(data=data, model_profile=profile, branch_set="paper", branches=tuple(branches), epochs=epochs,
                           batch_size=batch, lr=lr, warmup_steps=warmup, seed=seed, threads=n_threads, device="cpu",
-                          amp=amp, eval_frames=4, checkpoint_seconds=300.0)
+                          amp=amp, eval_frames=4, checkpoint_seconds=300.0, model=tuple(model_overrides))
         t0 = time.perf_counter()
         train(cfg, out / precision, progress=progress)
         seconds = time.perf_counter() - t0

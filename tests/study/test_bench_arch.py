@@ -10,8 +10,11 @@ from tests.study.test_bench_amp import TINY
 
 
 def test_variants_are_timed_in_each_precision_against_the_base():
-    variants = {"base": (), "narrow": ("width=0.25",), "nhwc": ("channels_last=true",), "dil": ("dilation=true",)}
-    r = bench_arch("cpu", ("radar",), variants, ("fp32", "bf16"), batch=2, steps=2, warmup=1, threads=1,
+    # three variants, no warm-up step: where bf16 is emulated (AVX2-only CPUs) each bf16 step of this
+    # tiny network takes ~2 s; the loop is the same for every variant (dilation's own effect:
+    # tests/fusion/nets/test_cost_options.py)
+    variants = {"base": (), "narrow": ("width=0.25",), "nhwc": ("channels_last=true",)}
+    r = bench_arch("cpu", ("radar",), variants, ("fp32", "bf16"), batch=2, steps=2, warmup=0, threads=1,
                    overrides=TINY)
     assert list(r["variants"]) == list(variants) and r["base"] == "base"
     base = r["variants"]["base"]
@@ -26,9 +29,9 @@ def test_variants_are_timed_in_each_precision_against_the_base():
             assert lo <= v["speedup_vs_base"][p] <= hi, (name, p, b, s, v["speedup_vs_base"][p])
         assert v["float16_mib"] == pytest.approx(2 * v["parameters_m"] * 1e6 / 2**20, abs=0.1)
     assert base["speedup_vs_base"] == {"fp32": 1.0, "bf16": 1.0}
-    # the narrow variant has fewer weights; channels_last and dilation the same ones
+    # the narrow variant has fewer weights; channels_last the same ones
     assert r["variants"]["narrow"]["parameters_m"] < base["parameters_m"]
-    assert r["variants"]["nhwc"]["parameters_m"] == r["variants"]["dil"]["parameters_m"] == base["parameters_m"]
+    assert r["variants"]["nhwc"]["parameters_m"] == base["parameters_m"]
     # the same initial weights and frames: channels_last computes what the base computes (fp32)
     assert r["variants"]["nhwc"]["loss_after_steps"]["fp32"] == pytest.approx(base["loss_after_steps"]["fp32"], rel=1e-3)
 

@@ -21,8 +21,10 @@ import torch
 from sensors.generate import GenerateConfig
 from study.cli import main
 from study.train import TrainConfig, train
+from tests.conftest import NARROW_ARGS, NARROW_MODEL
 
-ARGS = dict(branches=("radar",), epochs=2, batch_size=2, warmup_steps=2, lr=2e-3, eval_frames=1, checkpoint_steps=1)
+ARGS = dict(branches=("radar",), epochs=2, batch_size=2, warmup_steps=2, lr=2e-3, eval_frames=1, checkpoint_steps=1,
+            model=NARROW_MODEL)
 
 
 @pytest.fixture(scope="module")
@@ -53,7 +55,7 @@ def _torchrun(data, out, extra=()):
            "--master-addr", "127.0.0.1", "--master-port", str(_free_port()),
            "-m", "study.cli", "train", str(data), "--out", str(out), "--branches", "radar", "--epochs", "2",
            "--batch-size", "2", "--warmup-steps", "2", "--lr", "2e-3", "--eval-frames", "1", "--checkpoint-steps", "1",
-           "--threads", "1", "--device", "cpu", *extra]
+           "--threads", "1", "--device", "cpu", *NARROW_ARGS, *extra]
     env = {**os.environ, "GLOO_SOCKET_IFNAME": "lo", "OMP_NUM_THREADS": "1"}
     return cmd, env
 

@@ -13,6 +13,7 @@ import torch
 from sensors.generate import GenerateConfig
 from study.cli import main
 from study.train import TrainConfig, train
+from tests.conftest import NARROW_MODEL
 
 BRANCHES = ("radar", "camera_left", "camera_right", "lidar", "camera_lidar")  # none, early and late exist
 
@@ -33,7 +34,7 @@ def data(shared_dataset):  # the dataset of tests/study/test_gates.py: generated
 def run(data, tmp_path_factory):
     out = tmp_path_factory.mktemp("run")
     train(TrainConfig(data=str(data), branches=BRANCHES, epochs=1, batch_size=4, warmup_steps=1, lr=1e-3,
-                      threads=2, eval_frames=1), out, progress=False)
+                      threads=2, eval_frames=1, model=NARROW_MODEL), out, progress=False)
     return out
 
 

@@ -14,6 +14,7 @@ from study.cli import main
 from study.gate_data import GateData
 from study.scoring import load_run
 from study.train import TrainConfig, train
+from tests.conftest import NARROW_MODEL
 
 BRANCHES = ("radar", "camera_right", "lidar", "radar_lidar")  # k = 1, 3 and all exist for 4 branches
 
@@ -43,7 +44,7 @@ def data(shared_dataset):  # the dataset of tests/study/test_ecofusion.py: gener
 def run(data, tmp_path_factory):
     out = tmp_path_factory.mktemp("run")
     train(TrainConfig(data=str(data), branches=BRANCHES, epochs=1, batch_size=4, warmup_steps=1, lr=1e-3,
-                      threads=2, eval_frames=1), out, progress=False)  # (no test reads the epoch's mAPs)
+                      threads=2, eval_frames=1, model=NARROW_MODEL), out, progress=False)  # (no test reads the epoch's mAPs)
     return out
 
 
@@ -122,7 +123,9 @@ def test_gate_dataset_is_cached_keyed_and_resumable(run, data, trained, tmp_path
     assert gd2.ensure(indices[:3], progress=False) == 3 and gd2.missing(indices) == list(range(3, 8))
     f2, l2 = gd2.load(indices[:3])
     assert np.allclose(f2.astype(np.float32), feats[:3].astype(np.float32), rtol=2e-3, atol=1e-3)
-    assert np.allclose(l2, losses[:3], rtol=1e-4)  # float sums depend on thread count and batching
+    # float sums depend on thread count and batching (3 frames a batch here, 4 before): measured up to
+    # 1.6e-4 relative on the quarter-width test network; unseeded sampling would move a loss by percents
+    assert np.allclose(l2, losses[:3], rtol=1e-3)
     # another checkpoint is another key
     (copy / "checkpoint.pt").unlink()
     (copy / "checkpoint.pt").write_bytes(b"another checkpoint")

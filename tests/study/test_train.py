@@ -16,6 +16,7 @@ from sensors.generate import GenerateConfig, generate
 from sim.errors import UserError
 from study.cli import main
 from study.train import TrainConfig, train
+from tests.conftest import NARROW_ARGS, NARROW_MODEL
 
 BRANCHES = ("camera_right", "radar")
 
@@ -27,7 +28,7 @@ def data(shared_dataset):  # the dataset of tests/study/test_distributed.py: gen
 
 def _cfg(data, **kw):
     base = dict(data=str(data), branches=BRANCHES, epochs=2, batch_size=2, warmup_steps=2, checkpoint_steps=1,
-                lr=2e-3, threads=2)
+                lr=2e-3, threads=2, model=NARROW_MODEL)
     base.update(kw)
     return TrainConfig(**base)
 
@@ -76,13 +77,14 @@ def test_a_run_records_its_model_profile_and_is_loaded_with_it(reference_run, tm
     are loaded into: the resolved profile is in config.json and load_run builds from it."""
     import shutil
 
-    from fusion.nets.profile import load_profile
+    from fusion.nets.profile import load_profile, parse_model_overrides
     from sim.config import to_dict
     from study.scoring import load_run
 
     ref, _ = reference_run
     cfg = json.loads((ref / "config.json").read_text())
-    assert cfg["profile_fields"] == json.loads(json.dumps(to_dict(load_profile("cpu"))))
+    resolved = load_profile("cpu", **parse_model_overrides(NARROW_MODEL))
+    assert cfg["profile_fields"] == json.loads(json.dumps(to_dict(resolved)))
     copy = tmp_path / "other_profile"
     shutil.copytree(ref, copy)
     now = load_profile("cpu").camera.output_stride
@@ -99,7 +101,7 @@ def test_kill_9_mid_training_then_rerun_gives_the_same_weights(data, resume_refe
     cmd = [sys.executable, "-m", "study.cli", "train", str(data), "--out", str(out), "--branches",
            ",".join(RESUME["branches"]), "--eval-frames", str(RESUME["eval_frames"]),
            "--epochs", "2", "--batch-size", "2", "--warmup-steps", "2", "--lr", "2e-3", "--threads", "2",
-           "--checkpoint-steps", "1"]  # checkpoint after every step: the kill lands after a mid-epoch checkpoint
+           "--checkpoint-steps", "1", *NARROW_ARGS]  # checkpoint after every step: the kill lands after a mid-epoch checkpoint
     env = dict(os.environ)
     proc = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, env=env)
     deadline = time.time() + 300
@@ -243,9 +245,12 @@ def test_warm_start_copies_matching_modules_and_maps_branches(reference_run):
     from study.warm_start import warm_start
 
     ref, _ = reference_run
+    from fusion.nets.profile import load_profile, parse_model_overrides
+
     source = torch.load(ref / "checkpoint.pt", weights_only=False)["model"]
     torch.manual_seed(1)
-    model = build_hydrafusion(profile="cpu", branches=branch_set("paper", "cpu"))
+    narrow = load_profile("cpu", **parse_model_overrides(NARROW_MODEL))  # the profile the run trained
+    model = build_hydrafusion(profile=narrow, branches=branch_set("paper", "cpu"))
     report = warm_start(model, source)
     state = model.state_dict()
     # same-named and mapped branches carry the trained weights

@@ -34,6 +34,8 @@ def add_parser(what) -> None:
                     help="draws of whole test sequences for the interval of bf16 - fp32 (0: none)")
     ap.add_argument("--threads", type=nonneg_int, default=0, help="torch CPU threads (0: the cores available)")
     ap.add_argument("--seed", type=nonneg_int, default=0, help="initial weights and data order of both runs")
+    ap.add_argument("--model", action="append", default=None, metavar="KEY=VALUE",
+                    help="override a model-profile field for both runs, repeatable, as `train --model` (width=0.5, ...)")
     ap.add_argument("--json", action="store_true", help="print one JSON object on stdout")
     ap.set_defaults(run=run_amp_parity)
 
@@ -49,7 +51,7 @@ def run_amp_parity(args) -> int:
 
     r = amp_parity(str(args.data), args.out, args.profile, tuple(args.branches), epochs=args.epochs,
                    batch=args.batch_size, lr=args.lr, warmup=args.warmup_steps, threads=args.threads, seed=args.seed,
-                   bootstrap=args.bootstrap)
+                   bootstrap=args.bootstrap, model_overrides=tuple(args.model or ()))
     r.update(machine())
 
     def text(r):
