@@ -156,3 +156,31 @@ def savefig_atomic(fig, path: str | Path, **kw) -> None:
     """`fig.savefig` to `path` atomically (`atomic_path`), in the format its extension names."""
     with atomic_path(path) as tmp:
         fig.savefig(tmp, format=Path(path).suffix.lstrip(".").lower() or "png", **kw)
+
+
+CACHE_ENV = "HYDRABENCH_CACHE"
+
+
+def cache_root() -> Path:
+    """hydrabench's own cache directory (reference-model copies, the theory measurements), checked
+    writable: $HYDRABENCH_CACHE, else $XDG_CACHE_HOME/hydrabench (an absolute XDG_CACHE_HOME, as the
+    XDG spec asks), else $HOME/.cache/hydrabench. Creates nothing. UserError, one line saying how to
+    fix it, when that directory cannot be written, HYDRABENCH_CACHE names an unusable path, or HOME is
+    empty or relative (an empty HOME once put the cache at /.cache, the file system's root)."""
+    explicit = os.environ.get(CACHE_ENV)
+    if explicit is not None:
+        if not explicit.strip():
+            raise UserError(f"{CACHE_ENV} is set but empty: unset it, or set it to a writable directory")
+        path, source = Path(explicit), f"{CACHE_ENV}={explicit}"
+    elif os.path.isabs(os.environ.get("XDG_CACHE_HOME", "")):
+        path, source = Path(os.environ["XDG_CACHE_HOME"]) / "hydrabench", "XDG_CACHE_HOME"
+    else:
+        home = os.environ.get("HOME")
+        if home is not None and not os.path.isabs(home):
+            raise UserError(f"HOME is {'empty' if not home else f'not an absolute path ({home!r})'}, so hydrabench has "
+                            f"no cache directory: set HOME, or {CACHE_ENV} to a writable directory")
+        path, source = Path(os.path.expanduser("~")) / ".cache" / "hydrabench", f"HOME={os.path.expanduser('~')}"
+    try:
+        return check_writable_dir(path)
+    except UserError as exc:
+        raise UserError(f"the cache directory ({source}): {exc}; set {CACHE_ENV} to a writable directory") from None

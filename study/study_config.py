@@ -13,6 +13,7 @@ from sensors.generate import GenerateConfig
 from sim.config import from_dict, load_yaml
 from sim.errors import UserError
 from study.branch_gate_study import GateTrainConfig
+from study.device import MAX_WORKERS
 from study.train import TrainConfig  # torch: loading a study config imports it, `--help` does not
 
 PRESETS_DIR = Path(__file__).resolve().parents[1] / "configs" / "study"
@@ -511,6 +512,8 @@ class RunSection:
             raise UserError(f"run.amp must be default, auto, bf16 or off, got {self.amp!r}")
         _positive("run.threads", self.threads, 0)
         _positive("run.workers", self.workers)
+        if self.workers > MAX_WORKERS:
+            raise UserError(f"run.workers must be <= {MAX_WORKERS}, got {self.workers}")
         if self.backend not in ("local", "ray"):
             raise UserError(f"run.backend must be local or ray, got {self.backend!r}")
 

@@ -186,6 +186,33 @@ def _one_box(box):
     return lambda r: r["labels"].update(camera_right={"ids": [1], "labels": [1], "boxes": [box], "difficult": [False]})
 
 
+def _object_size(size):
+    """A valid objects set of one 3D box of `size` (so only the size is wrong)."""
+    return lambda r: r["labels"].update(objects={"ids": [1], "center": [[10.0, 0.0, 1.0]], "size": [size]})
+
+
+def _calibration(camera: str | None, field: str, value):
+    """Set meta.calibration[camera][field] (or calibration[field] when camera is None) to `value`, or to
+    value(old) when it is callable."""
+    def edit(r):
+        cal = r["meta"]["calibration"]
+        where = cal if camera is None else cal[camera]
+        where[field] = value(where[field]) if callable(value) else value
+    return edit
+
+
+def _scaled(T):  # the rotation doubled: not orthonormal
+    return [[2 * x for x in row[:3]] + row[3:] for row in T[:3]] + T[3:]
+
+
+def _mirrored(T):  # a reflection: orthonormal, determinant -1
+    return [[-row[0]] + row[1:] for row in T[:3]] + T[3:]
+
+
+def _sheared(T):
+    return [T[0][:1] + [T[0][1] + 0.2] + T[0][2:]] + T[1:]
+
+
 def _not_utf8(d: Path) -> None:
     p = d / S0 / "frames.json"
     p.write_bytes(p.read_bytes().replace(b'"junction"', b'"junc\xfftion"', 1))  # valid JSON bytes otherwise
@@ -299,6 +326,24 @@ DAMAGES = {
                                        _edit_manifest(lambda m: m["shards"][0].update(context="atlantis"))),
     "lidar_points_nan": ("lidar_points.npy", _lidar_point(NAN)),
     "lidar_points_inf": ("lidar_points.npy", _lidar_point(INF, row=-1)),
+    # (issue 51) box geometry and calibration that once gave wrong results with exit 0
+    "box_far_outside_the_image": ("frames.json", _edit_records(_one_box([-5000.0, 10.0, 99999.0, 20.0]))),
+    "box_inverted": ("frames.json", _edit_records(_one_box([50.0, 10.0, 40.0, 20.0]))),
+    "bev_box_outside_the_grid": ("frames.json", _edit_records(lambda r: r["labels"].update(
+        bev={"ids": [1], "labels": [1], "boxes": [[10.0, 10.0, 900.0, 20.0]], "difficult": [False]}))),
+    "object_of_zero_width": ("frames.json", _edit_records(_object_size([4.0, 0.0, 1.5]))),
+    "object_of_negative_height": ("frames.json", _edit_records(_object_size([4.0, 1.8, -1.5]))),
+    "camera_matrix_zero": ("frames.json", _edit_records(_calibration("camera_right", "K", [[0.0] * 3] * 3))),
+    "camera_matrix_rank_deficient": ("frames.json", _edit_records(
+        _calibration("camera_left", "K", [[168.9, 0.0, 168.0], [168.9, 0.0, 168.0], [0.0, 0.0, 1.0]]))),
+    "camera_matrix_lower_triangle": ("frames.json", _edit_records(
+        _calibration("camera_right", "K", [[168.9, 0.0, 168.0], [0.0, 168.9, 94.0], [0.3, 0.0, 1.0]]))),
+    "ego_from_camera_scaled": ("frames.json", _edit_records(_calibration("camera_right", "ego_from_camera", _scaled))),
+    "ego_from_camera_mirrored": ("frames.json", _edit_records(_calibration("camera_left", "ego_from_camera", _mirrored))),
+    "ego_from_camera_last_row": ("frames.json", _edit_records(
+        _calibration("camera_right", "ego_from_camera", lambda T: T[:3] + [[0.0, 0.0, 1.0, 1.0]]))),
+    "ego_from_lidar_sheared": ("frames.json", _edit_records(_calibration(None, "ego_from_lidar", _sheared))),
+    "manifest_unknown_key": ("manifest.json", _edit_manifest(lambda m: m.update(notes="x" * 1_000_000))),
 }
 
 
