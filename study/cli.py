@@ -374,9 +374,12 @@ _typed(training_run, "run")
 def study_config(text: str):
     """An argparse type: a study preset name (configs/study/<name>.yaml) or a YAML file of
     `study.study_config.StudyConfig` fields, loaded and checked whole (unknown keys, bad values)."""
+    from study.presets import study_config_file
+
+    path = _as_type_error(study_config_file, _path_text(text))  # (torch-free: a typo is refused at once)
     from study.study_config import load_study_config
 
-    return _as_type_error(load_study_config, _path_text(text))
+    return _as_type_error(load_study_config, str(path))
 
 
 _typed(study_config, "study_config")
