@@ -24,6 +24,7 @@ shard is never half-written; an interrupted generation resumes by skipping compl
 from __future__ import annotations
 
 import contextlib
+import errno
 import fcntl
 import functools
 import hashlib
@@ -75,7 +76,14 @@ def _save(path: Path, array: np.ndarray) -> None:
     anyway, but element by element."""
     if not array.flags.f_contiguous:
         array = np.ascontiguousarray(array)
-    np.save(path, array)
+    try:
+        np.save(path, array)
+    except OSError as exc:
+        if exc.errno is not None:
+            raise
+        # numpy reports a short write ("127780 requested and 110560 written") without an errno: the
+        # disk (or the quota) is full; said so, so that the command can say it in one line
+        raise OSError(errno.ENOSPC, f"{os.strerror(errno.ENOSPC)} ({exc})", str(path)) from None
 
 
 def write_frames(directory: Path, frames: list, extra: dict | None = None) -> None:

@@ -15,7 +15,7 @@ A reference model is a directory `models/<name>/` that is also a training run (`
 Every command that takes a RUN takes `NAME` (a directory of `MODEL_DIR`) or the directory's path:
 the files are checked against the manifest (a damaged file or a Git LFS pointer is a one-line
 error); one in `MODEL_DIR` is copied once into a writable cache run,
-`$HYDRABENCH_CACHE/models/<name>-<sha12>/` (default `~/.cache/hydrabench`), because evaluation
+`study.outputs.cache_root()/models/<name>-<sha12>/` (`$HYDRABENCH_CACHE`, default `~/.cache/hydrabench`), because evaluation
 writes its caches into the run and the repository stays clean; one elsewhere is used in place.
 
 Making one (`scripts/make_reference_model.sh`): `hydrabench model export RUN --out DIR` writes the

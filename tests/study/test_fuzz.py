@@ -531,15 +531,41 @@ def _bad_values(action, world) -> list[str]:
 def snapshot(root: Path) -> dict:
     """What a command could leave behind or change: every path (a file or directory created or
     removed anywhere), and the size and mtime of every file outside the damaged copies (which are
-    many, and which no command writes to)."""
+    many, and which no command writes to: their paths only, `_paths`)."""
     out = {}
-    for dirpath, _, filenames in os.walk(root):
+    for dirpath, dirnames, filenames in os.walk(root):
         out[dirpath] = "dir"  # (its mtime changes when an output check probes it, by design)
-        if "damaged" not in Path(dirpath).relative_to(root).parts:
-            for f in filenames:
-                st = os.lstat(os.path.join(dirpath, f))  # (a link is not followed: links/loop loops)
-                out[os.path.join(dirpath, f)] = (st.st_size, st.st_mtime_ns)
+        if dirpath == str(root) and "damaged" in dirnames:
+            dirnames.remove("damaged")
+            out.update(_paths(os.path.join(dirpath, "damaged")))
+        for f in filenames:
+            st = os.lstat(os.path.join(dirpath, f))  # (a link is not followed: links/loop loops)
+            out[os.path.join(dirpath, f)] = (st.st_size, st.st_mtime_ns)
     return out
+
+
+_LISTINGS: dict[str, tuple[dict, dict]] = {}
+
+
+def _paths(top: str) -> dict:
+    """Every directory and file under `top` ("dir" / "file"), listed again only when a directory's
+    mtime changed (creating, removing or renaming an entry sets its directory's mtime): the damaged
+    copies hold about 2,000 paths, and walking them twice per case was most of this suite's time."""
+    known = _LISTINGS.get(top)
+    if known is not None:
+        mtimes, paths = known
+        try:
+            if all(os.stat(d).st_mtime_ns == m for d, m in mtimes.items()):
+                return paths
+        except OSError:  # a directory removed
+            pass
+    mtimes, paths = {}, {}
+    for dirpath, _, filenames in os.walk(top):
+        mtimes[dirpath] = os.stat(dirpath).st_mtime_ns
+        paths[dirpath] = "dir"
+        paths.update((os.path.join(dirpath, f), "file") for f in filenames)
+    _LISTINGS[top] = (mtimes, paths)
+    return paths
 
 
 PARSER = None
@@ -1232,21 +1258,31 @@ def _disk_full_at(call: int):
     return write_text
 
 
+def _short_npy_write(path, array, *args, **kwargs):
+    """np.save on a full disk: part of the file, then numpy's OSError without an errno."""
+    Path(path).write_bytes(b"\x93NUMPY" + bytes(100))
+    raise OSError(f"{array.nbytes} requested and 100 written")
+
+
 def test_a_full_disk_during_generate_is_one_line_and_leaves_nothing_partial(world, tmp_path, capsys, monkeypatch):
-    """The disk fills while a shard's frames.json is written (1st write), or the manifest (3rd, after
-    both shards): one line naming the file, exit 2, no partial shard, no partial manifest, no lock
-    (it was a 26-line traceback); the complete shard is kept for the rerun. export-coco likewise."""
+    """The disk fills while a shard's first array is written (numpy's short write, as on a full
+    tmpfs), while its frames.json is written (1st text write), or the manifest (3rd, after both
+    shards): one line naming the file, exit 2, no partial shard, no partial manifest, no lock (it was
+    a 26-line traceback); the complete shards are kept for the rerun. export-coco likewise."""
     argv = ["generate", "--contexts", "junction", "--frames-per-context", "2", "--sequence-length", "1", "--seed", "3"]
-    for call, kept in ((1, []), (3, ["shard-00000", "shard-00001"])):
-        out = tmp_path / f"d{call}"
-        TRACKED.append((f"generate with the disk full at write {call}", 0.0))
+    for case, (target, name, fake), (culprit, kept) in (
+            ("npy", (np, "save", _short_npy_write), (".npy", [])),
+            ("frames", (Path, "write_text", _disk_full_at(1)), ("frames.json", [])),
+            ("manifest", (Path, "write_text", _disk_full_at(3)), (".manifest.json.tmp", ["shard-00000", "shard-00001"]))):
+        out = tmp_path / case
+        TRACKED.append((f"generate with the disk full writing the {case}", 0.0))
         with monkeypatch.context() as m:
-            m.setattr(Path, "write_text", _disk_full_at(call))
+            m.setattr(target, name, fake)
             code = cli([*argv, "--out", str(out)])
         err = capsys.readouterr().err
         lines = err.strip().splitlines()
         assert code == 2 and len(lines) == 1 and "No space left on device" in lines[0], err[-2000:]
-        assert ("frames.json" if call == 1 else ".manifest.json.tmp") in lines[0], lines
+        assert culprit in lines[0], lines
         assert sorted(os.listdir(out)) == kept
     coco = tmp_path / "coco" / "labels.json"
     TRACKED.append(("export-coco with the disk full", 0.0))
