@@ -149,7 +149,24 @@ def torch_save_atomic(obj, path: str | Path) -> None:
     # through a file object: torch.save to a path names the archive's records after that path (the
     # temporary name), so the same object would give other bytes on every save
     with atomic_path(path) as tmp, open(tmp, "wb") as fh:
-        torch.save(obj, fh)
+        try:
+            torch.save(obj, fh)
+        except RuntimeError as exc:
+            # torch's archive writer turns a full disk into "unexpected pos 704 vs 598": asked while
+            # the partial file still takes its space, the file system says whether it is full
+            if _nearly_full(tmp.parent):
+                raise OSError(errno.ENOSPC, f"{os.strerror(errno.ENOSPC)} ({str(exc).splitlines()[0][:80]})",
+                              str(path)) from None
+            raise
+
+
+def _nearly_full(directory: Path, spare: int = 1 << 20) -> bool:
+    """Whether the file system of `directory` has less than `spare` bytes left for this user."""
+    try:
+        st = os.statvfs(directory)
+    except OSError:
+        return False
+    return st.f_bavail * st.f_frsize < spare
 
 
 def savefig_atomic(fig, path: str | Path, **kw) -> None:
