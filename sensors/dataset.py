@@ -24,6 +24,7 @@ shard is never half-written; an interrupted generation resumes by skipping compl
 from __future__ import annotations
 
 import contextlib
+import errno
 import fcntl
 import functools
 import hashlib
@@ -75,7 +76,14 @@ def _save(path: Path, array: np.ndarray) -> None:
     anyway, but element by element."""
     if not array.flags.f_contiguous:
         array = np.ascontiguousarray(array)
-    np.save(path, array)
+    try:
+        np.save(path, array)
+    except OSError as exc:
+        if exc.errno is not None:
+            raise
+        # numpy reports a short write ("127780 requested and 110560 written") without an errno: the
+        # disk (or the quota) is full; said so, so that the command can say it in one line
+        raise OSError(errno.ENOSPC, f"{os.strerror(errno.ENOSPC)} ({exc})", str(path)) from None
 
 
 def write_frames(directory: Path, frames: list, extra: dict | None = None) -> None:
@@ -193,9 +201,15 @@ def output_lock(root: Path, command: str = "generate"):
 
 
 def write_manifest(root: Path, manifest: dict) -> None:
+    """Write root/manifest.json atomically: a temporary file renamed over it, removed when the write
+    fails (a full disk leaves no partial manifest)."""
     tmp = root / f".manifest.json.tmp-{os.getpid()}"
-    tmp.write_text(json.dumps(manifest, indent=1))
-    os.replace(tmp, root / "manifest.json")
+    try:
+        tmp.write_text(json.dumps(manifest, indent=1))
+        os.replace(tmp, root / "manifest.json")
+    except BaseException:
+        tmp.unlink(missing_ok=True)
+        raise
 
 
 class DatasetError(UserError):
@@ -281,11 +295,96 @@ LABEL_FRAMES = ("camera_left", "camera_right", "bev")
 """The 2D label sets of a frame: columnar lists of one length, with at least these columns."""
 LABEL_COLUMNS = ("ids", "labels", "boxes", "difficult")
 
+BOX_MARGIN = 0.5
+"""How far a 2D label box may reach beyond its image (or BEV grid), as a fraction of that image's
+width (x) or height (y). `generate` clips every box to its image (measured: no box of 96 frames of
+every context, twins included, reaches beyond it), so the margin is for a truncated object's unclipped
+box from another labelling tool; a box beyond it (x1 = -5000 on a 336-pixel image) is damage."""
+RIGID_TOLERANCE = 1e-3
+"""A stored extrinsic's rotation R must have |R R' - I| and |det R - 1| under this (max abs entry)."""
+MATRIX_TOLERANCE = 1e-9
+"""Entries of K that must be 0 (below the diagonal and the skew) or 1 (K[2][2]) must be within this."""
+EXTRINSICS = ("ego_from_lidar", "ego_from_radar")
+"""The calibration's sensor poses beside the cameras' ego_from_camera: 4x4 rigid transforms."""
 
-def _check_record(root: Path, path: Path, k: int, rec: dict, camera: tuple[int, int]) -> None:
-    """One frames.json record: the label sets (columns of one length, boxes [x1, y1, x2, y2] numbers,
-    integer ids and classes), the 3D objects (columns of one length) and the cameras' calibration
-    (width x height of the profile). NaN and infinity are refused for the whole file by _load_json."""
+
+def _matrix(m, rows: int) -> bool:
+    return (isinstance(m, list) and len(m) == rows
+            and all(isinstance(r, list) and len(r) == rows and all(_is_number(x) for x in r) for r in m))
+
+
+def _intrinsics_problem(K) -> str | None:
+    """What is wrong with a camera matrix K (None: it is [[fx, 0, cx], [0, fy, cy], [0, 0, 1]] with
+    fx, fy > 0, the form `sensors.rig.CameraCalibration` projects with; such a K is never singular)."""
+    if not _matrix(K, 3):
+        return "must be 3x3 numbers"
+    if K[0][0] <= 0 or K[1][1] <= 0:
+        return f"focal lengths K[0][0], K[1][1] must be > 0, got {K[0][0]:g}, {K[1][1]:g} (0 makes K singular)"
+    if max(abs(K[0][1]), abs(K[1][0]), abs(K[2][0]), abs(K[2][1]), abs(K[2][2] - 1.0)) > MATRIX_TOLERANCE:
+        return f"must be [[fx, 0, cx], [0, fy, cy], [0, 0, 1]] (upper triangular, no skew), got {str(K)[:60]}"
+    return None
+
+
+def _rigid_problem(T) -> str | None:
+    """What makes a 4x4 pose T not a rigid transform (None: rotation orthonormal with det +1 within
+    RIGID_TOLERANCE, last row 0 0 0 1). Plain Python: 3x3 products per frame cost microseconds."""
+    if not _matrix(T, 4):
+        return "must be 4x4 numbers"
+    if T[3] != [0, 0, 0, 1]:
+        return f"last row must be [0, 0, 0, 1], got {T[3]}"
+    R = [row[:3] for row in T[:3]]
+    off = max(abs(sum(R[i][k] * R[j][k] for k in range(3)) - (i == j)) for i in range(3) for j in range(3))
+    det = (R[0][0] * (R[1][1] * R[2][2] - R[1][2] * R[2][1]) - R[0][1] * (R[1][0] * R[2][2] - R[1][2] * R[2][0])
+           + R[0][2] * (R[1][0] * R[2][1] - R[1][1] * R[2][0]))
+    if off > RIGID_TOLERANCE or abs(det - 1.0) > RIGID_TOLERANCE:
+        return (f"is not a rigid transform (its rotation must be orthonormal with determinant +1: "
+                f"|R R' - I| = {off:.3g}, det = {det:.3g})")
+    return None
+
+
+_NUMBER_TYPES = (int, float)  # (JSON numbers; a bool's type is bool, so true and false are not numbers)
+
+
+def _check_boxes(root: Path, path: Path, where: str, boxes: list, width, height) -> None:
+    """Every box 4 numbers [x1, y1, x2, y2], not inverted, within BOX_MARGIN of the image. (One
+    condition per box, the reason worked out only for a box that fails: a dataset has millions.)"""
+    lo_x, lo_y = -BOX_MARGIN * width, -BOX_MARGIN * height
+    hi_x, hi_y = width - lo_x, height - lo_y
+    num = _NUMBER_TYPES
+    for j, b in enumerate(boxes):
+        if (type(b) is list and len(b) == 4 and type(b[0]) in num and type(b[1]) in num and type(b[2]) in num
+                and type(b[3]) in num and lo_x <= b[0] <= b[2] <= hi_x and lo_y <= b[1] <= b[3] <= hi_y):
+            continue
+        _expect(isinstance(b, list) and len(b) == 4 and all(_is_number(x) for x in b), root, path,
+                f"{where}.boxes[{j}] must be 4 numbers [x1, y1, x2, y2], got {str(b)[:40]}")
+        x1, y1, x2, y2 = b
+        _expect(x1 <= x2 and y1 <= y2, root, path, f"{where}.boxes[{j}] is inverted (x2 < x1 or y2 < y1): {b}")
+        raise DatasetError(root, path, f"{where}.boxes[{j}] {b} reaches beyond its {width}x{height} image by more "
+                                       f"than {BOX_MARGIN:g} of its size")
+
+
+def _check_record(root: Path, path: Path, k: int, rec: dict, camera: tuple[int, int], bev: int) -> None:
+    """One frames.json record: the cameras' calibration (width x height of the profile, K, a rigid
+    ego_from_camera), the other extrinsics (rigid), the BEV grid (`bev` pixels, the profile's), the label
+    sets (columns of one length, boxes [x1, y1, x2, y2] numbers within BOX_MARGIN of their image and not
+    inverted, integer ids and classes) and the 3D objects (columns of one length, positive sizes). NaN
+    and infinity are refused for the whole file by _load_json."""
+    cal = rec["meta"].get("calibration")
+    _expect(isinstance(cal, dict), root, path, f"frames[{k}].meta.calibration must be an object")
+    for name in ("camera_left", "camera_right"):
+        c = cal.get(name)
+        _expect(isinstance(c, dict) and (c.get("height"), c.get("width")) == camera, root, path,
+                f"frames[{k}].meta.calibration.{name} must give the profile's {camera[1]}x{camera[0]} "
+                f"(width x height)")
+        problem = _intrinsics_problem(c.get("K"))
+        _expect(problem is None, root, path, f"frames[{k}].meta.calibration.{name}.K {problem}")
+        problem = _rigid_problem(c.get("ego_from_camera"))
+        _expect(problem is None, root, path, f"frames[{k}].meta.calibration.{name}.ego_from_camera {problem}")
+    for name in EXTRINSICS:
+        problem = _rigid_problem(cal.get(name))
+        _expect(problem is None, root, path, f"frames[{k}].meta.calibration.{name} {problem}")
+    _expect(cal.get("bev_size_px") == bev, root, path,
+            f"frames[{k}].meta.calibration.bev_size_px must be the profile's {bev}, got {cal.get('bev_size_px')!r}")
     where = f"frames[{k}].labels"
     labels = rec["labels"]
     for frame in LABEL_FRAMES:
@@ -297,9 +396,8 @@ def _check_record(root: Path, path: Path, k: int, rec: dict, camera: tuple[int, 
         for col, v in lab.items():
             _expect(isinstance(v, list) and len(v) == n, root, path,
                     f"{where}.{frame}.{col} must be a list of {n} entries, like boxes")
-        for j, b in enumerate(lab["boxes"]):
-            _expect(isinstance(b, list) and len(b) == 4 and all(_is_number(x) for x in b), root, path,
-                    f"{where}.{frame}.boxes[{j}] must be 4 numbers [x1, y1, x2, y2], got {str(b)[:40]}")
+        size = (bev, bev) if frame == "bev" else (camera[1], camera[0])
+        _check_boxes(root, path, f"{where}.{frame}", lab["boxes"], *size)
         for col in ("ids", "labels"):
             _expect(all(_is_int(x) for x in lab[col]), root, path, f"{where}.{frame}.{col} must be integers")
     objects = labels.get("objects")
@@ -308,13 +406,12 @@ def _check_record(root: Path, path: Path, k: int, rec: dict, camera: tuple[int, 
     for col, v in objects.items():
         _expect(isinstance(v, list) and len(v) == len(objects["ids"]), root, path,
                 f"{where}.objects.{col} must be a list of {len(objects['ids'])} entries, like ids")
-    cal = rec["meta"].get("calibration")
-    _expect(isinstance(cal, dict), root, path, f"frames[{k}].meta.calibration must be an object")
-    for name in ("camera_left", "camera_right"):
-        c = cal.get(name)
-        _expect(isinstance(c, dict) and (c.get("height"), c.get("width")) == camera, root, path,
-                f"frames[{k}].meta.calibration.{name} must give the profile's {camera[1]}x{camera[0]} "
-                f"(width x height)")
+    num = _NUMBER_TYPES
+    for j, s in enumerate(objects.get("size", ())):
+        if not (type(s) is list and len(s) == 3 and type(s[0]) in num and type(s[1]) in num and type(s[2]) in num
+                and s[0] > 0 and s[1] > 0 and s[2] > 0):
+            raise DatasetError(root, path, f"{where}.objects.size[{j}] must be 3 positive numbers (length, width, "
+                                           f"height) [m], got {str(s)[:40]}")
 
 
 @functools.lru_cache(maxsize=256)
@@ -328,6 +425,12 @@ def _context_problem(name: str) -> str | None:
     except UserError:
         return f"{name!r} is not a known context (one of {', '.join(CONTEXT_NAMES)}, or a combination as in city+night+rain)"
     return None if canonical == name else f"{name!r} is not a context's canonical name (that is {canonical!r})"
+
+
+MANIFEST_KEYS = frozenset({"format_version", "sensor_model_version", "created_by", "config", "seed", "profile",
+                           "shards", "frames", "parts"})
+"""The keys a manifest may hold (`sensors.generate.generate` writes all but "parts", which a view of
+several datasets adds, `sensors.combine`); any other is refused, as the YAML loader refuses unknown keys."""
 
 
 def read_manifest(root: str | Path) -> dict:
@@ -344,6 +447,10 @@ def read_manifest(root: str | Path) -> dict:
         raise UserError(f"{root} has no manifest.json (not a dataset, or its generation did not finish)")
     m = _load_json(root, path)
     _expect(isinstance(m, dict), root, path, f"is a JSON {type(m).__name__}, expected an object")
+    unknown = sorted(set(m) - MANIFEST_KEYS)
+    if unknown:
+        raise DatasetError(root, path, f"unknown key {unknown[0][:40]!r} (a manifest holds "
+                                       f"{', '.join(sorted(MANIFEST_KEYS))})")
     if m.get("format_version") != FORMAT_VERSION:
         v = m.get("format_version")
         what = f" ({FORMAT_HISTORY[v]})" if v in FORMAT_HISTORY else ""
@@ -563,11 +670,11 @@ class DatasetReader:
             recs = doc["frames"]
             _expect(len(recs) == self._frames[shard], self.root, path,
                     f"has {len(recs)} frames, the manifest says {self._frames[shard]}")
-            camera = self.frame_shapes()["camera_right"][:2]
+            camera, bev = self.frame_shapes()["camera_right"][:2], self.frame_shapes()["radar_bev"][0]
             for k, r in enumerate(recs):
                 _expect(isinstance(r, dict) and isinstance(r.get("meta"), dict) and isinstance(r.get("labels"), dict),
                         self.root, path, f"frames[{k}] must be an object with 'meta' and 'labels' objects")
-                _check_record(self.root, path, k, r, camera)
+                _check_record(self.root, path, k, r, camera, bev)
                 self._check_context(shard, path, k, r["meta"].get("context"))
             self._json[shard] = recs
         return self._json[shard]

@@ -23,7 +23,7 @@ import numpy as np
 
 from sensors import SENSOR_MODEL_VERSION
 from sim.config import from_dict
-from sim.errors import UserError
+from sim.errors import Terminated, UserError
 from sim.scenario import CONTEXT_NAMES, MAX_DURATION_S, Context, ScenarioSpec, Simulator, stream
 from sim.weather import TRANSITIONS
 
@@ -263,20 +263,27 @@ def _init_worker(threads: int) -> None:
     os.environ["OPENBLAS_NUM_THREADS"] = str(threads)
 
 
+STOP_SIGNALS = (signal.SIGINT, signal.SIGTERM)
+"""Ctrl-C and `kill`: the parent stops the pool's workers, removes partial shards and releases the lock."""
+
+
 def _init_pool_worker(threads: int) -> None:
     """A local pool's worker. Ctrl-C reaches the whole process group: the parent alone handles it
     (it terminates the pool and removes partial shards); a worker that took it would print its
-    KeyboardInterrupt traceback. The worker starts with SIGINT blocked (`_start_pool`), so it is
-    ignored from its first instruction on."""
+    KeyboardInterrupt traceback. SIGTERM gets its default action back (a forked worker inherits the
+    parent's flag-setting handler, and the pool stops its workers with SIGTERM). The worker starts
+    with both blocked (`_start_pool`), so SIGINT is ignored from its first instruction on."""
     signal.signal(signal.SIGINT, signal.SIG_IGN)
-    signal.pthread_sigmask(signal.SIG_UNBLOCK, {signal.SIGINT})
+    signal.signal(signal.SIGTERM, signal.SIG_DFL)
+    signal.pthread_sigmask(signal.SIG_UNBLOCK, set(STOP_SIGNALS))
     _init_worker(threads)
 
 
 def _start_pool(ctx, workers: int, threads: int):
-    """ctx.Pool with SIGINT blocked while its workers (and the thread that replaces them) start: a
-    Ctrl-C in between stays pending here and is raised in this process once the pool is up."""
-    old = signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGINT})
+    """ctx.Pool with SIGINT and SIGTERM blocked while its workers (and the thread that replaces them)
+    start: a Ctrl-C or a `kill` in between stays pending here and is taken in this process once the
+    pool is up."""
+    old = signal.pthread_sigmask(signal.SIG_BLOCK, set(STOP_SIGNALS))
     try:
         return ctx.Pool(workers, initializer=_init_pool_worker, initargs=(threads,), maxtasksperchild=None)
     finally:
@@ -285,26 +292,41 @@ def _start_pool(ctx, workers: int, threads: int):
 
 @contextlib.contextmanager
 def _ctrl_c_as_flag():
-    """While the pool runs, SIGINT sets an event that the waiting loop turns into KeyboardInterrupt.
+    """While the pool runs, SIGINT and SIGTERM set an event that the waiting loop turns into
+    KeyboardInterrupt (`Terminated`, its subclass, for SIGTERM).
 
     Python raises KeyboardInterrupt wherever the main thread happens to be when the signal's handler
     runs; inside a finalizer or a weakref callback (the pool's and its results' are many) the
     exception is printed as "Exception ignored" and lost, and the run went on to the end with exit
-    0. A flag cannot be lost. In a thread other than the main one, or where SIGINT is ignored, the
-    handler is left as it is (the event then never fires)."""
+    0. A flag cannot be lost. In a thread other than the main one the handlers are left as they are
+    (the event then never fires); so is a signal that is ignored."""
     import threading
 
     flag = threading.Event()
-    if threading.current_thread() is not threading.main_thread() or signal.getsignal(signal.SIGINT) is signal.SIG_IGN:
+    received: list[int] = []
+    if threading.current_thread() is not threading.main_thread():
         yield flag
         return
-    old = signal.signal(signal.SIGINT, lambda signum, frame: flag.set())
+
+    def handler(signum, frame):
+        received.append(signum)
+        flag.set()
+
+    old = {sig: signal.getsignal(sig) for sig in STOP_SIGNALS}
+    for sig in STOP_SIGNALS:
+        if old[sig] is not signal.SIG_IGN:
+            signal.signal(sig, handler)
     try:
         yield flag
+        if flag.is_set():  # a stop while the pool was stopping (after the last result): still an interrupt
+            raise KeyboardInterrupt
+    except KeyboardInterrupt:
+        if signal.SIGTERM in received:
+            raise Terminated from None
+        raise
     finally:
-        signal.signal(signal.SIGINT, old)
-    if flag.is_set():  # a Ctrl-C while the pool was stopping (after the last result): still an interrupt
-        raise KeyboardInterrupt
+        for sig in STOP_SIGNALS:
+            signal.signal(sig, old[sig])
 
 
 def shard_files(config_dict: dict, spec_dict: dict) -> tuple[dict, dict[str, bytes]]:

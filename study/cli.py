@@ -8,15 +8,20 @@ naming the problem (no traceback), and leaves nothing half-written.
 from __future__ import annotations
 
 import argparse
+import contextlib
+import errno
 import json
 import math
 import os
+import signal
 import sys
+import threading
 from collections.abc import Callable
 from pathlib import Path
 
 from fusion.metrics import MAX_BOOTSTRAP
-from sim.errors import UserError
+from sim.errors import Terminated, UserError
+from study.device import MAX_WORKERS
 
 os.environ.setdefault("PYOPENGL_PLATFORM", "egl")
 if os.environ.get("SDL_VIDEODRIVER", "dummy") == "dummy":
@@ -112,7 +117,11 @@ pos_int = int_range(1, MAX_COUNT, "pos_int")
 count_int = int_range(0, MAX_COUNT, "count_int")
 nonneg_int = int_range(0, MAX_SEED, "nonneg_int")
 severity_arg = int_range(0, 5, "severity_arg")
-workers_int = int_range(1, 256, "workers_int")
+workers_int = int_range(1, MAX_WORKERS, "workers_int")
+"""Processes of a pool (generate, theory, study, the benches): 1..MAX_WORKERS."""
+loader_workers_int = int_range(0, MAX_WORKERS, "loader_workers_int")
+"""DataLoader processes decoding frames (train, evaluate, compare, train-gate, ...): 0 decodes in the
+main process; the same bound as every other worker count."""
 bootstrap_int = int_range(0, MAX_BOOTSTRAP, "bootstrap_int")
 
 
@@ -365,9 +374,12 @@ _typed(training_run, "run")
 def study_config(text: str):
     """An argparse type: a study preset name (configs/study/<name>.yaml) or a YAML file of
     `study.study_config.StudyConfig` fields, loaded and checked whole (unknown keys, bad values)."""
+    from study.presets import study_config_file
+
+    path = _as_type_error(study_config_file, _path_text(text))  # (torch-free: a typo is refused at once)
     from study.study_config import load_study_config
 
-    return _as_type_error(load_study_config, _path_text(text))
+    return _as_type_error(load_study_config, str(path))
 
 
 _typed(study_config, "study_config")
@@ -454,21 +466,77 @@ def build_parser() -> Parser:
     return parser
 
 
+EXIT_TERMINATED = 128 + 15
+"""The exit code of a command stopped by SIGTERM (the shell's code for a process killed by it)."""
+DISK_FULL = (errno.ENOSPC, errno.EDQUOT)
+
+
+@contextlib.contextmanager
+def _terminate_as_interrupt():
+    """SIGTERM raises `Terminated` (a KeyboardInterrupt) in the main thread while a command runs, so
+    `kill` cleans up as Ctrl-C does; Python's default SIGTERM exits at once and runs no clean-up (a
+    pool's workers were left to finish their shards, the lock file stayed). Not under torchrun, whose
+    agent stops its ranks with SIGTERM then SIGKILL (a rank waiting in a collective would not run a
+    Python handler), nor outside the main thread, nor where SIGTERM is ignored."""
+    if (threading.current_thread() is not threading.main_thread() or "TORCHELASTIC_RUN_ID" in os.environ
+            or signal.getsignal(signal.SIGTERM) is signal.SIG_IGN):
+        yield
+        return
+
+    def handler(signum, frame):
+        raise Terminated
+
+    old = signal.signal(signal.SIGTERM, handler)
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGTERM, old)
+
+
+def _home_from_passwd() -> None:
+    """An empty or relative HOME: the account's home directory from the password database instead
+    (what Python uses when HOME is unset), so that nothing (hydrabench's cache, matplotlib's) lands in
+    /.cache at the file system's root or in a folder relative to where the command runs."""
+    home = os.environ.get("HOME")
+    if home is None or os.path.isabs(home):
+        return
+    try:
+        import pwd
+
+        entry = pwd.getpwuid(os.getuid()).pw_dir
+    except (ImportError, KeyError):
+        return
+    if os.path.isabs(entry):
+        os.environ["HOME"] = entry
+
+
 def main(argv: list[str] | None = None, parser: Parser | None = None) -> int:
     """Run one command; `parser`: a `build_parser()` to reuse (tests calling main many times)."""
+    _home_from_passwd()
     try:
-        parser = parser or build_parser()
-        args = parser.parse_args(argv)
-        return int(args.run(args) or 0)
+        with _terminate_as_interrupt():
+            parser = parser or build_parser()
+            args = parser.parse_args(argv)
+            return int(args.run(args) or 0)
     except UserError as exc:
         msg = str(exc).splitlines()[0] if str(exc) else "invalid input"
         sys.stderr.write(f"hydrabench: error: {msg}\n")
         return EXIT_USAGE
+    except Terminated:
+        sys.stderr.write("hydrabench: terminated\n")
+        return EXIT_TERMINATED
     except KeyboardInterrupt:
         sys.stderr.write("hydrabench: interrupted\n")
         return 130
     except BrokenPipeError:
         return 0
+    except OSError as exc:
+        if exc.errno not in DISK_FULL:
+            raise
+        where = f" writing {exc.filename}" if exc.filename else ""
+        sys.stderr.write(f"hydrabench: error: {exc.strerror or 'no space left on device'}{where}: free some space and "
+                         "run the command again\n")
+        return EXIT_USAGE
 
 
 if __name__ == "__main__":

@@ -41,12 +41,14 @@ def verdict(iv) -> str:
 def compare(run_dir, data, *, gates=GATES, k: int = 2, fusion: str = "soft-nms", split: str = "auto",
             resamples: int = 500, batch_size: int = 4, setup=None, progress: bool = True,
             twins: bool = False, coverage_deals: int = 0, coverage_designs=("sequence",),
-            interval: str = "sequence") -> dict:
+            interval: str = "sequence", need_intervals: str | None = None) -> dict:
     """The comparison of the module docstring -> a JSON-able dict: per method its kind, mAP, vehicle
     mAP, mAP per context, and mAP minus late fusion with its 95 % interval and verdict, overall and
     per context. `twins`: also each method's robustness on the clear-weather twins (`robustness`).
     `coverage_deals`: also check the intervals on this test set (`coverage`), by each bootstrap design
-    in `coverage_designs` (`fusion.intervals.DESIGNS`); `interval`: the design of the reported intervals."""
+    in `coverage_designs` (`fusion.intervals.DESIGNS`); `interval`: the design of the reported intervals.
+    `need_intervals`: what needs the intervals (an option's name, "--plot"): refused before the
+    networks run when there can be none (no bootstrap, or no ground-truth box to score on the frames)."""
     from study.gate_tables import _setup, gate_pass, parse_k, selection_rates
     from study.scoring import context_bootstrap, difference_interval, fuse_selection, fusion_method, score
     from study.train import run_protocol
@@ -55,8 +57,13 @@ def compare(run_dir, data, *, gates=GATES, k: int = 2, fusion: str = "soft-nms",
     method = fusion_method(fusion)
     if resamples < 0:
         raise UserError(f"--bootstrap must be >= 0, got {resamples}")
+    if need_intervals and not resamples:
+        raise UserError(f"{need_intervals} needs intervals: give --bootstrap N > 0")
     model, cfg, indices, used_split, reader = _setup(run_dir, data, split, None, "latest", setup)
     protocol = run_protocol(cfg)
+    if need_intervals and not _has_ground_truth(reader, indices, protocol):
+        raise UserError(f"{need_intervals} needs intervals, and none can exist: the {len(indices)} frames of the "
+                        f"{used_split} split of {data} hold no box to find under protocol {protocol!r} (every mAP is undefined)")
     branches = list(model.branches)
     k = parse_k(k, len(branches), "k")
     k = len(branches) if k == "all" else k
@@ -122,6 +129,15 @@ def compare(run_dir, data, *, gates=GATES, k: int = 2, fusion: str = "soft-nms",
         **({"robustness": rob} if rob is not None else {}),
         **({"coverage": cov} if cov is not None else {}),
     }
+
+
+def _has_ground_truth(reader, indices, protocol) -> bool:
+    """Whether any of the frames `indices` holds a box to find (not difficult) in the right camera
+    under `protocol`: without one every mAP, and so every interval, is undefined."""
+    from study.scoring import ground_truth
+
+    return any((~ground_truth(reader.labels(i), "camera_right", None, reader.meta(i), protocol)["difficult"]).any()
+               for i in indices)
 
 
 def coverage(sources: dict, reader, protocol, deals: int, resamples: int, progress: bool = True,

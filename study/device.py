@@ -38,6 +38,10 @@ from sim.errors import UserError
 AMP_CHOICES = ("auto", "bf16", "off")
 """Values of --amp: auto (bf16 where native, `native_bf16`), bf16 (always), off (fp32)."""
 
+MAX_WORKERS = 256
+"""Most worker processes any command starts (generation pools, DataLoader workers): beyond it a typo
+(10,000 forks), not a plan. `study.cli.workers_int` and `loader_workers_int` hold every --workers to it."""
+
 DEFAULT_CUDA_WORKERS = 4
 """DataLoader workers when training on CUDA and --workers is not given: decoding frames in the
 training process would leave the GPU waiting on every batch."""
@@ -268,6 +272,8 @@ def resolve_device(args=None, *, device: str | None = None, threads: int | None 
     use_amp = resolve_amp(pick("amp", amp, None), dev, purpose)
     n_workers = pick("workers", workers, None)
     n_workers = (DEFAULT_CUDA_WORKERS if dev.startswith("cuda") else 0) if n_workers is None else int(n_workers)
+    if not 0 <= n_workers <= MAX_WORKERS:
+        raise UserError(f"workers must be in 0..{MAX_WORKERS}, got {n_workers}")
     setup = DeviceSetup(device=dev, threads=n_threads, amp=bool(use_amp), workers=n_workers)
     if apply:
         setup_torch(setup.device, n_threads)

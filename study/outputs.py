@@ -149,10 +149,55 @@ def torch_save_atomic(obj, path: str | Path) -> None:
     # through a file object: torch.save to a path names the archive's records after that path (the
     # temporary name), so the same object would give other bytes on every save
     with atomic_path(path) as tmp, open(tmp, "wb") as fh:
-        torch.save(obj, fh)
+        try:
+            torch.save(obj, fh)
+        except RuntimeError as exc:
+            # torch's archive writer turns a full disk into "unexpected pos 704 vs 598": asked while
+            # the partial file still takes its space, the file system says whether it is full
+            if _nearly_full(tmp.parent):
+                raise OSError(errno.ENOSPC, f"{os.strerror(errno.ENOSPC)} ({str(exc).splitlines()[0][:80]})",
+                              str(path)) from None
+            raise
+
+
+def _nearly_full(directory: Path, spare: int = 1 << 20) -> bool:
+    """Whether the file system of `directory` has less than `spare` bytes left for this user."""
+    try:
+        st = os.statvfs(directory)
+    except OSError:
+        return False
+    return st.f_bavail * st.f_frsize < spare
 
 
 def savefig_atomic(fig, path: str | Path, **kw) -> None:
     """`fig.savefig` to `path` atomically (`atomic_path`), in the format its extension names."""
     with atomic_path(path) as tmp:
         fig.savefig(tmp, format=Path(path).suffix.lstrip(".").lower() or "png", **kw)
+
+
+CACHE_ENV = "HYDRABENCH_CACHE"
+
+
+def cache_root() -> Path:
+    """hydrabench's own cache directory (reference-model copies, the theory measurements), checked
+    writable: $HYDRABENCH_CACHE, else $XDG_CACHE_HOME/hydrabench (an absolute XDG_CACHE_HOME, as the
+    XDG spec asks), else $HOME/.cache/hydrabench. Creates nothing. UserError, one line saying how to
+    fix it, when that directory cannot be written, HYDRABENCH_CACHE names an unusable path, or HOME is
+    empty or relative (an empty HOME once put the cache at /.cache, the file system's root)."""
+    explicit = os.environ.get(CACHE_ENV)
+    if explicit is not None:
+        if not explicit.strip():
+            raise UserError(f"{CACHE_ENV} is set but empty: unset it, or set it to a writable directory")
+        path, source = Path(explicit), f"{CACHE_ENV}={explicit}"
+    elif os.path.isabs(os.environ.get("XDG_CACHE_HOME", "")):
+        path, source = Path(os.environ["XDG_CACHE_HOME"]) / "hydrabench", "XDG_CACHE_HOME"
+    else:
+        home = os.environ.get("HOME")
+        if home is not None and not os.path.isabs(home):
+            raise UserError(f"HOME is {'empty' if not home else f'not an absolute path ({home!r})'}, so hydrabench has "
+                            f"no cache directory: set HOME, or {CACHE_ENV} to a writable directory")
+        path, source = Path(os.path.expanduser("~")) / ".cache" / "hydrabench", f"HOME={os.path.expanduser('~')}"
+    try:
+        return check_writable_dir(path)
+    except UserError as exc:
+        raise UserError(f"the cache directory ({source}): {exc}; set {CACHE_ENV} to a writable directory") from None

@@ -15,7 +15,7 @@ A reference model is a directory `models/<name>/` that is also a training run (`
 Every command that takes a RUN takes `NAME` (a directory of `MODEL_DIR`) or the directory's path:
 the files are checked against the manifest (a damaged file or a Git LFS pointer is a one-line
 error); one in `MODEL_DIR` is copied once into a writable cache run,
-`$HYDRABENCH_CACHE/models/<name>-<sha12>/` (default `~/.cache/hydrabench`), because evaluation
+`study.outputs.cache_root()/models/<name>-<sha12>/` (`$HYDRABENCH_CACHE`, default `~/.cache/hydrabench`), because evaluation
 writes its caches into the run and the repository stays clean; one elsewhere is used in place.
 
 Making one (`scripts/make_reference_model.sh`): `hydrabench model export RUN --out DIR` writes the
@@ -36,6 +36,7 @@ from pathlib import Path
 
 from sim.errors import UserError
 from study.gate_data import file_sha256 as sha256
+from study.outputs import cache_root
 
 MODEL_DIR = Path(__file__).resolve().parents[1] / "models"
 """Where named reference models live (in the repository)."""
@@ -43,10 +44,6 @@ MODEL_DIR = Path(__file__).resolve().parents[1] / "models"
 KIND = "hydrabench-reference-model"
 MAX_BYTES = 40 * 2**20
 """Issue 27's budget for a committed model's weights (about 40 MB)."""
-
-
-def cache_root() -> Path:
-    return Path(os.environ.get("HYDRABENCH_CACHE") or Path.home() / ".cache" / "hydrabench")
 
 
 def available_models() -> list[str]:
@@ -120,14 +117,19 @@ def resolve_run(text: str) -> Path:
     if dest.is_dir() and all((dest / rel).is_file() and (dest / rel).stat().st_size == v["bytes"]
                              for rel, v in man["files"].items()):
         return dest
-    dest.parent.mkdir(parents=True, exist_ok=True)
     tmp = dest.with_name(dest.name + f".tmp-{os.getpid()}")
-    shutil.rmtree(tmp, ignore_errors=True)
-    for rel in [*man["files"], "manifest.json"]:
-        (tmp / rel).parent.mkdir(parents=True, exist_ok=True)
-        shutil.copyfile(src / rel, tmp / rel)
-    shutil.rmtree(dest, ignore_errors=True)
-    os.replace(tmp, dest)
+    try:
+        dest.parent.mkdir(parents=True, exist_ok=True)
+        shutil.rmtree(tmp, ignore_errors=True)
+        for rel in [*man["files"], "manifest.json"]:
+            (tmp / rel).parent.mkdir(parents=True, exist_ok=True)
+            shutil.copyfile(src / rel, tmp / rel)
+        shutil.rmtree(dest, ignore_errors=True)
+        os.replace(tmp, dest)
+    except OSError as exc:  # a full disk: no half copy left in the cache
+        shutil.rmtree(tmp, ignore_errors=True)
+        raise UserError(f"cannot copy reference model {man['name']!r} into the cache {dest.parent} "
+                        f"({exc.strerror}); free space there or set HYDRABENCH_CACHE") from None
     return dest
 
 

@@ -6,16 +6,16 @@ from __future__ import annotations
 
 import dataclasses
 from dataclasses import dataclass, field
-from pathlib import Path
 from typing import get_type_hints
 
 from sensors.generate import GenerateConfig
 from sim.config import from_dict, load_yaml
 from sim.errors import UserError
 from study.branch_gate_study import GateTrainConfig
+from study.device import MAX_WORKERS
+from study.presets import PRESETS_DIR as PRESETS_DIR  # (where the presets are, for its readers)
+from study.presets import study_config_file
 from study.train import TrainConfig  # torch: loading a study config imports it, `--help` does not
-
-PRESETS_DIR = Path(__file__).resolve().parents[1] / "configs" / "study"
 
 
 class Shared:
@@ -511,6 +511,8 @@ class RunSection:
             raise UserError(f"run.amp must be default, auto, bf16 or off, got {self.amp!r}")
         _positive("run.threads", self.threads, 0)
         _positive("run.workers", self.workers)
+        if self.workers > MAX_WORKERS:
+            raise UserError(f"run.workers must be <= {MAX_WORKERS}, got {self.workers}")
         if self.backend not in ("local", "ray"):
             raise UserError(f"run.backend must be local or ray, got {self.backend!r}")
 
@@ -578,16 +580,7 @@ class StudyConfig:
 
 def load_study_config(spec: str) -> StudyConfig:
     """A preset name (configs/study/<name>.yaml) or a YAML file path -> StudyConfig (strict)."""
-    path = Path(spec)
-    if not spec.endswith((".yaml", ".yml")) and not path.exists():
-        preset = PRESETS_DIR / f"{spec}.yaml"
-        if not preset.is_file():
-            names = sorted(p.stem for p in PRESETS_DIR.glob("*.yaml"))
-            raise UserError(f"{spec!r} is neither a preset ({', '.join(names)}) nor a YAML file")
-        path = preset
-    if not path.is_file():
-        raise UserError(f"{spec}: " + ("not a file" if path.exists() else "does not exist"))
-    return load_yaml(StudyConfig, path)
+    return load_yaml(StudyConfig, study_config_file(spec))
 
 
 def study_config_from_dict(data: dict) -> StudyConfig:

@@ -51,11 +51,11 @@ SEVERITY_UNITS = {"fog": ("visibility", "m"), "rain": ("rain", "mm/h"), "snow": 
                   "night": ("illuminance", "lx")}
 
 def default_cache_dir() -> Path:
-    """$HYDRABENCH_CACHE/theory, else $XDG_CACHE_HOME/hydrabench/theory, else ~/.cache/hydrabench/theory."""
-    if os.environ.get("HYDRABENCH_CACHE"):
-        return Path(os.environ["HYDRABENCH_CACHE"]) / "theory"
-    base = os.environ.get("XDG_CACHE_HOME") or os.path.join(os.path.expanduser("~"), ".cache")
-    return Path(base) / "hydrabench" / "theory"
+    """theory/ in hydrabench's cache (`study.outputs.cache_root`: $HYDRABENCH_CACHE, else
+    $XDG_CACHE_HOME/hydrabench, else ~/.cache/hydrabench), checked writable."""
+    from study.outputs import cache_root
+
+    return cache_root() / "theory"
 
 
 @dataclass(frozen=True)

@@ -85,7 +85,7 @@ def run(args) -> int:
     r = compare(Path(args.run_dir), Path(args.data), gates=gates, k=args.k, fusion=args.fusion, split=args.split,
                 resamples=args.bootstrap, batch_size=args.batch_size, setup=resolve_device(args, purpose="eval"),
                 twins=args.twins, coverage_deals=args.coverage_deals,
-                coverage_designs=designs, interval=args.interval)
+                coverage_designs=designs, interval=args.interval, need_intervals="--plot" if args.plot else None)
     if args.plot:
         from study.compare import plot_compare
 

@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import argparse
 
-from study.cli import count_int
+from study.cli import count_int, loader_workers_int
 from study.device import AMP_CHOICES, DEFAULT_CUDA_WORKERS, available_cores
 
 
@@ -50,6 +50,6 @@ def add_device_args(parser, *, workers: bool = True, threads_default: int = 0, p
                    f"else fp32 (default: {default})")
     g.add_argument("--no-amp", dest="amp", action="store_const", const="off", help="fp32 forward passes")
     if workers:
-        g.add_argument("--workers", type=count_int, default=None,
+        g.add_argument("--workers", type=loader_workers_int, default=None,
                        help="DataLoader worker processes decoding frames (0: in the main process; "
                        f"default 0 on the CPU, {DEFAULT_CUDA_WORKERS} on CUDA)")

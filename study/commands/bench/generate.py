@@ -5,6 +5,7 @@ from __future__ import annotations
 import argparse
 
 from study.cli import (
+    MAX_WORKERS,
     Formatter,
     emit,
     int_list,
@@ -22,7 +23,7 @@ def add_parser(what) -> None:
                         "and per degradation model (summed over workers, per rendered frame).",
                         formatter_class=Formatter)
     g.add_argument("--profiles", type=name_list, default="cpu,paper", help="comma-separated sensor profiles, each once")
-    g.add_argument("--workers", type=int_list(1, 256, "workers"), default="1,2", help="comma-separated worker counts, each once")
+    g.add_argument("--workers", type=int_list(1, MAX_WORKERS, "workers"), default="1,2", help="comma-separated worker counts, each once")
     g.add_argument("--frames-per-context", type=pos_int, default=10, help="frames per context per run")
     g.add_argument("--sequence-length", type=pos_int, default=10, help="frames per sequence (setup is amortised over it)")
     g.add_argument("--seed", type=nonneg_int, default=0, help="root random seed")

@@ -12,6 +12,7 @@ from study.cli import (
     name_list,
     nonneg_int,
     out_file,
+    workers_int,
 )
 
 
@@ -45,7 +46,7 @@ def add_parser(what) -> None:
                    help="frames per SGD step, the global batch of the DDP run (2 to 1024)")
     c.add_argument("--epochs", type=int_range(1, 100, "epochs"), default=1,
                    help="epochs per training run, the last one timed (2: the first absorbs warm-up), at most 100")
-    c.add_argument("--workers", type=int_range(1, 256, "workers"), default=2,
+    c.add_argument("--workers", type=workers_int, default=2,
                    help="local pool processes and Ray CPUs of part generate, at most 256")
     c.add_argument("--plot", type=out_file(".png"), default=None, metavar="PNG", help="also draw the ratios into this PNG file")
     c.add_argument("--json", action="store_true", help="print one JSON object on stdout")
