@@ -31,6 +31,7 @@ import numpy as np
 import pytest
 
 from study.cli import build_parser, main
+from tests.conftest import NARROW_ARGS, NARROW_MODEL
 
 # Values for required options that no type describes: a valid example each (the fuzz needs a valid
 # command around the one bad value). A new required option without a kind must be added here.
@@ -84,7 +85,7 @@ def world(tmp_path_factory):
              workers=1, progress=False)
     run = root / "run"
     train(TrainConfig(data=str(data), branches=("camera_right",), epochs=1, batch_size=1, warmup_steps=1,
-                      threads=2, eval_frames=1), run, progress=False)
+                      threads=2, eval_frames=1, model=NARROW_MODEL), run, progress=False)
     box = root / "box"  # the working directory of every case
     box.mkdir()
     (root / "a_file").write_text("not a directory\n")
@@ -709,7 +710,7 @@ def test_every_run_argument_refuses_damaged_checkpoints_naming_the_file(sandbox,
                               needle=lambda line, c=culprit, r=copy: c in line or r in line)
                 tried += 1
     fixture = ["--branches", "camera_right", "--batch-size", "1", "--warmup-steps", "1", "--threads", "2",
-               "--eval-frames", "1"]  # the fixture run's config: a resume reaches its checkpoint
+               "--eval-frames", "1", *NARROW_ARGS]  # the fixture run's config: a resume reaches its checkpoint
     for name, (culprit, _, read_by_train) in RUN_DAMAGES.items():
         if not read_by_train:
             continue
@@ -1065,7 +1066,7 @@ def test_train_refuses_an_out_another_train_is_writing(world, tmp_path, capsys):
     run = tmp_path / "run"
     shutil.copytree(world["run"], run)
     argv = ["train", str(world["data"]), "--out", str(run), "--branches", "camera_right", "--epochs", "1",
-            "--batch-size", "1", "--warmup-steps", "1", "--threads", "2", "--eval-frames", "1"]  # the fixture's run
+            "--batch-size", "1", "--warmup-steps", "1", "--threads", "2", "--eval-frames", "1", *NARROW_ARGS]  # the fixture's run
     holder = _hold_lock(run, "train")
     try:
         before = snapshot(tmp_path)
