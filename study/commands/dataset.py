@@ -178,8 +178,11 @@ def add_show(sub, name, help_text):
     p.add_argument("dir", type=dataset_dir, help="dataset directory")
     p.add_argument("--index", type=int, default=0,
                    help="frame index (negative counts from the end); with --context, the index among that context's frames")
-    p.add_argument("--context", type=name_arg, default=None, help="pick the frame among this context's frames")
-    p.add_argument("--out", required=True, type=out_file(*IMAGE_SUFFIXES), help="picture to write (.png, .pdf or .svg)")
+    p.add_argument("--context", type=name_arg, default=None,
+                   help="pick the frame among this context's frames; `all`: one picture per context the dataset "
+                   "has (then --out must hold {context}, e.g. out/frame_{context}.png)")
+    p.add_argument("--out", required=True, type=out_file(*IMAGE_SUFFIXES),
+                   help="picture to write (.png, .pdf or .svg); {context} in it is replaced by the context's name")
     p.add_argument("--clear", action="store_true", help="show the clear-weather twin of the frame")
     p.set_defaults(run=run_show)
 
@@ -188,19 +191,31 @@ def run_show(args) -> int:
     from sensors.dataset import DatasetReader
     from study.plots import plot_frame
 
-    out = Path(args.out)
     reader = DatasetReader(Path(args.dir), clear=args.clear)
-    candidates = list(range(len(reader)))
-    if args.context is not None:
+    frames = reader.manifest["frames"]
+    present = sorted({f["context"] for f in frames})
+    if args.context == "all":
+        # one process for every context: the demo's eight pictures without eight interpreter starts
+        if "{context}" not in str(args.out):
+            raise UserError(f"--context all writes one picture per context: --out must hold {{context}}, got {args.out}")
+        names = present
+    elif args.context is not None:
         from sim.scenario import Context
 
-        name = Context.parse(args.context).name
-        candidates = [i for i, f in enumerate(reader.manifest["frames"]) if f["context"] == name]
-        if not candidates:
-            present = sorted({f["context"] for f in reader.manifest["frames"]})
-            raise UserError(f"the dataset has no {name!r} frames (it has: {', '.join(present)})")
-    if not -len(candidates) <= args.index < len(candidates):
-        raise UserError(f"--index {args.index} is out of range ({len(candidates)} frames to choose from)")
-    plot_frame(reader[candidates[args.index]], str(out))
-    sys.stderr.write(f"wrote {out}\n")
+        names = [Context.parse(args.context).name]
+        if names[0] not in present:
+            raise UserError(f"the dataset has no {names[0]!r} frames (it has: {', '.join(present)})")
+    else:
+        names = [None]
+    picks = []
+    for name in names:  # every index checked before the first picture is drawn
+        candidates = [i for i, f in enumerate(frames) if name is None or f["context"] == name]
+        if not -len(candidates) <= args.index < len(candidates):
+            where = f" of context {name}" if name else ""
+            raise UserError(f"--index {args.index} is out of range ({len(candidates)} frames{where} to choose from)")
+        picks.append((name, candidates[args.index]))
+    for name, index in picks:
+        out = Path(str(args.out).replace("{context}", name or reader.manifest["frames"][index]["context"]))
+        plot_frame(reader[index], str(out))
+        sys.stderr.write(f"wrote {out}\n")
     return 0

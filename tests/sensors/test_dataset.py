@@ -173,6 +173,23 @@ def test_show_draws_a_frame(reference, tmp_path):
     assert main(["show", str(ref), "--index", "9", "--out", str(png)]) == 2
 
 
+def test_show_all_contexts_draws_one_picture_per_context_in_one_call(reference, tmp_path, capsys):
+    ref, _ = reference
+    contexts = sorted({f["context"] for f in DatasetReader(ref).manifest["frames"]})
+    assert main(["show", str(ref), "--context", "all", "--out", str(tmp_path / "frame_{context}.png")]) == 0
+    assert sorted(p.name for p in tmp_path.iterdir()) == sorted(f"frame_{c}.png" for c in contexts)
+    single = tmp_path / "one" / "x.png"
+    single.parent.mkdir()
+    assert main(["show", str(ref), "--context", contexts[0], "--out", str(single)]) == 0
+    assert (tmp_path / f"frame_{contexts[0]}.png").read_bytes() == single.read_bytes()  # the same frame, drawn alike
+    capsys.readouterr()
+    # all needs {context} in --out; an index one context lacks is refused before any picture
+    assert main(["show", str(ref), "--context", "all", "--out", str(tmp_path / "x.png")]) == 2
+    assert "{context}" in capsys.readouterr().err
+    assert main(["show", str(ref), "--context", "all", "--index", "50", "--out", str(tmp_path / "n_{context}.png")]) == 2
+    assert not list(tmp_path.glob("n_*"))
+
+
 @pytest.mark.parametrize("argv, needle", [
     (["generate", "--out", "{tmp}/x", "--contexts", "volcano"], "unknown context"),
     (["generate", "--out", "{tmp}/x", "--severities", "2,9"], "severities"),
