@@ -21,7 +21,7 @@ from pathlib import Path
 
 from study.bounds import CONTEXT_ORACLE
 from study.scoring import difference_interval
-from study.verdict import answer_sentences, bounds_sentences, holm_size, namer
+from study.verdict import answer_sentences, bounds_sentences, family_sentence, namer
 
 BEGIN = "<!-- study-results:begin (scripts/readme_results.py writes this block; do not edit by hand) -->"
 END = "<!-- study-results:end -->"
@@ -72,9 +72,7 @@ def results_block(report: dict, tables: tuple[str, ...] = ("DIR/report.md", "DIR
         iv = r["intervals"]
         lines.append(f"Intervals: {iv['resamples']} draws of the {ci['sequences']} test sequences with replacement, every "
                      "method scored on each draw (paired); a difference whose interval excludes 0 is an order this "
-                     "study resolves." + (f" Per context, an order is resolved only if its Holm-adjusted p-value is "
-                                          f"below 0.05 as well (Holm-corrected over {holm_size(report)} per-context "
-                                          "comparisons of each pair)." if holm_size(report) else ""))
+                     "study resolves." + (f" {family_sentence(report)}" if family_sentence(report) else ""))
         lines.append("")
         lines += [*bounds_sentences(report), ""] if bounds_sentences(report) else []
         answer = answer_sentences(report)

@@ -20,10 +20,10 @@ Wiring: both take the report JSON dict or its "results" part (what `study.report
 from __future__ import annotations
 
 from dataclasses import dataclass, replace
-from math import comb
+from math import comb, floor
 from pathlib import Path
 
-from fusion.intervals import holm
+from fusion.intervals import CORRECTIONS
 from study.bounds import CONTEXT_ORACLE, OPTIMISTIC, label
 from study.numbers import interval_text
 from study.scoring import difference_interval
@@ -37,8 +37,15 @@ per context chosen on the test frames): bounds on what a gate could reach, not m
 so a sentence never counts them as a win. A report with bounds (`study.bounds`) names each for what it
 is (`study.bounds.label`); an older one names them "(oracle)"."""
 ALPHA = 0.05
-"""A per-context order is resolved only when its Holm-adjusted p-value is below this (and its
+"""A per-context order is resolved only when its adjusted p-value (`CORRECTION`) is below this (and its
 interval excludes 0)."""
+CORRECTION = "holm"
+"""How the per-context orders' p-values are adjusted (`fusion.intervals.CORRECTIONS`): Holm's
+family-wise step-down over ONE family, every per-context order the verdict prints (every pair of its
+table in every context). A family per pair would let a method that scores a context's frames exactly as
+another (the physical gate runs all branches on every motorway frame) be resolved where its twin is not,
+only because the two pairs' other contexts differ; one family gives equal p-values equal adjusted ones."""
+CORRECTION_NAMES = {"holm": "Holm-corrected", "bh": "Benjamini-Hochberg-corrected", "none": "uncorrected"}
 FEW_SEQUENCES = 8
 """Below this many test sequences a group's intervals are flagged: n sequences drawn with
 replacement give only comb(2n - 1, n) distinct draws (10 for n = 3, 6435 for n = 8), so a
@@ -59,16 +66,16 @@ class Order:
     interval: tuple[float, float] | None
     sequences: int
     p: float | None = None
-    p_holm: float | None = None
-    """The bootstrap p-value of the difference and, per context, its Holm adjustment over the
-    contexts (None: the report stores no p-values, or the group is "all")."""
+    p_adjusted: float | None = None
+    """The bootstrap p-value of the difference and, per context, its adjustment (`CORRECTION`) over the
+    family of all per-context orders (None: the report stores no p-values, or the group is "all")."""
 
     @property
     def resolved(self) -> bool:
         """The interval excludes 0 (both bounds on one side of it, neither equal to it) and, where the
-        order was Holm-corrected, the adjusted p-value is below `ALPHA`."""
+        order was corrected, the adjusted p-value is below `ALPHA`."""
         excludes = self.interval is not None and (self.interval[0] > 0 or self.interval[1] < 0)
-        return excludes and (self.p_holm is None or self.p_holm < ALPHA)
+        return excludes and (self.p_adjusted is None or self.p_adjusted < ALPHA)
 
     @property
     def sign(self) -> int:
@@ -110,9 +117,15 @@ def best_single(report: dict, group: str) -> str | None:
     return max(scored, key=lambda sv: sv[1])[0] if scored else None
 
 
-def orders(report: dict) -> list[Order]:
+def orders(report: dict, correction: str = CORRECTION) -> list[Order]:
     """Per group: every method minus late fusion (report order), late fusion minus its best single
-    sensor, and every two single sensors (report order). Empty without intervals."""
+    sensor, and every two single sensors (report order), the per-context ones adjusted together
+    (`correct_per_context`). Empty without intervals."""
+    return correct_per_context(raw_orders(report), correction)
+
+
+def raw_orders(report: dict) -> list[Order]:
+    """`orders` before any correction (`p_adjusted` None everywhere)."""
     r = _results(report)
     per = (r.get("intervals") or {}).get("per_context") or {}
     out = []
@@ -132,36 +145,44 @@ def orders(report: dict) -> list[Order]:
                 out.append(order(LATE, best))
         ss = singles(report)
         out += [order(a, b) for i, a in enumerate(ss) for b in ss[i + 1:]]
-    return holm_per_context(out, singles(report))
-
-
-def _comparison(o: Order, ss) -> tuple[str, str]:
-    """The comparison an order is one context's instance of (late against the best single sensor is
-    one comparison, whichever sensor is best in the context)."""
-    return (LATE, "best single") if o.a == LATE and o.b in ss else (o.a, o.b)
-
-
-def holm_per_context(os_: list[Order], ss) -> list[Order]:
-    """Each per-context order with its Holm-adjusted p-value (`fusion.intervals.holm`), adjusted over
-    the contexts' instances of the same comparison; the "all" group and orders without a p-value are
-    left as they are."""
-    fams: dict = {}
-    for i, o in enumerate(os_):
-        if o.group != "all" and o.p is not None:
-            fams.setdefault(_comparison(o, ss), []).append(i)
-    out = list(os_)
-    for idx in fams.values():
-        for i, p in zip(idx, holm([os_[i].p for i in idx])):
-            out[i] = replace(os_[i], p_holm=float(p))
     return out
 
 
-def holm_size(report: dict) -> int | None:
-    """How many per-context comparisons each Holm correction runs over (the contexts with p-values),
-    None when the report stores no p-values."""
-    per = (_results(report).get("intervals") or {}).get("per_context") or {}
-    n = sum(1 for g, v in per.items() if g != "all" and "p_value" in v)
-    return n or None
+def correct_per_context(os_: list[Order], correction: str = CORRECTION) -> list[Order]:
+    """Each per-context order with its p-value adjusted by `correction` (a key of
+    `fusion.intervals.CORRECTIONS`) over one family: every per-context order that has a p-value, all
+    pairs in all contexts together. The "all" group and orders without a p-value are left as they are.
+    Equal p-values get equal adjusted ones (Holm's running maximum, BH's running minimum)."""
+    if correction not in CORRECTIONS:
+        raise ValueError(f"correction must be one of {sorted(CORRECTIONS)}, got {correction!r}")
+    idx = [i for i, o in enumerate(os_) if o.group != "all" and o.p is not None]
+    out = list(os_)
+    for i, p in zip(idx, CORRECTIONS[correction]([os_[i].p for i in idx])):
+        out[i] = replace(os_[i], p_adjusted=float(p))
+    return out
+
+
+def family_size(report: dict) -> int | None:
+    """How many per-context orders the correction adjusts together (those with a p-value), None when the
+    report stores no p-values."""
+    return sum(1 for o in raw_orders(report) if o.group != "all" and o.p is not None) or None
+
+
+def family_sentence(report: dict) -> str:
+    """What "resolved" means per context: the correction, its family and, where the draws are too few
+    for any order to pass it, how many it would take. Empty when the report stores no p-values."""
+    m = family_size(report)
+    if not m:
+        return ""
+    text = (f"Per context, an order is resolved only if its interval excludes 0 and its p-value, {CORRECTION_NAMES[CORRECTION]} "
+            f"together with every per-context order of this verdict ({m}: every pair in every context, one family), "
+            f"is below {ALPHA:g}.")
+    b = _results(report)["intervals"]["resamples"]
+    p_min = 2.0 / (b + 1)  # fusion.intervals.bootstrap_p_value's smallest value
+    if CORRECTION == "holm" and p_min * m >= ALPHA:
+        text += (f" With {b} draws the smallest p-value a difference can have is {p_min:.4f}, so over {m} orders "
+                 f"this correction resolves none; it would take at least {floor(2 * m / ALPHA)} draws.")
+    return text
 
 
 
@@ -250,10 +271,8 @@ def verdict_sentences(report: dict) -> list[str]:
     head = (f"Resolved means the 95 % interval of a paired difference of mAP@0.5 excludes 0 ({iv['resamples']} draws "
             "of whole test sequences, every method scored on each draw); an interval that holds 0 is not resolved, "
             "whatever the point estimates.")
-    n_holm = holm_size(report)
-    if n_holm:
-        head += (f" Per context, an order is resolved only if its interval excludes 0 and its p-value, Holm-corrected "
-                 f"over the {n_holm} per-context comparisons of the same pair, is below {ALPHA:g}.")
+    if family_sentence(report):
+        head += " " + family_sentence(report)
     out = bounds_sentences(report)
     all_orders = orders(report)
     ss = singles(report)

@@ -116,18 +116,58 @@ def test_holm_turns_a_resolved_per_context_order_into_not_resolved_when_it_shoul
     def c0(report):
         return next(o for o in orders(report) if o.group == "c0" and o.a == "hydrafusion:deep")
 
-    assert c0(_holm_report(None)).resolved and c0(_holm_report(None)).p_holm is None  # no p-values: interval only
+    assert c0(_holm_report(None)).resolved and c0(_holm_report(None)).p_adjusted is None  # no p-values: interval only
     o = c0(_holm_report(0.01))
-    assert o.p == 0.01 and o.p_holm == pytest.approx(0.08) and not o.resolved and o.sign == 0  # 0.01 x 8 contexts
+    assert o.p == 0.01 and o.p_adjusted == pytest.approx(0.08) and not o.resolved and o.sign == 0  # 0.01 x 8 contexts
     s = verdict_sentences(_holm_report(0.01))
     assert "In c0 (8 test sequences), resolved above late fusion: none." in s
-    assert any("Holm-corrected over the 8 per-context comparisons of the same pair" in x for x in s)
+    assert any("Holm-corrected together with every per-context order of this verdict (8: every pair in every "
+               "context, one family), is below 0.05." in x for x in s)
+    assert any("it would take at least 320 draws." in x for x in s)  # 100 draws: 2 / 101 x 8 >= 0.05
     kept = c0(_holm_report(0.004))
-    assert kept.p_holm == pytest.approx(0.032) and kept.resolved and kept.sign == 1
+    assert kept.p_adjusted == pytest.approx(0.032) and kept.resolved and kept.sign == 1
     assert "In c0 (8 test sequences), resolved above late fusion: hydrafusion:deep [+0.010, +0.050]." in \
         verdict_sentences(_holm_report(0.004))
     # the overall group is one comparison: not corrected
-    assert next(o for o in orders(_holm_report(0.01)) if o.group == "all").p_holm is None
+    assert next(o for o in orders(_holm_report(0.01)) if o.group == "all").p_adjusted is None
+
+
+def _twin_report(resamples: int = 1000) -> dict:
+    """Two contexts; physical_gate scores c0 exactly as all_branches (same mAP, interval and p = 0.01),
+    but the two differ in c1, where all_branches has a small p-value and physical_gate a large one."""
+    ctx = ["c0", "c1"]
+    per = {"all": {"sequences": 16, "map": {}, "difference": {}}}
+    diff = {"c0": ([0.01, 0.05], [0.01, 0.05]), "c1": ([0.01, 0.05], [-0.02, 0.03])}
+    pv = {"c0": (0.01, 0.01), "c1": (0.002, 0.6)}
+    for c in ctx:
+        per[c] = {"sequences": 8, "map": {},
+                  "difference": {"all_branches - late": diff[c][0], "physical_gate - late": diff[c][1]},
+                  "p_value": {"all_branches - late": pv[c][0], "physical_gate - late": pv[c][1]}}
+    return {"results": {"dataset": {"contexts": ctx}, "singles": [],
+                        "methods": {"late": _m(0.4, c0=0.4, c1=0.4), "all_branches": _m(0.42, c0=0.43, c1=0.43),
+                                    "physical_gate": _m(0.42, c0=0.43, c1=0.41)},
+                        "intervals": {"resamples": resamples, "unit": "sequence", "seed": 0, "per_context": per}}}
+
+
+def test_the_per_context_orders_are_one_family_and_twins_get_the_same_verdict():
+    os_ = {(o.group, o.a): o for o in orders(_twin_report())}
+    ab, pg = os_[("c0", "all_branches")], os_[("c0", "physical_gate")]
+    # one family of 4 (2 pairs x 2 contexts): sorted 0.002, 0.01, 0.01, 0.6 -> 0.008, 0.03, 0.03 (running max), 0.6
+    assert ab.p_adjusted == pg.p_adjusted == pytest.approx(0.03) and ab.resolved and pg.resolved
+    assert os_[("c1", "all_branches")].p_adjusted == pytest.approx(0.008)
+    # a family per pair would have split the twins: all_branches' own family {0.01, 0.002} gives 0.01 x 1
+    # while physical_gate's {0.01, 0.6} gives 0.02; one family keeps them equal whatever the other contexts do
+    bh = {(o.group, o.a): o for o in orders(_twin_report(), correction="bh")}
+    assert bh[("c0", "all_branches")].p_adjusted == bh[("c0", "physical_gate")].p_adjusted == pytest.approx(0.04 / 3)
+    with pytest.raises(ValueError, match="correction must be one of"):
+        orders(_twin_report(), correction="bonferroni")
+
+
+def test_the_verdict_says_when_its_draws_are_too_few_for_any_per_context_order_to_pass_holm():
+    few = " ".join(verdict_sentences(_twin_report(resamples=100)))  # 2 / 101 x 4 = 0.079 >= 0.05
+    assert "With 100 draws the smallest p-value a difference can have is 0.0198, so over 4 orders this " \
+           "correction resolves none; it would take at least 160 draws." in few
+    assert "it would take" not in " ".join(verdict_sentences(_twin_report(resamples=1000)))
 
 
 def test_the_regret_at_k_is_the_oracles_map_minus_the_gates_with_the_interval_of_the_same_draws():
@@ -250,7 +290,7 @@ def test_the_report_and_the_readme_block_name_each_bound_for_what_it_is(tmp_path
     assert f"| hydrafusion:optimal ({A_POSTERIORI_LABEL}) | 0.500 |" in block
     assert f"| ecofusion:loss_based ({A_POSTERIORI_LABEL}) | 0.470 |" in block
     assert f"| {CONTEXT_ORACLE} ({CONTEXT_ORACLE_LABEL}) | 0.460 |" in block
-    assert "Room for context" in block and "Holm-corrected over 2 per-context comparisons" in block
+    assert "Room for context" in block and "every per-context order of this verdict (" in block
     assert "(95 % interval [+0.010, +0.090])" in block
     assert "room" not in " ".join(line for line in block.splitlines() if "a-posteriori" in line).lower()
 

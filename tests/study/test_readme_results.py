@@ -554,3 +554,39 @@ def test_the_tables_named_are_those_beside_the_report(tmp_path):
     assert rr._tables_beside(tmp_path / "report.json", tmp_path) == ("report.html",)
     (tmp_path / "report.md").write_text("")
     assert rr._tables_beside(tmp_path / "report.json", tmp_path / "elsewhere") == ("DIR/report.md", "DIR/report.html")
+
+
+VERDICT_PAIRS = {
+    "all_branches minus late fusion": ("all_branches", "late"),
+    "HydraFusion deep gate (top 2 of 4) minus late fusion": ("hydrafusion:deep", "late"),
+    "HydraFusion attention gate minus late fusion": ("hydrafusion:attention", "late"),
+    "HydraFusion deep gate minus all_branches": ("hydrafusion:deep", "all_branches"),
+    "EcoFusion attention gate minus all_branches": ("ecofusion:attention", "all_branches"),
+    "room for context: context oracle minus all_branches": ("context_oracle", "all_branches"),
+}
+VERDICT_METHODS = {"physical knowledge gate": "physical_gate", "all_branches": "all_branches",
+                   "HydraFusion knowledge gate (hand-written table)": "hydrafusion:knowledge",
+                   "HydraFusion deep gate": "hydrafusion:deep", "HydraFusion attention gate": "hydrafusion:attention"}
+
+
+def test_the_cpu_verdict_tables_in_the_results_page_are_its_report():
+    """docs/results.md's two tables of the stored cpu-verdict study: every estimate and interval is the
+    report's, rounded as the README block rounds (a 0.0155 bound is +0.015, never retyped as +0.016)."""
+    from study.scoring import difference_interval
+
+    r = _load("study_cpu_verdict/report.json")["results"]
+    ci, ms = r["intervals"]["per_context"]["all"], r["methods"]
+
+    def cell(a, b):
+        lo, hi = difference_interval(ci, a, b)
+        return f"{ms[a]['map'] - ms[b]['map']:+.3f}", f"[{lo:+.3f}, {hi:+.3f}]"
+
+    doc = ROOT / "docs" / "results.md"
+    rows = table(doc, "| comparison (mAP@0.5, 500 draws of 384 sequences) |")
+    assert set(rows) == set(VERDICT_PAIRS)
+    for row, (a, b) in VERDICT_PAIRS.items():
+        assert rows[row] == list(cell(a, b)), row
+    rows = table(doc, "| method (test set, 384 sequences) | mAP | minus late [95 %] |")
+    assert set(rows) == set(VERDICT_METHODS)
+    for row, m in VERDICT_METHODS.items():
+        assert rows[row][:2] == [f"{ms[m]['map']:.3f}", " ".join(cell(m, "late"))], row
