@@ -26,7 +26,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from fusion.metrics import sequence_draws
+from fusion.metrics import DrawScorer, ImageMatches, sequence_draws
 
 DESIGNS = ("sequence", "stratified", "rescaled")
 """How a test set's sequences are redrawn (`design_draws`): "sequence", whole sequences from all of
@@ -93,6 +93,33 @@ def design_draws(by_stratum: Mapping[Hashable, Mapping[Hashable, Sequence]], res
     if not pooled:
         raise ValueError("design_draws: no sequence to draw")
     return sequence_draws(pooled, resamples, seed)
+
+
+SCORINGS = ("weighted", "pooled")
+"""How `map_draws` scores a draw: "weighted", the detections ranked once and each draw a weighting
+of them (`fusion.metrics.DrawScorer`); "pooled", each draw's detections pooled and ranked again
+(`fusion.metrics.ImageMatches.mean_ap`), the reference the weighted scoring is tested against."""
+
+
+def map_draws(matches: Mapping[str, ImageMatches], by_stratum: Mapping[Hashable, Mapping[Hashable, Sequence]],
+              resamples: int, seed: int, design: str = "sequence", scoring: str = "weighted",
+              scorers: Mapping[str, DrawScorer] | None = None) -> np.ndarray:
+    """(resamples, sources) each source's mAP on each draw of whole sequences (`design_draws` over
+    {stratum: {sequence: [image rows]}}, seeded), every source on the same draws (paired).
+    `scoring`: one of `SCORINGS`, equal to 1e-12; `scorers`: `DrawScorer`s already built for
+    `matches` (one ranking serves every group of one set of images)."""
+    if scoring not in SCORINGS:
+        raise ValueError(f"scoring must be one of {SCORINGS}, got {scoring!r}")
+    names = list(matches)
+    draws = list(design_draws(by_stratum, resamples, seed, design))
+    out = np.empty((len(draws), len(names)))
+    for i, n in enumerate(names):
+        if scoring == "pooled":
+            out[:, i] = [matches[n].mean_ap(d) for d in draws]
+        else:
+            scorer = scorers[n] if scorers is not None else DrawScorer(matches[n])
+            out[:, i] = scorer.mean_ap(draws)
+    return out
 
 
 def resolved_sign(interval) -> int:

@@ -321,26 +321,129 @@ class ImageMatches:
             per_image.append(row)
         return cls(per_image, class_ids, interpolation)
 
+    def ap_of_class(self, c: int, images: Sequence[int]) -> float:
+        """AP of class `c` over these images (repeats allowed, in this order), as `ap`."""
+        rows = [self.per_image[i][c] for i in images]
+        n_pos = sum(r[2] for r in rows)
+        if not n_pos:
+            return float("nan")
+        scores = np.concatenate([r[0] for r in rows]) if rows else np.zeros(0)
+        tp = np.concatenate([r[1] for r in rows]) if rows else np.zeros(0, bool)
+        tp = tp[np.argsort(-scores, kind="stable")]  # ties keep image order, as when pooled
+        return average_precision(*_recall_precision(tp, n_pos), self.interpolation)
+
     def ap(self, images: Sequence[int]) -> dict[int, float]:
         """AP per class over these images (repeats allowed, in this order): equal to
         `evaluate_detections` on the same list of images, to the last bit (tested)."""
-        out = {}
-        for c in self.classes:
-            rows = [self.per_image[i][c] for i in images]
-            n_pos = sum(r[2] for r in rows)
-            if not n_pos:
-                out[c] = float("nan")
-                continue
-            scores = np.concatenate([r[0] for r in rows]) if rows else np.zeros(0)
-            tp = np.concatenate([r[1] for r in rows]) if rows else np.zeros(0, bool)
-            tp = tp[np.argsort(-scores, kind="stable")]  # ties keep image order, as when pooled
-            out[c] = average_precision(*_recall_precision(tp, n_pos), self.interpolation)
-        return out
+        return {c: self.ap_of_class(c, images) for c in self.classes}
 
     def mean_ap(self, images: Sequence[int]) -> float:
         """Mean of `ap` over the classes with ground truth in these images (NaN when none has)."""
         finite = [v for v in self.ap(images).values() if not np.isnan(v)]
         return float(np.mean(finite)) if finite else float("nan")
+
+    def mean_ap_draws(self, draws: Sequence[Sequence[int]]) -> np.ndarray:
+        """`mean_ap` of each draw (a list of images, repeats allowed), equal to it to rounding
+        (1e-12; tested): the pooled detections are ranked once, and a draw only weights them
+        (`DrawScorer`). Interpolation "all" only."""
+        return DrawScorer(self).mean_ap(draws)
+
+
+class DrawScorer:
+    """VOC all-point AP of many draws of the same images, each scored without ranking again.
+
+    A draw takes each image some number of times (its multiplicity m_i: 0, 1, 2, ...). Matching is
+    per image, so every detection keeps its true-positive flag in every draw; only the ranking
+    could change, and it does not: the pooled detections of a class are ranked once (by score,
+    stable over image then rank order), and in a draw a detection stands for m_i consecutive
+    copies of itself. The precision after detection k is then TP_k / (TP_k + FP_k) with the counts
+    weighted by m, n_pos = sum_i m_i n_pos_i, and AP = sum over true positives of m_k / n_pos
+    times the precision envelope max_{j >= k} P_j: within a run of true positives precision only
+    rises and within a run of false positives it only falls, so the envelope at every copy of a
+    true positive is the envelope after its last copy, and the false positives' intermediate
+    points never raise it. The sum is the same as `average_precision`'s over the expanded list.
+
+    One thing can differ: detections of equal score are visited in the draw's order of images
+    (`ImageMatches.ap` concatenates the draw and sorts stably), and when such a tie mixes true and
+    false positives the order changes the curve. A class holding a tie like that (scores rounded by
+    a fusion, copies of one image) is scored for that draw the old way (`ImageMatches.ap`'s
+    pooling), so every draw's AP is what the per-draw ranking gives; `fallback_classes` names them.
+    """
+
+    def __init__(self, matches: ImageMatches) -> None:
+        if matches.interpolation != "all":
+            raise ValueError(f"DrawScorer: only 'all' interpolation, got {matches.interpolation!r}")
+        self.matches = matches
+        self.n_images = len(matches.per_image)
+        self.classes = matches.classes
+        self.ranked: dict = {}  # class -> (image of each ranked detection, tp flags)
+        self.n_pos: dict = {}  # class -> (n_images,) non-difficult boxes per image
+        self.fallback_classes: list = []
+        for c in self.classes:
+            rows = [r[c] for r in matches.per_image]
+            scores = np.concatenate([r[0] for r in rows]) if rows else np.zeros(0)
+            tp = np.concatenate([r[1] for r in rows]).astype(bool) if rows else np.zeros(0, bool)
+            image = np.repeat(np.arange(len(rows)), [len(r[0]) for r in rows])
+            order = np.argsort(-scores, kind="stable")
+            self.ranked[c] = (image[order].astype(np.int64), tp[order])
+            self.n_pos[c] = np.array([r[2] for r in rows], np.int64)
+            if _mixed_ties(scores[order], tp[order]):
+                self.fallback_classes.append(c)
+
+    def multiplicities(self, draws: Sequence[Sequence[int]]) -> np.ndarray:
+        """(draws, images) how often each draw takes each image."""
+        out = np.zeros((len(draws), self.n_images), np.int64)
+        for r, d in enumerate(draws):
+            out[r] = np.bincount(np.asarray(d, np.int64).reshape(-1), minlength=self.n_images)
+        return out
+
+    def ap(self, draws: Sequence[Sequence[int]]) -> dict[int, np.ndarray]:
+        """{class: (draws,) AP}, NaN where a draw holds no ground truth of the class."""
+        draws = [list(d) for d in draws]
+        mult = self.multiplicities(draws)
+        drawn = mult.any(axis=0)  # images no draw takes weigh 0 everywhere: leave them out of the walk
+        out = {}
+        for c in self.classes:
+            if c in self.fallback_classes:
+                out[c] = np.array([self.matches.ap_of_class(c, d) for d in draws])
+                continue
+            image, tp = self.ranked[c]
+            keep = drawn[image]
+            out[c] = _weighted_ap(image[keep], tp[keep], mult, mult @ self.n_pos[c])
+        return out
+
+    def mean_ap(self, draws: Sequence[Sequence[int]]) -> np.ndarray:
+        """(draws,) mean AP over the classes with ground truth in each draw (NaN when none has), as
+        `ImageMatches.mean_ap`."""
+        per = self.ap(draws)
+        if not per:
+            return np.full(len(draws), np.nan)
+        table = np.stack([per[c] for c in self.classes], axis=1)
+        out = np.full(len(table), np.nan)
+        for r, row in enumerate(table):
+            finite = row[~np.isnan(row)]
+            if len(finite):
+                out[r] = float(np.mean(finite))
+        return out
+
+
+def _mixed_ties(scores: np.ndarray, tp: np.ndarray) -> bool:
+    """Whether ranked detections hold a run of equal scores with both true and false positives."""
+    if len(scores) < 2:
+        return False
+    starts = np.flatnonzero(np.r_[True, scores[1:] != scores[:-1]])
+    any_tp = np.maximum.reduceat(tp.astype(np.int8), starts)
+    all_tp = np.minimum.reduceat(tp.astype(np.int8), starts)
+    return bool(np.any(any_tp != all_tp))
+
+
+def _weighted_ap(image: np.ndarray, tp: np.ndarray, mult: np.ndarray, n_pos: np.ndarray) -> np.ndarray:
+    """(draws,) all-point AP of ranked detections (`image` of each, `tp` flags) weighted by each
+    draw's image multiplicities `mult` (draws, images); NaN where `n_pos` is 0 (`DrawScorer`)."""
+    from fusion.metrics_kernels import weighted_ap
+
+    return weighted_ap(np.ascontiguousarray(image, np.int64), np.ascontiguousarray(tp, np.bool_),
+                       np.ascontiguousarray(mult, np.int64), np.ascontiguousarray(n_pos, np.int64))
 
 
 def evaluate_detections(detections: Sequence, ground_truths: Sequence, *, iou_thr: float = 0.5,

@@ -12,9 +12,9 @@ import torch
 from torch.utils.data import DataLoader
 
 from fusion.data import FrameDataset, collate, hold_out_sequences, split_by_sequence
-from fusion.intervals import design_draws
+from fusion.intervals import map_draws
 from fusion.late import Detections, fuse
-from fusion.metrics import ImageMatches, evaluate_detections
+from fusion.metrics import DrawScorer, ImageMatches, evaluate_detections
 from fusion.robustness import twin_relative_accuracy
 from sensors.dataset import DatasetReader
 from sensors.rig import Calibration
@@ -434,7 +434,7 @@ def paired_bootstrap(deg_frames: list, clr_frames: list, reader, clear_reader, f
 
 def context_bootstrap(sources: dict, reader, frame: str = "camera_right", protocol=None, resamples: int = 200,
                       seed: int = 0, desc: str = "bootstrap contexts", classes: str = "vehicles",
-                      design: str = "sequence") -> dict:
+                      design: str = "sequence", scoring: str = "weighted") -> dict:
     """95 % intervals of each source's mAP (`classes`: "vehicles", the four vehicle classes, as
     `map_vehicles`; "all", every class, as `map`), overall and per context, and of the difference
     between every two sources, from draws of whole sequences with replacement (within each context;
@@ -443,7 +443,8 @@ def context_bootstrap(sources: dict, reader, frame: str = "camera_right", protoc
     same frames, so a difference's interval is paired: one that excludes 0 says the order of the two
     would hold on another draw of sequences like these. Percentile intervals; seeded. `design`: how
     sequences are drawn (`fusion.intervals.design_draws`, strata: the contexts; "sequence", the
-    default, draws from all of a group's sequences).
+    default, draws from all of a group's sequences). `scoring`: how a draw is scored
+    (`fusion.intervals.SCORINGS`: the same intervals either way, "weighted" ranks once).
     """
     from sim.progress import progress as progress_bar
 
@@ -466,6 +467,7 @@ def context_bootstrap(sources: dict, reader, frame: str = "camera_right", protoc
     for k in keys:
         groups.setdefault(meta_of[k]["context"], []).append(k)
     pairs = [(a, b) for i, a in enumerate(names) for b in names[i + 1:]]
+    scorers = {n: DrawScorer(m) for n, m in matches.items()} if scoring == "weighted" else None
 
     out = {"resamples": int(resamples), "unit": "sequence", "design": design, "seed": int(seed), "per_context": {}}
     with progress_bar(total=resamples * len(groups), desc=desc, unit="draw") as bar:
@@ -473,10 +475,8 @@ def context_bootstrap(sources: dict, reader, frame: str = "camera_right", protoc
             by: dict = {}
             for k in ks:
                 by.setdefault(meta_of[k]["context"], {}).setdefault(meta_of[k]["sequence_id"], []).append(row[k])
-            draws = np.empty((resamples, len(names)))
-            for r, picks in enumerate(design_draws(by, resamples, seed, design)):
-                draws[r] = [matches[n].mean_ap(picks) for n in names]
-                bar.update(1)
+            draws = map_draws(matches, by, resamples, seed, design, scoring, scorers)
+            bar.update(resamples)
             out["per_context"][g] = {
                 "sequences": sum(len(v) for v in by.values()),
                 key: {n: _interval(draws[:, i]) for i, n in enumerate(names)},

@@ -159,3 +159,29 @@ def test_resolved_sign_reads_the_order_an_interval_resolves():
     assert resolved_sign([0.01, 0.02]) == 1 and resolved_sign([-0.02, -0.01]) == -1
     assert resolved_sign([-0.01, 0.02]) == 0 and resolved_sign([0.0, 0.02]) == 0
     assert resolved_sign(None) == 0 and resolved_sign([None, 0.1]) == 0 and resolved_sign([]) == 0
+
+
+@pytest.mark.parametrize("design", ["sequence", "stratified", "rescaled"])
+def test_map_draws_weighted_is_the_pooled_bootstrap_for_every_design(design):
+    """`map_draws` ranked once gives every source's mAP on every draw of the design as pooling each
+    draw does, paired (the same draws for every source), overall and on one stratum."""
+    from fusion.intervals import map_draws
+    from fusion.metrics import ImageMatches
+    from tests.fusion.test_metrics import random_scenes
+
+    rng = np.random.default_rng(8)
+    gts, _ = random_scenes(rng, n_images=36)
+    matches = {}
+    for name in ("a", "b"):
+        _, dets = random_scenes(np.random.default_rng(len(name) + ord(name)), n_images=36)
+        matches[name] = ImageMatches.of(dets, gts, classes=[1, 2, 3])
+    by = {s: {f"{s}{q}": [12 * s + 3 * q + f for f in range(3)] for q in range(4)} for s in range(3)}
+    new = map_draws(matches, by, 60, 4, design)
+    old = map_draws(matches, by, 60, 4, design, scoring="pooled")
+    assert new.shape == (60, 2) and np.array_equal(np.isnan(new), np.isnan(old))
+    np.testing.assert_allclose(new, old, atol=1e-12)
+    assert np.std(new[:, 0] - new[:, 1]) > 0
+    one = map_draws(matches, {0: by[0]}, 30, 4, design)
+    np.testing.assert_allclose(one, map_draws(matches, {0: by[0]}, 30, 4, design, scoring="pooled"), atol=1e-12)
+    with pytest.raises(ValueError, match="scoring"):
+        map_draws(matches, by, 5, 0, design, scoring="fast")

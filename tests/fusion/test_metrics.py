@@ -367,3 +367,56 @@ def test_image_matches_give_evaluate_detections_ap_for_any_draw_of_images(interp
     assert checked > 60
     with pytest.raises(ValueError, match="iou_thr"):
         ImageMatches.of(dets, gts, iou_thr=1.5)
+
+
+def test_draw_scorer_gives_the_pooled_map_of_every_draw():
+    """Ranked once and weighted by each draw's multiplicities, the mAP is the pooled one (each
+    draw's detections ranked again) on every draw: repeats, images drawn 0 times, difficult boxes,
+    duplicates, images without ground truth or detections; continuous scores take the weighted
+    path (no class falls back)."""
+    from fusion.metrics import DrawScorer, ImageMatches
+
+    rng = np.random.default_rng(5)
+    gts, dets = random_scenes(rng, n_images=40)
+    for g in gts:
+        g["difficult"] = rng.random(len(g["boxes"])) < 0.2
+    dets[3] = {"boxes": np.zeros((0, 4)), "scores": np.zeros(0), "labels": np.zeros(0, int)}
+    gts[5] = {"boxes": np.zeros((0, 4)), "labels": np.zeros(0, int), "difficult": np.zeros(0, bool)}
+    m = ImageMatches.of(dets, gts, classes=[1, 2, 3])
+    scorer = DrawScorer(m)
+    assert scorer.fallback_classes == []
+    draws = [rng.integers(0, 40, int(rng.integers(1, 60))).tolist() for _ in range(150)] + [[5], [3, 3]]
+    new, old = scorer.mean_ap(draws), np.array([m.mean_ap(d) for d in draws])
+    assert np.array_equal(np.isnan(new), np.isnan(old)) and np.isnan(old).sum() >= 1
+    np.testing.assert_allclose(new[~np.isnan(old)], old[~np.isnan(old)], rtol=0, atol=1e-12)
+    per = scorer.ap(draws)
+    for r in range(0, 150, 7):
+        ref = m.ap(draws[r])
+        for c in m.classes:
+            assert (np.isnan(ref[c]) and np.isnan(per[c][r])) or per[c][r] == pytest.approx(ref[c], abs=1e-12)
+    assert len({round(v, 9) for v in new[~np.isnan(new)]}) > 100  # the draws differ: a real test
+    with pytest.raises(ValueError, match="interpolation"):
+        DrawScorer(ImageMatches.of(dets, gts, interpolation="11"))
+
+
+def test_draw_scorer_follows_the_draws_order_where_equal_scores_mix_true_and_false_positives():
+    """A tie between a true and a false positive is visited in the draw's order of images, which
+    changes the curve (TP first: AP 1; FP first: 1/2); such a class is scored per draw, exactly."""
+    from fusion.metrics import DrawScorer, ImageMatches
+
+    box = np.array([[0.1, 0.1, 0.3, 0.3]])
+    gts = [{"boxes": box, "labels": [1]}, {"boxes": np.zeros((0, 4)), "labels": np.zeros(0, int)}]
+    dets = [{"boxes": box, "scores": [0.5], "labels": [1]}, {"boxes": box, "scores": [0.5], "labels": [1]}]
+    m = ImageMatches.of(dets, gts, classes=[1])
+    scorer = DrawScorer(m)
+    assert scorer.fallback_classes == [1]
+    draws = [[0, 1], [1, 0], [1, 0, 0], [0, 1, 0]]
+    np.testing.assert_allclose(scorer.mean_ap(draws), [m.mean_ap(d) for d in draws], atol=1e-12)
+    assert scorer.mean_ap(draws)[:2].tolist() == [1.0, 0.5]
+    rng = np.random.default_rng(2)  # many ties (scores to 0.1) over random scenes: still every draw's pooled mAP
+    gts, dets = random_scenes(rng, n_images=20)
+    for d in dets:
+        d["scores"] = np.round(d["scores"], 1)
+    m = ImageMatches.of(dets, gts, classes=[1, 2, 3])
+    draws = [rng.integers(0, 20, 25).tolist() for _ in range(30)]
+    np.testing.assert_allclose(DrawScorer(m).mean_ap(draws), [m.mean_ap(d) for d in draws], atol=1e-12)

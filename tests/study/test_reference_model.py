@@ -312,3 +312,29 @@ def test_the_committed_reference_model_is_whole_and_runs_by_name(data, tmp_path,
     assert r["gates"] == ["knowledge", "deep", "attention"] and r["gates_not_trained"] == [] and r["split"] == "all"
     assert sorted(p.relative_to(rm.MODEL_DIR) for p in rm.MODEL_DIR.rglob("*")) == before  # nothing written there
     assert any((tmp_path / "cache" / "models").iterdir())  # the cache run took the writes
+
+
+def test_the_bootstrap_ranked_once_gives_the_pooled_intervals_on_a_networks_detections(run, data):
+    """`context_bootstrap` scoring each draw by weights on detections ranked once gives the intervals
+    of pooling every draw (the old path), overall and per context, for each design."""
+    from study.scoring import context_bootstrap, fused, load_run, run_branches
+
+    model, _ = load_run(run)
+    from sensors.dataset import DatasetReader
+
+    reader = DatasetReader(data)
+    per_frame = run_branches(model, data, list(range(len(reader))), list(model.branches), progress="test")
+    frames = model.branch_frames
+    sources = {b: fused(per_frame, [b], frames, "soft_nms") for b in ("radar", "camera_right", "lidar")}
+    sources["all"] = fused(per_frame, list(model.branches), frames, "soft_nms")
+    assert sum(len(d.scores) for _, d in sources["all"]) > 50
+    for design in ("sequence", "rescaled"):
+        new = context_bootstrap(sources, reader, resamples=30, classes="all", design=design)
+        old = context_bootstrap(sources, reader, resamples=30, classes="all", design=design, scoring="pooled")
+        assert new.keys() == old.keys() and new["per_context"].keys() == old["per_context"].keys() == {"all", "city", "fog"}
+        for g, row in old["per_context"].items():
+            for part in ("map", "difference"):
+                for name, iv in row[part].items():
+                    assert (iv is None) == (new["per_context"][g][part][name] is None), (g, name)
+                    if iv is not None:
+                        assert new["per_context"][g][part][name] == pytest.approx(iv, abs=1e-9), (g, part, name)

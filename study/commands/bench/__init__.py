@@ -12,6 +12,7 @@ from study.commands.bench import (
     amp,
     amp_parity,
     arch,
+    bootstrap,
     boxes,
     generate,
     inference,
@@ -22,7 +23,7 @@ from study.commands.bench import (
     sim,
 )
 
-FAMILIES = (sim, generate, boxes, inference, amp, amp_parity, profile, recipe, arch, lidar_fog, scale)
+FAMILIES = (sim, generate, boxes, bootstrap, inference, amp, amp_parity, profile, recipe, arch, lidar_fog, scale)
 """The subcommands, in the order `hydrabench bench --help` lists them."""
 
 
