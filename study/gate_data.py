@@ -5,7 +5,8 @@ model as the inputs and targets for the gate"). For every frame of a dataset, wh
 gates consume, `fusion.nets.branch_gates.pool_features` of the stem outputs (float16, 64 channels per
 sensor on an 8 x 16 grid by default: 80 kB a frame for five sensors), and each branch's four
 Faster R-CNN losses from `HydraFusion.per_sample_losses` (seed 0; the gate target is their sum).
-Cached under the run directory, keyed by the checkpoint's SHA-256, the dataset manifest's SHA-256,
+Cached under the run directory, keyed by the checkpoint's SHA-256, the dataset's contents
+(`dataset_sha256`: every shard hashed and checked against the manifest's checksums),
 the grid, the sensors, the branches, the seed, and the device type and precision the network ran in
 (`study.device.compute_identity`):
 
@@ -58,6 +59,45 @@ def cached_sha256(path: Path) -> str:
     return _SHA_CACHE[key]
 
 
+_DATA_CACHE: dict[tuple, str] = {}
+
+
+def dataset_sha256(data) -> str:
+    """The identity of a dataset's contents, for keying what is cached from it: the SHA-256 of its
+    manifest.json, after every shard the manifest lists has been hashed (`sensors.dataset.shard_digest`:
+    every file's path and bytes) and found equal to the checksum the manifest records. The manifest
+    alone is not enough: a dataset whose labels were edited after generation keeps its manifest, and
+    a cache keyed on it would serve results of the old labels. A shard whose files differ from their
+    recorded checksum is refused (UserError naming it; `hydrabench verify` lists every problem).
+    Remembered within the process per (path, size, mtime) of every file, so one command hashes a
+    dataset once."""
+    from sensors.dataset import shard_digest
+
+    root = Path(data)
+    manifest = root / "manifest.json"
+    try:
+        m = json.loads(manifest.read_text())
+        shards = [(str(s["name"]), str(s["sha256"])) for s in m["shards"]]
+    except (OSError, ValueError, KeyError, TypeError) as exc:
+        raise UserError(f"{manifest}: not a readable dataset manifest ({exc})") from None
+    files = []
+    for name, _ in shards:
+        for p in sorted((root / name).rglob("*")):
+            if p.is_file():
+                st = p.stat()
+                files.append((str(p.relative_to(root)), st.st_size, st.st_mtime_ns))
+    st = manifest.stat()
+    key = (str(root.resolve()), st.st_size, st.st_mtime_ns, tuple(files))
+    if key not in _DATA_CACHE:
+        for name, recorded in shards:
+            if not (root / name).is_dir() or shard_digest(root / name) != recorded:
+                raise UserError(f"{root}: {name} does not match the checksum its manifest records (its files changed "
+                                f"after generation, so results cached from it would not be of these contents; "
+                                f"hydrabench verify {root} names the problems)")
+        _DATA_CACHE[key] = file_sha256(manifest)
+    return _DATA_CACHE[key]
+
+
 def checkpoint_path(run_dir: Path, checkpoint: str = "latest") -> Path:
     return Path(run_dir) / ("checkpoint.pt" if checkpoint == "latest" else f"{checkpoint}.pt")
 
@@ -105,7 +145,7 @@ class GateData:
         self.identity = {
             "protocol": self.protocol,
             "version": GATE_DATA_VERSION, "checkpoint": checkpoint, "checkpoint_sha256": cached_sha256(ckpt),
-            "dataset_manifest_sha256": cached_sha256(manifest), "grid": list(self.grid), "sensors": list(self.sensors),
+            "dataset_sha256": dataset_sha256(self.data), "grid": list(self.grid), "sensors": list(self.sensors),
             "branches": list(self.branches), "loss_seed": self.seed,
             "bev_size": list(model.transform.image_size("radar")),
         }
@@ -116,7 +156,7 @@ class GateData:
         # what a gate trained on this cache depends on besides its training frames: the same network,
         # settings and targets on any dataset (a study's gates fit on its gate set and run on its test set)
         self.model_key = hashlib.sha256(json.dumps(
-            {k: v for k, v in self.identity.items() if k != "dataset_manifest_sha256"}, sort_keys=True).encode()
+            {k: v for k, v in self.identity.items() if k != "dataset_sha256"}, sort_keys=True).encode()
         ).hexdigest()[:16]
         self.dir = self.run_dir / self.subdir / self.key
         self._index: dict[int, tuple[Path, int]] | None = None

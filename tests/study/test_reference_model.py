@@ -338,3 +338,24 @@ def test_the_bootstrap_ranked_once_gives_the_pooled_intervals_on_a_networks_dete
                     assert (iv is None) == (new["per_context"][g][part][name] is None), (g, name)
                     if iv is not None:
                         assert new["per_context"][g][part][name] == pytest.approx(iv, abs=1e-9), (g, part, name)
+
+
+def test_a_dataset_whose_files_differ_from_its_manifest_is_refused_not_served_from_the_cache(exported, data, tmp_path,
+                                                                                              capsys):
+    """Caches are keyed on a dataset's contents: after a label changes but manifest.json does not,
+    `compare` neither reuses the gate data cached from the old labels nor caches from the new ones:
+    one line naming the shard (issue 51 measured an optimal gate read from stale losses)."""
+    model_dir, _, _ = exported
+    copy = tmp_path / "data"
+    shutil.copytree(data, copy)
+    argv = ["compare", str(model_dir), str(copy), "--gates", "knowledge,optimal", "--bootstrap", "0", "--threads", "1",
+            "--json"]
+    assert main(argv) == 0
+    capsys.readouterr()
+    frames = sorted(copy.glob("shard-*/frames.json"))[0]
+    doc = json.loads(frames.read_text())
+    box = next(f["labels"]["camera_right"]["boxes"][0] for f in doc["frames"] if f["labels"]["camera_right"]["boxes"])
+    box[2] = box[0] + (box[2] - box[0]) / 2  # a narrower box: still valid, another answer
+    frames.write_text(json.dumps(doc))
+    assert main(argv) == 2
+    _one_line_error(capsys, f"{frames.parent.name} does not match the checksum its manifest records")
