@@ -348,6 +348,26 @@ def dataset_dir(text: str) -> str:
 _typed(dataset_dir, "dataset", checked=True)
 
 
+def predictions_dir(text: str) -> str:
+    """An argparse type: a predictions directory (hydrabench predict --out), its manifest readable."""
+    path = Path(_path_text(text))
+    if not path.is_dir():
+        raise argparse.ArgumentTypeError(f"{text} is not a directory" if path.exists() else f"{text} does not exist")
+    from study.predictions import FORMAT
+
+    try:
+        fmt = json.loads((path / "manifest.json").read_text()).get("format")
+    except (OSError, ValueError, AttributeError):
+        fmt = None
+    if fmt != FORMAT:
+        raise argparse.ArgumentTypeError(f"{text} is not a predictions directory (no {FORMAT} manifest.json; see "
+                                         "hydrabench predict)")
+    return str(path)
+
+
+_typed(predictions_dir, "predictions")
+
+
 def training_run(text: str) -> str:
     """An argparse type: a training run directory (hydrabench train --out), or a reference model
     (`study.reference_model`: a name in models/ or its directory), checked against its manifest and
@@ -438,6 +458,8 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "eco-train-gate": ("study.commands.eco:add_eco_train_gate", "EcoFusion: train the deep or attention configuration gate"),
     "eco-evaluate": ("study.commands.eco:add_eco_evaluate", "EcoFusion at one lambda_E and gamma: mAP, loss, energy, latency per gate"),
     "eco-sweep": ("study.commands.eco:add_eco_sweep", "EcoFusion Tables 1-3 and Figures 4-5 over a lambda_E sweep"),
+    "predict": ("study.commands.predict:add_parser", "run a model once over a dataset and keep every branch's "
+                "detections, losses and gate inputs (the predictions every score reads)"),
     "compare": ("study.commands.compare:add_parser", "selective (gated) against fixed fusion on one dataset, with intervals"),
     "model": ("study.commands.model:add_parser", "reference models: export a trained run (float16, gates, manifest), list them"),
     "study": ("study.commands.study:add_parser", "the whole HydraFusion + EcoFusion study as cached, resumable stages, "

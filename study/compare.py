@@ -41,17 +41,21 @@ def verdict(iv) -> str:
 def compare(run_dir, data, *, gates=GATES, k: int = 2, fusion: str = "soft-nms", split: str = "auto",
             resamples: int = 500, batch_size: int = 4, setup=None, progress: bool = True,
             twins: bool = False, coverage_deals: int = 0, coverage_designs=("sequence",),
-            interval: str = "sequence", need_intervals: str | None = None) -> dict:
+            interval: str = "sequence", need_intervals: str | None = None, predictions=None) -> dict:
     """The comparison of the module docstring -> a JSON-able dict: per method its kind, mAP, vehicle
     mAP, mAP per context, and mAP minus late fusion with its 95 % interval and verdict, overall and
-    per context. `twins`: also each method's robustness on the clear-weather twins (`robustness`).
-    `coverage_deals`: also check the intervals on this test set (`coverage`), by each bootstrap design
-    in `coverage_designs` (`fusion.intervals.DESIGNS`); `interval`: the design of the reported intervals.
-    `need_intervals`: what needs the intervals (an option's name, "--plot"): refused before the
-    networks run when there can be none (no bootstrap, or no ground-truth box to score on the frames)."""
-    from study.gate_tables import _setup, gate_pass, parse_k, selection_rates
+    per context. The network runs once (`study.predictions.predict`, whose result is cached under the
+    run and reused while model, data and code are unchanged); `predictions`: a predictions directory
+    of this run on `data` to score instead, with no network. `twins`: also each method's robustness
+    on the clear-weather twins (`robustness`). `coverage_deals`: also check the intervals on this test
+    set (`coverage`), by each bootstrap design in `coverage_designs` (`fusion.intervals.DESIGNS`);
+    `interval`: the design of the reported intervals. `need_intervals`: what needs the intervals (an
+    option's name, "--plot"): refused before the networks run when there can be none (no bootstrap,
+    or no ground-truth box to score on the frames)."""
+    from sensors.dataset import DatasetReader
+    from study.gate_tables import parse_k, selection_rates
+    from study.predictions import load, predict
     from study.scoring import context_bootstrap, difference_interval, fuse_selection, fusion_method, score
-    from study.train import run_protocol
 
     run_dir, data = Path(run_dir), Path(data)
     method = fusion_method(fusion)
@@ -59,22 +63,36 @@ def compare(run_dir, data, *, gates=GATES, k: int = 2, fusion: str = "soft-nms",
         raise UserError(f"--bootstrap must be >= 0, got {resamples}")
     if need_intervals and not resamples:
         raise UserError(f"{need_intervals} needs intervals: give --bootstrap N > 0")
-    model, cfg, indices, used_split, reader = _setup(run_dir, data, split, None, "latest", setup)
-    protocol = run_protocol(cfg)
-    if need_intervals and not _has_ground_truth(reader, indices, protocol):
-        raise UserError(f"{need_intervals} needs intervals, and none can exist: the {len(indices)} frames of the "
-                        f"{used_split} split of {data} hold no box to find under protocol {protocol!r} (every mAP is undefined)")
-    branches = list(model.branches)
+    reader = DatasetReader(data)
+    if predictions is None:
+        if need_intervals:  # before the network runs: the frames and protocol from the run's config alone
+            import json
+
+            from study.scoring import frames_for
+            from study.train import run_protocol
+
+            cfg = json.loads((run_dir / "config.json").read_text())
+            indices, used_split = frames_for(cfg, data, split)
+            _need_ground_truth(need_intervals, reader, indices, run_protocol(cfg), used_split, data)
+        gp = predict(run_dir, data, gates=gates, split=split, batch_size=batch_size, setup=setup, progress=progress)
+    else:
+        gp = load(predictions)
+        check_predictions(gp, run_dir, data)
+    protocol = gp.manifest["identity"]["protocol"]
+    used_split = gp.manifest["identity"]["split"]
+    indices = [int(m["dataset_index"]) for m, _ in gp.per_frame]
+    if need_intervals:
+        _need_ground_truth(need_intervals, reader, indices, protocol, used_split, data)
+    branches = gp.branches
     k = parse_k(k, len(branches), "k")
     k = len(branches) if k == "all" else k
-    sensors = model.branch_sensors
+    sensors = gp.branch_sensors
     singles = [b for b in branches if len(sensors[b]) == 1]
     if not singles:
         raise UserError(f"{run_dir}: no single-sensor branch, so no late-fusion baseline to compare with")
-    trained = usable_gates(run_dir, gates)
+    trained = [g for g in gates if g in gp.gates]
     skipped = [g for g in gates if g not in trained]
-    gp = gate_pass(run_dir, data, model, trained, indices, "latest", batch_size, progress)
-    frames = model.branch_frames
+    frames = gp.branch_frames
     kinds = {f"single:{b}": "single sensor" for b in singles}
     selections = {f"single:{b}": [(b,)] * len(gp.per_frame) for b in singles}
     kinds["late"], selections["late"] = "late fusion of the single-sensor branches", [tuple(singles)] * len(gp.per_frame)
@@ -112,9 +130,12 @@ def compare(run_dir, data, *, gates=GATES, k: int = 2, fusion: str = "soft-nms",
             row["ci95"] = boot["per_context"]["all"]["map"][name]
         methods[name] = row
     rates = {g: selection_rates(selections[f"hydrafusion:{g}"], branches) for g in trained}
-    best = best_gate(run_dir, trained)
+    best = _best_of(gp.manifest.get("best_gate"), trained)
     rob = None
     if twins:
+        from study.gate_tables import _setup
+
+        model = _setup(run_dir, data, "all", None, "latest", setup)[0]
         rob = robustness(run_dir, data, model, reader, gp, selections, sources, [g for g in trained if g != "optimal"],
                          k, method, protocol, indices, resamples, batch_size, progress)
     cov = (coverage(sources, reader, protocol, coverage_deals, resamples, progress, coverage_designs)
@@ -126,9 +147,17 @@ def compare(run_dir, data, *, gates=GATES, k: int = 2, fusion: str = "soft-nms",
         "gates_not_trained": skipped, "methods": methods, "selection_rate_pct": rates, "best_gate": best,
         "bootstrap": {"resamples": resamples, "unit": "sequence", "design": interval} if boot else None,
         "metric": "VOC all-point AP at IoU 0.5, every class with ground truth, right camera",
+        "predictions": str(gp.root),
         **({"robustness": rob} if rob is not None else {}),
         **({"coverage": cov} if cov is not None else {}),
     }
+
+
+def _need_ground_truth(need_intervals: str, reader, indices, protocol, used_split: str, data) -> None:
+    """UserError when no interval can exist on the frames `indices` (no box to find)."""
+    if not _has_ground_truth(reader, indices, protocol):
+        raise UserError(f"{need_intervals} needs intervals, and none can exist: the {len(indices)} frames of the "
+                        f"{used_split} split of {data} hold no box to find under protocol {protocol!r} (every mAP is undefined)")
 
 
 def _has_ground_truth(reader, indices, protocol) -> bool:
@@ -232,6 +261,26 @@ def robustness(run_dir, data, model, reader, gp, selections, sources, twin_gates
             "resamples": resamples, "unit": "sequence"}
 
 
+
+
+def check_predictions(pred, run_dir, data) -> None:
+    """UserError unless `pred` are predictions of the run's checkpoint on exactly `data`'s contents
+    (scoring them against another dataset's labels would be silently wrong)."""
+    from study.gate_data import cached_sha256, checkpoint_path, dataset_sha256
+
+    ident = pred.manifest["identity"]
+    if ident.get("checkpoint_sha256") != cached_sha256(checkpoint_path(Path(run_dir))):
+        raise UserError(f"--predictions {pred.root}: made by another model than {run_dir} (checkpoint SHA-256 differs)")
+    if ident.get("dataset_sha256") != dataset_sha256(data):
+        raise UserError(f"--predictions {pred.root}: made on another dataset than {data} (contents differ)")
+
+
+def _best_of(best: dict | None, gates) -> dict | None:
+    """`best_gate`'s record restricted to `gates`."""
+    vals = {g: v for g, v in ((best or {}).get("validation_regret") or {}).items() if g in gates}
+    if not vals:
+        return None
+    return {**best, "name": min(vals, key=vals.get), "validation_regret": vals}
 
 
 def usable_gates(run_dir: Path, gates) -> list[str]:

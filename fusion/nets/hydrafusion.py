@@ -510,6 +510,37 @@ class HydraFusion(nn.Module):
                 out[i][name] = losses
         return out
 
+    @torch.no_grad()
+    def detect_and_losses(
+        self,
+        inputs: Mapping[str, Tensor],
+        targets: list[dict[str, dict[str, Tensor]]],
+        *,
+        seed: int = 0,
+    ) -> tuple[list[dict[str, dict[str, Tensor]]], list[dict[str, dict[str, Tensor]]]]:
+        """Every branch's eval-mode detections (as `forward(inputs, selection=every branch)`) and
+        per-sample losses (as `per_sample_losses(inputs, targets, seed=seed)`) from one run of the
+        stems and of each branch's backbone: the same numbers as the two calls apart (the same
+        batched operations on the same inputs), for the price of one forward and the loss heads."""
+        if self.training:
+            raise RuntimeError("detect_and_losses needs eval mode (call model.eval() first)")
+        batch = self._check_inputs(inputs)
+        selection = self.expand_selection(None, batch)
+        groups, needs = self._plan(inputs, selection)
+        self._check_targets(targets, selection)
+        feats = self._run_stems(inputs, needs, batch)
+        detections: list[dict[str, dict[str, Tensor]]] = [{} for _ in range(batch)]
+        losses: list[dict[str, dict[str, Tensor]]] = [{} for _ in range(batch)]
+        for name, idx in groups.items():
+            branch = self.branches[name]
+            dets, per = branch.detect_and_losses(
+                self._branch_inputs(name, idx, feats, inputs), [targets[i][branch.frame] for i in idx], seed=seed
+            )
+            for i, d, lo in zip(idx, dets, per):
+                detections[i][name] = d
+                losses[i][name] = lo
+        return detections, losses
+
 
 def _batch_of(selection: Any) -> int:
     """Batch size implied by a selection for the union queries (1 unless per-sample lists)."""

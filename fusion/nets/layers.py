@@ -216,6 +216,19 @@ class Branch(nn.Module):
         return losses if self.training else detections
 
     @torch.no_grad()
+    def detect_and_losses(
+        self, xs: list[Tensor], targets: list[dict[str, Tensor]], *, seed: int
+    ) -> tuple[list[dict[str, Tensor]], list[dict[str, Tensor]]]:
+        """(eval-mode detections, `per_sample_losses`) of a batch from one run of the backbone: the
+        same results as calling `forward` and `per_sample_losses` apart, at the cost of the heads
+        alone for the losses."""
+        if self.training:
+            raise RuntimeError(f"branch {self.name!r}: detect_and_losses needs eval mode (call .eval())")
+        feats = self.features(xs)
+        detections, _ = self._heads(feats, None)
+        return detections, self._sample_losses(feats, targets, seed)
+
+    @torch.no_grad()
     def per_sample_losses(
         self, xs: list[Tensor], targets: list[dict[str, Tensor]], *, seed: int
     ) -> list[dict[str, Tensor]]:
@@ -230,7 +243,9 @@ class Branch(nn.Module):
         """
         if self.training:
             raise RuntimeError(f"branch {self.name!r}: per_sample_losses needs eval mode (call .eval())")
-        feats = self.features(xs)
+        return self._sample_losses(self.features(xs), targets, seed)
+
+    def _sample_losses(self, feats: Tensor, targets: list[dict[str, Tensor]], seed: int) -> list[dict[str, Tensor]]:
         devices = [feats.device.index or 0] if feats.is_cuda else []
         modes = (self.rpn.training, self.roi_heads.training)
         self.rpn.train()

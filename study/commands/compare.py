@@ -16,6 +16,7 @@ from study.cli import (
     name_list,
     out_file,
     pos_int,
+    predictions_dir,
     training_run,
 )
 from study.commands.device import add_device_args
@@ -58,6 +59,8 @@ def add_parser(sub, name, help_text):
     p.add_argument("--coverage-design", default=None, metavar="D[,D...]",
                    help="which bootstraps the coverage check runs on each set, on the same deals (sequence, "
                         "stratified, rescaled; comma-separated for several) [--interval's]")
+    p.add_argument("--predictions", type=predictions_dir, default=None, metavar="PRED",
+                   help="score these stored predictions of RUN on DATA (hydrabench predict) and run no network")
     p.add_argument("--batch-size", type=pos_int, default=4, help="frames per forward pass")
     p.add_argument("--plot", type=out_file(".png", ".pdf", ".svg"), default=None,
                    help="also draw each method's mAP minus late fusion with its interval")
@@ -85,7 +88,8 @@ def run(args) -> int:
     r = compare(Path(args.run_dir), Path(args.data), gates=gates, k=args.k, fusion=args.fusion, split=args.split,
                 resamples=args.bootstrap, batch_size=args.batch_size, setup=resolve_device(args, purpose="eval"),
                 twins=args.twins, coverage_deals=args.coverage_deals,
-                coverage_designs=designs, interval=args.interval, need_intervals="--plot" if args.plot else None)
+                coverage_designs=designs, interval=args.interval, need_intervals="--plot" if args.plot else None,
+                predictions=args.predictions)
     if args.plot:
         from study.compare import plot_compare
 

@@ -359,3 +359,44 @@ def test_a_dataset_whose_files_differ_from_its_manifest_is_refused_not_served_fr
     frames.write_text(json.dumps(doc))
     assert main(argv) == 2
     _one_line_error(capsys, f"{frames.parent.name} does not match the checksum its manifest records")
+
+
+def test_predictions_of_cpu_frontier_are_what_the_two_passes_they_replace_gave_and_compare_scores_them_alone(
+        data, tmp_path, monkeypatch, capsys):
+    """`predict` (stems and backbones once per batch) gives bit for bit the detections and gate outputs
+    of `gate_pass` and the losses and pooled features of `GateData` (the two passes `compare` ran
+    before; checked on the first batch), so `compare`'s numbers do not move; `compare` reuses the set
+    `predict` cached, and `compare --predictions` scores a copy of it with no network to the same JSON."""
+    from study.gate_data import GateData
+    from study.gate_tables import _setup, gate_pass
+    from study.predictions import predict
+
+    monkeypatch.setenv("HYDRABENCH_CACHE", str(tmp_path / "cache"))
+    run = rm.resolve_run("cpu-frontier")
+    gates = ["knowledge", "deep", "attention", "optimal"]
+    pred = predict(run, data, gates=gates, progress=False)
+    model, _, indices, _, _ = _setup(run, data, "auto", None, "latest", None)
+    first = indices[:4]  # one batch of the pass
+    old = gate_pass(run, data, model, gates, first, progress=False)
+    feats, losses = GateData(run, data, model).load(first)
+    assert [m["dataset_index"] for m, _ in pred.per_frame] == indices
+    assert sum(len(d.scores) for _, per in pred.per_frame for d in per.values()) > 0
+    for (_, new), (_, was) in zip(pred.per_frame, old.per_frame, strict=False):
+        assert new.keys() == was.keys()
+        for b in new:
+            for f in ("boxes", "scores", "labels"):
+                assert np.array_equal(getattr(new[b], f), getattr(was[b], f)), (b, f)
+    for g in gates:
+        assert np.array_equal(pred.predicted[g][:4], np.asarray(old.predicted[g], np.float32)), g
+    assert np.array_equal(pred.losses[:4].sum(axis=2), losses) and np.array_equal(pred.features[:4], feats)
+    made = sorted((run / "predictions").iterdir())
+    argv = ["compare", "cpu-frontier", str(data), "--bootstrap", "20", "--threads", "1", "--json"]
+    assert main(argv) == 0
+    fresh = json.loads(capsys.readouterr().out)
+    assert sorted((run / "predictions").iterdir()) == made and fresh["predictions"] == str(pred.root)  # reused
+    shutil.copytree(pred.root, tmp_path / "pred")
+    assert main([*argv, "--predictions", str(tmp_path / "pred")]) == 0
+    stored = json.loads(capsys.readouterr().out)
+    assert {k: v for k, v in stored.items() if k != "predictions"} == {k: v for k, v in fresh.items() if k != "predictions"}
+    assert main([*argv, "--predictions", str(tmp_path)]) == 2
+    _one_line_error(capsys, "is not a predictions directory")
