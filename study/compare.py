@@ -27,8 +27,7 @@ import numpy as np
 from sim.errors import UserError
 from sim.progress import progress as progress_bar
 from study.numbers import number_text, rounded, rounded_interval
-
-GATES = ("knowledge", "deep", "attention", "optimal")
+from study.predictions import GATES
 
 
 def verdict(iv) -> str:
@@ -281,37 +280,6 @@ def _best_of(best: dict | None, gates) -> dict | None:
     if not vals:
         return None
     return {**best, "name": min(vals, key=vals.get), "validation_regret": vals}
-
-
-def usable_gates(run_dir: Path, gates) -> list[str]:
-    """`gates` that can run on `run_dir`: those that learn nothing, and the trainable ones
-    (`Gate.trainable`) with a RUN/gates/<gate>/gate.pt."""
-    from fusion.nets.branch_gates import trainable_gates
-
-    learned = trainable_gates()
-    return [g for g in gates if g not in learned or (Path(run_dir) / "gates" / g / "gate.pt").is_file()]
-
-
-def best_gate(run_dir: Path, gates) -> dict | None:
-    """The learned gate with the lowest validation regret recorded when it was trained (`train-gate`:
-    the run's validation sequences, never the frames compared here), with every gate's value; None
-    when no learned gate recorded one."""
-    import torch
-
-    from fusion.nets.branch_gates import trainable_gates
-
-    vals = {}
-    learned = trainable_gates()
-    for g in gates:
-        path = Path(run_dir) / "gates" / g / "gate.pt"
-        if g in learned and path.is_file():
-            res = (torch.load(path, map_location="cpu", weights_only=False).get("result") or {})
-            if res.get("val_regret") is not None:
-                vals[g] = float(res["val_regret"])
-    if not vals:
-        return None
-    return {"name": min(vals, key=vals.get), "validation_regret": vals,
-            "by": "lowest validation regret recorded by train-gate (the run's validation sequences)"}
 
 
 def _diff(a, b):

@@ -42,6 +42,7 @@ from sim.errors import UserError
 FORMAT = "hydrabench-predictions"
 VERSION = 1
 CHUNK_FRAMES = 64
+GATES = ("knowledge", "deep", "attention", "optimal")
 
 ARRAYS = {
     "indices": "(n,) int64: each frame's index in the dataset",
@@ -116,13 +117,12 @@ def identity_of(run_dir, data, model, gates, indices, split: str, batch_size: in
     }
 
 
-def predict(run_dir, data, out=None, *, gates=("knowledge", "deep", "attention", "optimal"), split: str = "auto",
+def predict(run_dir, data, out=None, *, gates=GATES, split: str = "auto",
             batch_size: int = 4, setup=None, progress: bool = True) -> Predictions:
     """The predictions of the run (or reference model's cache run) `run_dir` on `data`'s frames of
     `split` (`study.scoring.frames_for`), read from `out` (default RUN/predictions/<key>/) when they
     are there with this identity, else made by one pass and written there. `gates`: those that can run
-    (`study.compare.usable_gates`: learned ones only where trained) predict beside the branches."""
-    from study.compare import usable_gates
+    (`usable_gates`: learned ones only where trained) predict beside the branches."""
     from study.gate_tables import _setup
 
     run_dir, data = Path(run_dir), Path(data)
@@ -143,15 +143,40 @@ def predict(run_dir, data, out=None, *, gates=("knowledge", "deep", "attention",
     manifest = {"format": FORMAT, "version": VERSION, "key": key, "identity": identity, "run": str(run_dir),
                 "data": str(data), "branches": list(model.branches), "branch_frames": dict(model.branch_frames),
                 "branch_sensors": {b: list(s) for b, s in model.branch_sensors.items()}, "gates": trained,
-                "best_gate": _best_gate(run_dir, trained), "arrays": ARRAYS}
+                "best_gate": best_gate(run_dir, trained), "arrays": ARRAYS}
     _write(out, manifest, _pass(run_dir, data, model, cfg, trained, indices, batch_size, progress))
     return load(out)
 
 
-def _best_gate(run_dir, gates):
-    from study.compare import best_gate
+def usable_gates(run_dir: Path, gates) -> list[str]:
+    """`gates` that can run on `run_dir`: those that learn nothing, and the trainable ones
+    (`Gate.trainable`) with a RUN/gates/<gate>/gate.pt."""
+    from fusion.nets.branch_gates import trainable_gates
 
-    return best_gate(run_dir, gates)
+    learned = trainable_gates()
+    return [g for g in gates if g not in learned or (Path(run_dir) / "gates" / g / "gate.pt").is_file()]
+
+
+def best_gate(run_dir: Path, gates) -> dict | None:
+    """The learned gate with the lowest validation regret recorded when it was trained (`train-gate`:
+    the run's validation sequences, never the frames compared here), with every gate's value; None
+    when no learned gate recorded one."""
+    import torch
+
+    from fusion.nets.branch_gates import trainable_gates
+
+    vals = {}
+    learned = trainable_gates()
+    for g in gates:
+        path = Path(run_dir) / "gates" / g / "gate.pt"
+        if g in learned and path.is_file():
+            res = (torch.load(path, map_location="cpu", weights_only=False).get("result") or {})
+            if res.get("val_regret") is not None:
+                vals[g] = float(res["val_regret"])
+    if not vals:
+        return None
+    return {"name": min(vals, key=vals.get), "validation_regret": vals,
+            "by": "lowest validation regret recorded by train-gate (the run's validation sequences)"}
 
 
 def _pass(run_dir, data, model, cfg, gates, indices, batch_size, progress):
