@@ -184,6 +184,29 @@ def test_per_sample_losses_equal_batch1_training_losses_under_the_same_seed(mode
         model.per_sample_losses(inputs, targets)
 
 
+def test_detect_and_losses_are_forward_and_per_sample_losses_from_one_backbone_run(model):
+    """One run of stems and backbones gives the detections of `forward` over every branch and the
+    losses of `per_sample_losses`, bit for bit (the prediction pass relies on it)."""
+    was = model.training
+    model.eval()
+    inputs, targets = make_inputs(model, 2, seed=3), make_targets(model, 2, seed=3)
+    dets, losses = model.detect_and_losses(inputs, targets, seed=5)
+    with torch.no_grad():
+        ref = model(inputs, selection=list(model.branches))
+    per = model.per_sample_losses(inputs, targets, seed=5)
+    assert [list(d) for d in dets] == [list(model.branches)] * 2 and [list(p) for p in losses] == [list(model.branches)] * 2
+    for i in range(2):
+        for name in model.branches:
+            for key in ("boxes", "scores", "labels"):
+                assert torch.equal(dets[i][name][key], ref[i][name][key]), (i, name, key)
+            for k in LOSS_NAMES:
+                assert torch.equal(losses[i][name][k], per[i][name][k]), (i, name, k)
+    model.train()
+    with pytest.raises(RuntimeError, match="eval mode"):
+        model.detect_and_losses(inputs, targets)
+    model.train(was)
+
+
 @pytest.mark.parametrize("norm", NORM_LAYERS.names())
 def test_every_norm_layer_trains_and_group_norm_matches_plain_training(norm):
     torch.manual_seed(0)
