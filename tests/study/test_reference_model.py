@@ -400,3 +400,40 @@ def test_predictions_of_cpu_frontier_are_what_the_two_passes_they_replace_gave_a
     assert {k: v for k, v in stored.items() if k != "predictions"} == {k: v for k, v in fresh.items() if k != "predictions"}
     assert main([*argv, "--predictions", str(tmp_path)]) == 2
     _one_line_error(capsys, "is not a predictions directory")
+
+
+def test_predict_writes_a_whole_set_numpy_reads_it_and_it_is_reused_replaced_when_stale_never_mixed(
+        exported, data, tmp_path, capsys):
+    """`hydrabench predict`: a manifest and .npz chunks that numpy and json read alone; run again on
+    the same model, data and code, the set is reused; a set of another identity is replaced whole (no
+    temporary folder left); a folder of other files is refused with one line and left as it was."""
+    model_dir, _, _ = exported
+    out = tmp_path / "pred"
+    argv = ["predict", str(model_dir), str(data), "--out", str(out), "--gates", "knowledge,deep", "--threads", "1",
+            "--json"]
+    assert main(argv) == 0
+    r = json.loads(capsys.readouterr().out)
+    assert r["gates"] == ["knowledge", "deep"] and r["mb_per_1000_frames"] > 0
+    m = json.loads((out / "manifest.json").read_text())
+    assert m["format"] == "hydrabench-predictions" and m["version"] == 1 and m["branches"] == list(BRANCHES)
+    assert m["identity"]["split"] == "test" and m["chunks"] == ["chunk-00000.npz"]  # the run's own test frames
+    with np.load(out / m["chunks"][0], allow_pickle=False) as z:
+        n = len(z["indices"])
+        assert n == r["frames"] == m["frames"] > 0
+        assert z["gate.deep"].shape == (n, 4) and z["losses"].shape == (n, 4, 4) and z["features"].dtype == np.float16
+        assert len(z["det.radar.boxes"]) == z["det.radar.count"].sum() and json.loads(z["meta"][0])["context"]
+    stamp = (out / "manifest.json").stat().st_mtime_ns
+    assert main(argv) == 0 and (out / "manifest.json").stat().st_mtime_ns == stamp  # reused
+    capsys.readouterr()
+    m["identity"]["code"] = "0" * 64  # as if the code had changed since
+    (out / "manifest.json").write_text(json.dumps(m))
+    assert main(argv) == 0
+    capsys.readouterr()
+    assert json.loads((out / "manifest.json").read_text())["identity"]["code"] != "0" * 64
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["pred"]  # no pred.tmp-* or pred.old-* left
+    foreign = tmp_path / "foreign"
+    foreign.mkdir()
+    (foreign / "notes.txt").write_text("mine")
+    assert main([*argv[:4], str(foreign), *argv[5:]]) == 2
+    _one_line_error(capsys, "exists and is not a predictions directory")
+    assert [p.name for p in foreign.iterdir()] == ["notes.txt"]
