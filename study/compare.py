@@ -27,7 +27,7 @@ import numpy as np
 from sim.errors import UserError
 from sim.progress import progress as progress_bar
 from study.numbers import number_text, rounded, rounded_interval
-from study.predictions import GATES
+from study.predictions import GATES, usable_gates
 
 
 def verdict(iv) -> str:
@@ -77,6 +77,12 @@ def compare(run_dir, data, *, gates=GATES, k: int = 2, fusion: str = "soft-nms",
     else:
         gp = load(predictions)
         check_predictions(gp, run_dir, data)
+        missing = [g for g in usable_gates(run_dir, gates) if g not in gp.gates]
+        if missing:
+            raise UserError(f"--predictions {predictions}: holds no outputs of gate {missing[0]!r} (it has: "
+                            f"{', '.join(gp.gates) or 'none'}; hydrabench predict --gates names them)")
+        if split != "auto" and split != gp.manifest["identity"]["split"]:
+            raise UserError(f"--split {split}: the predictions are of the {gp.manifest['identity']['split']!r} split")
     protocol = gp.manifest["identity"]["protocol"]
     used_split = gp.manifest["identity"]["split"]
     indices = [int(m["dataset_index"]) for m, _ in gp.per_frame]

@@ -400,6 +400,12 @@ def test_predictions_of_cpu_frontier_are_what_the_two_passes_they_replace_gave_a
     assert {k: v for k, v in stored.items() if k != "predictions"} == {k: v for k, v in fresh.items() if k != "predictions"}
     assert main([*argv, "--predictions", str(tmp_path)]) == 2
     _one_line_error(capsys, "is not a predictions directory")
+    few = tmp_path / "few"  # a set made with fewer gates than compare asks for
+    shutil.copytree(pred.root, few)
+    m = json.loads((few / "manifest.json").read_text())
+    (few / "manifest.json").write_text(json.dumps({**m, "gates": ["knowledge", "optimal"]}))
+    assert main([*argv, "--predictions", str(few)]) == 2
+    _one_line_error(capsys, "holds no outputs of gate 'deep'")
 
 
 def test_predict_writes_a_whole_set_numpy_reads_it_and_it_is_reused_replaced_when_stale_never_mixed(
