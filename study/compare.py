@@ -53,7 +53,6 @@ def compare(run_dir, data, *, gates=GATES, k: int = 2, fusion: str = "soft-nms",
     or no ground-truth box to score on the frames)."""
     from sensors.dataset import DatasetReader
     from study.gate_tables import parse_k, selection_rates
-    from study.predictions import load, predict
     from study.scoring import context_bootstrap, difference_interval, fuse_selection, fusion_method, score
 
     run_dir, data = Path(run_dir), Path(data)
@@ -63,26 +62,7 @@ def compare(run_dir, data, *, gates=GATES, k: int = 2, fusion: str = "soft-nms",
     if need_intervals and not resamples:
         raise UserError(f"{need_intervals} needs intervals: give --bootstrap N > 0")
     reader = DatasetReader(data)
-    if predictions is None:
-        if need_intervals:  # before the network runs: the frames and protocol from the run's config alone
-            import json
-
-            from study.scoring import frames_for
-            from study.train import run_protocol
-
-            cfg = json.loads((run_dir / "config.json").read_text())
-            indices, used_split = frames_for(cfg, data, split)
-            _need_ground_truth(need_intervals, reader, indices, run_protocol(cfg), used_split, data)
-        gp = predict(run_dir, data, gates=gates, split=split, batch_size=batch_size, setup=setup, progress=progress)
-    else:
-        gp = load(predictions)
-        check_predictions(gp, run_dir, data)
-        missing = [g for g in usable_gates(run_dir, gates) if g not in gp.gates]
-        if missing:
-            raise UserError(f"--predictions {predictions}: holds no outputs of gate {missing[0]!r} (it has: "
-                            f"{', '.join(gp.gates) or 'none'}; hydrabench predict --gates names them)")
-        if split != "auto" and split != gp.manifest["identity"]["split"]:
-            raise UserError(f"--split {split}: the predictions are of the {gp.manifest['identity']['split']!r} split")
+    gp = _predictions(run_dir, data, reader, predictions, gates, split, batch_size, setup, progress, need_intervals)
     protocol = gp.manifest["identity"]["protocol"]
     used_split = gp.manifest["identity"]["split"]
     indices = [int(m["dataset_index"]) for m, _ in gp.per_frame]
@@ -156,6 +136,34 @@ def compare(run_dir, data, *, gates=GATES, k: int = 2, fusion: str = "soft-nms",
         **({"robustness": rob} if rob is not None else {}),
         **({"coverage": cov} if cov is not None else {}),
     }
+
+
+def _predictions(run_dir, data, reader, predictions, gates, split, batch_size, setup, progress, need_intervals):
+    """The predictions `compare` scores: `predictions` loaded and checked against the run and the data,
+    or made by one pass (`study.predictions.predict`; refused first when `need_intervals` and no
+    frame holds a box to find)."""
+    from study.predictions import load, predict
+
+    if predictions is None:
+        if need_intervals:  # before the network runs: the frames and protocol from the run's config alone
+            import json
+
+            from study.scoring import frames_for
+            from study.train import run_protocol
+
+            cfg = json.loads((run_dir / "config.json").read_text())
+            indices, used_split = frames_for(cfg, data, split)
+            _need_ground_truth(need_intervals, reader, indices, run_protocol(cfg), used_split, data)
+        return predict(run_dir, data, gates=gates, split=split, batch_size=batch_size, setup=setup, progress=progress)
+    gp = load(predictions)
+    check_predictions(gp, run_dir, data)
+    missing = [g for g in usable_gates(run_dir, gates) if g not in gp.gates]
+    if missing:
+        raise UserError(f"--predictions {predictions}: holds no outputs of gate {missing[0]!r} (it has: "
+                        f"{', '.join(gp.gates) or 'none'}; hydrabench predict --gates names them)")
+    if split != "auto" and split != gp.manifest["identity"]["split"]:
+        raise UserError(f"--split {split}: the predictions are of the {gp.manifest['identity']['split']!r} split")
+    return gp
 
 
 def _need_ground_truth(need_intervals: str, reader, indices, protocol, used_split: str, data) -> None:

@@ -1318,6 +1318,7 @@ def test_compare_refuses_a_plot_without_intervals_before_the_networks_run(sandbo
     """`compare --plot` needs intervals: with --bootstrap 0, or on frames without a box to find (every
     mAP undefined), it is refused before any network runs (it once worked 17 s first)."""
     import study.gate_tables
+    import study.predictions
 
     world = sandbox
     empty = world["root"] / "no_boxes"
@@ -1336,6 +1337,7 @@ def test_compare_refuses_a_plot_without_intervals_before_the_networks_run(sandbo
         raise AssertionError("the networks ran")
 
     monkeypatch.setattr(study.gate_tables, "gate_pass", ran)
+    monkeypatch.setattr(study.predictions, "_pass", ran)  # compare's one pass over the frames
     plot = str(world["box"] / "p.png")
     for data, extra, needle in ((world["data"], ["--bootstrap", "0"], "--bootstrap"),
                                 (empty, ["--bootstrap", "20"], "no box to find")):
