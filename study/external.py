@@ -140,9 +140,24 @@ class ExportIndex:
                 offset_of_log[log] = np.asarray(m["hydrabench"]["global_from_world_offset_m"], float)
         log_of_scene = {s["token"]: s["log_token"] for s in tables["scene"]}
         self.frame_of = {s["token"]: int(s["hydrabench"]["frame"]) for s in tables["sample"]}
+        name_of_scene = {s["token"]: s["name"] for s in tables["scene"]}
+        self.scene_of = {int(s["hydrabench"]["frame"]): name_of_scene[s["scene_token"]] for s in tables["sample"]}
+        self.splits = _load_json(root / VERSION / "splits.json", "splits")
         self.token_of = {f: t for t, f in self.frame_of.items()}
         self.offset = {int(s["hydrabench"]["frame"]): offset_of_log[log_of_scene[s["scene_token"]]]
                        for s in tables["sample"]}
+
+
+def split_frames(index: ExportIndex | None, reader, split: str) -> list[int]:
+    """The frames of `split`: "all", or a split of the export's splits.json (its scenes' frames)."""
+    if split == "all":
+        return list(range(len(reader)))
+    if index is None:
+        raise UserError(f"--split {split}: splits are the export's (splits.json): give --export DIR")
+    if split not in index.splits:
+        raise UserError(f"--split {split}: not a split of the export (it has: {', '.join(sorted(index.splits))}, all)")
+    scenes = set(index.splits[split])
+    return sorted(f for f, s in index.scene_of.items() if s in scenes)
 
 
 def _finite(values, n: int) -> bool:
@@ -306,16 +321,20 @@ def merge_detections(d):
     return Detections(d.boxes, d.scores, lab)
 
 
-def load_external(reader, frames, *, nuscenes=(), coco=(), export=None, missing: str = "refuse") -> ExternalSet:
-    """The detections of the files `nuscenes` and `coco` ([NAME=]FILE each) on `frames` of `reader`."""
+def load_external(reader, split: str = "all", *, nuscenes=(), coco=(), export=None,
+                  missing: str = "refuse") -> tuple[ExternalSet, ExportIndex | None]:
+    """The detections of the files `nuscenes` and `coco` ([NAME=]FILE each) on the frames of `split`
+    (`split_frames`) of `reader`, and the export's index (None without `export`)."""
     if missing not in MISSING:
         raise UserError(f"--missing must be one of {', '.join(MISSING)}, got {missing!r}")
     if not nuscenes and not coco:
         raise UserError("give at least one detection file (--nuscenes or --coco)")
     if nuscenes and export is None:
         raise UserError("--nuscenes needs --export DIR: the nuScenes export of DATA its sample tokens refer to")
-    metas = {int(f): dict(reader.meta(int(f)), dataset_index=int(f)) for f in frames}
     index = ExportIndex(export, reader) if export is not None else None
+    metas = {f: dict(reader.meta(f), dataset_index=f) for f in split_frames(index, reader, split)}
+    if not metas:
+        raise UserError(f"--split {split}: no frames")
     per_branch, sensors, sources, left_out = {}, {}, {}, {}
     for spec in nuscenes:
         name, path = _named(spec, "--nuscenes")
@@ -337,7 +356,7 @@ def load_external(reader, frames, *, nuscenes=(), coco=(), export=None, missing:
     for f in sorted(metas):
         per = {b: (merge_detections(d[f]) if merged else d[f]) for b, d in per_branch.items()}
         per_frame.append((metas[f], per))
-    return ExternalSet(per_frame, sensors, sources, merged, left_out)
+    return ExternalSet(per_frame, sensors, sources, merged, left_out), index
 
 
 def read_selection(path, ext: ExternalSet, index: ExportIndex | None) -> list[tuple[str, ...]]:
