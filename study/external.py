@@ -442,3 +442,58 @@ def score_external(reader, ext: ExternalSet, *, selections=None, fusion: str = "
                               "optimal": "reads each branch's Faster R-CNN losses, which external detections lack"},
             "bootstrap": {"resamples": resamples, "unit": "sequence", "design": interval} if boot else None,
             "metric": "VOC all-point AP at IoU 0.5, every class with ground truth, right camera"}
+
+
+def bev_results(per_frame: list, branch: str, index: ExportIndex, sensors) -> dict:
+    """A BEV branch's detections ([(meta, {branch: Detections in BEV pixels})]) as nuScenes results:
+    each box the 3D box HydraFusion's Appendix A makes of it (`sensors.rig.bev_boxes_to_camera`: the
+    BEV rectangle from the road up to the class's average height), in the log's global frame, at full
+    precision. How the own networks' detections leave hydrabench for the devkit's tools."""
+    from sensors.export.nuscenes import CLASS_TABLE
+    from sensors.rig import Calibration, class_height
+    from sim.actors import CLASSES
+
+    results = {index.token_of[int(m["dataset_index"])]: [] for m, _ in per_frame}
+    for meta, per in per_frame:
+        frame = int(meta["dataset_index"])
+        token = index.token_of[frame]
+        calib = Calibration.from_dict(meta["calibration"])
+        global_from_ego = np.asarray(meta["ego_pose"], float).copy()
+        global_from_ego[:3, 3] += index.offset[frame]
+        global_from_radar = global_from_ego @ np.asarray(calib.ego_from_radar, float)
+        d = per[branch]
+        for box, s, lab in zip(d.boxes, d.scores, d.labels):
+            c = calib.bev_to_radar(np.array([[box[0], box[1]], [box[2], box[1]], [box[2], box[3]], [box[0], box[3]]]))
+            along, across = c[1] - c[0], c[3] - c[0]
+            yaw = math.atan2(along[1], along[0])
+            h = class_height(int(lab))
+            center = np.r_[c.mean(axis=0), -calib.radar_height_m + h / 2, 1.0]
+            rz = np.array([[math.cos(yaw), -math.sin(yaw), 0], [math.sin(yaw), math.cos(yaw), 0], [0, 0, 1]])
+            cls = CLASSES[int(lab) - 1]
+            results[token].append({
+                "sample_token": token, "translation": [float(v) for v in (global_from_radar @ center)[:3]],
+                "size": [float(np.linalg.norm(across)), float(np.linalg.norm(along)), h],
+                "rotation": [float(v) for v in _matrix_quaternion(global_from_radar[:3, :3] @ rz)],
+                "velocity": [0.0, 0.0], "detection_name": CLASS_TABLE[cls][1], "detection_score": float(s),
+                "attribute_name": ""})
+    flags = {k: s in sensors for k, s in SENSOR_FLAGS}
+    return {"meta": {**flags, "use_map": False, "use_external": False}, "results": results}
+
+
+def _matrix_quaternion(R) -> np.ndarray:
+    """(w, x, y, z) of a rotation matrix, unrounded (the export rounds to 9 digits)."""
+    from scipy.spatial.transform import Rotation
+
+    x, y, z, w = Rotation.from_matrix(np.asarray(R, float)).as_quat()
+    return np.array([w, x, y, z])
+
+
+def coco_results(per_frame: list, branch: str) -> list:
+    """A right-camera branch's detections as COCO results (`hydrabench export coco`'s numbering)."""
+    out = []
+    for meta, per in per_frame:
+        d = per[branch]
+        for (x1, y1, x2, y2), s, lab in zip(d.boxes, d.scores, d.labels):
+            out.append({"image_id": int(meta["dataset_index"]) + 1, "category_id": int(lab),
+                        "bbox": [float(x1), float(y1), float(x2 - x1), float(y2 - y1)], "score": float(s)})
+    return out
