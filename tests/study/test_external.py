@@ -3,8 +3,7 @@ scored by the one path; damaged files refused by file and record; a selection fi
 round trips through the nuScenes export."""
 
 import json
-import subprocess
-import sys
+from types import SimpleNamespace
 
 import numpy as np
 import pytest
@@ -15,6 +14,7 @@ from sensors.dataset import DatasetReader
 from sensors.export.nuscenes import load_tables, results_from_labels
 from sensors.generate import GenerateConfig
 from sensors.rig import Calibration
+from study.cli import main
 from study.external import (
     ExportIndex,
     MergedReader,
@@ -151,12 +151,14 @@ def test_the_own_networks_predictions_exported_and_read_back_score_the_same(expo
     assert sum(len(ext.per_frame[k][1][b]) for k in range(len(ext.per_frame)) for b in bev) > 0
 
 
-def _hb(*args):
-    return subprocess.run([sys.executable, "-m", "study.cli", "score", *map(str, args)], capture_output=True,
-                          text=True)
+def _hb(capsys, *args):
+    """`hydrabench score ARGS` in this process: its exit code, stdout and stderr."""
+    code = main(["score", *map(str, args)])
+    out, err = capsys.readouterr()
+    return SimpleNamespace(returncode=code, stdout=out, stderr=err)
 
 
-def test_damaged_files_are_refused_with_one_line_naming_the_file_and_record(export, tmp_path):
+def test_damaged_files_are_refused_with_one_line_naming_the_file_and_record(export, tmp_path, capsys):
     data, out = export
     good = results_from_labels(out)
     good["meta"]["use_lidar"] = True
@@ -178,26 +180,26 @@ def test_damaged_files_are_refused_with_one_line_naming_the_file_and_record(expo
     }
     for name, (change, words) in cases.items():
         path = damaged(name, change)
-        p = _hb(data, "--export", out, "--nuscenes", path, "--bootstrap", "0")
+        p = _hb(capsys, data, "--export", out, "--nuscenes", path, "--bootstrap", "0")
         assert p.returncode == 2 and words in p.stderr and path in p.stderr, (name, p.stderr)
         assert len(p.stderr.strip().splitlines()) == 1 and "Traceback" not in p.stderr, name
     text = json.dumps(good)
     twice = text[:-2] + f', "{token}": []' + text[-2:]  # the same sample token twice in "results"
     (tmp_path / "twice.json").write_text(twice)
-    p = _hb(data, "--export", out, "--nuscenes", tmp_path / "twice.json", "--bootstrap", "0")
+    p = _hb(capsys, data, "--export", out, "--nuscenes", tmp_path / "twice.json", "--bootstrap", "0")
     assert p.returncode == 2 and "appears twice" in p.stderr and token in p.stderr
     # a frame left out, scored as empty when asked, and counted
-    p = _hb(data, "--export", out, "--nuscenes", tmp_path / "left.json", "--missing", "empty", "--bootstrap", "0",
+    p = _hb(capsys, data, "--export", out, "--nuscenes", tmp_path / "left.json", "--missing", "empty", "--bootstrap", "0",
             "--json")
     assert p.returncode == 0, p.stderr
     assert json.loads(p.stdout)["left_out_frames_scored_empty"] == {"lidar": 1}
     bad_coco = _write(tmp_path / "coco.json", [{"image_id": 999, "category_id": 1, "bbox": [0, 0, 5, 5],
                                                 "score": 0.5}])
-    p = _hb(data, "--coco", bad_coco, "--bootstrap", "0")
+    p = _hb(capsys, data, "--coco", bad_coco, "--bootstrap", "0")
     assert p.returncode == 2 and "record 0" in p.stderr and "image_id 999" in p.stderr
 
 
-def test_a_selection_file_is_scored_as_a_gate_with_intervals(export, tmp_path):
+def test_a_selection_file_is_scored_as_a_gate_with_intervals(export, tmp_path, capsys):
     data, out = export
     reader = DatasetReader(data)
     doc, _, _ = _protocol_results(out, reader)
@@ -209,7 +211,7 @@ def test_a_selection_file_is_scored_as_a_gate_with_intervals(export, tmp_path):
     sel_lidar = _write(tmp_path / "g1.json", {t: ["lidar"] for t in tokens})
     # keys may be frame indices too
     sel_radar = _write(tmp_path / "g2.json", {str(i): ["radar"] for i in range(len(reader))})
-    p = _hb(data, "--export", out, "--nuscenes", lidar, "--nuscenes", radar, "--selection", f"pick={sel_lidar}",
+    p = _hb(capsys, data, "--export", out, "--nuscenes", lidar, "--nuscenes", radar, "--selection", f"pick={sel_lidar}",
             "--selection", f"other={sel_radar}", "--bootstrap", "20", "--json")
     assert p.returncode == 0, p.stderr
     r = json.loads(p.stdout)
@@ -220,5 +222,5 @@ def test_a_selection_file_is_scored_as_a_gate_with_intervals(export, tmp_path):
     assert m["selection:other"]["minus_late"]["ci95"] is not None
     assert set(m["selection:pick"]["ci95_per_context"]) == set(r["contexts"])
     bad = _write(tmp_path / "g3.json", {tokens[0]: ["sonar"]})
-    p = _hb(data, "--export", out, "--nuscenes", lidar, "--selection", bad, "--bootstrap", "0")
+    p = _hb(capsys, data, "--export", out, "--nuscenes", lidar, "--selection", bad, "--bootstrap", "0")
     assert p.returncode == 2 and "unknown branch 'sonar'" in p.stderr and bad in p.stderr
