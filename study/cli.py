@@ -461,6 +461,8 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "predict": ("study.commands.predict:add_parser", "run a model once over a dataset and keep every branch's "
                 "detections, losses and gate inputs (the predictions every score reads)"),
     "compare": ("study.commands.compare:add_parser", "selective (gated) against fixed fusion on one dataset, with intervals"),
+    "score": ("study.commands.score:add_parser", "score detections and per-frame selections made outside hydrabench "
+              "(nuScenes or COCO results) as compare scores the own networks"),
     "model": ("study.commands.model:add_parser", "reference models: export a trained run (float16, gates, manifest), list them"),
     "study": ("study.commands.study:add_parser", "the whole HydraFusion + EcoFusion study as cached, resumable stages, "
               "and its report"),

@@ -1,0 +1,70 @@
+"""`hydrabench score`: detections and selections made outside hydrabench, scored as `compare` scores the
+own networks (`study.external`)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+from study.cli import Formatter, bootstrap_int, dataset_dir, emit, module_doc, name_arg
+
+EPILOG = """\
+examples:
+  hydrabench export nuscenes demo/test --out demo/nuscenes
+  hydrabench score demo/test --export demo/nuscenes --nuscenes lidar=my_lidar.json --nuscenes radar=my_radar.json
+  hydrabench score demo/test --coco camera=my_coco_results.json --selection my_gate.json --json
+"""
+
+
+def add_parser(sub, name, help_text):
+    p = sub.add_parser(name, help=help_text, description=module_doc("study.external"), epilog=EPILOG,
+                       formatter_class=Formatter)
+    p.add_argument("data", type=dataset_dir, help="dataset directory")
+    p.add_argument("--export", default=None, metavar="DIR",
+                   help="the nuScenes export of DATA (hydrabench export nuscenes) the sample tokens refer to")
+    p.add_argument("--nuscenes", action="append", default=[], metavar="[NAME=]FILE",
+                   help="nuScenes detection-results JSON of one branch (repeat for each; NAME: the branch, else "
+                        "named by its meta's sensors)")
+    p.add_argument("--coco", action="append", default=[], metavar="[NAME=]FILE",
+                   help="COCO results JSON of a camera-only 2D detector on the right camera (NAME default: camera)")
+    p.add_argument("--selection", action="append", default=[], metavar="[NAME=]FILE",
+                   help="per-frame selection (JSON: frame index or sample token -> [branch, ...]), scored as a gate")
+    p.add_argument("--split", type=name_arg, default="all", help="all, or a split of the export's splits.json")
+    p.add_argument("--missing", default="refuse", choices=["refuse", "empty"],
+                   help="a frame a nuScenes file leaves out: refuse the file, or score it as a frame without "
+                        "detections (counted in the result)")
+    p.add_argument("--fusion", type=name_arg, default="soft-nms", help="nms | soft-nms | wbf: how branches are fused")
+    p.add_argument("--protocol", default="reference", choices=["reference", "visible"],
+                   help="what counts as an object to find (fusion.protocol)")
+    p.add_argument("--bootstrap", type=bootstrap_int, default=500, metavar="N",
+                   help="draws of whole sequences for the 95%% intervals (0: none)")
+    p.add_argument("--json", action="store_true", help="print one JSON object on stdout")
+    p.set_defaults(run=run)
+
+
+def run(args) -> int:
+    from sensors.dataset import DatasetReader
+    from study.external import _named, load_external, read_selection, score_external
+
+    reader = DatasetReader(Path(args.data))
+    ext, index = load_external(reader, args.split, nuscenes=args.nuscenes, coco=args.coco, export=args.export,
+                               missing=args.missing)
+    selections = {}
+    for spec in args.selection:
+        name, path = _named(spec, "--selection")
+        selections[name or path.stem] = read_selection(path, ext, index)
+    r = score_external(reader, ext, selections=selections, fusion=args.fusion, resamples=args.bootstrap,
+                       protocol=args.protocol)
+    r["data"], r["split"] = str(args.data), args.split
+
+    def text(r):
+        lines = [f"{r['frames']} frames, classes {r['classes']}, {r['protocol']} protocol, fusion {r['fusion']}"]
+        for name, m in r["methods"].items():
+            iv = m.get("ci95")
+            ci = f" [{iv[0]:.3f}, {iv[1]:.3f}]" if iv else ""
+            d = m.get("minus_late")
+            dl = f"  minus late {d['value']:+.3f} ({d['verdict']})" if d and d["value"] is not None else ""
+            lines.append(f"  {name:28s} mAP {m['map'] if m['map'] is not None else 'n/a'}{ci}{dl}")
+        return "\n".join(lines)
+
+    emit(r, args.json, text)
+    return 0
