@@ -279,7 +279,8 @@ def read_coco(path, metas: dict, frames_in_data: int) -> dict:
             for f, (b, s, lab) in rows.items()}
 
 
-def _named(spec: str, option: str) -> tuple[str | None, Path]:
+def named_file(spec: str) -> tuple[str | None, Path]:
+    """`[NAME=]FILE` -> (NAME or None, FILE)."""
     name, sep, path = spec.partition("=")
     if sep and name and "/" not in name:
         return name, Path(path)
@@ -327,6 +328,8 @@ def load_external(reader, split: str = "all", *, nuscenes=(), coco=(), export=No
     (`split_frames`) of `reader`, and the export's index (None without `export`)."""
     if missing not in MISSING:
         raise UserError(f"--missing must be one of {', '.join(MISSING)}, got {missing!r}")
+    if split != "all" and export is None:
+        raise UserError(f"--split {split}: splits are the export's (splits.json): give --export DIR")
     if not nuscenes and not coco:
         raise UserError("give at least one detection file (--nuscenes or --coco)")
     if nuscenes and export is None:
@@ -337,7 +340,7 @@ def load_external(reader, split: str = "all", *, nuscenes=(), coco=(), export=No
         raise UserError(f"--split {split}: no frames")
     per_branch, sensors, sources, left_out = {}, {}, {}, {}
     for spec in nuscenes:
-        name, path = _named(spec, "--nuscenes")
+        name, path = named_file(spec)
         dets, used, left = read_nuscenes(path, index, metas, missing)
         name = name or "+".join(s.split("_")[0] for s in used)
         if name in per_branch:
@@ -346,7 +349,7 @@ def load_external(reader, split: str = "all", *, nuscenes=(), coco=(), export=No
         if left:
             left_out[name] = len(left)
     for spec in coco:
-        name, path = _named(spec, "--coco")
+        name, path = named_file(spec)
         name = name or "camera"
         if name in per_branch:
             raise UserError(f"--coco {spec}: a second file for branch {name!r} (name them: NAME=FILE)")

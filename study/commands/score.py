@@ -5,7 +5,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from study.cli import Formatter, bootstrap_int, dataset_dir, emit, module_doc, name_arg
+from study.cli import Formatter, bootstrap_int, dataset_dir, emit, in_file, module_doc, name_arg
 
 EPILOG = """\
 examples:
@@ -15,24 +15,54 @@ examples:
 """
 
 
+def named_in_file(text: str) -> str:
+    """An argparse type: `[NAME=]FILE` whose FILE exists and is readable (`in_file`'s check)."""
+    from study.external import named_file
+
+    name, path = named_file(text)
+    in_file(str(path))
+    return text
+
+
+named_in_file.kind = "named_in_file"  # the fuzz suite tries every kind: this one as a command's own type
+
+
+def export_dir(text: str) -> str:
+    """An argparse type: a nuScenes export made by `hydrabench export nuscenes` (its v1.0 tables)."""
+    import argparse
+
+    from sensors.export.nuscenes import VERSION
+
+    in_dir = Path(text)
+    if not str(text).strip():
+        raise argparse.ArgumentTypeError("expected a path, got an empty string")
+    if not (in_dir / VERSION / "sample.json").is_file():
+        raise argparse.ArgumentTypeError(f"{text} is not a nuScenes export ({VERSION}/sample.json missing; make one "
+                                         "with hydrabench export nuscenes)")
+    return str(in_dir)
+
+
+export_dir.kind = "nuscenes_export"
+
+
 def add_parser(sub, name, help_text):
     p = sub.add_parser(name, help=help_text, description=module_doc("study.external"), epilog=EPILOG,
                        formatter_class=Formatter)
     p.add_argument("data", type=dataset_dir, help="dataset directory")
-    p.add_argument("--export", default=None, metavar="DIR",
+    p.add_argument("--export", type=export_dir, default=None, metavar="DIR",
                    help="the nuScenes export of DATA (hydrabench export nuscenes) the sample tokens refer to")
-    p.add_argument("--nuscenes", action="append", default=[], metavar="[NAME=]FILE",
+    p.add_argument("--nuscenes", action="append", type=named_in_file, default=[], metavar="[NAME=]FILE",
                    help="nuScenes detection-results JSON of one branch (repeat for each; NAME: the branch, else "
                         "named by its meta's sensors)")
-    p.add_argument("--coco", action="append", default=[], metavar="[NAME=]FILE",
+    p.add_argument("--coco", action="append", type=named_in_file, default=[], metavar="[NAME=]FILE",
                    help="COCO results JSON of a camera-only 2D detector on the right camera (NAME default: camera)")
-    p.add_argument("--selection", action="append", default=[], metavar="[NAME=]FILE",
+    p.add_argument("--selection", action="append", type=named_in_file, default=[], metavar="[NAME=]FILE",
                    help="per-frame selection (JSON: frame index or sample token -> [branch, ...]), scored as a gate")
     p.add_argument("--split", type=name_arg, default="all", help="all, or a split of the export's splits.json")
     p.add_argument("--missing", default="refuse", choices=["refuse", "empty"],
                    help="a frame a nuScenes file leaves out: refuse the file, or score it as a frame without "
                         "detections (counted in the result)")
-    p.add_argument("--fusion", type=name_arg, default="soft-nms", help="nms | soft-nms | wbf: how branches are fused")
+    p.add_argument("--fusion", default="soft-nms", choices=["nms", "soft-nms", "wbf"], help="how branches are fused")
     p.add_argument("--protocol", default="reference", choices=["reference", "visible"],
                    help="what counts as an object to find (fusion.protocol)")
     p.add_argument("--bootstrap", type=bootstrap_int, default=500, metavar="N",
@@ -43,14 +73,14 @@ def add_parser(sub, name, help_text):
 
 def run(args) -> int:
     from sensors.dataset import DatasetReader
-    from study.external import _named, load_external, read_selection, score_external
+    from study.external import load_external, named_file, read_selection, score_external
 
     reader = DatasetReader(Path(args.data))
     ext, index = load_external(reader, args.split, nuscenes=args.nuscenes, coco=args.coco, export=args.export,
                                missing=args.missing)
     selections = {}
     for spec in args.selection:
-        name, path = _named(spec, "--selection")
+        name, path = named_file(spec)
         selections[name or path.stem] = read_selection(path, ext, index)
     r = score_external(reader, ext, selections=selections, fusion=args.fusion, resamples=args.bootstrap,
                        protocol=args.protocol)
