@@ -68,6 +68,7 @@ class ScaleConfig:
         batch_size: frames per SGD step, the global batch of the DDP run (>= 2: one frame per process).
         epochs: epochs per training run; the last epoch is timed (2: the first absorbs warm-up).
         workers: local pool processes and Ray CPUs of part generate.
+        model: `KEY=VALUE` overrides of the cpu model profile for every training run (`train --model`).
     """
 
     parts: tuple[str, ...] = PARTS
@@ -80,6 +81,7 @@ class ScaleConfig:
     batch_size: int = 4
     epochs: int = 1
     workers: int = 2
+    model: tuple[str, ...] = ()
 
     def generate_config(self):
         from sensors.generate import GenerateConfig
@@ -97,6 +99,9 @@ def check(cfg: ScaleConfig) -> None:
     bad = [p for p in cfg.parts if p not in PARTS]
     if bad or not cfg.parts:
         raise UserError(f"--parts: unknown part {bad[0] if bad else ''!r} (choose from: {', '.join(PARTS)})")
+    from fusion.nets.profile import load_profile, parse_model_overrides
+
+    load_profile("cpu", **parse_model_overrides(cfg.model))  # a malformed --model before any process starts
     names = [s.name for s in branch_set("paper", "cpu")]
     unknown = [b for b in cfg.branches if b not in names]
     if unknown or not cfg.branches:
@@ -284,7 +289,7 @@ def train_argv(cfg: ScaleConfig, data: str, out: Path, threads: int) -> list[str
     return ["-m", "study.cli", "train", str(data), "--out", str(out), "--branches", ",".join(cfg.branches),
             "--epochs", str(cfg.epochs), "--batch-size", str(cfg.batch_size), "--seed", str(cfg.seed),
             "--eval-frames", "1", "--sampling", "per-frame", "--device", "cpu", "--no-amp", "--workers", "0",
-            "--threads", str(threads), "--json"]
+            "--threads", str(threads), "--json", *[arg for item in cfg.model for arg in ("--model", item)]]
 
 
 def train_run(cfg: ScaleConfig, data: str, out: Path, *, threads: int, processes: int = 1,

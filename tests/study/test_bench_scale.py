@@ -16,6 +16,7 @@ import pytest
 from sim.errors import UserError
 from study.bench.scale import alive, ratios, run_job, stop_tree
 from study.cli import main
+from tests.conftest import NARROW_ARGS
 
 
 def _processes_mentioning(text: str) -> list[int]:
@@ -127,7 +128,7 @@ def test_train_and_ddp_parts_end_to_end(tiny, tmp_path, capsys, monkeypatch):
     monkeypatch.setattr(tempfile, "tempdir", str(work))
     png = tmp_path / "ratios.png"
     code = main(["bench", "scale", "--parts", "train,ddp", "--data", str(tiny), "--batch-size", "2",
-                 "--plot", str(png), "--json"])
+                 "--plot", str(png), "--json", *NARROW_ARGS])  # the quarter-width test network: same mechanics
     out, err = capsys.readouterr()
     assert code == 0, err[-3000:]
     r = json.loads(out)  # one JSON object on stdout
@@ -157,7 +158,7 @@ def test_bad_options_are_refused_before_any_work(tiny, tmp_path, capsys, monkeyp
     work = tmp_path / "tmp"
     work.mkdir()
     monkeypatch.setattr(tempfile, "tempdir", str(work))
-    for argv, needle in ((["--parts", "train,gpu"], "gpu"), (["--branches", "sonar"], "sonar"),
+    for argv, needle in ((["--parts", "train,gpu"], "gpu"), (["--branches", "sonar"], "sonar"), (["--model", "width=0.3"], "width"),
                          (["--contexts", "moon"], "moon"), (["--batch-size", "1"], "batch-size")):
         assert main(["bench", "scale", "--data", str(tiny), *argv]) == 2
         err = capsys.readouterr().err

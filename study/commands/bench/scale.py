@@ -48,6 +48,8 @@ def add_parser(what) -> None:
                    help="epochs per training run, the last one timed (2: the first absorbs warm-up), at most 100")
     c.add_argument("--workers", type=workers_int, default=2,
                    help="local pool processes and Ray CPUs of part generate, at most 256")
+    c.add_argument("--model", action="append", default=None, metavar="KEY=VALUE",
+                   help="override a cpu model-profile field for every training run, repeatable, as `train --model`")
     c.add_argument("--plot", type=out_file(".png"), default=None, metavar="PNG", help="also draw the ratios into this PNG file")
     c.add_argument("--json", action="store_true", help="print one JSON object on stdout")
     c.set_defaults(run=run_scale)
@@ -73,7 +75,8 @@ def run_scale(args) -> int:
 
     cfg = ScaleConfig(parts=tuple(args.parts), data=args.data, contexts=tuple(args.contexts),
                       frames_per_context=args.frames_per_context, sequence_length=args.sequence_length, seed=args.seed,
-                      branches=tuple(args.branches), batch_size=args.batch_size, epochs=args.epochs, workers=args.workers)
+                      branches=tuple(args.branches), batch_size=args.batch_size, epochs=args.epochs, workers=args.workers,
+                      model=tuple(args.model or ()))
     check(cfg)  # everything refusable is refused before any work
     plot = check_writable_file(args.plot, (".png",)) if args.plot else None
     r = bench_scale(cfg)
