@@ -102,14 +102,14 @@ def compare(run_dir, data, *, gates=GATES, k: int = 2, fusion: str = "soft-nms",
                "map_per_context": sc["map_per_context"]}
         if boot and name != "late":
             iv = difference_interval(boot["per_context"]["all"], name, "late")
-            row["minus_late"] = {"value": _diff(sc["map"], scores["late"]["map"]), "ci95": iv, "verdict": verdict(iv)}
+            row["minus_late"] = {"value": map_difference(sc["map"], scores["late"]["map"]), "ci95": iv, "verdict": verdict(iv)}
             row["minus_late_per_context"] = {
                 c: {"ci95": (iv_c := difference_interval(boot["per_context"][c], name, "late")),
                     "verdict": verdict(iv_c)} for c in contexts if c in boot["per_context"]}
         if boot and name.startswith("hydrafusion:") and "all_branches" in scores:
             # what choosing adds over running and fusing every branch (HydraFusion's "all" column)
             iv = difference_interval(boot["per_context"]["all"], name, "all_branches")
-            row["minus_all_branches"] = {"value": _diff(sc["map"], scores["all_branches"]["map"]), "ci95": iv,
+            row["minus_all_branches"] = {"value": map_difference(sc["map"], scores["all_branches"]["map"]), "ci95": iv,
                                          "verdict": verdict(iv)}
         if boot:
             row["ci95"] = boot["per_context"]["all"]["map"][name]
@@ -296,7 +296,8 @@ def _best_of(best: dict | None, gates) -> dict | None:
     return {**best, "name": min(vals, key=vals.get), "validation_regret": vals}
 
 
-def _diff(a, b):
+def map_difference(a, b):
+    """a - b of two stored mAPs, rounded as stored; None when either is missing."""
     return None if a is None or b is None else round(a - b, 4)
 
 

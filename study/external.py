@@ -399,7 +399,7 @@ def score_external(reader, ext: ExternalSet, *, selections=None, fusion: str = "
     per-frame tuples), scored as `hydrabench compare` scores the own networks: VOC mAP@0.5 in the
     right camera under `protocol`, per context and per severity, and the paired sequence bootstrap's
     intervals of every method and of its difference with late fusion, overall and per context."""
-    from study.compare import _diff, verdict
+    from study.compare import map_difference, verdict
     from study.scoring import context_bootstrap, difference_interval, fuse_selection, fusion_method, score
 
     method = fusion_method(fusion)
@@ -432,7 +432,7 @@ def score_external(reader, ext: ExternalSet, *, selections=None, fusion: str = "
             row["ci95_per_context"] = {c: boot["per_context"][c]["map"][k] for c in contexts}
             if ref and k != ref:
                 iv = difference_interval(boot["per_context"]["all"], k, ref)
-                row["minus_late"] = {"value": _diff(sc["map"], scores[ref]["map"]), "ci95": iv, "verdict": verdict(iv)}
+                row["minus_late"] = {"value": map_difference(sc["map"], scores[ref]["map"]), "ci95": iv, "verdict": verdict(iv)}
                 row["minus_late_per_context"] = {
                     c: {"ci95": (ivc := difference_interval(boot["per_context"][c], k, ref)), "verdict": verdict(ivc)}
                     for c in contexts}
