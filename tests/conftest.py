@@ -46,25 +46,33 @@ NARROW_ARGS = [arg for item in NARROW_MODEL for arg in ("--model", item)]
 # `make test` hands whole files to its workers (--dist loadfile) in collection order
 # (--no-loadscope-reorder: xdist would otherwise start with the files that have the most tests, and
 # the few-test files below, which take most of the time, came last). These files go first, heaviest
-# first (the sum of their tests' durations in a `make test` on the 2-core EPYC: each 1-5 minutes),
+# first (the sum of their tests' durations in a `make test` on the 2-core AVX2-only EPYC, 2026-12-07:
+# 103 s for the tiny study's file down to 20 s),
 # so that the many short files fill in at the end and both workers finish at about the same time.
-# The two that compute the session caches come early: test_study_runner (the tiny study, read by the
+# The two that compute the session caches come first: test_study_runner (the tiny study, read by the
 # notebook test) and test_theory_measured (the theory cells, read by test_theory_cli and a notebook),
-# so that no reader waits on the lock while a writer runs on the other worker. A file missing here
+# and the notebooks only after two other files, so that no reader waits on the lock while a writer
+# runs on the other worker. A file missing here
 # just runs later; the order changes no result.
 SLOW_FILES_FIRST = (
-    "tests/study/test_train.py",
     "tests/study/test_study_runner.py",
     "tests/study/test_theory_measured.py",
-    "tests/study/test_bench_generate.py",
-    "tests/study/test_distributed.py",
-    "tests/study/test_bench_generate_against.py",
-    "tests/study/test_ecofusion.py",
+    "tests/study/test_train.py",
+    "tests/study/test_reference_model.py",
+    "tests/notebooks/test_notebooks.py",
+    "tests/study/test_gates_fit.py",
     "tests/study/test_fuzz.py",
     "tests/study/test_bench_scale.py",
-    "tests/notebooks/test_notebooks.py",
-    "tests/sensors/test_ray_backend.py",
+    "tests/study/test_distributed.py",
+    "tests/sensors/test_dataset.py",
+    "tests/study/test_bench_generate.py",
+    "tests/study/test_ecofusion.py",
+    "tests/study/test_gpu_check.py",
+    "tests/study/test_bench_recipe.py",
+    "tests/study/test_bench_generate_against.py",
     "tests/study/test_gates.py",
+    "tests/study/test_bench_amp.py",
+    "tests/sensors/test_ray_backend.py",
 )
 
 
