@@ -20,6 +20,7 @@ import sys
 from pathlib import Path
 
 from study.bounds import CONTEXT_ORACLE
+from study.outputs import replace_marked_block, update_page
 from study.scoring import difference_interval
 from study.verdict import answer_sentences, bounds_sentences, family_sentence, namer
 
@@ -236,11 +237,7 @@ def learned_gate_lines(r: dict, ci) -> list[str]:
 
 def replace_block(readme: str, block: str) -> str:
     """`readme` with the text between BEGIN and END replaced by `block` (ValueError without both markers)."""
-    if readme.count(BEGIN) != 1 or readme.count(END) != 1 or readme.index(BEGIN) > readme.index(END):
-        raise ValueError(f"the README needs exactly one {BEGIN!r} followed by one {END!r}")
-    head, rest = readme.split(BEGIN, 1)
-    _, tail = rest.split(END, 1)
-    return f"{head}{BEGIN}\n{block.strip()}\n{END}{tail}"
+    return replace_marked_block(readme, BEGIN, END, block)
 
 
 def _verdict(report_path: str, sentences: bool, figure: str | None) -> int:
@@ -292,13 +289,7 @@ def main(argv: list[str] | None = None) -> int:
     except (OSError, ValueError, KeyError) as exc:
         sys.stderr.write(f"readme_results: {exc}\n")
         return 2
-    if args.check:
-        return 0 if new == readme else 1
-    if new != readme:
-        tmp = Path(args.readme).with_name(".README.md.tmp")
-        tmp.write_text(new)
-        tmp.replace(args.readme)
-    return 0
+    return update_page(args.readme, readme, new, args.check)
 
 
 if __name__ == "__main__":

@@ -30,6 +30,16 @@ from study.numbers import number_text, rounded, rounded_interval
 from study.predictions import GATES, usable_gates
 
 
+def gate_names(value) -> tuple[str, ...]:
+    """`--gates` (a name list or a comma-separated string) checked against GATES (UserError naming the
+    first unknown one)."""
+    gates = tuple(value if not isinstance(value, str) else value.split(","))
+    bad = [g for g in gates if g not in GATES]
+    if bad:
+        raise UserError(f"--gates: unknown gate {bad[0]!r} (choose from: {', '.join(GATES)})")
+    return gates
+
+
 def verdict(iv) -> str:
     """'above' / 'below' when the interval of a difference excludes 0, else 'not resolved'."""
     if iv is None:

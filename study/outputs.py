@@ -201,3 +201,25 @@ def cache_root() -> Path:
         return check_writable_dir(path)
     except UserError as exc:
         raise UserError(f"the cache directory ({source}): {exc}; set {CACHE_ENV} to a writable directory") from None
+
+
+def replace_marked_block(text: str, begin: str, end: str, block: str) -> str:
+    """`text` with what stands between the markers `begin` and `end` replaced by `block` (a generated
+    part of a page, such as the README's results); ValueError unless there is exactly one `begin`
+    followed by one `end`."""
+    if text.count(begin) != 1 or text.count(end) != 1 or text.index(begin) > text.index(end):
+        raise ValueError(f"the README needs exactly one {begin!r} followed by one {end!r}")
+    head, rest = text.split(begin, 1)
+    _, tail = rest.split(end, 1)
+    return f"{head}{begin}\n{block.strip()}\n{end}{tail}"
+
+
+def update_page(path: str | Path, old: str, new: str, check: bool) -> int:
+    """A generated block's writer's exit code: with `check`, 0 when the page `path` (whose text is
+    `old`) already holds `new` and 1 when not, writing nothing; else `new` written atomically when
+    it differs, and 0."""
+    if check:
+        return 0 if new == old else 1
+    if new != old:
+        write_text_atomic(path, new)
+    return 0

@@ -71,13 +71,10 @@ def add_parser(sub, name, help_text):
 
 def run(args) -> int:
     from sim.errors import UserError
-    from study.compare import GATES, compare, format_table
+    from study.compare import compare, format_table, gate_names
     from study.device import resolve_device
 
-    gates = tuple(args.gates if not isinstance(args.gates, str) else args.gates.split(","))
-    bad = [g for g in gates if g not in GATES]
-    if bad:
-        raise UserError(f"--gates: unknown gate {bad[0]!r} (choose from: {', '.join(GATES)})")
+    gates = gate_names(args.gates)
     from fusion.intervals import DESIGNS
 
     designs = (args.interval if args.coverage_design is None else args.coverage_design).split(",")

@@ -35,15 +35,11 @@ def add_parser(sub, name, help_text):
 
 
 def run(args) -> int:
-    from sim.errors import UserError
-    from study.compare import GATES
+    from study.compare import gate_names
     from study.device import resolve_device
     from study.predictions import predict
 
-    gates = tuple(args.gates if not isinstance(args.gates, str) else args.gates.split(","))
-    bad = [g for g in gates if g not in GATES]
-    if bad:
-        raise UserError(f"--gates: unknown gate {bad[0]!r} (choose from: {', '.join(GATES)})")
+    gates = gate_names(args.gates)
     pred = predict(Path(args.run_dir), Path(args.data), args.out, gates=gates, split=args.split,
                    batch_size=args.batch_size, setup=resolve_device(args, purpose="eval"))
     m = pred.manifest
