@@ -226,7 +226,11 @@ def _pass(run_dir, data, model, cfg, gates, indices, batch_size, progress):
                 feats = model.extract_features(inputs)
                 gate_feats = feats if set(sensors) == set(feats) else model.extract_features(inputs, sensors)
                 pooled = pool_features(gate_feats, sensors, DEFAULT_GRID)
-                dets, per = model.detect_and_losses(inputs, targets, seed=LOSS_SEED)
+                # the stems ran once: the branches reuse them where they need exactly these sensors
+                # (each stem saw the same batch as detect_and_losses' own run would give it)
+                need = model.stem_sensors(inputs)
+                reuse = next((f for f in (feats, gate_feats) if set(f) == set(need)), None)
+                dets, per = model.detect_and_losses(inputs, targets, seed=LOSS_SEED, features=reuse)
             losses = np.array([[[float(p[b][n]) for n in LOSS_NAMES] for b in branches] for p in per], np.float32)
             summed = losses.sum(axis=2)  # what GateData.branch_losses gives the optimal gate
             metas = [dict(m, branch_losses=dict(zip(branches, map(float, row)))) for m, row in zip(metas, summed)]

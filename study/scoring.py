@@ -234,25 +234,33 @@ def _above(d: Detections, threshold: float) -> dict:
 VEHICLES = ("car", "van", "truck", "bus")
 
 
-def in_range_bin(dets: list, gts: list, metas: list, frame: str, lo: float, hi: float) -> tuple[list, list]:
-    """Detections and ground truth of one range bin [lo, hi) m: ground truth outside the bin becomes
-    difficult (ignored: a detection matching it is neither true nor false). A detection that
-    overlaps a ground-truth box of its class at IoU >= 0.5 takes that object's range (its best
-    match); any other detection, a false positive, is placed by its own estimated range
-    (fusion.protocol.detection_ranges). Detections placed outside the bin are dropped."""
+def matched_ranges(d: dict, g: dict, meta: dict, frame: str) -> np.ndarray:
+    """The range (m) `in_range_bin` places each detection of one frame at: a detection that overlaps
+    a ground-truth box of its class at IoU >= 0.5 takes that object's range (its best match); any
+    other detection, a false positive, its own estimated range (fusion.protocol.detection_ranges)."""
     from fusion.metrics import box_iou
     from fusion.protocol import detection_ranges
 
+    boxes = np.asarray(d["boxes"], float).reshape(-1, 4)
+    r = detection_ranges(boxes, frame, meta["calibration"])
+    if len(boxes) and len(g["boxes"]):
+        iou = box_iou(boxes, g["boxes"])
+        iou[np.asarray(d["labels"])[:, None] != g["labels"][None, :]] = 0.0
+        best = iou.argmax(axis=1)
+        hit = iou[np.arange(len(boxes)), best] >= 0.5
+        r = np.where(hit, g["distance_m"][best], r)
+    return r
+
+
+def in_range_bin(dets: list, gts: list, metas: list, frame: str, lo: float, hi: float,
+                 ranges: list | None = None) -> tuple[list, list]:
+    """Detections and ground truth of one range bin [lo, hi) m: ground truth outside the bin becomes
+    difficult (ignored: a detection matching it is neither true nor false). Each detection is placed
+    at its `matched_ranges` (given in `ranges`, one array per frame, or computed here); detections
+    placed outside the bin are dropped."""
     out_d, out_g = [], []
-    for d, g, meta in zip(dets, gts, metas):
-        boxes = np.asarray(d["boxes"], float).reshape(-1, 4)
-        r = detection_ranges(boxes, frame, meta["calibration"])
-        if len(boxes) and len(g["boxes"]):
-            iou = box_iou(boxes, g["boxes"])
-            iou[np.asarray(d["labels"])[:, None] != g["labels"][None, :]] = 0.0
-            best = iou.argmax(axis=1)
-            hit = iou[np.arange(len(boxes)), best] >= 0.5
-            r = np.where(hit, g["distance_m"][best], r)
+    for j, (d, g, meta) in enumerate(zip(dets, gts, metas)):
+        r = matched_ranges(d, g, meta, frame) if ranges is None else ranges[j]
         keep = (r >= lo) & (r < hi)
         out_d.append({k: np.asarray(v)[keep] for k, v in d.items()})
         dist = g["distance_m"]
@@ -280,12 +288,16 @@ def score(per_frame: list, reader: DatasetReader, frame: str = "camera_right", b
     bins = list(zip(range_bin_names(), RANGE_BINS[:-1], RANGE_BINS[1:]))
     has_range = all("distance_m" in g for g in gts)
 
+    # each detection's range once per frame: every bin, overall and per context, reads it
+    ranges = [matched_ranges(d, g, m, frame) for d, g, m in zip(dets, gts, metas)] if has_range else []
+
     def per_range(ks) -> dict:
         if not has_range:
             return {}
         out = {}
         for name, lo, hi in bins:
-            d_b, g_b = in_range_bin([dets[k] for k in ks], [gts[k] for k in ks], [metas[k] for k in ks], frame, lo, hi)
+            d_b, g_b = in_range_bin([dets[k] for k in ks], [gts[k] for k in ks], [metas[k] for k in ks], frame, lo, hi,
+                                    ranges=[ranges[k] for k in ks])
             out[name] = _mean_of(evaluate_detections(d_b, g_b, classes=vehicles), vehicles)
         return out
 

@@ -282,6 +282,12 @@ class HydraFusion(nn.Module):
                 out[sensor] = (f, {i: r for r, i in enumerate(idx)})
         return out
 
+    def stem_sensors(self, inputs: Mapping[str, Tensor]) -> list[str]:
+        """The sensors whose stem features every branch together needs (`detect_and_losses`), in
+        this network's sensor order."""
+        _, needs = self._plan(inputs, self.expand_selection(None, self._check_inputs(inputs)))
+        return [s for s in self.sensors if s in needs]
+
     def extract_features(
         self, inputs: Mapping[str, Tensor], sensors: Sequence[str] | None = None
     ) -> dict[str, Tensor]:
@@ -517,18 +523,30 @@ class HydraFusion(nn.Module):
         targets: list[dict[str, dict[str, Tensor]]],
         *,
         seed: int = 0,
+        features: Mapping[str, Tensor] | None = None,
     ) -> tuple[list[dict[str, dict[str, Tensor]]], list[dict[str, dict[str, Tensor]]]]:
         """Every branch's eval-mode detections (as `forward(inputs, selection=every branch)`) and
         per-sample losses (as `per_sample_losses(inputs, targets, seed=seed)`) from one run of the
         stems and of each branch's backbone: the same numbers as the two calls apart (the same
-        batched operations on the same inputs), for the price of one forward and the loss heads."""
+        batched operations on the same inputs), for the price of one forward and the loss heads.
+
+        `features`: `extract_features(inputs, sensors)` already computed (what a gate read), used
+        instead of running the stems again; it must hold every sensor the branches need. The same
+        numbers as without it when `sensors` are exactly those (`stem_sensors()`): each stem then
+        sees the same batch."""
         if self.training:
             raise RuntimeError("detect_and_losses needs eval mode (call model.eval() first)")
         batch = self._check_inputs(inputs)
         selection = self.expand_selection(None, batch)
         groups, needs = self._plan(inputs, selection)
         self._check_targets(targets, selection)
-        feats = self._run_stems(inputs, needs, batch)
+        if features is None:
+            feats = self._run_stems(inputs, needs, batch)
+        else:
+            missing = [s for s in needs if s not in features]
+            if missing:
+                raise ValueError(f"features: no stem features for sensor(s) {', '.join(missing)} the branches need")
+            feats = {s: (features[s], {i: i for i in range(batch)}) for s in needs}
         detections: list[dict[str, dict[str, Tensor]]] = [{} for _ in range(batch)]
         losses: list[dict[str, dict[str, Tensor]]] = [{} for _ in range(batch)]
         for name, idx in groups.items():

@@ -207,6 +207,30 @@ def test_detect_and_losses_are_forward_and_per_sample_losses_from_one_backbone_r
     model.train(was)
 
 
+def test_detect_and_losses_on_given_stem_features_are_the_same_bit_for_bit(model):
+    """The prediction pass hands the stems' features the gates read to detect_and_losses instead of
+    running the stems twice: on features of exactly `stem_sensors` the numbers are identical, and
+    features missing a sensor the branches need are refused."""
+    was = model.training
+    model.eval()
+    inputs, targets = make_inputs(model, 2, seed=4), make_targets(model, 2, seed=4)
+    need = model.stem_sensors(inputs)
+    assert need and set(need) <= set(model.sensors)
+    dets, losses = model.detect_and_losses(inputs, targets, seed=5)
+    with torch.no_grad():
+        feats = model.extract_features(inputs, need)
+    dets2, losses2 = model.detect_and_losses(inputs, targets, seed=5, features=feats)
+    for i in range(2):
+        for name in model.branches:
+            for key in ("boxes", "scores", "labels"):
+                assert torch.equal(dets[i][name][key], dets2[i][name][key]), (i, name, key)
+            for k in LOSS_NAMES:
+                assert torch.equal(losses[i][name][k], losses2[i][name][k]), (i, name, k)
+    with pytest.raises(ValueError, match="no stem features for sensor"):
+        model.detect_and_losses(inputs, targets, seed=5, features={s: f for s, f in feats.items() if s != need[0]})
+    model.train(was)
+
+
 @pytest.mark.parametrize("norm", NORM_LAYERS.names())
 def test_every_norm_layer_trains_and_group_norm_matches_plain_training(norm):
     torch.manual_seed(0)
