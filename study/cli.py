@@ -209,6 +209,20 @@ def name_list(text: str) -> tuple[str, ...]:
 _typed(name_list, "names")
 
 
+def fusion_arg(text: str) -> str:
+    """A late-fusion method of `fusion.boxes.FUSION_METHODS` by its name or label, as its label
+    ("soft-nms"); the registry is read only when a value is parsed (its kernels load slowly)."""
+    from fusion.boxes import method_label
+
+    try:
+        return method_label(str(text).strip())
+    except ValueError as e:
+        raise argparse.ArgumentTypeError(str(e)) from None
+
+
+FUSION_HELP = "a late-fusion method of fusion.boxes by its label (nms, soft-nms and wbf are the paper's)"
+
+
 def name_arg(text: str) -> str:
     """One name (a profile, a condition, a combination such as city+night+rain): not empty, no comma,
     no dangling '+'. Whether it exists is the command's check."""

@@ -32,6 +32,7 @@ from pathlib import Path
 
 import numpy as np
 
+from fusion.boxes import method_labels, method_name
 from fusion.physical_gate import CAR_QUANTITY, modality_of
 from sim.errors import UserError
 
@@ -322,9 +323,10 @@ def run_crossover(work: Path, run_paper: Path, sec, profile: str, fusion: str, s
     singles = [b for b in branches if len(sensors_of[b]) == 1 and sensors_of[b][0] in SINGLE_SENSORS]
     sets = drop_sets(branches, sensors_of, singles)
     every = {_set_name(b): tuple(b) for d in sets.values() for b in d.values()}
-    if fusion not in ("nms", "soft-nms", "wbf"):
-        raise UserError(f"crossover.fusion must be nms, soft-nms or wbf (declared in advance), got {fusion!r}")
-    method = fusion.replace("-", "_")
+    if fusion not in method_labels():
+        raise UserError(f"crossover.fusion must be one of {', '.join(method_labels())} (declared in advance), got "
+                        f"{fusion!r}")
+    method = method_name(fusion)
     protocol = run_protocol(run_cfg)
     metas = [m for m, _ in deg]
     matches = _matches(deg, every, model.branch_frames, method, reader, protocol)

@@ -17,6 +17,7 @@ from typing import Any
 
 import numpy as np
 
+from fusion.boxes import FUSION_METHODS, method_label
 from sim.errors import UserError
 from sim.progress import progress as progress_bar
 from study.branch_gate_study import load_trained_gate, mae
@@ -25,8 +26,7 @@ from study.gate_data import GateData
 from study.numbers import rounded
 
 TABLE_KS = (1, 3, 5, "all")
-TABLE_FUSIONS = ("nms", "soft_nms", "wbf")
-FUSION_LABEL = {"nms": "nms", "soft_nms": "soft-nms", "wbf": "wbf"}
+TABLE_FUSIONS = tuple(FUSION_METHODS.names())
 
 
 def parse_k(text: Any, n_branches: int, field: str = "--k") -> int | str:
@@ -167,7 +167,7 @@ def evaluate_gate(run_dir, data, gate: str, k=None, fusion: str = "soft-nms", sp
     kk = str(k)
     result.update({
         "gate": gate, "k": k, "fusion": method, "split": used_split, "run": str(run_dir), "data": str(data),
-        "map_table": {gate: {FUSION_LABEL[method]: {kk: result["map"]}}},
+        "map_table": {gate: {method_label(method): {kk: result["map"]}}},
         "selection_rate": {gate: {kk: selection_rates(selections, branches)}},
         "selection_rate_per_context": {gate: {kk: _rates_per_context(selections, [m["context"] for m, _ in per_frame],
                                                                       branches)}},
@@ -275,7 +275,7 @@ def evaluate_all_gates(run_dir, data, gates=None, fusions=TABLE_FUSIONS, ks=None
             rates[g][str(k)] = selection_rates(selection, branches)
             rates_ctx[g][str(k)] = _rates_per_context(selection, contexts, branches)
             for method in fusions:
-                label = FUSION_LABEL[method]
+                label = method_label(method)
                 out = fuse_selection(per_frame, selection, frames, method, weights, memo.setdefault(method, {}))
                 sc = score(out, reader, "camera_right", protocol=protocol)
                 map_table[g].setdefault(label, {})[str(k)] = sc["map"]
@@ -293,7 +293,7 @@ def evaluate_all_gates(run_dir, data, gates=None, fusions=TABLE_FUSIONS, ks=None
         "table3": best,
         "map_per_context_table": ctx_table,
         "selection_rate_per_context": rates_ctx,
-        "gates": names, "fusions": [FUSION_LABEL[m] for m in fusions], "ks": [str(k) for k in ks],
+        "gates": names, "fusions": [method_label(m) for m in fusions], "ks": [str(k) for k in ks],
         "branches": branches, "frames": len(per_frame), "split": used_split, "run": str(run_dir), "data": str(data),
         "metric": "VOC all-point AP at IoU 0.5, right camera, difficult ground truth ignored",
         "method": "every branch ran once per frame; each gate's top-k subset was fused afterwards (equal to running "

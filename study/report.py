@@ -14,6 +14,7 @@ import json
 import os
 from pathlib import Path
 
+from fusion.boxes import FUSION_METHODS, method_label
 from study.numbers import interval_text, number_text
 from study.outputs import write_text_atomic
 from study.report_bounds import (
@@ -338,8 +339,9 @@ def add_hydra_table5(doc: Doc, r: dict, tag: str) -> None:
     """HydraFusion Table 5: the late fusion methods on sensor combinations (when any was run)."""
     if r["hydra_table5"]:
         doc.h(2, "HydraFusion Table 5 analogue: late fusion methods")
-        doc.table(f"mAP@0.5 of late-fused single-sensor branches ({tag})", ["sensors", "wbf", "nms", "soft-nms"],
-                  [[c, v.get("wbf"), v.get("nms"), v.get("soft_nms")] for c, v in r["hydra_table5"].items()])
+        names = FUSION_METHODS.names()  # every registered method (fusion.boxes), one column each
+        doc.table(f"mAP@0.5 of late-fused single-sensor branches ({tag})", ["sensors", *map(method_label, names)],
+                  [[c, *(v.get(n) for n in names)] for c, v in r["hydra_table5"].items()])
 
 
 def add_hydra_tables_6_7(doc: Doc, r: dict, tag: str) -> None:

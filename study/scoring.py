@@ -23,13 +23,16 @@ from sim.actors import CLASSES
 from sim.errors import UserError
 from study.numbers import rounded, rounded_interval
 
-FUSION_ALIASES = {"nms": "nms", "soft-nms": "soft_nms", "soft_nms": "soft_nms", "wbf": "wbf"}
-
 
 def fusion_method(name: str) -> str:
-    if name not in FUSION_ALIASES:
-        raise UserError(f"unknown fusion method {name!r} (choose from: nms, soft-nms, wbf)")
-    return FUSION_ALIASES[name]
+    """`fusion.boxes.method_name` (the registry's name of a late-fusion method, given by name or label),
+    a UserError for an unknown one."""
+    from fusion.boxes import method_name
+
+    try:
+        return method_name(name)
+    except ValueError as e:
+        raise UserError(str(e)) from None
 
 
 def load_run(run: str | Path, which: str = "latest", device: str = "cpu"):

@@ -71,6 +71,14 @@ def source_config(section, where: str, **fields):
         raise UserError(f"{where}: {exc}") from None
 
 
+def _fusion(where: str, value, *also: str) -> None:
+    """A late-fusion method's label (`fusion.boxes.method_labels`), or one of `also`."""
+    from fusion.boxes import method_labels
+
+    if value not in (*also, *method_labels()):
+        raise UserError(f"{where} must be {' or '.join((*also, *method_labels()))}, got {value!r}")
+
+
 def _positive(where: str, value, lo=1) -> None:
     if value < lo:
         raise UserError(f"{where} must be >= {lo}, got {value}")
@@ -281,8 +289,7 @@ class GatesSection:
             raise UserError(f"gates.lr must be > 0, got {self.lr}")
         if not 0 <= self.val_fraction < 1:
             raise UserError(f"gates.val_fraction must be in [0, 1), got {self.val_fraction}")
-        if self.fusion not in ("nms", "soft-nms", "wbf"):
-            raise UserError(f"gates.fusion must be nms, soft-nms or wbf, got {self.fusion!r}")
+        _fusion("gates.fusion", self.fusion)
         for gate in self.gates or ("deep",):  # the shared fields, as each gate's GateTrainConfig
             source_config(self, "gates", gate=gate)
 
@@ -341,8 +348,7 @@ class EvaluateSection:
         for name in ("hydra_gate", "eco_gate"):
             if getattr(self, name) not in allowed:
                 raise UserError(f"evaluate.{name} must be {', '.join(allowed)}, got {getattr(self, name)!r}")
-        if self.fusion not in ("validation", "nms", "soft-nms", "wbf"):
-            raise UserError(f"evaluate.fusion must be validation, nms, soft-nms or wbf, got {self.fusion!r}")
+        _fusion("evaluate.fusion", self.fusion, "validation")
         from fusion.intervals import DESIGNS
 
         if self.interval not in DESIGNS:
@@ -415,8 +421,7 @@ class CrossoverSection:
         if bad or not self.conditions or len(set(self.conditions)) != len(self.conditions):
             raise UserError(f"crossover.conditions must be distinct names of {', '.join(CAR_QUANTITY)}, got "
                             f"{list(self.conditions)}")
-        if self.fusion not in ("nms", "soft-nms", "wbf"):
-            raise UserError(f"crossover.fusion must be nms, soft-nms or wbf, got {self.fusion!r}")
+        _fusion("crossover.fusion", self.fusion)
         if not 0.5 <= self.level < 1:
             raise UserError(f"crossover.level must be in [0.5, 1), got {self.level}")
 

@@ -33,6 +33,7 @@ from typing import Any
 
 import numpy as np
 
+from fusion.boxes import FUSION_METHODS, method_label, method_name
 from sim.errors import UserError
 from sim.progress import progress as progress_bar
 from study.bounds import best_single_on_validation, evaluate_bounds
@@ -47,7 +48,7 @@ from study.regrets import (
     regret_intervals,
 )
 
-FUSIONS = ("nms", "soft_nms", "wbf")
+FUSIONS = tuple(FUSION_METHODS.names())
 LATE_COMBOS = (("camera_left", "camera_right"), ("camera_left", "camera_right", "lidar"), ("radar", "lidar"),
                ("radar", "camera_left", "camera_right", "lidar"))
 """HydraFusion Table 5's late-fusion sensor combinations (the branches present are used)."""
@@ -249,7 +250,7 @@ class ValidationFrames:
 
 def declared_fusion(e) -> str | None:
     """evaluate.fusion as the fusion's internal name ("soft_nms"), or None: chosen on validation."""
-    return None if e.fusion == "validation" else e.fusion.replace("-", "_")
+    return None if e.fusion == "validation" else method_name(e.fusion)
 
 
 def table3_on_validation(run, data, ev, val: ValidationFrames, hydra_tables: dict, gates, k: int, log,
@@ -257,20 +258,20 @@ def table3_on_validation(run, data, ev, val: ValidationFrames, hydra_tables: dic
     """HydraFusion Table 3: per gate, the fusion method whose mAP of the gate's top k is best on the
     validation frames, and that method's test row of Table 6 (the paper picks the best per gate; a
     pick on the test frames would flatter every gate); with a `declared` fusion, that one for every gate."""
-    from study.gate_tables import FUSION_LABEL, top_k_selection
+    from study.gate_tables import top_k_selection
 
     branches = list(ev.ed.branches)
     preds = hydra_predictions(run, data, val, gates)
     out = {}
     for g in gates:
         if declared:
-            label = FUSION_LABEL[declared]
+            label = method_label(declared)
             out[g] = {"fusion": label, "map": hydra_tables["map_table"][g][label], "chosen_on": "declared in advance"}
             continue
         selection = top_k_selection(preds[g], branches, k)
-        label = FUSION_LABEL[log.choose(f"HydraFusion Table 3: fusion of the {g} gate's top {min(k, len(branches))}",
+        label = method_label(log.choose(f"HydraFusion Table 3: fusion of the {g} gate's top {min(k, len(branches))}",
                                         {f: val.score(selection, f)["map"] for f in FUSIONS}, val.indices,
-                                        lower_is_better=False, measure="mAP", sequences=val.sequences)]
+                                        lower_is_better=False, measure="mAP", sequences=val.sequences))
         out[g] = {"fusion": label, "map": hydra_tables["map_table"][g][label], "chosen_on": "validation"}
     return out
 

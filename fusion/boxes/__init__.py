@@ -17,6 +17,10 @@ differences are listed in `fusion.boxes.nms` and `fusion.boxes.wbf`.
 `FUSION_METHODS` is the registry of late-fusion methods. An entry is called as
 ``entry(boxes_list, scores_list, labels_list, weights=None, **params) -> (boxes, scores, labels)``
 with the arrays above; `params` are the method's keyword arguments (iou_thr, sigma, ...).
+A method has one name in the registry ("soft_nms") and one on the command line and in reports, its
+label ("soft-nms"): `method_name` takes either, `method_label` and `method_labels` give labels. Every
+caller reads them from here, so a new method is its function and its two lines below (its
+registration and its `HYDRAFUSION_PARAMS`).
 """
 
 from __future__ import annotations
@@ -42,4 +46,26 @@ HYDRAFUSION_PARAMS: dict[str, dict] = {
     "wbf": {"iou_thr": 0.4, "skip_box_thr": 0.01},
 }
 
-__all__ = ["FUSION_METHODS", "HYDRAFUSION_PARAMS", "nms", "soft_nms", "weighted_boxes_fusion"]
+
+
+def method_labels() -> list[str]:
+    """Every late-fusion method's label ("nms", "soft-nms", "wbf"), in registry order."""
+    return [n.replace("_", "-") for n in FUSION_METHODS.names()]
+
+
+def method_name(name: str) -> str:
+    """The registry's name of the late-fusion method `name`, given by its name or its label (the one
+    normalisation: dashes are underscores). ValueError naming the choices for an unknown one."""
+    key = str(name).replace("-", "_")
+    if key not in FUSION_METHODS:
+        raise ValueError(f"unknown fusion method {name!r} (choose from: {', '.join(method_labels())})")
+    return key
+
+
+def method_label(name: str) -> str:
+    """The label ("soft-nms") of the late-fusion method `name` (its name or label)."""
+    return method_name(name).replace("_", "-")
+
+
+__all__ = ["FUSION_METHODS", "HYDRAFUSION_PARAMS", "method_label", "method_labels", "method_name", "nms", "soft_nms",
+           "weighted_boxes_fusion"]

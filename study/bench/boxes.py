@@ -17,8 +17,6 @@ from collections.abc import Callable
 
 import numpy as np
 
-METHODS = ("nms", "soft_nms", "wbf")
-
 
 def synthetic_scene(rng: np.random.Generator, *, n_objects: int = 30, n_classes: int = 3) -> dict:
     """Ground truth of one synthetic image, in normalised image coordinates.

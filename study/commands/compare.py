@@ -6,13 +6,14 @@ from __future__ import annotations
 from pathlib import Path
 
 from study.cli import (
+    FUSION_HELP,
     Formatter,
     bootstrap_int,
     count_int,
     dataset_dir,
     emit,
+    fusion_arg,
     module_doc,
-    name_arg,
     name_list,
     out_file,
     pos_int,
@@ -36,7 +37,7 @@ def add_parser(sub, name, help_text):
                    help="training run directory, or a reference model (models/: e.g. cpu-ref)")
     p.add_argument("data", type=dataset_dir, help="dataset directory")
     p.add_argument("--k", type=pos_int, default=2, help="branches each gate keeps per frame")
-    p.add_argument("--fusion", type=name_arg, default="soft-nms", help="nms | soft-nms | wbf: how chosen branches are fused")
+    p.add_argument("--fusion", type=fusion_arg, default="soft-nms", help=f"how chosen branches are fused: {FUSION_HELP}")
     p.add_argument("--gates", type=name_list, default="knowledge,deep,attention,optimal",
                    help="HydraFusion gates to compare (deep and attention only where trained)")
     p.add_argument("--split", default="auto", choices=["auto", "test", "all"],

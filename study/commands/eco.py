@@ -10,12 +10,14 @@ from sim.errors import UserError
 from study import eco
 from study.branch_gate_study import GateTrainConfig
 from study.cli import (
+    FUSION_HELP,
     Formatter,
     bootstrap_int,
     checkpoint_arg,
     dataset_dir,
     emit,
     float_range,
+    fusion_arg,
     holdout_fraction,
     in_file,
     name_arg,
@@ -52,8 +54,8 @@ def _common(p, energy: bool = True) -> None:
     p.add_argument("data", type=dataset_dir, help="the run's training dataset")
     p.add_argument("--configurations", type=_configurations_file, default=None, help="YAML file of the configuration set (keys: subsets all|listed, "
                    "max_branches, configurations, baselines); default: every non-empty subset of the branches")
-    p.add_argument("--fusion", default="wbf", choices=["nms", "soft-nms", "wbf"],
-                   help="late fusion of a configuration's branches (EcoFusion 4.4: WBF)")
+    p.add_argument("--fusion", default="wbf", type=fusion_arg,
+                   help=f"late fusion of a configuration's branches (EcoFusion 4.4: WBF): {FUSION_HELP}")
     p.add_argument("--checkpoint", type=checkpoint_arg, default="latest", help="latest, or epoch-NNN")
     p.add_argument("--batch-size", type=pos_int, default=4, help="frames per forward when building the dataset")
     p.add_argument("--max-frames", type=nonneg_int, default=0, help="use at most this many frames of each split "

@@ -9,11 +9,13 @@ from pathlib import Path
 from sim.errors import UserError
 from study import run_eval as evaluation
 from study.cli import (
+    FUSION_HELP,
     Formatter,
     bootstrap_int,
     checkpoint_arg,
     dataset_dir,
     emit,
+    fusion_arg,
     name_arg,
     name_list,
     pos_int,
@@ -37,7 +39,7 @@ def add_parser(sub, name, help_text):
     p.add_argument("run_dir", metavar="RUN", type=training_run, help="training run directory (hydrabench train --out)")
     p.add_argument("data", type=dataset_dir, help="dataset directory")
     p.add_argument("--branches", type=name_list, default="all", help="comma-separated branch names, each once, or 'all'")
-    p.add_argument("--fusion", type=name_arg, default="soft-nms", help="nms | soft-nms | wbf")
+    p.add_argument("--fusion", type=fusion_arg, default="soft-nms", help=FUSION_HELP)
     p.add_argument("--split", default="auto", choices=["auto", "test", "train", "all", "data-test"],
                    help="auto: the run's test split on its own dataset, every frame on another; data-test: "
                    "DATA's own by-sequence test split (the run's split settings), i.e. the frames a run trained "

@@ -5,7 +5,17 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from study.cli import Formatter, bootstrap_int, dataset_dir, emit, in_file, module_doc, name_arg
+from study.cli import (
+    FUSION_HELP,
+    Formatter,
+    bootstrap_int,
+    dataset_dir,
+    emit,
+    fusion_arg,
+    in_file,
+    module_doc,
+    name_arg,
+)
 
 EPILOG = """\
 examples:
@@ -62,7 +72,7 @@ def add_parser(sub, name, help_text):
     p.add_argument("--missing", default="refuse", choices=["refuse", "empty"],
                    help="a frame a nuScenes file leaves out: refuse the file, or score it as a frame without "
                         "detections (counted in the result)")
-    p.add_argument("--fusion", default="soft-nms", choices=["nms", "soft-nms", "wbf"], help="how branches are fused")
+    p.add_argument("--fusion", default="soft-nms", type=fusion_arg, help=f"how branches are fused: {FUSION_HELP}")
     p.add_argument("--protocol", default="reference", choices=["reference", "visible"],
                    help="what counts as an object to find (fusion.protocol)")
     p.add_argument("--bootstrap", type=bootstrap_int, default=500, metavar="N",
