@@ -236,7 +236,7 @@ class StereoRenderer:
 _RAYS: dict = {}
 
 
-def _rays(cam: CameraCalibration) -> np.ndarray:
+def pixel_rays(cam: CameraCalibration) -> np.ndarray:
     key = (cam.width, cam.height, cam.K.tobytes())
     if key not in _RAYS:
         _RAYS[key] = cam.rays().astype(np.float32)
@@ -250,7 +250,7 @@ def _rays_per_z(cam: CameraCalibration) -> np.ndarray:
     """The unit rays scaled to z = 1 (float32, as `rays / rays[..., 2:3]`): the point at depth z is z times this."""
     key = (cam.width, cam.height, cam.K.tobytes())
     if key not in _RAYS_PER_Z:
-        rays = _rays(cam)
+        rays = pixel_rays(cam)
         _RAYS_PER_Z[key] = rays / rays[..., 2:3]
     return _RAYS_PER_Z[key]
 
@@ -342,7 +342,7 @@ def shade(
 
     H, W = depth.shape
     geo = np.isfinite(depth)
-    rays = _rays(cam)  # unit, optical frame
+    rays = pixel_rays(cam)  # unit, optical frame
     z = np.where(geo, depth, 0.0)[..., None]
     P_cam = _rays_per_z(cam) * z
     world_from_cam = (world_from_ego @ cam.ego_from_camera).astype(np.float32)

@@ -128,9 +128,9 @@ def compare(run_dir, data, *, gates=GATES, k: int = 2, fusion: str = "soft-nms",
     best = _best_of(gp.manifest.get("best_gate"), trained)
     rob = None
     if twins:
-        from study.gate_tables import _setup
+        from study.gate_tables import setup_run
 
-        model = _setup(run_dir, data, "all", None, "latest", setup)[0]
+        model = setup_run(run_dir, data, "all", None, "latest", setup)[0]
         rob = robustness(run_dir, data, model, reader, gp, selections, sources, [g for g in trained if g != "optimal"],
                          k, method, protocol, indices, resamples, batch_size, progress)
     cov = (coverage(sources, reader, protocol, coverage_deals, resamples, progress, coverage_designs)
@@ -223,7 +223,7 @@ def robustness(run_dir, data, model, reader, gp, selections, sources, twin_gates
     from sensors.dataset import DatasetReader
     from sim.actors import CLASSES
     from study.gate_tables import gate_pass
-    from study.scoring import VEHICLES, _image_matches, fuse_selection, ground_truth
+    from study.scoring import VEHICLES, fuse_selection, ground_truth, image_matches
 
     if not reader.manifest["config"].get("twins"):
         raise UserError(f"--twins: {data} has no clear-weather twins (generate it with --twins)")
@@ -250,7 +250,7 @@ def robustness(run_dir, data, model, reader, gp, selections, sources, twin_gates
                        enabled=progress)
     for n in names:
         clr = fuse_selection(gc.per_frame, clear_selections[n], frames, method)
-        md, mc = _image_matches(sources[n], keys, gts_d, vehicles), _image_matches(clr, keys, gts_c, vehicles)
+        md, mc = image_matches(sources[n], keys, gts_d, vehicles), image_matches(clr, keys, gts_c, vehicles)
         per = {}
         for (cond, sev), idx in sorted(groups.items()):
             t = R.twin_relative_accuracy(lambda items, idx=idx, md=md: md.mean_ap([idx[i] for i in items]),

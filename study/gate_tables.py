@@ -75,14 +75,14 @@ def _rates_per_context(selections, contexts, branches) -> dict[str, dict[str, fl
     return {c: selection_rates(v, branches) for c, v in sorted(by.items())}
 
 
-def _setup(run_dir, data, split, weights, checkpoint, setup=None):
+def setup_run(run_dir, data, split, weights, checkpoint, setup=None):
     from fusion.nets.branch_gates import gate_sensors
     from sensors.dataset import DatasetReader
     from study.scoring import frames_for, load_run
 
     setup = setup or resolve_device(purpose="eval")
     model, cfg = load_run(run_dir, checkpoint, device=setup.device)
-    model.device_setup = setup  # read by _loader, _gate_on_device and the autocast of the gated forwards
+    model.device_setup = setup  # read by _loader, gate_on_device and the autocast of the gated forwards
     if not gate_sensors(model):
         raise UserError("gates need HydraFusion's shared stems (a gate reads every stem before choosing branches); "
                         f"this run's branches ({', '.join(model.branches)}) fuse their inputs and have none")
@@ -111,7 +111,7 @@ def _loader(model, data, indices, batch_size, clear: bool = False):
         yield to_device(inputs, None, setup.device)[0], targets, metas
 
 
-def _gate_on_device(gate, model):
+def gate_on_device(gate, model):
     return gate.to(model.device_setup.device) if model.device_setup.is_cuda else gate
 
 
@@ -132,9 +132,9 @@ def evaluate_gate(run_dir, data, gate: str, k=None, fusion: str = "soft-nms", sp
     from study.train import run_protocol
 
     method = fusion_method(fusion)
-    model, _cfg, indices, used_split, reader = _setup(run_dir, data, split, weights, checkpoint, setup)
+    model, _cfg, indices, used_split, reader = setup_run(run_dir, data, split, weights, checkpoint, setup)
     k = parse_k(min(3, len(model.branches)) if k is None else k, len(model.branches))
-    g = _gate_on_device(make_gate(gate, model, run_dir, checkpoint, k), model)
+    g = gate_on_device(make_gate(gate, model, run_dir, checkpoint, k), model)
     losses = _optimal_losses(run_dir, data, model, checkpoint, indices, progress) if g.reads == "losses" else None
     calls: dict[str, int] = defaultdict(int)
 
@@ -214,7 +214,7 @@ def gate_pass(run_dir, data, model, names, indices, checkpoint: str = "latest", 
 
     from study.scoring import to_detections
 
-    gate_objs = {g: _gate_on_device(make_gate(g, model, run_dir, checkpoint), model) for g in names}
+    gate_objs = {g: gate_on_device(make_gate(g, model, run_dir, checkpoint), model) for g in names}
     branches = list(model.branches)
     need_losses = any(g.reads == "losses" for g in gate_objs.values())
     if need_losses and clear:
@@ -250,7 +250,7 @@ def evaluate_all_gates(run_dir, data, gates=None, fusions=TABLE_FUSIONS, ks=None
     from study.scoring import fuse_selection, score
     from study.train import run_protocol
 
-    model, _cfg, indices, used_split, reader = _setup(run_dir, data, split, weights, checkpoint, setup)
+    model, _cfg, indices, used_split, reader = setup_run(run_dir, data, split, weights, checkpoint, setup)
     protocol = run_protocol(_cfg)
     names = list(gates or GATES.names())
     branches = list(model.branches)

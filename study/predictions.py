@@ -123,10 +123,10 @@ def predict(run_dir, data, out=None, *, gates=GATES, split: str = "auto",
     `split` (`study.scoring.frames_for`), read from `out` (default RUN/predictions/<key>/) when they
     are there with this identity, else made by one pass and written there. `gates`: those that can run
     (`usable_gates`: learned ones only where trained) predict beside the branches."""
-    from study.gate_tables import _setup
+    from study.gate_tables import setup_run
 
     run_dir, data = Path(run_dir), Path(data)
-    model, cfg, indices, used_split, reader = _setup(run_dir, data, split, None, "latest", setup)
+    model, cfg, indices, used_split, reader = setup_run(run_dir, data, split, None, "latest", setup)
     trained = usable_gates(run_dir, gates)
     identity = identity_of(run_dir, data, model, trained, indices, used_split, batch_size, model.device_setup)
     key = hashlib.sha256(json.dumps(identity, sort_keys=True).encode()).hexdigest()[:16]
@@ -192,12 +192,12 @@ def _pass(run_dir, data, model, cfg, gates, indices, batch_size, progress):
     from sim.progress import progress as progress_bar
     from study.device import to_device
     from study.gate_data import LOSS_SEED
-    from study.gate_tables import _gate_on_device, make_gate
+    from study.gate_tables import gate_on_device, make_gate
     from study.scoring import to_detections
     from study.train import run_protocol
 
     setup = model.device_setup
-    gate_objs = {g: _gate_on_device(make_gate(g, model, run_dir, "latest"), model) for g in gates}
+    gate_objs = {g: gate_on_device(make_gate(g, model, run_dir, "latest"), model) for g in gates}
     branches = list(model.branches)
     frames = model.branch_frames
     sensors = gate_sensors(model)

@@ -414,7 +414,7 @@ def recall_by_visibility(per_frame: list, reader: DatasetReader, frame: str = "c
             for lo, hi, n, f in zip(edges[:-1], edges[1:], objects, found)}
 
 
-def _image_matches(frames: list, keys: list, gts: list, classes) -> ImageMatches:
+def image_matches(frames: list, keys: list, gts: list, classes) -> ImageMatches:
     """`ImageMatches` of per-frame detections [(meta, Detections)], in the order of dataset `keys`."""
     by = {meta["dataset_index"]: d for meta, d in frames}
     return ImageMatches.of([{"boxes": by[k].boxes, "scores": by[k].scores, "labels": by[k].labels} for k in keys],
@@ -451,7 +451,7 @@ def paired_bootstrap(deg_frames: list, clr_frames: list, reader, clear_reader, f
     def matches(frames, rdr) -> ImageMatches:
         meta_of = {meta["dataset_index"]: meta for meta, _ in frames}
         gts = [ground_truth(rdr.labels(k), frame, bev_crop, meta_of[k], protocol) for k in keys]
-        return _image_matches(frames, keys, gts, vehicles)  # matched once; each draw only pools
+        return image_matches(frames, keys, gts, vehicles)  # matched once; each draw only pools
 
     deg, clr = matches(deg_frames, reader), matches(clr_frames, clear_reader)
     seq_of = {meta["dataset_index"]: (meta["sequence_id"], str(meta.get("severity", 0))) for meta, _ in deg_frames}
@@ -502,7 +502,7 @@ def context_bootstrap(sources: dict, reader, frame: str = "camera_right", protoc
     key = "map_vehicles" if classes == "vehicles" else "map"
     meta_of = {meta["dataset_index"]: meta for meta, _ in sources[names[0]]}
     gts = [ground_truth(reader.labels(k), frame, None, meta_of[k], protocol) for k in keys]
-    matches = {n: _image_matches(sources[n], keys, gts, class_ids) for n in names}
+    matches = {n: image_matches(sources[n], keys, gts, class_ids) for n in names}
     row = {k: j for j, k in enumerate(keys)}
     groups = {"all": keys}
     for k in keys:

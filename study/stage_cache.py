@@ -26,9 +26,9 @@ MARKER = "study.json"
 """The file that makes DIR a study directory (a folder of other files is refused)."""
 
 
-def _digest(obj) -> str:
+def json_digest(obj) -> str:
     """SHA-256 of `obj` as sorted JSON. (Its name is in the stage functions' source, which their keys
-    hash: renaming it would rerun every study.)"""
+    hash: renaming it reruns every study; it was `_digest` until the stages stopped importing a private name.)"""
     return hashlib.sha256(json.dumps(obj, sort_keys=True, default=str).encode()).hexdigest()
 
 
@@ -88,7 +88,7 @@ class Study:
     @staticmethod
     def key(name: str, inputs: dict) -> str:
         """The key of stage `name` made of `inputs` (with their "upstream" part): 16 hex digits."""
-        return _digest({"stage": name, "version": STUDY_VERSION, **inputs})[:16]
+        return json_digest({"stage": name, "version": STUDY_VERSION, **inputs})[:16]
 
     def stage(self, name: str, inputs: dict, upstream: tuple[StageRecord, ...], func, **kwargs) -> StageRecord:
         """Run `func(work_dir, **kwargs) -> (outputs digest, extra manifest fields)` unless the stage

@@ -44,7 +44,7 @@ from sim.config import to_dict
 from sim.errors import UserError
 from study.gate_data import file_sha256
 from study.outputs import atomic_path, write_json_atomic
-from study.stage_cache import StageRecord, Study, _digest, link_farm
+from study.stage_cache import StageRecord, Study, json_digest, link_farm
 
 if TYPE_CHECKING:  # the config imports torch (TrainConfig); `hydrabench study --help` reads STAGES from here
     from study.study_config import GatesSection, StudyConfig, TrainSection
@@ -100,7 +100,7 @@ def _paper_view(tr: StageRecord, inputs: dict, gen: StageRecord) -> StageRecord:
     paper_only = {k: v for k, v in paper_only.items() if k != "early_detectors_sha256"}
     key = Study.key("train", {**paper_only, "upstream": {gen.name: {"key": gen.key, "digest": gen.digest}}})
     paper_sha = tr.manifest["checkpoints_sha256"]["paper"]
-    return StageRecord(tr.name, key, tr.dir, tr.status, tr.seconds, _digest({"paper": paper_sha}), tr.manifest)
+    return StageRecord(tr.name, key, tr.dir, tr.status, tr.seconds, json_digest({"paper": paper_sha}), tr.manifest)
 
 
 def train_stage(work: Path, data: Path, train_cfg: TrainSection, profile: str, setup, say,
@@ -131,7 +131,7 @@ def train_stage(work: Path, data: Path, train_cfg: TrainSection, profile: str, s
                          init_from=_init_from(t.init_from) if name == "paper" else "")
         train(tc, work / name, progress=progress)
         digests[name] = file_sha256(work / name / "checkpoint.pt")
-    return _digest(digests), {"checkpoints_sha256": digests}
+    return json_digest(digests), {"checkpoints_sha256": digests}
 
 
 def adopt_detectors(spec: str, data: Path, out: Path, branches) -> None:
@@ -198,7 +198,7 @@ def gatedata_stage(work: Path, run_paper: Path, parts: dict[str, Path], settings
     gd.ensure(sorted(train_idx + gate_idx + test_idx), batch_size=batch_size, progress=progress)
     eco = build_eco_data(run, data, settings, progress=progress, device=setup.device, val_fraction=val_fraction,
                          seed=seed)
-    return _digest({"gate_data": gd.key, "eco_data": Path(eco["eco_data"]).name}), {
+    return json_digest({"gate_data": gd.key, "eco_data": Path(eco["eco_data"]).name}), {
         "gate_data_key": gd.key, "eco_data": eco}
 
 
@@ -256,7 +256,7 @@ def gates_stage(work: Path, gatedata_run: Path, data: Path, gates: GatesSection,
     say("gates: each learned gate's own decision time")
     energy["gate_latency"] = measure_gates(run, data, g, settings, setup, progress)
     digests["gate_latency"] = file_sha256(run / "eco" / "gate_latency.json")
-    return _digest(digests), {"gates": out, "energy": energy}
+    return json_digest(digests), {"gates": out, "energy": energy}
 
 
 def measure_gates(run: Path, data: Path, g: GatesSection, settings, setup, progress: bool) -> dict:
@@ -368,11 +368,11 @@ def stage_identity(name: str, cfg: StudyConfig, setup) -> dict:
         from sensors.rig import load_profile as sensor_profile
 
         out["sensor_model_version"] = sensors.SENSOR_MODEL_VERSION
-        out["sensor_profile"] = _digest(to_dict(sensor_profile(cfg.profile)))[:16]
+        out["sensor_profile"] = json_digest(to_dict(sensor_profile(cfg.profile)))[:16]
     elif name == "train":
         from fusion.nets import load_profile as model_profile
 
-        out["model_profile"] = _digest(to_dict(model_profile(cfg.profile)))[:16]
+        out["model_profile"] = json_digest(to_dict(model_profile(cfg.profile)))[:16]
         if cfg.train.init_from:  # the weights it starts from, not their name
             out["init_from_sha256"] = file_sha256(Path(_init_from(cfg.train.init_from)) / "checkpoint.pt")[:16]
         from study.study_checks import detectors_run

@@ -290,11 +290,11 @@ def available_profiles() -> list[str]:
     return sorted(p.stem for p in PROFILE_DIR.glob("*.yaml"))
 
 
-def _deep_merge(base: dict[str, Any], overrides: Mapping[str, Any]) -> dict[str, Any]:
+def deep_merge(base: dict[str, Any], overrides: Mapping[str, Any]) -> dict[str, Any]:
     out = copy.deepcopy(base)
     for key, value in overrides.items():
         if isinstance(value, Mapping) and isinstance(out.get(key), dict):
-            out[key] = _deep_merge(out[key], value)
+            out[key] = deep_merge(out[key], value)
         else:
             out[key] = copy.deepcopy(value)
     return out
@@ -326,7 +326,7 @@ def load_profile(profile: str | ModelProfile = "cpu", **overrides: Any) -> Model
     if not overrides:
         return profile if isinstance(profile, ModelProfile) else from_dict(ModelProfile, base, where=where)
     plain = {k: _plain(v) for k, v in overrides.items()}
-    return from_dict(ModelProfile, _deep_merge(base, plain), where=where)
+    return from_dict(ModelProfile, deep_merge(base, plain), where=where)
 
 
 def _plain(value: Any) -> Any:

@@ -13,7 +13,7 @@ from functools import lru_cache
 import numpy as np
 from scipy.ndimage import map_coordinates
 
-from sensors.camera import CameraObservation, _rays
+from sensors.camera import CameraObservation, pixel_rays
 from sensors.degrade.base import Degradation, obstruction_probability, persistent, register
 from sensors.degrade.kernels import (
     airlight_blend,
@@ -37,7 +37,7 @@ def _copy(obs: CameraObservation, **changes) -> CameraObservation:
 
 def pixel_range(obs: CameraObservation, cam) -> np.ndarray:
     """Distance along each pixel's ray [m] (depth / cos of the off-axis angle); inf for sky."""
-    return obs.depth / _rays(cam)[..., 2]
+    return obs.depth / pixel_rays(cam)[..., 2]
 
 
 def _scale(ctx) -> float:

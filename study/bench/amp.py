@@ -75,7 +75,7 @@ def bench_setup(what: str, profile: str, branches, steps: int, warmup: int, batc
     return prof, [b for b in prof.branches if not branches or b.name in branches]
 
 
-def _step(model, opt, inputs, targets, precision: str, seed: int) -> tuple[float, float]:
+def train_step(model, opt, inputs, targets, precision: str, seed: int) -> tuple[float, float]:
     """One SGD step on the CPU in `precision` ("fp32" or "bf16") -> (seconds, loss)."""
     import torch
 
@@ -124,7 +124,7 @@ def bench_amp(profile: str = "cpu", branches: tuple[str, ...] = (), batch: int =
         loss = {"fp32": [], "bf16": []}
         for k in range(warmup + steps):
             for precision in ("fp32", "bf16"):  # interleaved: step k of each, back to back
-                s, lo = _step(models[precision], opts[precision], inputs, targets, precision, seed + k)
+                s, lo = train_step(models[precision], opts[precision], inputs, targets, precision, seed + k)
                 if not np.isfinite(lo):
                     raise UserError(f"bench amp: non-finite {precision} loss at step {k} (lower --lr)")
                 loss[precision].append(round(lo, 4))

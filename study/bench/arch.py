@@ -14,7 +14,7 @@ from __future__ import annotations
 
 import statistics
 
-from study.bench.amp import _step, bench_setup, dataset_batch, synthetic_batch
+from study.bench.amp import bench_setup, dataset_batch, synthetic_batch, train_step
 from study.bench.scale import cpu_model
 
 DEFAULT_VARIANTS: dict[str, tuple[str, ...]] = {
@@ -50,7 +50,7 @@ def bench_arch(profile: str = "cpu", branches: tuple[str, ...] = (), variants: d
     import torch
 
     from fusion.nets import build_hydrafusion
-    from fusion.nets.profile import _deep_merge, parse_model_overrides
+    from fusion.nets.profile import deep_merge, parse_model_overrides
     from sim.errors import UserError
     from study.device import default_threads, native_bf16
 
@@ -61,7 +61,7 @@ def bench_arch(profile: str = "cpu", branches: tuple[str, ...] = (), variants: d
     if bad or not precisions:
         raise UserError(f"--precisions: fp32 and/or bf16, got {','.join(precisions) or 'none'}")
     setups = {name: bench_setup("arch", profile, branches, steps, warmup, batch,
-                                _deep_merge(overrides or {}, parse_model_overrides(ov)))
+                                deep_merge(overrides or {}, parse_model_overrides(ov)))
               for name, ov in variants.items()}
     before = torch.get_num_threads()
     n_threads = threads or default_threads()
@@ -87,7 +87,7 @@ def bench_arch(profile: str = "cpu", branches: tuple[str, ...] = (), variants: d
             for name in order:
                 inputs, targets = batches[name]
                 for p in precisions:
-                    s, lo = _step(models[name, p], opts[name, p], inputs, targets, p, seed + k)
+                    s, lo = train_step(models[name, p], opts[name, p], inputs, targets, p, seed + k)
                     if not np.isfinite(lo):
                         raise UserError(f"bench arch: non-finite {p} loss of {name!r} at step {k} (lower --lr)")
                     final[name, p] = round(lo, 4)

@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 
 from sensors import lidar as lidar_mod
-from sensors.camera import _rays
+from sensors.camera import pixel_rays
 from sensors.rig import (
     Calibration,
     bev_boxes_to_camera,
@@ -39,7 +39,7 @@ def test_rendered_depth_and_ids_agree_with_embree(city):
     spread = np.ptp(np.where(np.isfinite(patch), patch, 0.0), axis=0)
     smooth = finite & (spread < 0.05 * np.where(finite, d[v, u], 1.0))
     v, u = v[smooth], u[smooth]
-    rays_cam = _rays(cam)[v, u]
+    rays_cam = pixel_rays(cam)[v, u]
     world_from_cam = scene.ego.pose @ cam.ego_from_camera
     dirs = rays_cam @ world_from_cam[:3, :3].T
     hits = renderer.caster.cast(world_from_cam[:3, 3], dirs)

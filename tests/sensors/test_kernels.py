@@ -20,7 +20,7 @@ from sensors.camera import (
     SUN_COLOUR,
     _colour_table,
     _normals_from_points,
-    _rays,
+    pixel_rays,
 )
 from tests.sensors.conftest import render
 
@@ -49,7 +49,7 @@ def reference_shade_without_lights(index, material, depth, cam, world_from_ego, 
     """sensors.camera.shade as it was, for frames without lamps and headlights."""
     H, W = depth.shape
     geo = np.isfinite(depth)
-    rays = _rays(cam)
+    rays = pixel_rays(cam)
     z = np.where(geo, depth, 0.0)[..., None]
     P_cam = rays / rays[..., 2:3] * z
     world_from_cam = (world_from_ego @ cam.ego_from_camera).astype(np.float32)

@@ -76,3 +76,24 @@ def test_study_spells_no_list_of_fusion_methods_of_its_own():
             if pattern.search(line) or ("fusion" in line and '.replace("-", "_")' in line):
                 hits.append(f"{path.relative_to(ROOT)}:{n}: {line.strip()}")
     assert not hits, "\n".join(hits)
+
+
+def test_no_module_imports_another_modules_private_name():
+    """Issue 47 item 4: what one module uses of another is public (`from x import _y` and `x._y` are not)."""
+    import ast
+
+    ours = ("study", "fusion", "sensors", "sim")
+    hits = []
+    for path in sorted(p for d in ours for p in (ROOT / d).rglob("*.py")):
+        tree = ast.parse(path.read_text())
+        modules = {a.asname or a.name for n in ast.walk(tree) if isinstance(n, ast.Import) for a in n.names
+                   if a.name.split(".")[0] in ours}
+        for node in ast.walk(tree):
+            if isinstance(node, ast.ImportFrom) and (node.module or "").split(".")[0] in ours:
+                hits += [f"{path.relative_to(ROOT)}:{node.lineno}: from {node.module} import {a.name}"
+                         for a in node.names if a.name.startswith("_") and not a.name.startswith("__")]
+            elif isinstance(node, ast.Attribute) and node.attr.startswith("_") and not node.attr.startswith("__"):
+                base = ast.unparse(node.value)
+                if base in modules:
+                    hits.append(f"{path.relative_to(ROOT)}:{node.lineno}: {base}.{node.attr}")
+    assert not hits, "\n".join(hits)

@@ -368,14 +368,14 @@ def test_predictions_of_cpu_frontier_are_what_the_two_passes_they_replace_gave_a
     before; checked on the first batch), so `compare`'s numbers do not move; `compare` reuses the set
     `predict` cached, and `compare --predictions` scores a copy of it with no network to the same JSON."""
     from study.gate_data import GateData
-    from study.gate_tables import _setup, gate_pass
+    from study.gate_tables import gate_pass, setup_run
     from study.predictions import predict
 
     monkeypatch.setenv("HYDRABENCH_CACHE", str(tmp_path / "cache"))
     run = rm.resolve_run("cpu-frontier")
     gates = ["knowledge", "deep", "attention", "optimal"]
     pred = predict(run, data, gates=gates, progress=False)
-    model, _, indices, _, _ = _setup(run, data, "auto", None, "latest", None)
+    model, _, indices, _, _ = setup_run(run, data, "auto", None, "latest", None)
     first = indices[:4]  # one batch of the pass
     old = gate_pass(run, data, model, gates, first, progress=False)
     feats, losses = GateData(run, data, model).load(first)

@@ -39,7 +39,7 @@ def fake_stages(monkeypatch):
             if name == "train":  # as train_stage: the digest of its checkpoints' digests
                 t = kwargs["train_cfg"]
                 cps = {"paper": "sha-of-paper", **({"early": f"sha-of-early-{t.epochs}"} if t.early_fusion else {})}
-                return stage_cache._digest(cps), {"checkpoints_sha256": cps}
+                return stage_cache.json_digest(cps), {"checkpoints_sha256": cps}
             return f"digest-of-{work_dir.name.split('-')[0]}", {}
 
         return work

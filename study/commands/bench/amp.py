@@ -7,7 +7,7 @@ from study.cli import (
     Formatter,
     emit,
 )
-from study.commands.bench.common import _model_overrides, _training_bench_args
+from study.commands.bench.common import model_overrides, training_bench_args
 
 
 def add_parser(what) -> None:
@@ -17,7 +17,7 @@ def add_parser(what) -> None:
                         "step time of each, the speed-up, the losses after the same steps, and whether this CPU has "
                         "native bf16 (AMX-BF16 / AVX512-BF16), which is what --amp auto picks by.",
                         formatter_class=Formatter)
-    _training_bench_args(a, "timed steps of each precision", "train on this dataset's first frames (default: "
+    training_bench_args(a, "timed steps of each precision", "train on this dataset's first frames (default: "
                          "synthetic frames)")
     a.set_defaults(run=run_amp)
 
@@ -27,7 +27,7 @@ def run_amp(args) -> int:
 
     r = bench_amp(args.profile, tuple(args.branches), batch=args.batch_size, steps=args.steps, warmup=args.warmup,
                   threads=args.threads, seed=args.seed, data=str(args.data) if args.data else None,
-                  overrides=_model_overrides(args))
+                  overrides=model_overrides(args))
     r["model_overrides"] = list(args.model or ())
     r.update(machine())
     emit(r, args.json, lambda r: "\n".join([
