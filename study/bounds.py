@@ -219,6 +219,80 @@ def room_for_context(scores: Mapping[str, dict], intervals: dict | None) -> dict
     return out
 
 
+ROOM_CORRECTED_WHAT = (
+    "The context oracle's room over all branches without its selection optimism (fusion.context_room, issue 50): "
+    "'naive' chooses and scores on the same test sequences (the room above, >= 0 by construction); 'split' chooses "
+    "per context on one half of the test sequences and scores on the other, both ways, averaged over random halvings "
+    "(conservative: a choice made on half the data). Each has a percentile interval over draws of whole sequences "
+    "within contexts (re-chosen, re-split in each draw) and its null: the same statistic with the constants' labels "
+    "permuted within every sequence (equal constants), its mean and its 95th percentile. A room above its null's "
+    "95th percentile is more than noise alone makes.")
+ROOM_RESAMPLES = 200
+ROOM_PERMUTATIONS = 100
+
+
+def corrected_room(sm: StudyMatches, resamples: int, seed: int = 0) -> dict:
+    """`fusion.context_room.room_for_context` of the study's candidate constants over all_branches, on the
+    test frames (pooled mAP per context, all classes), at most ROOM_RESAMPLES draws and ROOM_PERMUTATIONS
+    null permutations: {"naive": {...}, "split": {...}, "what", "candidates", "sequences"}."""
+    from fusion.context_room import matches_scorer
+    from fusion.context_room import room_for_context as room
+
+    names = list(sm.candidates)
+    order = list(dict.fromkeys(sm.sequences))
+    index = {q: i for i, q in enumerate(order)}
+    context_of = {}
+    for c, q in zip(sm.contexts, sm.sequences):
+        context_of.setdefault(q, c)
+    scorer = matches_scorer([sm.matches[n] for n in names], [index[q] for q in sm.sequences])
+    out = room(scorer, [context_of[q] for q in order], names.index("all_branches"), len(names),
+               resamples=min(resamples, ROOM_RESAMPLES), seed=seed, permutations=min(resamples, ROOM_PERMUTATIONS))
+    rec = {k: {"estimate": rounded(v["estimate"]), "interval": rounded_interval(v["interval"]),
+               "null_mean": rounded(v["null_mean"]), "null_upper": rounded(v["null_upper"]),
+               "above_null": bool(v["estimate"] > v["null_upper"])} for k, v in out.items()}
+    per_context = {c: sum(1 for q in order if context_of[q] == c) for c in sorted(set(context_of.values()))}
+    fewest = min(per_context.values())
+    if fewest < 2:  # a context with one sequence cannot be halved: nothing is chosen apart from what is scored
+        rec["split"] = {"skipped": f"a context has {fewest} test sequence; halving needs at least 2 in every context "
+                                   f"(sequences per context: {per_context})"}
+    return {**rec, "what": ROOM_CORRECTED_WHAT, "candidates": names, "sequences": len(order),
+            "sequences_per_context": per_context,
+            "resamples": min(resamples, ROOM_RESAMPLES), "permutations": min(resamples, ROOM_PERMUTATIONS)}
+
+
+def context_constant_on_validation(val, candidates: Mapping[str, tuple[str, ...]], method: str, log) -> dict[str, str]:
+    """Issue 50 item 1a: per context, the candidate constant (`candidate_configurations`) of best mAP on
+    the validation frames, each choice recorded in `log`; "all": the best overall, for a context the
+    validation frames lack. {group: candidate name}."""
+    n = len(val.indices)
+    scored = {name: val.score([tuple(b)] * n, method) for name, b in candidates.items()}
+    contexts = sorted({c for sc in scored.values() for c in sc["map_per_context"]})
+    out = {}
+    for g in ["all", *contexts]:
+        cands = {name: (sc["map"] if g == "all" else sc["map_per_context"].get(g)) for name, sc in scored.items()}
+        if any(v is not None for v in cands.values()):
+            out[g] = log.choose(f"per-context constant ({'overall' if g == 'all' else g}), a method", cands,
+                                val.indices, lower_is_better=False, measure="mAP", sequences=val.sequences)
+    return out
+
+
+def add_context_constant(ev, val, singles, late, method: str, log, selections: dict, kinds: dict) -> dict:
+    """Add the per-context constant (`context_constant_on_validation` among `candidate_configurations`) to
+    `selections` and `kinds` as a method: on each test frame, its context's choice (the overall choice for a
+    context the validation frames lack). Returns its record for the report."""
+    candidates = candidate_configurations(ev, singles, late)
+    choice = context_constant_on_validation(val, candidates, method, log)
+    selections[CONTEXT_CONSTANT] = [candidates[choice.get(m["context"], choice["all"])] for m in ev.metas]
+    kinds[CONTEXT_CONSTANT] = CONTEXT_CONSTANT_LABEL
+    return {"what": CONTEXT_CONSTANT_LABEL, "chosen_on": "validation",
+            "choice": {g: {"candidate": n, "branches": list(candidates[n])} for g, n in choice.items()}}
+
+
+CONTEXT_CONSTANT = "context_constant"
+CONTEXT_CONSTANT_LABEL = ("per-context constant (per context, the fixed configuration of best mAP on the validation "
+                          "frames, scored once on test: a method a car can run, the room a context-only gate can reach)")
+
+
 def coverage_sets(contexts: Sequence[str], sequences: Sequence) -> tuple[int, str | None]:
     """How many disjoint test sets the coverage check can deal (at most `COVERAGE_SETS`, each with
     `MIN_SEQUENCES_PER_SET` sequences of every context), and why it is skipped (None when it is not)."""
@@ -253,9 +327,45 @@ def coverage_record(sm: StudyMatches, pairs: Sequence[tuple[str, str]], resample
     return out
 
 
+class ValidationFrames:
+    """The validation frames of the study (`study.selection.gate_frames`: whole sequences per context
+    of the run's gate split, or of its train split when it has none; the ones the gates pick their
+    epoch and objective on): each branch's cached detections there (`study.eco.data.EcoData`),
+    fused and scored on demand. Every index passes the guard
+    (`study.selection.SelectionLog.check`) before anything is read."""
+
+    def __init__(self, ev, fraction: float, seed: int, log) -> None:
+        from study.eco.data import detections_from_array, eco_gate_frames
+        from study.selection import sequences_of
+
+        frames = eco_gate_frames(ev.run_cfg, ev.data, 0, "auto", fraction, seed)
+        val = frames.val
+        self.carved, self.holdout = bool(val), frames.holdout
+        if not val:  # too few sequences per context to carve any: choose on the fitting frames
+            val = list(frames.fit)
+        self.ev, self.indices = ev, log.check(val, "validation frames")
+        self.sequences = sequences_of(ev.reader, self.indices)
+        ev.ed.ensure(self.indices, progress=False)
+        arr = ev.ed.arrays(self.indices, ["detections", "features"])
+        self.dets = [detections_from_array(a, ev.ed.branches) for a in arr["detections"]]
+        self.features = arr["features"]
+        self.metas = [dict(ev.reader.meta(i), dataset_index=int(i)) for i in self.indices]
+        self.memo: dict = {}
+
+    def score(self, selection, method: str) -> dict:
+        from study.scoring import fuse_selection, score
+
+        per = fuse_selection(list(zip(self.metas, self.dets)), selection, self.ev.model.branch_frames, method,
+                             memo=self.memo.setdefault(method, {}))
+        return score(per, self.ev.reader, "camera_right", protocol=self.ev.ed.protocol)
+
+    def map(self, branches: tuple[str, ...], method: str):
+        return self.score([tuple(branches)] * len(self.indices), method)["map"]
+
+
 def best_single_on_validation(val, singles: Sequence[str], method: str, log) -> dict[str, str]:
     """The best single sensor overall ("all") and per context, by mAP on the validation frames
-    (`study.study_eval.ValidationFrames`), each choice recorded in `log`: {group: "single:<branch>"}."""
+    (`study.bounds.ValidationFrames`), each choice recorded in `log`: {group: "single:<branch>"}."""
     scored = {b: val.score([(b,)] * len(val.indices), method) for b in singles}
     contexts = sorted({c for sc in scored.values() for c in sc["map_per_context"]})
     out = {}
@@ -292,6 +402,7 @@ def evaluate_bounds(M, ev, selections: dict, kinds: dict, scores: dict, early_fu
                                  "candidates": {n: list(b) for n, b in candidates.items()},
                                  "rechosen_per_draw": intervals is not None},
               "room_for_context": room_for_context(scores, intervals), "room_what": ROOM_WHAT, "optimistic": OPTIMISTIC,
+              "room_corrected": corrected_room(sm, resamples) if resamples else None,
               "a_posteriori": {n: A_POSTERIORI_LABEL for n in A_POSTERIORI if n in scores},
               "optimal_appendix": OPTIMAL_APPENDIX if "hydrafusion:optimal" in scores else None,
               "coverage": coverage}

@@ -23,6 +23,7 @@ from study.report_bounds import (
     add_learning_curve,
     add_optimal_appendix,
     add_room,
+    add_room_corrected,
     main_methods,
     named,
 )
@@ -147,6 +148,7 @@ def build(results: dict, context: dict, work: Path, eval_dir: Path) -> tuple[Doc
     add_intro(doc, r, context, tag)
     add_verdict(doc, r, tag, work)
     add_room(doc, r, tag)
+    add_room_corrected(doc, r, tag)
     add_hydra_table2(doc, r, tag)
     add_intervals(doc, r, tag)
     add_coverage(doc, r, tag)

@@ -41,6 +41,41 @@ def add_room(doc, r: dict, tag: str) -> None:
                 interval_text(v["interval"], signed=True), number_text(v["p_value"])] for g, v in room.items()])
 
 
+def add_room_corrected(doc, r: dict, tag: str) -> None:
+    """Room for context without its optimism (issue 50): the per-context constant chosen on validation (a
+    method, with its paired interval against all branches), and the context oracle's room naive and
+    split-sample, each beside its null of equal constants."""
+    b = r.get("bounds") or {}
+    rc, cc = b.get("room_corrected"), r.get("context_constant")
+    if not rc and not cc:
+        return
+    doc.h(2, "Room for context, achievable and bounded")
+    if cc:
+        from study.scoring import difference_interval
+
+        group = ((r.get("intervals") or {}).get("per_context") or {}).get("all")
+        methods = r.get("methods") or {}
+        sc, every = methods.get("context_constant") or {}, methods.get("all_branches") or {}
+        doc.p(f"The {cc['what']}. Its choice per context: "
+              + ", ".join(f"{g}: {v['candidate']}" for g, v in cc["choice"].items() if g != "all")
+              + f" (overall best on validation, for a context it lacks: {cc['choice']['all']['candidate']}).")
+        if sc.get("map") is not None and every.get("map") is not None:
+            doc.table(f"Per-context constant minus all_branches, mAP@0.5 ({tag})",
+                      ["mAP", "minus all_branches", "95 % interval"],
+                      [[number_text(sc["map"]), number_text(round(sc["map"] - every["map"], 6)),
+                        interval_text(difference_interval(group, "context_constant", "all_branches") if group else None,
+                                      signed=True)]])
+    if rc:
+        doc.p(rc["what"])
+        doc.table(f"Room for context over all_branches, naive and split-sample, with their nulls, mAP@0.5 ({tag}; "
+                  f"{rc['sequences']} test sequences, {rc['resamples']} draws, {rc['permutations']} permutations)",
+                  ["estimate", "room", "95 % interval", "null mean", "null 95th percentile", "above its null"],
+                  [[k, number_text(rc[k]["estimate"]), interval_text(rc[k]["interval"], signed=True),
+                    number_text(rc[k]["null_mean"]), number_text(rc[k]["null_upper"]),
+                    "yes" if rc[k]["above_null"] else "no"] if "skipped" not in rc[k] else
+                   [k, rc[k]["skipped"], "", "", "", ""] for k in ("naive", "split")])
+
+
 def add_coverage(doc, r: dict, tag: str) -> None:
     """Do the intervals hold? Each pair's coverage over disjoint test sets against what an exact
     interval would reach, and the spread of the sets' estimates over the bootstrap's standard error."""

@@ -36,7 +36,7 @@ import numpy as np
 from fusion.boxes import FUSION_METHODS, method_label, method_name
 from sim.errors import UserError
 from sim.progress import progress as progress_bar
-from study.bounds import best_single_on_validation, evaluate_bounds
+from study.bounds import ValidationFrames, add_context_constant, best_single_on_validation, evaluate_bounds
 from study.branch_gate_study import IN_SAMPLE
 from study.numbers import rounded
 from study.regrets import (
@@ -150,6 +150,7 @@ def evaluate_study(run, run_early, data, cfg, s, work: Path, setup=None, progres
     contexts = [m["context"] for m in ev.metas]
 
     selections, kinds = fixed_selections(M, singles, late)
+    context_constant = add_context_constant(ev, val, singles, late, method, log, selections, kinds)  # issue 50 1a
     hydra_selections, hydra_kinds = hydra_gate_selections(run, data, ev, hydra_gates, e.k)
     eco_config_index, eco_kinds = eco_gate_configurations(ev, eco_gates, e.lambda_e, e.gamma)
     selections |= hydra_selections | {f"ecofusion:{g}": [ev.configs.members[c] for c in ch] for g, ch in eco_config_index.items()}
@@ -187,6 +188,7 @@ def evaluate_study(run, run_early, data, cfg, s, work: Path, setup=None, progres
     if physical is not None:
         record |= {"physical_gate": physical | {"comparison": comparison(record)}, "crossover": crossover}
     record["best_single"] = best_single_on_validation(val, singles, method, log)
+    record["context_constant"] = context_constant
     record["choices"] = log.choices
     record["fusion_rule"] = (f"declared in advance (evaluate.fusion {e.fusion}): every fused method, every table"
                              if declared else "the best late fusion on the validation frames, for every fused method "
@@ -212,48 +214,12 @@ def evaluate_study(run, run_early, data, cfg, s, work: Path, setup=None, progres
     return record
 
 
-class ValidationFrames:
-    """The validation frames of the study (`study.selection.gate_frames`: whole sequences per context
-    of the run's gate split, or of its train split when it has none; the ones the gates pick their
-    epoch and objective on): each branch's cached detections there (`study.eco.data.EcoData`),
-    fused and scored on demand. Every index passes the guard
-    (`study.selection.SelectionLog.check`) before anything is read."""
-
-    def __init__(self, ev, fraction: float, seed: int, log) -> None:
-        from study.eco.data import detections_from_array, eco_gate_frames
-        from study.selection import sequences_of
-
-        frames = eco_gate_frames(ev.run_cfg, ev.data, 0, "auto", fraction, seed)
-        val = frames.val
-        self.carved, self.holdout = bool(val), frames.holdout
-        if not val:  # too few sequences per context to carve any: choose on the fitting frames
-            val = list(frames.fit)
-        self.ev, self.indices = ev, log.check(val, "validation frames")
-        self.sequences = sequences_of(ev.reader, self.indices)
-        ev.ed.ensure(self.indices, progress=False)
-        arr = ev.ed.arrays(self.indices, ["detections", "features"])
-        self.dets = [detections_from_array(a, ev.ed.branches) for a in arr["detections"]]
-        self.features = arr["features"]
-        self.metas = [dict(ev.reader.meta(i), dataset_index=int(i)) for i in self.indices]
-        self.memo: dict = {}
-
-    def score(self, selection, method: str) -> dict:
-        from study.scoring import fuse_selection, score
-
-        per = fuse_selection(list(zip(self.metas, self.dets)), selection, self.ev.model.branch_frames, method,
-                             memo=self.memo.setdefault(method, {}))
-        return score(per, self.ev.reader, "camera_right", protocol=self.ev.ed.protocol)
-
-    def map(self, branches: tuple[str, ...], method: str):
-        return self.score([tuple(branches)] * len(self.indices), method)["map"]
-
-
 def declared_fusion(e) -> str | None:
     """evaluate.fusion as the fusion's internal name ("soft_nms"), or None: chosen on validation."""
     return None if e.fusion == "validation" else method_name(e.fusion)
 
 
-def table3_on_validation(run, data, ev, val: ValidationFrames, hydra_tables: dict, gates, k: int, log,
+def table3_on_validation(run, data, ev, val, hydra_tables: dict, gates, k: int, log,
                          declared: str | None = None) -> dict:
     """HydraFusion Table 3: per gate, the fusion method whose mAP of the gate's top k is best on the
     validation frames, and that method's test row of Table 6 (the paper picks the best per gate; a
@@ -402,7 +368,7 @@ def early_fusion(run_early, data, ev, method: str, batch_size: int, setup) -> Ea
     return out
 
 
-def hydra_tables_2_and_5(M: Methods, scores: dict, singles, early_scores: dict, e, val: ValidationFrames,
+def hydra_tables_2_and_5(M: Methods, scores: dict, singles, early_scores: dict, e, val,
                          log, declared: str | None = None) -> tuple[dict, dict]:
     """HydraFusion Table 2 (mAP of each kind of method) and Table 5 (late fusion of sensor combinations
     by each fusion method, on the test frames; Table 2 takes the method best on the validation frames,

@@ -332,9 +332,29 @@ def bounds_sentences(report: dict) -> list[str]:
         return []
     a = room.get("all") or {}
     ctx = [f"{g} {interval_text(v['interval'], signed=True)}" for g, v in room.items() if g != "all"]
-    return [f"Room for context ({label(CONTEXT_ORACLE)} minus all_branches): overall {number(a.get('estimate'))}, "
-            f"95 % interval {interval_text(a.get('interval'), signed=True)}; per context: {'; '.join(ctx)}. "
-            f"{OPTIMISTIC}"]
+    out = [f"Room for context ({label(CONTEXT_ORACLE)} minus all_branches): overall {number(a.get('estimate'))}, "
+           f"95 % interval {interval_text(a.get('interval'), signed=True)}; per context: {'; '.join(ctx)}. "
+           f"{OPTIMISTIC}"]
+    rc = (r.get("bounds") or {}).get("room_corrected")
+    if rc:  # issue 50: the same room without its selection optimism, each beside what noise alone makes
+        naive, split = rc["naive"], rc["split"]
+        halves = (f"not estimated ({split['skipped']})" if "skipped" in split else
+                  f"{number(split['estimate'])} {interval_text(split['interval'], signed=True)}, where equal constants "
+                  f"give {number(split['null_mean'])} on average and {number(split['null_upper'])} at their 95th "
+                  f"percentile ({'above' if split['above_null'] else 'not above'} it)")
+        out.append(f"Without its optimism (per-context rooms weighted by sequences): chosen on one half of the test "
+                   f"sequences and scored on the other, {halves}; chosen and scored on the same "
+                   f"sequences {number(naive['estimate'])}, where noise alone gives {number(naive['null_mean'])} "
+                   f"(95th percentile {number(naive['null_upper'])}).")
+    cc, methods = r.get("context_constant"), r.get("methods") or {}
+    if cc and "context_constant" in methods and "all_branches" in methods:
+        pg = ((r.get("intervals") or {}).get("per_context") or {}).get("all")
+        iv = difference_interval(pg, "context_constant", "all_branches") if pg else None
+        out.append(f"Reachable by a gate that reads only the context: the per-context constant chosen on the "
+                   f"validation frames minus all_branches, "
+                   f"{number(methods['context_constant']['map'] - methods['all_branches']['map'])} "
+                   f"{interval_text(iv, signed=True)} on test.")
+    return out
 
 
 def number(v) -> str:

@@ -67,3 +67,50 @@ def test_bad_arguments_are_named():
         room_for_context(score, [0, 0, 1, 1], 2, 2)
     with pytest.raises(ValueError, match="splits must be"):
         split_room(score, [0, 0, 1, 1], 0, np.random.default_rng(0), splits=0)
+
+
+def _matches(rng, n_images, classes=(1, 2), skill=0.6):
+    """One source's VOC matching of `n_images` synthetic images: a few boxes per image, each detected
+    with probability `skill` (a true positive at a high score), plus false alarms at lower scores."""
+    from fusion.metrics import ImageMatches
+
+    dets, gts = [], []
+    for _ in range(n_images):
+        n = int(rng.integers(1, 4))
+        lab = rng.choice(classes, n)
+        xy = rng.uniform(0, 400, (n, 2))
+        boxes = np.c_[xy, xy + 40]
+        hit = rng.random(n) < skill
+        fa = int(rng.integers(0, 3))
+        fxy = rng.uniform(500, 900, (fa, 2))
+        dets.append({"boxes": np.r_[boxes[hit], np.c_[fxy, fxy + 40]],
+                     "scores": np.r_[rng.uniform(0.5, 1.0, hit.sum()), rng.uniform(0.0, 0.7, fa)],
+                     "labels": np.r_[lab[hit], rng.choice(classes, fa)]})
+        gts.append({"boxes": boxes, "labels": lab})
+    return ImageMatches.of(dets, gts, classes=list(classes))
+
+
+def test_the_matches_scorer_is_pooled_map_and_reads_a_permuted_source_per_sequence():
+    from fusion.bounds import composite
+    from fusion.context_room import matches_scorer
+
+    rng = np.random.default_rng(3)
+    seq = np.repeat(np.arange(6), 3)  # 6 sequences of 3 images
+    sources = [_matches(rng, len(seq), skill=s) for s in (0.4, 0.7, 0.9)]
+    score = matches_scorer(sources, seq)
+    draw = np.array([0, 0, 2, 5])  # sequence 0 twice
+    rows = np.concatenate([np.flatnonzero(seq == i) for i in draw])
+    assert np.allclose(score(draw), [m.mean_ap(rows) for m in sources])
+    identity = np.tile(np.arange(3), (6, 1))
+    assert np.allclose(score(draw, identity), score(draw))
+    perm = np.tile(np.arange(3), (6, 1))
+    perm[2] = [2, 0, 1]  # sequence 2 reads source 2 for constant 0, source 0 for 1, source 1 for 2
+    for k in range(3):
+        mixed = composite({str(i): m for i, m in enumerate(sources)}, [str(perm[s, k]) for s in seq])
+        assert np.isclose(score(draw, perm)[k], mixed.mean_ap(rows))
+    with pytest.raises(ValueError, match="same images"):
+        matches_scorer([sources[0], _matches(rng, 5)], seq)
+    # identical constants: no room, naive or split, and none under the null
+    twin = matches_scorer([sources[1], sources[1]], seq)
+    rec = room_for_context(twin, np.array([0, 0, 0, 1, 1, 1]), 0, 2, resamples=10, splits=4, permutations=5)
+    assert all(rec[k]["estimate"] == 0 and rec[k]["null_upper"] == 0 for k in ("naive", "split"))

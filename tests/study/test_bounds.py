@@ -189,7 +189,7 @@ def test_the_regret_at_k_is_the_oracles_map_minus_the_gates_with_the_interval_of
 
 
 class FakeValidation:
-    """What `best_single_on_validation` reads of a `study.study_eval.ValidationFrames`."""
+    """What `best_single_on_validation` reads of a `study.bounds.ValidationFrames`."""
 
     def __init__(self, indices, maps):
         self.indices, self.sequences, self.maps = list(indices), 4, maps

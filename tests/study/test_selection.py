@@ -39,11 +39,11 @@ def test_no_frames_and_no_values_are_errors_not_silent_choices():
 
 
 def test_the_study_validation_frames_pass_the_guard(monkeypatch):
-    """study_eval.ValidationFrames reads the validation split through the guard: a split that hands
+    """bounds.ValidationFrames reads the validation split through the guard: a split that hands
     it a test frame (a bug in the carve) stops the evaluation before anything is scored."""
     import study.eco.data as eco_data
+    from study.bounds import ValidationFrames
     from study.selection import GateFrames
-    from study.study_eval import ValidationFrames
 
     manifest = {"frames": [{"context": "fog", "shard": f"s{i // 2}"} for i in range(12)]}
     ev = SimpleNamespace(reader=SimpleNamespace(manifest=manifest), train=list(range(8)), test=[8, 9, 10, 11],

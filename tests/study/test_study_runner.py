@@ -201,6 +201,35 @@ def test_the_front_record_places_every_gate_among_every_fixed_branch_set(tiny):
     assert set(front["fixed"]) == set(f["configurations"]) and set(front["placed"]) == set(f["placed"])
 
 
+def test_room_for_context_has_its_achievable_method_and_its_bias_corrected_bound(tiny):
+    """Issue 50 item 1: the per-context constant chosen on the validation frames (recorded among the
+    choices, never on test) is a method scored like every other, with the test selection its choice
+    gives; the context oracle's room is reported naive and split-sample, each beside its null."""
+    report = json.loads((tiny["out"] / "report.json").read_text())
+    r = report["results"]
+    cc = r["context_constant"]
+    assert cc["chosen_on"] == "validation" and "all" in cc["choice"]
+    chosen = [c for c in r["choices"] if c["what"].startswith("per-context constant")]
+    assert chosen and all(c["on"] == "validation" for c in chosen)
+    assert {c["chosen"] for c in chosen} == {v["candidate"] for v in cc["choice"].values()}
+    candidates = r["bounds"]["context_oracle"]["candidates"]
+    assert all(v["branches"] == candidates[v["candidate"]] for v in cc["choice"].values())
+    assert "context_constant" in r["methods"] and r["methods"]["context_constant"]["map"] is not None
+    # a method that reads the context cannot beat the oracle that chooses per context on the scored frames
+    assert r["methods"]["context_constant"]["map"] <= r["methods"]["context_oracle"]["map"] + 1e-9
+    rc = r["bounds"]["room_corrected"]
+    assert rc["candidates"] == list(candidates) and rc["sequences"] >= 2
+    # chosen on the scored sequences among constants that hold all_branches: >= 0 by construction, noise included
+    assert rc["naive"]["estimate"] >= 0 and rc["naive"]["null_mean"] >= 0
+    one = min(rc["sequences_per_context"].values()) < 2  # then no context can be halved
+    assert ("skipped" in rc["split"]) == one
+    for k in ("naive",) if one else ("naive", "split"):
+        lo, hi = rc[k]["interval"]
+        assert lo <= hi and rc[k]["null_upper"] >= rc[k]["null_mean"] - 1e-9
+    html = (tiny["out"] / "report.html").read_text()
+    assert "Room for context, achievable and bounded" in html and "split-sample" in html
+
+
 def test_a_second_run_does_no_work_and_json_is_one_object(tiny, capsys):
     from study.cli import main
 

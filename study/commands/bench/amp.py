@@ -7,7 +7,7 @@ from study.cli import (
     Formatter,
     emit,
 )
-from study.commands.bench.common import model_overrides, training_bench_args
+from study.commands.bench.common import add_training_bench_args, parse_model_args
 
 
 def add_parser(what) -> None:
@@ -17,7 +17,7 @@ def add_parser(what) -> None:
                         "step time of each, the speed-up, the losses after the same steps, and whether this CPU has "
                         "native bf16 (AMX-BF16 / AVX512-BF16), which is what --amp auto picks by.",
                         formatter_class=Formatter)
-    training_bench_args(a, "timed steps of each precision", "train on this dataset's first frames (default: "
+    add_training_bench_args(a, "timed steps of each precision", "train on this dataset's first frames (default: "
                          "synthetic frames)")
     a.set_defaults(run=run_amp)
 
@@ -27,8 +27,8 @@ def run_amp(args) -> int:
 
     r = bench_amp(args.profile, tuple(args.branches), batch=args.batch_size, steps=args.steps, warmup=args.warmup,
                   threads=args.threads, seed=args.seed, data=str(args.data) if args.data else None,
-                  overrides=model_overrides(args))
-    r["model_overrides"] = list(args.model or ())
+                  overrides=parse_model_args(args))
+    r["parse_model_args"] = list(args.model or ())
     r.update(machine())
     emit(r, args.json, lambda r: "\n".join([
         f"{r['cpu'] or 'CPU'}, {r['threads']} threads; {r['profile']} profile, {', '.join(r['branches'])} "

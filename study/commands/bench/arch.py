@@ -12,12 +12,12 @@ from study.cli import (
     name_list,
     nonneg_int,
 )
-from study.commands.bench.common import bench_doc
+from study.commands.bench.common import format_bench_doc
 
 
 def add_parser(what) -> None:
     ar = what.add_parser("arch", help="training-step time of the model's cost options (width, dilation, channels_last, "
-                         "stride, RoIs), fp32 and bf16, side by side", description=bench_doc("study.bench.arch"),
+                         "stride, RoIs), fp32 and bf16, side by side", description=format_bench_doc("study.bench.arch"),
                          formatter_class=Formatter)
     ar.add_argument("--profile", type=name_arg, default="cpu", help="model profile")
     ar.add_argument("--branches", type=name_list, default=(), help="comma-separated branches (default: the profile's)")

@@ -6,7 +6,7 @@ from __future__ import annotations
 from study.cli import dataset_dir, int_range, name_arg, name_list, nonneg_int
 
 
-def training_bench_args(p, steps_help: str, data_help: str) -> None:
+def add_training_bench_args(p, steps_help: str, data_help: str) -> None:
     """The options `bench amp` and `bench profile` share: the network, the frames, the steps."""
     p.add_argument("--profile", type=name_arg, default="cpu", help="model profile")
     p.add_argument("--branches", type=name_list, default=(), help="comma-separated branches (default: the profile's)")
@@ -22,13 +22,13 @@ def training_bench_args(p, steps_help: str, data_help: str) -> None:
     p.add_argument("--json", action="store_true", help="print one JSON object on stdout")
 
 
-def model_overrides(args) -> dict:
+def parse_model_args(args) -> dict:
     from fusion.nets.profile import parse_model_overrides
 
     return parse_model_overrides(args.model)
 
 
-def bench_doc(module: str) -> str:
+def format_bench_doc(module: str) -> str:
     import importlib
 
     return importlib.import_module(module).__doc__

@@ -7,13 +7,13 @@ from study.cli import (
     Formatter,
     emit,
 )
-from study.commands.bench.common import bench_doc, model_overrides, training_bench_args
+from study.commands.bench.common import add_training_bench_args, format_bench_doc, parse_model_args
 
 
 def add_parser(what) -> None:
     pr = what.add_parser("profile", help="where one training step's time goes: stems, layer2-4, RPN, RoIAlign, box head, "
-                         "backward, optimiser", description=bench_doc("study.bench.step_profile"), formatter_class=Formatter)
-    training_bench_args(pr, "timed steps", "train on this dataset's first frames and time reading them (default: "
+                         "backward, optimiser", description=format_bench_doc("study.bench.step_profile"), formatter_class=Formatter)
+    add_training_bench_args(pr, "timed steps", "train on this dataset's first frames and time reading them (default: "
                          "synthetic frames)")
     pr.add_argument("--precision", choices=("fp32", "bf16"), default="fp32",
                     help="fp32, or bf16 autocast of the backbones (as train --amp)")
@@ -25,8 +25,8 @@ def run_profile(args) -> int:
 
     r = bench_profile(args.profile, tuple(args.branches), batch=args.batch_size, steps=args.steps, warmup=args.warmup,
                       threads=args.threads, seed=args.seed, precision=args.precision,
-                      data=str(args.data) if args.data else None, overrides=model_overrides(args))
-    r["model_overrides"] = list(args.model or ())
+                      data=str(args.data) if args.data else None, overrides=parse_model_args(args))
+    r["parse_model_args"] = list(args.model or ())
     r.update(machine())
 
     def text(r):

@@ -14,12 +14,12 @@ from study.cli import (
     out_dir,
     out_file,
 )
-from study.commands.bench.common import bench_doc
+from study.commands.bench.common import format_bench_doc
 
 
 def add_parser(what) -> None:
     rc = what.add_parser("recipe", help="training recipes and cost options judged by held-out vehicle mAP per "
-                         "CPU-hour, with their curves", description=bench_doc("study.bench.recipe"), formatter_class=Formatter)
+                         "CPU-hour, with their curves", description=format_bench_doc("study.bench.recipe"), formatter_class=Formatter)
     rc.add_argument("data", type=dataset_dir, help="dataset to train on (the runs' gate split is the held-out set)")
     rc.add_argument("--out", required=True, type=out_dir, help="directory of the candidate runs (a second call resumes)")
     rc.add_argument("--branch", type=name_arg, default="lidar", help="the branch every candidate trains")
