@@ -27,9 +27,12 @@ in the result (`left_out`). A COCO results file lists detections only, so a fram
 a frame without detections (the format cannot say more).
 
 A selection file (JSON: frame index or sample token -> list of branch names) is the simplest gate
-from outside: per frame, the branches to fuse. Learned gates read the own networks' stem features
-and the optimal gate the own branches' Faster R-CNN losses: neither exists for external detections,
-so they are not scored here.
+from outside: per frame, the branches to fuse. A gate in code (`study.gate_protocol`: a callable
+that reads what a car measures and the detections, and returns a branch set or a score per branch)
+is turned into the same per-frame selection and scored by the same path. Learned gates read the own
+networks' stem features and the optimal gate the own branches' Faster R-CNN losses: neither exists
+for external detections, so they are not scored here. The nuScenes devkit's own metrics of the
+nuScenes files: `study.nuscenes_metrics`.
 """
 
 from __future__ import annotations

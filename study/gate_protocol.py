@@ -1,5 +1,5 @@
 """Gates from outside: the protocol a gate written anywhere follows to be scored by `hydrabench score`
-(docs/gates.md).
+(docs/nuscenes.md, "Score your own gate").
 
 A gate is a callable, called once per scored frame, in dataset order (sequence by sequence, in time
 order within one), with one `GateFrame`:

@@ -26,12 +26,13 @@ examples:
   hydrabench score demo/test --export demo/nuscenes --nuscenes lidar=l.json --nuscenes radar=r.json \
       --gate mygates.weather:pick --gate ranked=mygates.weather:Ranker --k 1 --nuscenes-metrics
 
-gates (docs/gates.md): --gate [NAME=]package.module:attr imports attr (from sys.path or the current
-directory; a class is built once without arguments) or --gate [NAME=]ENTRY loads the entry point ENTRY
-of the group hydrabench.gates. It is called once per frame with a study.gate_protocol.GateFrame (road
-type, weather and light readings, clock, calibration, every branch's detections in the right camera;
-never labels, context label or severity) and returns a list of branch names, or a dict branch -> score
-(higher = better) of which the --k highest are fused. Scored as a selection file is: method gate:NAME.
+gates (docs/nuscenes.md, "Score your own gate"): --gate [NAME=]package.module:attr imports attr
+(from sys.path or the current directory; a class is built once without arguments); --gate [NAME=]ENTRY
+loads the entry point ENTRY of the group hydrabench.gates. The gate is called once per frame with a
+study.gate_protocol.GateFrame (road type, weather and light readings, clock, calibration, every
+branch's detections in the right camera; never labels, context label or severity) and returns a list
+of branch names, or a dict branch -> score (higher = better) of which the --k highest are fused. It is
+scored as a selection file is, as method gate:NAME.
 """
 
 
@@ -79,7 +80,7 @@ def add_parser(sub, name, help_text):
     p.add_argument("--selection", action="append", type=named_in_file, default=[], metavar="[NAME=]FILE",
                    help="per-frame selection (JSON: frame index or sample token -> [branch, ...]), scored as a gate")
     p.add_argument("--gate", action="append", default=[], metavar="[NAME=]MODULE:ATTR|ENTRY",
-                   help="a gate from outside (docs/gates.md): package.module:attr, or an entry point of the group "
+                   help="a gate from outside (docs/nuscenes.md): package.module:attr, or an entry point of the group "
                         "hydrabench.gates; scored as a selection file is (repeat for each)")
     p.add_argument("--k", default=None, metavar="K",
                    help="branches a score-returning gate keeps per frame: 1..number of branches, or all (default: 2, "
@@ -105,14 +106,15 @@ def run(args) -> int:
     from sensors.dataset import DatasetReader
     from sim.errors import UserError
     from study.external import load_external, named_file, read_selection, score_external
-    from study.gate_protocol import gate_k, gate_selection, load_gate, split_spec
+    from study.gate_protocol import gate_k, gate_selection, load_gate
 
     if args.k is not None and not args.gate:
         raise UserError("--k is for --gate (the branches a score-returning gate keeps)")
     if args.nuscenes_metrics and not args.nuscenes:
         raise UserError("--nuscenes-metrics: the devkit scores 3D boxes: give nuScenes results (--nuscenes); COCO "
                         "results are 2D")
-    names = [split_spec(spec)[0] for spec in args.gate]  # a malformed spec fails before any file is read
+    loaded = [load_gate(spec) for spec in args.gate]  # a gate that does not load fails before any file is read
+    names = [name for name, _ in loaded]
     if len(set(names)) < len(names):
         twice = next(n for n in names if names.count(n) > 1)
         raise UserError(f"--gate: two gates named {twice!r} (name them: --gate NAME=...)")
@@ -125,8 +127,7 @@ def run(args) -> int:
         name, path = named_file(spec)
         selections[name or path.stem] = read_selection(path, ext, index)
     gates, gate_info = {}, {}
-    for spec in args.gate:
-        name, gate = load_gate(spec)
+    for spec, (name, gate) in zip(args.gate, loaded, strict=True):
         gates[name] = gate_selection(name, gate, ext, index, k)
         gate_info[name] = {"spec": spec, "k_if_scores": k}
     r = score_external(reader, ext, selections=selections, gates=gates, fusion=args.fusion,

@@ -1,4 +1,4 @@
-"""hydrabench score --gate: gates from outside (study.gate_protocol, docs/gates.md) loaded by module path or
+"""hydrabench score --gate: gates from outside (study.gate_protocol, docs/nuscenes.md) loaded by module path or
 entry point, read only what a car measures and the detections, and are scored exactly as the selection file
 of their choice; every broken return or import is one line naming the gate and the frame."""
 
