@@ -27,9 +27,12 @@ in the result (`left_out`). A COCO results file lists detections only, so a fram
 a frame without detections (the format cannot say more).
 
 A selection file (JSON: frame index or sample token -> list of branch names) is the simplest gate
-from outside: per frame, the branches to fuse. Learned gates read the own networks' stem features
-and the optimal gate the own branches' Faster R-CNN losses: neither exists for external detections,
-so they are not scored here.
+from outside: per frame, the branches to fuse. A gate in code (`study.gate_protocol`: a callable
+that reads what a car measures and the detections, and returns a branch set or a score per branch)
+is turned into the same per-frame selection and scored by the same path. Learned gates read the own
+networks' stem features and the optimal gate the own branches' Faster R-CNN losses: neither exists
+for external detections, so they are not scored here. The nuScenes devkit's own metrics of the
+nuScenes files: `study.nuscenes_metrics`.
 """
 
 from __future__ import annotations
@@ -54,20 +57,22 @@ MISSING = ("refuse", "empty")
 @dataclass
 class ExternalSet:
     """Detections from outside, all in the right camera: `per_frame` [(meta, {branch: Detections})],
-    the branches' sensors and source files, whether classes are merged, and frames each file left out."""
+    the branches' sensors and source files, whether classes are merged, frames each file left out,
+    and the branches read from nuScenes results (`nuscenes_files`: branch -> file)."""
 
     per_frame: list
     branch_sensors: dict
     sources: dict
     merged: bool
     left_out: dict = field(default_factory=dict)
+    nuscenes_files: dict = field(default_factory=dict)
 
     @property
     def branches(self) -> list[str]:
         return list(self.branch_sensors)
 
 
-def _load_json(path: Path, what: str):
+def load_json(path: Path, what: str):
     """JSON of `path`; a key twice in one object is refused (json.loads would keep the last)."""
     def pairs(items):
         seen = {}
@@ -126,14 +131,14 @@ class ExportIndex:
 
         root = Path(root)
         info_path = root / "hydrabench_export.json"
-        info = _load_json(info_path, "export summary") if info_path.is_file() else None
+        info = load_json(info_path, "export summary") if info_path.is_file() else None
         if not isinstance(info, dict) or "dataset_salt" not in info:
             raise UserError(f"--export {root}: not a hydrabench nuScenes export (no hydrabench_export.json; see "
                             "hydrabench export nuscenes)")
         if info["dataset_salt"] != dataset_salt(reader.manifest, False):
             raise UserError(f"--export {root}: an export of another dataset than {reader.root} (or of its clear "
                             "twins): export this one with hydrabench export nuscenes")
-        tables = {n: _load_json(root / VERSION / f"{n}.json", n) for n in ("sample", "scene", "log", "map")}
+        tables = {n: load_json(root / VERSION / f"{n}.json", n) for n in ("sample", "scene", "log", "map")}
         offset_of_log = {}
         for m in tables["map"]:
             for log in m["log_tokens"]:
@@ -142,7 +147,7 @@ class ExportIndex:
         self.frame_of = {s["token"]: int(s["hydrabench"]["frame"]) for s in tables["sample"]}
         name_of_scene = {s["token"]: s["name"] for s in tables["scene"]}
         self.scene_of = {int(s["hydrabench"]["frame"]): name_of_scene[s["scene_token"]] for s in tables["sample"]}
-        self.splits = _load_json(root / VERSION / "splits.json", "splits")
+        self.splits = load_json(root / VERSION / "splits.json", "splits")
         self.token_of = {f: t for t, f in self.frame_of.items()}
         self.offset = {int(s["hydrabench"]["frame"]): offset_of_log[log_of_scene[s["scene_token"]]]
                        for s in tables["sample"]}
@@ -176,7 +181,7 @@ def read_nuscenes(path, index: ExportIndex, metas: dict, missing: str = "refuse"
     from sim.actors import CLASSES
 
     path = Path(path)
-    doc = _load_json(path, "results")
+    doc = load_json(path, "results")
     if not isinstance(doc, dict) or not isinstance(doc.get("meta"), dict):
         raise UserError(f"{path}: no 'meta' block (nuScenes results name the sensors they used there)")
     flags = [k for k, _ in SENSOR_FLAGS if k not in doc["meta"]]
@@ -250,7 +255,7 @@ def read_coco(path, metas: dict, frames_in_data: int) -> dict:
     from sim.actors import CLASSES
 
     path = Path(path)
-    doc = _load_json(path, "COCO results")
+    doc = load_json(path, "COCO results")
     if not isinstance(doc, list):
         raise UserError(f"{path}: COCO results are a list of detections, got a {type(doc).__name__}")
     rows: dict = {f: ([], [], []) for f in metas}
@@ -348,9 +353,11 @@ def load_external(reader, split: str = "all", *, nuscenes=(), coco=(), export=No
         per_branch[name], sensors[name], sources[name] = dets, used, str(path)
         if left:
             left_out[name] = len(left)
+    coco_names = set()
     for spec in coco:
         name, path = named_file(spec)
         name = name or "camera"
+        coco_names.add(name)
         if name in per_branch:
             raise UserError(f"--coco {spec}: a second file for branch {name!r} (name them: NAME=FILE)")
         per_branch[name], sensors[name], sources[name] = read_coco(path, metas, len(reader)), ("camera_right",), str(path)
@@ -359,13 +366,17 @@ def load_external(reader, split: str = "all", *, nuscenes=(), coco=(), export=No
     for f in sorted(metas):
         per = {b: (merge_detections(d[f]) if merged else d[f]) for b, d in per_branch.items()}
         per_frame.append((metas[f], per))
-    return ExternalSet(per_frame, sensors, sources, merged, left_out), index
+    files = {b: sources[b] for b in sources if b not in coco_names}
+    return ExternalSet(per_frame, sensors, sources, merged, left_out, files), index
 
 
 def read_selection(path, ext: ExternalSet, index: ExportIndex | None) -> list[tuple[str, ...]]:
-    """Per scored frame, the branches a selection file chooses (keys: frame index or sample token)."""
+    """Per scored frame, the branches a selection file chooses (keys: frame index or sample token), in
+    branch order (a selection is a set: `study.gate_protocol.branch_set`)."""
+    from study.gate_protocol import branch_set
+
     path = Path(path)
-    doc = _load_json(path, "selection")
+    doc = load_json(path, "selection")
     if not isinstance(doc, dict):
         raise UserError(f"{path}: a selection file is a JSON object: frame index or sample token -> [branch, ...]")
     chosen = {}
@@ -378,12 +389,9 @@ def read_selection(path, ext: ExternalSet, index: ExportIndex | None) -> list[tu
             raise UserError(f"{path}: key {key!r} is neither a frame index nor a sample token of the export")
         if frame in chosen:
             raise UserError(f"{path}: frame {frame} is chosen for twice (key {key!r})")
-        if not isinstance(value, list) or not all(isinstance(b, str) for b in value):
+        if not isinstance(value, list):
             raise UserError(f"{path}: [{key!r}]: not a list of branch names")
-        bad = [b for b in value if b not in ext.branch_sensors]
-        if bad:
-            raise UserError(f"{path}: [{key!r}]: unknown branch {bad[0]!r} (branches: {', '.join(ext.branches)})")
-        chosen[frame] = tuple(value)
+        chosen[frame] = branch_set(value, ext.branches, f"{path}: [{key!r}]", allow_empty=True)
     frames = [m["dataset_index"] for m, _ in ext.per_frame]
     left = [f for f in frames if f not in chosen]
     if left:
@@ -392,14 +400,20 @@ def read_selection(path, ext: ExternalSet, index: ExportIndex | None) -> list[tu
     return [chosen[f] for f in frames]
 
 
-def score_external(reader, ext: ExternalSet, *, selections=None, fusion: str = "soft-nms", resamples: int = 500,
-                   protocol: str = "reference", interval: str = "sequence") -> dict:
+def score_external(reader, ext: ExternalSet, *, selections=None, gates=None, fusion: str = "soft-nms",
+                   resamples: int = 500, protocol: str = "reference", interval: str = "sequence") -> dict:
     """Each branch alone, `late` (the single-sensor branches fused), `all_branches` (every branch
-    fused, when some use several sensors) and each selection file's choice (`selections`: name ->
-    per-frame tuples), scored as `hydrabench compare` scores the own networks: VOC mAP@0.5 in the
-    right camera under `protocol`, per context and per severity, and the paired sequence bootstrap's
-    intervals of every method and of its difference with late fusion, overall and per context."""
+    fused, when some use several sensors), each selection file's choice (`selections`: name ->
+    per-frame tuples) and each gate from outside's (`gates`: name -> per-frame tuples, made by
+    `study.gate_protocol.gate_selection`), scored as `hydrabench compare` scores the own networks:
+    VOC mAP@0.5 in the right camera under `protocol`, per context and per severity, and the paired
+    sequence bootstrap's intervals of every method and of its difference with late fusion, overall and
+    per context. Each method also carries the branches it fuses per frame and the sensors' energy
+    (EcoFusion Eq. 10-11 per fused frame with clock gating, `fusion.eco.energy.total_energy` with no
+    compute energy: what running a detector from outside costs is not known here)."""
+    from fusion.eco.energy import total_energy
     from study.compare import map_difference, verdict
+    from study.numbers import rounded
     from study.scoring import context_bootstrap, difference_interval, fuse_selection, fusion_method, score
 
     method = fusion_method(fusion)
@@ -415,6 +429,8 @@ def score_external(reader, ext: ExternalSet, *, selections=None, fusion: str = "
         kinds["all_branches"], chosen["all_branches"] = "every branch fused", [tuple(ext.branches)] * n
     for name, sel in (selections or {}).items():
         kinds[f"selection:{name}"], chosen[f"selection:{name}"] = "per-frame selection from a file", sel
+    for name, sel in (gates or {}).items():
+        kinds[f"gate:{name}"], chosen[f"gate:{name}"] = "gate from outside (study.gate_protocol)", sel
     sources = {k: fuse_selection(ext.per_frame, sel, frames, method) for k, sel in chosen.items()}
     scores = {k: score(s, rdr, "camera_right", protocol=protocol) for k, s in sources.items()}
     boot = (context_bootstrap(sources, rdr, "camera_right", protocol=protocol, resamples=resamples, classes="all",
@@ -422,11 +438,19 @@ def score_external(reader, ext: ExternalSet, *, selections=None, fusion: str = "
     ref = "late" if "late" in scores else None
     contexts = sorted({m["context"] for m, _ in ext.per_frame})
     methods = {}
+
+    def sensor_energy(choice) -> float:
+        return total_energy(0.0, sorted({s for b in choice for s in ext.branch_sensors[b]}))
+
     for k in chosen:
         sc = scores[k]
         row = {"kind": kinds[k], "map": sc["map"], "map_vehicles": sc["map_vehicles"],
                "map_per_context": sc["map_per_context"], "map_vehicles_per_severity": sc["map_vehicles_per_severity"],
-               "ap_per_class": sc["ap_per_class"]}
+               "ap_per_class": sc["ap_per_class"], "positives_per_class": sc["positives_per_class"],
+               "branches_per_frame": rounded(np.mean([len(c) for c in chosen[k]])),
+               "sensor_energy_j": rounded(np.mean([sensor_energy(c) for c in chosen[k]]))}
+        if k.startswith(("selection:", "gate:")):
+            row["branch_share"] = {b: rounded(np.mean([b in c for c in chosen[k]])) for b in ext.branches}
         if boot:
             row["ci95"] = boot["per_context"]["all"]["map"][k]
             row["ci95_per_context"] = {c: boot["per_context"][c]["map"][k] for c in contexts}
@@ -444,6 +468,9 @@ def score_external(reader, ext: ExternalSet, *, selections=None, fusion: str = "
             "not_available": {"deep, attention": "learned gates read the own networks' stem features",
                               "optimal": "reads each branch's Faster R-CNN losses, which external detections lack"},
             "bootstrap": {"resamples": resamples, "unit": "sequence", "design": interval} if boot else None,
+            "energy": "sensor_energy_j: the rig's sensors per fused frame at 4 Hz, those a method does not read "
+                      "clock-gated (EcoFusion Eq. 10-11, fusion.eco.energy); no compute energy (unknown for "
+                      "detectors from outside)",
             "metric": "VOC all-point AP at IoU 0.5, every class with ground truth, right camera"}
 
 

@@ -134,6 +134,25 @@ def shared_dataset(cache_lock):
     return get
 
 
+@pytest.fixture(scope="session")
+def shared_nuscenes_export(shared_dataset, cache_lock):
+    """`shared_nuscenes_export(GenerateConfig(...))`: (that dataset, its nuScenes export with the default
+    splits), each made once per session by whichever test asks first. Read-only, as shared_dataset."""
+
+    def get(config) -> tuple[Path, Path]:
+        from study.nuscenes_export import export_nuscenes
+
+        data = shared_dataset(config)
+        with cache_lock(f"nuscenes-{data.name}") as root:
+            out = root / "export"
+            root.mkdir(parents=True, exist_ok=True)
+            if not (out / "hydrabench_export.json").exists():
+                export_nuscenes(data, out, progress=False)
+        return data, out
+
+    return get
+
+
 # ------------------------------------------------------------------------------------------------
 # Disk: the suite trains and checkpoints real networks (100-500 MB a run directory) and generates
 # datasets; kept until the session ends, that is about 9 GB, more than a CI machine may have left

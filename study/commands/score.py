@@ -1,5 +1,6 @@
-"""`hydrabench score`: detections and selections made outside hydrabench, scored as `compare` scores the
-own networks (`study.external`)."""
+"""`hydrabench score`: detections, selections and gates made outside hydrabench, scored as `compare`
+scores the own networks (`study.external`, `study.gate_protocol`), with the nuScenes devkit's own
+metrics beside VOC mAP@0.5 on request (`study.nuscenes_metrics`)."""
 
 from __future__ import annotations
 
@@ -22,6 +23,16 @@ examples:
   hydrabench export nuscenes demo/test --out demo/nuscenes
   hydrabench score demo/test --export demo/nuscenes --nuscenes lidar=my_lidar.json --nuscenes radar=my_radar.json
   hydrabench score demo/test --coco camera=my_coco_results.json --selection my_gate.json --json
+  hydrabench score demo/test --export demo/nuscenes --nuscenes lidar=l.json --nuscenes radar=r.json \
+      --gate mygates.weather:pick --gate ranked=mygates.weather:Ranker --k 1 --nuscenes-metrics
+
+gates (docs/nuscenes.md, "Score your own gate"): --gate [NAME=]package.module:attr imports attr
+(from sys.path or the current directory; a class is built once without arguments); --gate [NAME=]ENTRY
+loads the entry point ENTRY of the group hydrabench.gates. The gate is called once per frame with a
+study.gate_protocol.GateFrame (road type, weather and light readings, clock, calibration, every
+branch's detections in the right camera; never labels, context label or severity) and returns a list
+of branch names, or a dict branch -> score (higher = better) of which the --k highest are fused. It is
+scored as a selection file is, as method gate:NAME.
 """
 
 
@@ -68,6 +79,16 @@ def add_parser(sub, name, help_text):
                    help="COCO results JSON of a camera-only 2D detector on the right camera (NAME default: camera)")
     p.add_argument("--selection", action="append", type=named_in_file, default=[], metavar="[NAME=]FILE",
                    help="per-frame selection (JSON: frame index or sample token -> [branch, ...]), scored as a gate")
+    p.add_argument("--gate", action="append", default=[], metavar="[NAME=]MODULE:ATTR|ENTRY",
+                   help="a gate from outside (docs/nuscenes.md): package.module:attr, or an entry point of the group "
+                        "hydrabench.gates; scored as a selection file is (repeat for each)")
+    p.add_argument("--k", default=None, metavar="K",
+                   help="branches a score-returning gate keeps per frame: 1..number of branches, or all (default: 2, "
+                        "as compare's built-in gates, at most the number of branches)")
+    p.add_argument("--nuscenes-metrics", action="store_true",
+                   help="also the nuScenes devkit's own detection metrics (mAP by centre distance, mATE, mASE, mAOE, "
+                        "mAVE, mAAE, NDS; means over the classes present) of each --nuscenes file, overall, per "
+                        "context and per severity")
     p.add_argument("--split", type=name_arg, default="all", help="all, or a split of the export's splits.json")
     p.add_argument("--missing", default="refuse", choices=["refuse", "empty"],
                    help="a frame a nuScenes file leaves out: refuse the file, or score it as a frame without "
@@ -83,18 +104,43 @@ def add_parser(sub, name, help_text):
 
 def run(args) -> int:
     from sensors.dataset import DatasetReader
+    from sim.errors import UserError
     from study.external import load_external, named_file, read_selection, score_external
+    from study.gate_protocol import gate_k, gate_selection, load_gate
 
+    if args.k is not None and not args.gate:
+        raise UserError("--k is for --gate (the branches a score-returning gate keeps)")
+    if args.nuscenes_metrics and not args.nuscenes:
+        raise UserError("--nuscenes-metrics: the devkit scores 3D boxes: give nuScenes results (--nuscenes); COCO "
+                        "results are 2D")
+    loaded = [load_gate(spec) for spec in args.gate]  # a gate that does not load fails before any file is read
+    names = [name for name, _ in loaded]
+    if len(set(names)) < len(names):
+        twice = next(n for n in names if names.count(n) > 1)
+        raise UserError(f"--gate: two gates named {twice!r} (name them: --gate NAME=...)")
     reader = DatasetReader(Path(args.data))
     ext, index = load_external(reader, args.split, nuscenes=args.nuscenes, coco=args.coco, export=args.export,
                                missing=args.missing)
+    k = gate_k(_parse_k(args.k, len(ext.branches)), len(ext.branches), args.k is not None)
     selections = {}
     for spec in args.selection:
         name, path = named_file(spec)
         selections[name or path.stem] = read_selection(path, ext, index)
-    r = score_external(reader, ext, selections=selections, fusion=args.fusion, resamples=args.bootstrap,
-                       protocol=args.protocol)
+    gates, gate_info = {}, {}
+    for spec, (name, gate) in zip(args.gate, loaded, strict=True):
+        gates[name] = gate_selection(name, gate, ext, index, k)
+        gate_info[name] = {"spec": spec, "k_if_scores": k}
+    r = score_external(reader, ext, selections=selections, gates=gates, fusion=args.fusion,
+                       resamples=args.bootstrap, protocol=args.protocol)
     r["data"], r["split"] = str(args.data), args.split
+    if gate_info:
+        r["gates"] = gate_info
+    if args.nuscenes_metrics:
+        from study.nuscenes_metrics import describe, score_nuscenes
+
+        for branch, metrics in score_nuscenes(ext, index, args.export, args.split).items():
+            r["methods"][f"single:{branch}"]["nuscenes"] = metrics
+        r["nuscenes_metrics"] = describe()
 
     def text(r):
         lines = [f"{r['frames']} frames, classes {r['classes']}, {r['protocol']} protocol, fusion {r['fusion']}"]
@@ -103,8 +149,40 @@ def run(args) -> int:
             ci = f" [{iv[0]:.3f}, {iv[1]:.3f}]" if iv else ""
             d = m.get("minus_late")
             dl = f"  minus late {d['value']:+.3f} ({d['verdict']})" if d and d["value"] is not None else ""
-            lines.append(f"  {name:28s} mAP {m['map'] if m['map'] is not None else 'n/a'}{ci}{dl}")
+            energy = f"  sensors {m['sensor_energy_j']:.2f} J/frame" if m.get("sensor_energy_j") is not None else ""
+            lines.append(f"  {name:28s} mAP {m['map'] if m['map'] is not None else 'n/a'}{ci}{dl}{energy}")
+        ns = {name: m["nuscenes"] for name, m in r["methods"].items() if "nuscenes" in m}
+        if ns:
+            lines.append(f"nuScenes devkit ({r['nuscenes_metrics']['config']}), means over the classes present in "
+                         "its ground truth; devkit: its own mAP and NDS over ten classes")
+            lines.extend(_nuscenes_lines(ns))
         return "\n".join(lines)
 
     emit(r, args.json, text)
     return 0
+
+
+def _parse_k(text, n_branches: int):
+    from study.gate_tables import parse_k
+
+    return None if text is None else parse_k(text, n_branches)
+
+
+def _nuscenes_lines(ns: dict) -> list[str]:
+    from study.numbers import number_text
+
+    def row(label: str, s: dict) -> str:
+        e = s["tp_errors"]
+        errs = " ".join(f"{k} {number_text(v)}" for k, v in e.items())
+        return (f"  {label:28s} mAP {number_text(s['map'])}  {errs}  NDS {number_text(s['nds'])}  "
+                f"(devkit mAP {number_text(s['devkit']['mean_ap'])}, NDS {number_text(s['devkit']['nd_score'])}; "
+                f"classes {', '.join(s['classes']) or 'none'})")
+
+    lines = []
+    for name, m in ns.items():
+        lines.append(row(name, m["overall"]))
+        for group in ("per_context", "per_severity"):
+            for key, s in m[group].items():
+                label = f"{key}" if group == "per_context" else f"severity {key}"
+                lines.append(row(f"  {label}", s))
+    return lines
