@@ -60,30 +60,31 @@ def matches_scorer(matches: Sequence, sequence_of_image: Sequence[int]) -> Score
     """A scorer of pooled VOC mAP over K sources' per-image matching (`fusion.metrics.ImageMatches`, all
     on the same images, same classes): constant k's score over the sequences `seqs` is the mAP of the
     images of those sequences pooled (a sequence drawn twice counts twice), sequence i's images read
-    from source `perm[i, k]`. `sequence_of_image`: each image's sequence, 0..n_seq-1."""
-    from fusion.metrics import ImageMatches
+    from source `perm[i, k]`. `sequence_of_image`: each image's sequence, 0..n_seq-1.
+
+    Exact and fast: the K sources' images are one ranked pool (`fusion.metrics.DrawScorer`), and a
+    constant's score is that pool's AP under multiplicities that take, for each sequence, its images
+    from the source the constant reads there (the others weigh 0)."""
+    from fusion.metrics import DrawScorer, ImageMatches
 
     seq = np.asarray(sequence_of_image, dtype=int)
     if not len(matches) or seq.ndim != 1 or len(seq) != len(matches[0].per_image) or (len(seq) and seq.min() < 0):
         raise ValueError("matches_scorer: one sequence index >= 0 per image of the (non-empty) sources")
     if any(len(m.per_image) != len(seq) for m in matches):
         raise ValueError("matches_scorer: every source must hold the same images")
-    images_of = [np.flatnonzero(seq == i) for i in range(int(seq.max()) + 1)]
+    k_sources, n = len(matches), len(seq)
     first = matches[0]
+    pool = DrawScorer(ImageMatches([r for m in matches for r in m.per_image], first.classes, first.interpolation))
+    n_seq = int(seq.max()) + 1
+    columns = np.arange(n)
 
     def score(seqs: np.ndarray, perm: np.ndarray | None = None) -> np.ndarray:
-        seqs = np.asarray(seqs, dtype=int)
-        rows = np.concatenate([images_of[i] for i in seqs]) if len(seqs) else np.zeros(0, int)
-        if perm is None:
-            return np.array([m.mean_ap(rows) for m in matches], dtype=float)
-        sizes = [len(images_of[i]) for i in seqs]
-        out = []
-        for k in range(len(matches)):
-            source = np.repeat(perm[seqs, k], sizes)
-            pooled = ImageMatches([matches[s].per_image[r] for s, r in zip(source, rows)], first.classes,
-                                  first.interpolation)
-            out.append(pooled.mean_ap(range(len(rows))))
-        return np.array(out, dtype=float)
+        taken = np.bincount(np.asarray(seqs, dtype=int), minlength=n_seq)[seq]  # each image's multiplicity
+        mult = np.zeros((k_sources, k_sources * n), np.int64)
+        for k in range(k_sources):
+            source = np.full(n, k) if perm is None else np.asarray(perm)[seq, k]
+            mult[k, source * n + columns] = taken
+        return pool.mean_ap_of_multiplicities(mult)
 
     return score
 

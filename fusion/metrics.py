@@ -400,12 +400,22 @@ class DrawScorer:
     def ap(self, draws: Sequence[Sequence[int]]) -> dict[int, np.ndarray]:
         """{class: (draws,) AP}, NaN where a draw holds no ground truth of the class."""
         draws = [list(d) for d in draws]
-        mult = self.multiplicities(draws)
+        return self.ap_of_multiplicities(self.multiplicities(draws), draws)
+
+    def ap_of_multiplicities(self, mult: np.ndarray, draws: Sequence[Sequence[int]] | None = None
+                             ) -> dict[int, np.ndarray]:
+        """`ap` of draws given as (draws, images) multiplicities (each image taken that many times). A
+        class with mixed ties is scored by pooling each draw's images in the order `draws` lists them
+        (`ap`'s draws), else in image order."""
+        mult = np.asarray(mult, np.int64)
+        if mult.ndim != 2 or mult.shape[1] != self.n_images or (mult.size and mult.min() < 0):
+            raise ValueError(f"multiplicities must be (draws, {self.n_images}) counts >= 0, got shape {mult.shape}")
         drawn = mult.any(axis=0)  # images no draw takes weigh 0 everywhere: leave them out of the walk
         out = {}
         for c in self.classes:
             if c in self.fallback_classes:
-                out[c] = np.array([self.matches.ap_of_class(c, d) for d in draws])
+                order = draws if draws is not None else [np.repeat(np.arange(self.n_images), m) for m in mult]
+                out[c] = np.array([self.matches.ap_of_class(c, d) for d in order])
                 continue
             image, tp = self.ranked[c]
             keep = drawn[image]
@@ -415,9 +425,14 @@ class DrawScorer:
     def mean_ap(self, draws: Sequence[Sequence[int]]) -> np.ndarray:
         """(draws,) mean AP over the classes with ground truth in each draw (NaN when none has), as
         `ImageMatches.mean_ap`."""
-        per = self.ap(draws)
+        draws = [list(d) for d in draws]
+        return self.mean_ap_of_multiplicities(self.multiplicities(draws), draws)
+
+    def mean_ap_of_multiplicities(self, mult: np.ndarray, draws: Sequence[Sequence[int]] | None = None) -> np.ndarray:
+        """`mean_ap` of draws given as (draws, images) multiplicities (`ap_of_multiplicities`)."""
+        per = self.ap_of_multiplicities(mult, draws)
         if not per:
-            return np.full(len(draws), np.nan)
+            return np.full(len(mult), np.nan)
         table = np.stack([per[c] for c in self.classes], axis=1)
         out = np.full(len(table), np.nan)
         for r, row in enumerate(table):
