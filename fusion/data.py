@@ -57,7 +57,7 @@ def carve_sequences(reader: DatasetReader, indices, count, rng) -> tuple[list[in
     """Split frames into (rest, carved) by whole sequence (shard), per context: each context's
     sequences (sorted, then shuffled by `rng`, contexts in sorted order) give their first
     `count(number of the context's sequences)` to `carved`. What `hold_out_sequences` and the gates'
-    validation carve (`study.selection.validation_split`) share; they differ in `count` and seed."""
+    validation carve (`study.experiments.selection.validation_split`) share; they differ in `count` and seed."""
     shards: dict[str, dict[str, list[int]]] = defaultdict(lambda: defaultdict(list))
     for i in indices:
         f = reader.manifest["frames"][int(i)]
@@ -74,7 +74,7 @@ def carve_sequences(reader: DatasetReader, indices, count, rng) -> tuple[list[in
 
 def hold_out_sequences(reader: DatasetReader, indices, fraction: float, seed: int = 0) -> tuple[list[int], list[int]]:
     """Split frames into (kept, held out) by whole sequence (shard), per context, deterministic in
-    `seed`: the gate split of a run (`study.train.TrainConfig.gate_holdout`), sequences the detectors
+    `seed`: the gate split of a run (`study.engine.train.TrainConfig.gate_holdout`), sequences the detectors
     never train on, whose per-branch losses are what the gates learn from.
 
     `fraction` of each context's sequences (rounded, at least one when `fraction` > 0) is held out;
@@ -86,7 +86,7 @@ def hold_out_sequences(reader: DatasetReader, indices, fraction: float, seed: in
     def count(n: int) -> int:
         return min(max(int(round(fraction * n)), 1), n - 1) if fraction > 0 else 0
 
-    # not the validation carve's stream (`study.selection`)
+    # not the validation carve's stream (`study.experiments.selection`)
     return carve_sequences(reader, indices, count, np.random.default_rng([seed, 11]))
 
 
@@ -141,7 +141,7 @@ def hflip_sample(inputs: dict, targets: dict, widths: dict) -> tuple[dict, dict]
     lateral axis with the radar at the centre, likewise), and every box with it (x -> width - x).
     The result is an exact observation of the mirrored scene by the mirrored rig. In that rig the
     two cameras have changed sides, so a branch that fuses the stereo pair would see its geometry
-    reversed: training refuses the flip for such branches (`study.train`).
+    reversed: training refuses the flip for such branches (`study.engine.train`).
 
     `widths`: {target frame: image width [px]} for "camera_left", "camera_right", "bev".
     Returns new dicts; the arguments are not modified.

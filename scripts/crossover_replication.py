@@ -10,7 +10,7 @@ crossover stage, in the same study directory so that nothing upstream runs again
     sed 's/^  seed: 3000 /  seed: 3100 /' configs/study/cpu-verdict.yaml > /tmp/sweep2.yaml
     hydrabench study /tmp/sweep2.yaml --out DIR --until crossover
 
-Prints the summary (`study.crossover_replication.replicate`: the share of levels whose two
+Prints the summary (`study.experiments.crossover_replication.replicate`: the share of levels whose two
 estimates agree within their intervals, about 0.95 when the intervals are right; levels resolved in
 one set and the other; contradictions; each crossing against the other's interval) and writes the
 whole comparison to FILE as JSON.
@@ -23,7 +23,7 @@ import json
 import sys
 from pathlib import Path
 
-from study.crossover_replication import replicate
+from study.experiments.crossover_replication import replicate
 
 
 def load_record(path: Path) -> dict:

@@ -13,7 +13,7 @@ gates=$(ls -td "$study"/stages/gates-*/ | while read -r d; do [ -f "$d/manifest.
 data=$(ls -d "$study"/stages/generate-*/data | head -1)
 [ -n "$gates" ] || { echo "no finished gates stage in $study" >&2; exit 2; }
 mkdir -p "$out"
-"$py" -c "from study.stage_cache import link_farm; link_farm('${gates}run', '$out/run')"
+"$py" -c "from study.pipeline.cache import link_farm; link_farm('${gates}run', '$out/run')"
 for cmd in train-gate eco-train-gate; do
   for gate in deep attention; do
     for variant in "--pooling global" "--context-inputs" "--pooling global --context-inputs"; do

@@ -1,5 +1,5 @@
 #!/usr/bin/env bash
-# Make the reference model models/cpu-ref (study.reference_model) from the `cpu` study's dataset:
+# Make the reference model models/cpu-ref (study.engine.reference_model) from the `cpu` study's dataset:
 # the study's four detectors at half width (layer2-4 channels x 0.5, so the float16 weights fit
 # issue 27's ~40 MB), trained as the `cpu` preset trains them, exported in float16, HydraFusion's
 # deep and attention gates trained on the export (gate split, as the study), measured on the test

@@ -11,7 +11,7 @@ and `crossover_replication.json`'s), the recurrent gate on two sets of weather s
 and `transitions_seed4100.json`). A cell says "holds", "does not hold" or "not resolved" with the
 estimate and its 95 % interval, or "not measured" where that scoring lacks a method. An overall order
 is resolved when its interval excludes 0; a per-context order only with the verdict's correction over
-its whole family (`study.verdict.orders`). The block lies between BEGIN and END; nothing else changes.
+its whole family (`study.report.verdict.orders`). The block lies between BEGIN and END; nothing else changes.
 """
 
 from __future__ import annotations
@@ -21,10 +21,10 @@ import json
 import sys
 from pathlib import Path
 
+from study.engine.scoring import difference_interval
 from study.numbers import interval_text, rounded
 from study.outputs import replace_marked_block, update_page
-from study.scoring import difference_interval
-from study.verdict import orders
+from study.report.verdict import orders
 
 BEGIN = "<!-- study-claims:begin (scripts/readme_claims.py writes this block; do not edit by hand) -->"
 END = "<!-- study-claims:end -->"
@@ -40,7 +40,7 @@ WORD = {1: HOLDS, -1: FAILS, 0: OPEN}
 
 
 def _sign(iv) -> int:
-    """+1 / -1: the interval lies above / below 0 (strictly, as `study.verdict.Order.resolved`); 0: not resolved."""
+    """+1 / -1: the interval lies above / below 0 (strictly, as `study.report.verdict.Order.resolved`); 0: not resolved."""
     return 1 if iv[0] > 0 else -1 if iv[1] < 0 else 0
 
 

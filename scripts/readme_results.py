@@ -9,7 +9,7 @@ The block lies between the markers BEGIN and END below; everything outside them 
 Every number in it comes from the report (`hydrabench study ... --out DIR` writes DIR/report.json),
 so the README's results can be re-created with two commands and are never copied by hand.
 `--verdict` and `--figure` leave the README alone: they print the sentences and draw the figure of
-`study.verdict` (which orders the study's intervals resolve, overall and per context).
+`study.report.verdict` (which orders the study's intervals resolve, overall and per context).
 """
 
 from __future__ import annotations
@@ -19,10 +19,10 @@ import json
 import sys
 from pathlib import Path
 
-from study.bounds import CONTEXT_ORACLE
+from study.engine.scoring import difference_interval
+from study.experiments.bounds import CONTEXT_ORACLE
 from study.outputs import replace_marked_block, update_page
-from study.scoring import difference_interval
-from study.verdict import answer_sentences, bounds_sentences, family_sentence, namer
+from study.report.verdict import answer_sentences, bounds_sentences, family_sentence, namer
 
 BEGIN = "<!-- study-results:begin (scripts/readme_results.py writes this block; do not edit by hand) -->"
 END = "<!-- study-results:end -->"
@@ -77,7 +77,7 @@ def results_block(report: dict, tables: tuple[str, ...] = ("DIR/report.md", "DIR
         lines.append("")
         lines += [*bounds_sentences(report), ""] if bounds_sentences(report) else []
         answer = answer_sentences(report)
-        if answer:  # the report's opening answer, generated from the intervals (study.verdict)
+        if answer:  # the report's opening answer, generated from the intervals (study.report.verdict)
             lines.append("**What it resolves** (generated from the intervals): " + " ".join(answer))
             lines.append("")
     t4 = r["hydra_table4"]
@@ -143,7 +143,7 @@ def crossover_lines(r: dict) -> list[str]:
     rec, pg = r.get("crossover"), r.get("physical_gate")
     if not rec:
         return []
-    from study.crossover_study import crossing_text, summary_rows
+    from study.experiments.crossover import crossing_text, summary_rows
 
     rows = [x for x in summary_rows(rec) if x["base"] == "all_branches"]
     lines = ["", f"Where fusing a sensor stops paying (all branches with minus without it, on a sweep set of "
@@ -241,7 +241,7 @@ def replace_block(readme: str, block: str) -> str:
 
 
 def _verdict(report_path: str, sentences: bool, figure: str | None) -> int:
-    from study.verdict import verdict_figure, verdict_sentences
+    from study.report.verdict import verdict_figure, verdict_sentences
 
     try:
         report = json.loads(Path(report_path).read_text())
@@ -276,7 +276,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--readme", default=str(Path(__file__).resolve().parents[1] / "README.md"), help="README to update")
     p.add_argument("--check", action="store_true", help="exit 1 when the README's block differs, write nothing")
     p.add_argument("--verdict", action="store_true",
-                   help="print which orders the study resolves (study.verdict), leave the README alone")
+                   help="print which orders the study resolves (study.report.verdict), leave the README alone")
     p.add_argument("--figure", metavar="PNG",
                    help="write the verdict figure (each method minus late fusion per context), leave the README alone")
     args = p.parse_args(argv)

@@ -13,7 +13,7 @@ set of the replication):
         --report seed1=SEED1/report.json --report seed0_test2001=results/study_cpu_verdict/report.json \\
         --seeds seed0,seed1 --test-sets seed0,seed0_test2001 --out training_seeds.json
 
-Prints the headline rows (`study.training_seeds`) and how far each pair moves between the seeds and
+Prints the headline rows (`study.experiments.training_seeds`) and how far each pair moves between the seeds and
 between the test sets, in units of the test interval's half-width.
 """
 
@@ -26,7 +26,7 @@ from pathlib import Path
 
 from verdict_replication import extract, load_results
 
-from study.training_seeds import training_variance
+from study.experiments.training_seeds import training_variance
 
 
 def _labelled(text: str) -> tuple[str, Path]:

@@ -10,7 +10,7 @@ gates train again only if their code or the machine's compute identity changed):
     sed 's/^    seed: 2001/    seed: 2002/' configs/study/cpu-verdict.yaml > /tmp/test2.yaml
     hydrabench study /tmp/test2.yaml --out DIR
 
-Prints the summary (`study.verdict_replication.replicate`: the share of (pair, context) estimates
+Prints the summary (`study.experiments.verdict_replication.replicate`: the share of (pair, context) estimates
 whose two values agree within their intervals, about 0.95 when the intervals are right; pairs
 resolved in one report and the other; contradictions), the headline pairs side by side, the gates'
 kept objectives and the physical gate's rules; `--out` writes the comparison as JSON (every row too
@@ -26,7 +26,7 @@ import json
 import sys
 from pathlib import Path
 
-from study.verdict_replication import replicate
+from study.experiments.verdict_replication import replicate
 
 KEPT = ("machine", "dataset", "intervals", "gate_training", "physical_gate")
 """What an extract keeps of a report's results besides each method's mAP (overall and per context)."""

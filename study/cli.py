@@ -21,7 +21,7 @@ from pathlib import Path
 
 from fusion.metrics import MAX_BOOTSTRAP
 from sim.errors import Terminated, UserError
-from study.device import MAX_WORKERS
+from study.engine.device import MAX_WORKERS
 
 os.environ.setdefault("PYOPENGL_PLATFORM", "egl")
 if os.environ.get("SDL_VIDEODRIVER", "dummy") == "dummy":
@@ -367,7 +367,7 @@ def predictions_dir(text: str) -> str:
     path = Path(_path_text(text))
     if not path.is_dir():
         raise argparse.ArgumentTypeError(f"{text} is not a directory" if path.exists() else f"{text} does not exist")
-    from study.predictions import FORMAT
+    from study.engine.predictions import FORMAT
 
     try:
         fmt = json.loads((path / "manifest.json").read_text()).get("format")
@@ -384,16 +384,16 @@ _typed(predictions_dir, "predictions")
 
 def training_run(text: str) -> str:
     """An argparse type: a training run directory (hydrabench train --out), or a reference model
-    (`study.reference_model`: a name in models/ or its directory), checked against its manifest and
+    (`study.engine.reference_model`: a name in models/ or its directory), checked against its manifest and
     copied into its cache run, whose path is returned."""
-    from study.reference_model import resolve_run
+    from study.engine.reference_model import resolve_run
 
     path = Path(_as_type_error(resolve_run, _path_text(text)))
     if not path.is_dir():
         raise argparse.ArgumentTypeError(f"{text} is not a directory" if path.exists() else f"{text} does not exist")
     if not (path / "config.json").is_file():
         raise argparse.ArgumentTypeError(f"{text} is not a training run (no config.json; see hydrabench train)")
-    from study.checkpoints import checkpoint_problem
+    from study.engine.checkpoints import checkpoint_problem
 
     for ckpt in sorted(path.glob("*.pt")):  # checkpoint.pt and epoch-NNN.pt: whole, before any work
         problem = checkpoint_problem(ckpt)
@@ -407,11 +407,11 @@ _typed(training_run, "run")
 
 def study_config(text: str):
     """An argparse type: a study preset name (configs/study/<name>.yaml) or a YAML file of
-    `study.study_config.StudyConfig` fields, loaded and checked whole (unknown keys, bad values)."""
-    from study.presets import study_config_file
+    `study.pipeline.config.StudyConfig` fields, loaded and checked whole (unknown keys, bad values)."""
+    from study.pipeline.presets import study_config_file
 
     path = _as_type_error(study_config_file, _path_text(text))  # (torch-free: a typo is refused at once)
-    from study.study_config import load_study_config
+    from study.pipeline.config import load_study_config
 
     return _as_type_error(load_study_config, str(path))
 

@@ -14,7 +14,7 @@ def _pin_xdist_worker() -> None:
 
     Two workers that each let torch, numba or a subprocess use every core would fight over them
     (measured: 2 threads on a loaded 2-core machine run at 0.43-0.49 of 1 thread). Pinning the
-    worker's affinity makes `study.device.available_cores()`, torch's thread count and every
+    worker's affinity makes `study.engine.device.available_cores()`, torch's thread count and every
     subprocess the test starts use that worker's share of the machine. Results do not depend on it:
     every determinism test compares runs made under the same pinning.
     """
@@ -140,7 +140,7 @@ def shared_nuscenes_export(shared_dataset, cache_lock):
     splits), each made once per session by whichever test asks first. Read-only, as shared_dataset."""
 
     def get(config) -> tuple[Path, Path]:
-        from study.nuscenes_export import export_nuscenes
+        from study.experiments.nuscenes_export import export_nuscenes
 
         data = shared_dataset(config)
         with cache_lock(f"nuscenes-{data.name}") as root:

@@ -22,7 +22,7 @@ The four entries of `GATES`:
   branch quality -> predicted loss 1 - quality (relative, not in Faster R-CNN loss units).
 - **deep**: three conv layers and an MLP on the pooled stem features of all modalities -> one
   predicted loss per branch (regression of the per-branch Faster R-CNN loss, trained with mean
-  absolute error by `study.branch_gate_study`).
+  absolute error by `study.engine.gate_training`).
 - **attention**: the same with a SAGAN self-attention layer (Zhang et al. 2019) after the convs,
   before the max-pool and the MLP.
 - **optimal**: the a-posteriori loss of every branch on the frame (needs ground truth: the
@@ -379,7 +379,7 @@ class OptimalGate(Gate):
     losses need ground truth and every branch's output. The upper bound for the other gates.
 
     Reads `meta[i]["branch_losses"]` (branch name -> loss, e.g. from `HydraFusion.per_sample_losses`
-    summed over the four losses, or the gate dataset of `study.branch_gate_study`).
+    summed over the four losses, or the gate dataset of `study.engine.gate_training`).
     """
 
     name = "optimal"

@@ -6,7 +6,7 @@ back (interleaved, so a machine that slows down slows both alike), each after
 `torch.manual_seed(seed + k)` so the RPN / RoI samplers draw from the same stream. Reported: the
 median step time of each (forward + backward + SGD, the first `warmup` steps untimed), the speed-up,
 the loss of every step of both copies, and whether this CPU computes bf16 natively (AMX-BF16 or
-AVX512-BF16, `study.device.native_bf16`), which decides what `--amp auto` picks. Under bf16 autocast
+AVX512-BF16, `study.engine.device.native_bf16`), which decides what `--amp auto` picks. Under bf16 autocast
 only the backbones run in bf16: anchors, box coding, the RPN and RoI heads stay fp32
 (`fusion.nets.layers.full_precision`).
 
@@ -79,7 +79,7 @@ def train_step(model, opt, inputs, targets, precision: str, seed: int) -> tuple[
     """One SGD step on the CPU in `precision` ("fp32" or "bf16") -> (seconds, loss)."""
     import torch
 
-    from study.device import DeviceSetup
+    from study.engine.device import DeviceSetup
 
     torch.manual_seed(seed)
     setup = DeviceSetup("cpu", torch.get_num_threads(), precision == "bf16")
@@ -106,7 +106,7 @@ def bench_amp(profile: str = "cpu", branches: tuple[str, ...] = (), batch: int =
 
     from fusion.nets import build_hydrafusion
     from sim.errors import UserError
-    from study.device import default_threads, native_bf16
+    from study.engine.device import default_threads, native_bf16
 
     prof, specs = bench_setup("amp", profile, branches, steps, warmup, batch, overrides)
     before = torch.get_num_threads()
@@ -158,7 +158,7 @@ def amp_parity(data: str, out, profile: str = "cpu", branches: tuple[str, ...] =
     rate), each in `out/<precision>/` (resumable), then both scored on the run's test split: each
     branch alone in the right camera, vehicle and all-class mAP, and the paired difference bf16 -
     fp32 with a 95 % interval from `bootstrap` draws of whole test sequences
-    (`study.scoring.context_bootstrap`). Parity: an interval that holds 0 and is narrow. The two runs
+    (`study.engine.scoring.context_bootstrap`). Parity: an interval that holds 0 and is narrow. The two runs
     do not follow the same trajectory (bf16 rounding changes every step after the first), so the
     difference also holds run-to-run variation, which is what a user of either precision gets.
     Also: each run's training seconds (process wall time) and final epoch loss. `model_overrides`: `KEY=VALUE`
@@ -173,8 +173,8 @@ def amp_parity(data: str, out, profile: str = "cpu", branches: tuple[str, ...] =
     from sensors.dataset import DatasetReader
     from sensors.dataset import check as check_dataset
     from sim.errors import UserError
-    from study.device import default_threads, native_bf16
-    from study.scoring import (
+    from study.engine.device import default_threads, native_bf16
+    from study.engine.scoring import (
         context_bootstrap,
         difference_interval,
         frames_for,
@@ -184,7 +184,7 @@ def amp_parity(data: str, out, profile: str = "cpu", branches: tuple[str, ...] =
         run_branches,
         score,
     )
-    from study.train import TrainConfig, train
+    from study.engine.train import TrainConfig, train
 
     out = Path(out)
     data = str(Path(data).resolve())

@@ -52,7 +52,7 @@ def bench_arch(profile: str = "cpu", branches: tuple[str, ...] = (), variants: d
     from fusion.nets import build_hydrafusion
     from fusion.nets.profile import deep_merge, parse_model_overrides
     from sim.errors import UserError
-    from study.device import default_threads, native_bf16
+    from study.engine.device import default_threads, native_bf16
 
     variants = dict(variants or DEFAULT_VARIANTS)
     if not variants:

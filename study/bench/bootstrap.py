@@ -51,7 +51,7 @@ def synthetic_test_set(frames: int, sequence_length: int, methods: int, detectio
 
 def bench_bootstrap(frames: int = 1152, sequence_length: int = 3, methods: int = 11, detections: int = 60,
                     classes: int = 8, resamples: int = 500, pooled_resamples: int = 20, seed: int = 0) -> dict:
-    """Time the bootstrap of `study.scoring.context_bootstrap` (overall and per context, `resamples`
+    """Time the bootstrap of `study.engine.scoring.context_bootstrap` (overall and per context, `resamples`
     draws each) both ways. The pooled way is timed on its first `pooled_resamples` draws of each
     group (the same draws: the generator is seeded) and scaled to `resamples` (its cost is the same
     per draw); the weighted way runs in full. Returns the times, the per-draw agreement and the set's

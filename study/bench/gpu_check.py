@@ -90,7 +90,7 @@ def _model(profile: str):
     import torch
 
     from fusion.nets import build_hydrafusion
-    from study.train import branch_set
+    from study.engine.train import branch_set
 
     torch.manual_seed(0)
     return build_hydrafusion(profile=profile, branches=branch_set("paper", profile))
@@ -120,7 +120,7 @@ def time_train_steps(model, batches: list, setup, lr: float = 1e-3) -> dict:
     then one timed step per further batch, each waited for (the host-to-device copy included)."""
     import torch
 
-    from study.device import to_device
+    from study.engine.device import to_device
 
     model.train().to(setup.torch_device())
     params = [p for p in model.parameters() if p.requires_grad]
@@ -192,7 +192,7 @@ def run_check(work: Path, frames_per_context: int | None = None, steps: int | No
     if "generate" in parts and render["ok"]:
         from sensors.generate import GenerateConfig, generate
         from sim.scenario import CONTEXT_NAMES
-        from study.device import available_cores
+        from study.engine.device import available_cores
 
         names = tuple(CONTEXT_NAMES) if p["contexts"] == "all" else tuple(p["contexts"].split(","))
         workers = max(1, min(len(names) * max(1, p["frames_per_context"] // 2), available_cores()))
@@ -213,7 +213,7 @@ def run_check(work: Path, frames_per_context: int | None = None, steps: int | No
     # 2. CUDA from here on
     import torch
 
-    from study.device import available_cores, resolve_device
+    from study.engine.device import available_cores, resolve_device
 
     setup = resolve_device(device="cuda" if gpu else "cpu")
     summary.update({"device": setup.describe(), "cores": available_cores(), "torch": torch.__version__})
@@ -275,7 +275,7 @@ def _train_run(data: Path, out: Path, p: dict, setup) -> dict:
     with model build, evaluation and checkpoint writes (not a training speed: `train_steps` is)."""
     import csv
 
-    from study.train import TrainConfig, train
+    from study.engine.train import TrainConfig, train
 
     _log(f"train run: one epoch of `hydrabench train`, batch {p['batch_size']}, amp {setup.amp}")
     cfg = TrainConfig(data=str(data), model_profile=p["profile"], epochs=1, batch_size=p["batch_size"],

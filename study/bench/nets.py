@@ -3,7 +3,7 @@ model configuration, the analogue of HydraFusion Table 4 on this CPU.
 
 Each configuration is measured in a fresh process (spawned), so its peak resident memory
 (ru_maxrss) belongs to it alone; latency is the median of `repeats` timed forwards after warm-up.
-On a CUDA device (`device`, `study.device`) the forwards run there (bf16 autocast with `amp`), each
+On a CUDA device (`device`, `study.engine.device`) the forwards run there (bf16 autocast with `amp`), each
 timing waits for the GPU (torch.cuda.synchronize), the peak is the GPU memory torch allocated
 (max_memory_allocated) and the energy at batch 1 is measured with NVML's counter (`fusion.nvml`, the
 GPU found by its UUID) over at least `energy_window_s` of repeated forwards after `energy_warmup_s`
@@ -240,7 +240,7 @@ def _load_run_weights(model, run_dir) -> None:
     """Copy a trained run's weights into `model` where the module names match (nothing without a run)."""
     if not run_dir:
         return
-    from study.scoring import load_run
+    from study.engine.scoring import load_run
 
     trained, _ = load_run(run_dir)
     own = model.state_dict()
@@ -259,8 +259,8 @@ def _worker(args) -> dict:
     from fusion.nets import build_hydrafusion
     from sensors.rig import load_profile as sensor_profile
     from sensors.rig import make_calibration
-    from study.device import resolve_device
-    from study.train import branch_set
+    from study.engine.device import resolve_device
+    from study.engine.train import branch_set
 
     setup = resolve_device(device=device, threads=threads, amp=amp)
     cuda = setup.is_cuda
@@ -311,8 +311,8 @@ def _train_worker(args) -> dict:
     import torch
 
     from fusion.nets import build_hydrafusion
-    from study.device import resolve_device
-    from study.train import branch_set
+    from study.engine.device import resolve_device
+    from study.engine.train import branch_set
 
     setup = resolve_device(device=device, threads=threads, amp=amp)
     spec = [s for s in branch_set("paper", profile) if s.name == name]
@@ -357,8 +357,8 @@ def bench_gates(profile: str = "cpu", repeats: int = 5, threads: int = 2, run_di
     from fusion.nets.branch_gates import GATES, build_gate
     from sensors.rig import load_profile as sensor_profile
     from sensors.rig import make_calibration
-    from study.device import resolve_device
-    from study.train import branch_set
+    from study.engine.device import resolve_device
+    from study.engine.train import branch_set
 
     setup = resolve_device(device=device, threads=threads, amp=amp)
     torch.manual_seed(0)
@@ -396,7 +396,7 @@ def bench_gates(profile: str = "cpu", repeats: int = 5, threads: int = 2, run_di
         if cls.trainable and run_dir:
             from pathlib import Path
 
-            from study.branch_gate_study import load_trained_gate
+            from study.engine.gate_training import load_trained_gate
 
             if (Path(run_dir) / "gates" / name / "gate.pt").exists():
                 gate = load_trained_gate(run_dir, name, model).to(device)
@@ -441,10 +441,10 @@ def bench_inference(profile: str = "cpu", repeats: int = 5, threads: int = 2, ru
     part-way (a time budget) keeps what it measured."""
     energy_kw = {"warmup_s": energy_warmup_s, "window_s": energy_window_s, "idle_s": idle_s, "rest_s": idle_rest_s}
     if run_dir:  # its weights loaded here first: a damaged run is refused before any worker starts
-        from study.scoring import load_run
+        from study.engine.scoring import load_run
 
         load_run(run_dir)
-    from study.train import branch_set
+    from study.engine.train import branch_set
 
     configs = [(n, c) for n, c in CONFIGURATIONS.items() if configurations is None or n in configurations]
     branches = [s.name for s in branch_set("paper", profile) if train_branches is None or s.name in train_branches]

@@ -108,8 +108,8 @@ def bench_recipe(data: str, out, branch: str = "lidar", candidates: dict | None 
     from sensors.dataset import DatasetReader
     from sensors.dataset import check as check_dataset
     from sim.errors import UserError
-    from study.device import default_threads
-    from study.scoring import (
+    from study.engine.device import default_threads
+    from study.engine.scoring import (
         context_bootstrap,
         frames_for,
         fused,
@@ -118,7 +118,7 @@ def bench_recipe(data: str, out, branch: str = "lidar", candidates: dict | None 
         run_branches,
         score,
     )
-    from study.train import TrainConfig, train
+    from study.engine.train import TrainConfig, train
 
     out = Path(out)
     data = str(Path(data).resolve())
@@ -209,7 +209,7 @@ class ScoreMemo:
 
     def _sha(self, epoch: int) -> str:
         """The checkpoint's digest, read once per call (`get` then `put` hash the same file)."""
-        from study.gate_data import file_sha256
+        from study.engine.gate_data import file_sha256
 
         if epoch not in self._shas:
             self._shas[epoch] = file_sha256(self.run / f"epoch-{epoch:03d}.pt")

@@ -94,7 +94,7 @@ class ScaleConfig:
 
 def check(cfg: ScaleConfig) -> None:
     """Refuse a config that would fail part-way (UserError), before any work."""
-    from study.train import branch_set
+    from study.engine.train import branch_set
 
     bad = [p for p in cfg.parts if p not in PARTS]
     if bad or not cfg.parts:
@@ -143,7 +143,7 @@ def cpu_model() -> str:
 def machine_info() -> dict:
     import torch
 
-    from study.device import available_cores
+    from study.engine.device import available_cores
 
     return {"cores": os.cpu_count(), "cores_available": available_cores(), "cpu": cpu_model(),
             "machine": platform.machine(), "python": platform.python_version(), "torch": torch.__version__,

@@ -104,7 +104,7 @@ def bench_profile(profile: str = "cpu", branches: tuple[str, ...] = (), batch: i
 
     from fusion.nets import build_hydrafusion
     from sim.errors import UserError
-    from study.device import DeviceSetup, default_threads
+    from study.engine.device import DeviceSetup, default_threads
 
     if precision not in ("fp32", "bf16"):
         raise UserError(f"--precision must be fp32 or bf16, got {precision!r}")

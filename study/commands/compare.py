@@ -1,4 +1,4 @@
-"""`hydrabench compare`: the command line of `study.compare` (selective against fixed fusion) and its
+"""`hydrabench compare`: the command line of `study.experiments.compare` (selective against fixed fusion) and its
 figure."""
 
 from __future__ import annotations
@@ -31,7 +31,7 @@ examples:
 
 
 def add_parser(sub, name, help_text):
-    p = sub.add_parser(name, help=help_text, description=module_doc("study.compare"), epilog=EPILOG,
+    p = sub.add_parser(name, help=help_text, description=module_doc("study.experiments.compare"), epilog=EPILOG,
                        formatter_class=Formatter)
     p.add_argument("run_dir", metavar="RUN", type=training_run,
                    help="training run directory, or a reference model (models/: e.g. cpu-ref)")
@@ -72,8 +72,8 @@ def add_parser(sub, name, help_text):
 
 def run(args) -> int:
     from sim.errors import UserError
-    from study.compare import compare, format_table, gate_names
-    from study.device import resolve_device
+    from study.engine.device import resolve_device
+    from study.experiments.compare import compare, format_table, gate_names
 
     gates = gate_names(args.gates)
     from fusion.intervals import DESIGNS
@@ -89,12 +89,12 @@ def run(args) -> int:
                 coverage_designs=designs, interval=args.interval, need_intervals="--plot" if args.plot else None,
                 predictions=args.predictions)
     if args.plot:
-        from study.compare import plot_compare
+        from study.experiments.compare import plot_compare
 
         plot_compare(r, args.plot)
         r["plot"] = str(args.plot)
         if args.twins:
-            from study.compare import plot_robustness
+            from study.experiments.compare import plot_robustness
 
             ra = Path(args.plot).with_name(Path(args.plot).stem + "_ra" + Path(args.plot).suffix)
             plot_robustness(r, ra)

@@ -189,7 +189,7 @@ def add_show(sub, name, help_text):
 
 def run_show(args) -> int:
     from sensors.dataset import DatasetReader
-    from study.plots import plot_frame
+    from study.report.plots import plot_frame
 
     reader = DatasetReader(Path(args.dir), clear=args.clear)
     frames = reader.manifest["frames"]

@@ -1,4 +1,4 @@
-"""The four device options every network command shares (`study.device` resolves them):
+"""The four device options every network command shares (`study.engine.device` resolves them):
 `add_device_args(parser)` adds --device, --threads, --amp [auto|bf16] / --no-amp and --workers."""
 
 from __future__ import annotations
@@ -6,12 +6,12 @@ from __future__ import annotations
 import argparse
 
 from study.cli import count_int, loader_workers_int
-from study.device import AMP_CHOICES, DEFAULT_CUDA_WORKERS, available_cores
+from study.engine.device import AMP_CHOICES, DEFAULT_CUDA_WORKERS, available_cores
 
 
 def device_arg(text: str) -> str:
     """An argparse type: auto | cpu | cuda | cuda:N, spelled right (whether the GPU is here is checked
-    when the command resolves it, `study.device.parse_device`)."""
+    when the command resolves it, `study.engine.device.parse_device`)."""
     import re
 
     t = str(text).strip().lower()
@@ -24,7 +24,7 @@ device_arg.kind = "name"
 
 
 def amp_arg(text: str) -> str:
-    """An argparse type: auto | bf16 | off (`study.device.resolve_amp`)."""
+    """An argparse type: auto | bf16 | off (`study.engine.device.resolve_amp`)."""
     t = str(text).strip().lower()
     if t not in AMP_CHOICES:
         raise argparse.ArgumentTypeError(f"expected {', '.join(AMP_CHOICES)}, got {text!r}")
@@ -37,7 +37,7 @@ amp_arg.kind = "name"
 def add_device_args(parser, *, workers: bool = True, threads_default: int = 0, purpose: str = "train") -> None:
     """Add --device, --threads, --amp [auto|bf16] / --no-amp and (when `workers`) --workers to an
     argparse parser. `purpose` ("train" or "eval") only words the help: the default precision is
-    bf16 for training on CUDA and fp32 otherwise (`study.device.resolve_amp`)."""
+    bf16 for training on CUDA and fp32 otherwise (`study.engine.device.resolve_amp`)."""
     g = parser.add_argument_group("device")
     g.add_argument("--device", type=device_arg, default="auto", help="auto | cpu | cuda | cuda:N (auto: a GPU when one is present)")
     g.add_argument("--threads", type=count_int, default=threads_default,

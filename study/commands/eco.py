@@ -8,7 +8,6 @@ from pathlib import Path
 
 from sim.errors import UserError
 from study import eco
-from study.branch_gate_study import GateTrainConfig
 from study.cli import (
     FUSION_HELP,
     Formatter,
@@ -36,6 +35,7 @@ from study.eco.data import EcoSettings, build_eco_data
 from study.eco.ecofusion_eval import GATE_ORDER, EcoEval, evaluate_eco, execute_ecofusion
 from study.eco.latency_energy import energy_table
 from study.eco.sweep import SWEEP_LAMBDAS, sweep
+from study.engine.gate_training import GateTrainConfig
 
 EPILOG = """\
 examples:

@@ -1,5 +1,5 @@
-"""`hydrabench evaluate`: the command line of `study.run_eval` (branches fused) and of the gate tables
-of `study.gate_tables` (--gate, --all-gates), with their text (`format_tables`: HydraFusion Tables 6, 7)."""
+"""`hydrabench evaluate`: the command line of `study.engine.run_eval` (branches fused) and of the gate tables
+of `study.engine.gate_tables` (--gate, --all-gates), with their text (`format_tables`: HydraFusion Tables 6, 7)."""
 
 from __future__ import annotations
 
@@ -7,7 +7,6 @@ import sys
 from pathlib import Path
 
 from sim.errors import UserError
-from study import run_eval as evaluation
 from study.cli import (
     FUSION_HELP,
     Formatter,
@@ -22,7 +21,8 @@ from study.cli import (
     training_run,
 )
 from study.commands.device import add_device_args
-from study.device import resolve_device
+from study.engine import run_eval as evaluation
+from study.engine.device import resolve_device
 
 EPILOG = """\
 examples:
@@ -90,7 +90,7 @@ def parse_weights(text) -> dict[str, float]:
 
 
 def run_gates(args) -> int:
-    from study import gate_tables
+    from study.engine import gate_tables
 
     if args.gate and args.all_gates:
         raise UserError("--gate and --all-gates exclude each other (--all-gates evaluates every gate)")

@@ -54,7 +54,7 @@ def add_nuscenes(formats):
 
 
 def run_nuscenes(args) -> int:
-    from study.nuscenes_export import export_nuscenes
+    from study.experiments.nuscenes_export import export_nuscenes
 
     result = export_nuscenes(args.dir, args.out, clear=args.clear, train_fraction=args.train_fraction,
                              split_seed=args.split_seed, gate_holdout=args.gate_holdout,

@@ -1,5 +1,5 @@
 """`hydrabench gallery`: one scene of a dataset re-rendered under every condition and severity
-(`study.gallery`)."""
+(`study.experiments.gallery`)."""
 
 from __future__ import annotations
 
@@ -30,7 +30,7 @@ def add_parser(sub, name, help_text):
 
 
 def run(args) -> int:
-    from study.gallery import render_gallery
+    from study.experiments.gallery import render_gallery
 
     result = render_gallery(Path(args.dir), Path(args.out), args.index, args.context, list(args.conditions))
     emit(result, args.json, lambda r: f"wrote {r['out']} ({r['rows']} rows)")

@@ -1,10 +1,10 @@
-"""`hydrabench labels`: the command line of `study.label_stats` (what it counts is described there)."""
+"""`hydrabench labels`: the command line of `study.experiments.label_stats` (what it counts is described there)."""
 
 from __future__ import annotations
 
 from sim.errors import UserError
-from study import label_stats
 from study.cli import Formatter, dataset_dir, emit, name_list
+from study.experiments import label_stats
 
 
 def add_parser(sub, name, help_text):

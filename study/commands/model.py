@@ -1,4 +1,4 @@
-"""`hydrabench model`: reference models (`study.reference_model`): export a run, list, check."""
+"""`hydrabench model`: reference models (`study.engine.reference_model`): export a run, list, check."""
 
 from __future__ import annotations
 
@@ -9,7 +9,7 @@ from study.cli import Formatter, emit, in_file, module_doc, name_arg, out_dir, t
 
 
 def add_parser(sub, name, help_text):
-    p = sub.add_parser(name, help=help_text, description=module_doc("study.reference_model"), formatter_class=Formatter)
+    p = sub.add_parser(name, help=help_text, description=module_doc("study.engine.reference_model"), formatter_class=Formatter)
     what = p.add_subparsers(dest="what", metavar="<what>", required=True)
     ex = what.add_parser("export", help="write a run's float16 weights, gates and manifest to a directory",
                          formatter_class=Formatter)
@@ -31,7 +31,7 @@ def add_parser(sub, name, help_text):
 
 def run_export(args) -> int:
     from sim.errors import UserError
-    from study.reference_model import compact_measured, export_model
+    from study.engine.reference_model import compact_measured, export_model
 
     measured = None
     if args.measured:
@@ -52,7 +52,7 @@ def run_export(args) -> int:
 
 def run_list(args) -> int:
     from sim.errors import UserError
-    from study.reference_model import MODEL_DIR, available_models, verify
+    from study.engine.reference_model import MODEL_DIR, available_models, verify
 
     rows = []
     for n in available_models():

@@ -1,4 +1,4 @@
-"""`hydrabench predict`: the command line of `study.predictions` (one pass of a model over a dataset,
+"""`hydrabench predict`: the command line of `study.engine.predictions` (one pass of a model over a dataset,
 kept on disk)."""
 
 from __future__ import annotations
@@ -16,7 +16,7 @@ examples:
 
 
 def add_parser(sub, name, help_text):
-    p = sub.add_parser(name, help=help_text, description=module_doc("study.predictions"), epilog=EPILOG,
+    p = sub.add_parser(name, help=help_text, description=module_doc("study.engine.predictions"), epilog=EPILOG,
                        formatter_class=Formatter)
     p.add_argument("run_dir", metavar="MODEL", type=training_run,
                    help="training run directory, or a reference model (models/: e.g. cpu-frontier)")
@@ -35,9 +35,9 @@ def add_parser(sub, name, help_text):
 
 
 def run(args) -> int:
-    from study.compare import gate_names
-    from study.device import resolve_device
-    from study.predictions import predict
+    from study.engine.device import resolve_device
+    from study.engine.predictions import predict
+    from study.experiments.compare import gate_names
 
     gates = gate_names(args.gates)
     pred = predict(Path(args.run_dir), Path(args.data), args.out, gates=gates, split=args.split,

@@ -1,4 +1,4 @@
-"""`hydrabench scenes`: simulate a context, summarise it and draw it top-down (`study.scenes`)."""
+"""`hydrabench scenes`: simulate a context, summarise it and draw it top-down (`study.experiments.scenes`)."""
 
 from __future__ import annotations
 
@@ -80,7 +80,7 @@ def run(args) -> int:
             plots = {s.context: out / f"scene_{Context.parse(s.context).name.replace('+', '_')}.png" for s in specs}
         else:
             plots = {specs[0].context: check_writable_file(args.plot, IMAGE_SUFFIXES)}
-    from study.scenes import simulate_scenes
+    from study.experiments.scenes import simulate_scenes
 
     results = {}
     for spec in specs:

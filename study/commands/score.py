@@ -1,6 +1,6 @@
 """`hydrabench score`: detections, selections and gates made outside hydrabench, scored as `compare`
-scores the own networks (`study.external`, `study.gate_protocol`), with the nuScenes devkit's own
-metrics beside VOC mAP@0.5 on request (`study.nuscenes_metrics`)."""
+scores the own networks (`study.experiments.external`, `study.experiments.gate_protocol`), with the nuScenes devkit's own
+metrics beside VOC mAP@0.5 on request (`study.experiments.nuscenes_metrics`)."""
 
 from __future__ import annotations
 
@@ -29,7 +29,7 @@ examples:
 gates (docs/nuscenes.md, "Score your own gate"): --gate [NAME=]package.module:attr imports attr
 (from sys.path or the current directory; a class is built once without arguments); --gate [NAME=]ENTRY
 loads the entry point ENTRY of the group hydrabench.gates. The gate is called once per frame with a
-study.gate_protocol.GateFrame (road type, weather and light readings, clock, calibration, every
+study.experiments.gate_protocol.GateFrame (road type, weather and light readings, clock, calibration, every
 branch's detections in the right camera; never labels, context label or severity) and returns a list
 of branch names, or a dict branch -> score (higher = better) of which the --k highest are fused. It is
 scored as a selection file is, as method gate:NAME.
@@ -38,7 +38,7 @@ scored as a selection file is, as method gate:NAME.
 
 def named_in_file(text: str) -> str:
     """An argparse type: `[NAME=]FILE` whose FILE exists and is readable (`in_file`'s check)."""
-    from study.external import named_file
+    from study.experiments.external import named_file
 
     name, path = named_file(text)
     in_file(str(path))
@@ -67,7 +67,7 @@ export_dir.kind = "nuscenes_export"
 
 
 def add_parser(sub, name, help_text):
-    p = sub.add_parser(name, help=help_text, description=module_doc("study.external"), epilog=EPILOG,
+    p = sub.add_parser(name, help=help_text, description=module_doc("study.experiments.external"), epilog=EPILOG,
                        formatter_class=Formatter)
     p.add_argument("data", type=dataset_dir, help="dataset directory")
     p.add_argument("--export", type=export_dir, default=None, metavar="DIR",
@@ -105,8 +105,8 @@ def add_parser(sub, name, help_text):
 def run(args) -> int:
     from sensors.dataset import DatasetReader
     from sim.errors import UserError
-    from study.external import load_external, named_file, read_selection, score_external
-    from study.gate_protocol import gate_k, gate_selection, load_gate
+    from study.experiments.external import load_external, named_file, read_selection, score_external
+    from study.experiments.gate_protocol import gate_k, gate_selection, load_gate
 
     if args.k is not None and not args.gate:
         raise UserError("--k is for --gate (the branches a score-returning gate keeps)")
@@ -136,7 +136,7 @@ def run(args) -> int:
     if gate_info:
         r["gates"] = gate_info
     if args.nuscenes_metrics:
-        from study.nuscenes_metrics import describe, score_nuscenes
+        from study.experiments.nuscenes_metrics import describe, score_nuscenes
 
         for branch, metrics in score_nuscenes(ext, index, args.export, args.split).items():
             r["methods"][f"single:{branch}"]["nuscenes"] = metrics
@@ -163,7 +163,7 @@ def run(args) -> int:
 
 
 def _parse_k(text, n_branches: int):
-    from study.gate_tables import parse_k
+    from study.engine.gate_tables import parse_k
 
     return None if text is None else parse_k(text, n_branches)
 

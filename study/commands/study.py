@@ -1,5 +1,5 @@
-"""`hydrabench study`: the argparse adapter of `study.stages.run_study` (stages, caching and the
-report are described there and in `study.report`)."""
+"""`hydrabench study`: the argparse adapter of `study.pipeline.stages.run_study` (stages, caching and the
+report are described there and in `study.report.build`)."""
 
 from __future__ import annotations
 
@@ -29,7 +29,7 @@ are errors).
 
 
 def add_parser(sub, name, help_text):
-    import study.stages as stages
+    import study.pipeline.stages as stages
 
     p = sub.add_parser(name, help=help_text, description=stages.__doc__, epilog=EPILOG, formatter_class=Formatter)
     p.add_argument("config", metavar="CONFIG", type=study_config,
@@ -54,8 +54,8 @@ def add_parser(sub, name, help_text):
 def run(args) -> int:
     import dataclasses
 
-    from study.device import resolve_device
-    from study.stages import run_study
+    from study.engine.device import resolve_device
+    from study.pipeline.stages import run_study
 
     cfg = args.config
     over = {k: v for k, v in (("device", args.device), ("threads", args.threads), ("workers", args.workers),

@@ -1,13 +1,13 @@
-"""`hydrabench theory`: the command line of `study.theory` (what it measures is described there) and
+"""`hydrabench theory`: the command line of `study.experiments.theory` (what it measures is described there) and
 its tables as text (`format_text`)."""
 
 from __future__ import annotations
 
 import os
 
-from study import theory
 from study.cli import Formatter, emit, name_arg, nonneg_int, pos_int, severity_arg, workers_int
 from study.cli import cache_dir as cache_dir_arg
+from study.experiments import theory
 from study.numbers import interval_text, number_text
 
 EPILOG = """\

@@ -1,4 +1,4 @@
-"""`hydrabench train`: the command line of `study.train` (what a run holds is described there)."""
+"""`hydrabench train`: the command line of `study.engine.train` (what a run holds is described there)."""
 
 from __future__ import annotations
 
@@ -22,7 +22,7 @@ from study.cli import (
     probability,
 )
 from study.commands.device import add_device_args
-from study.device import rank_device, resolve_device
+from study.engine.device import rank_device, resolve_device
 
 EPILOG = """\
 examples:
@@ -36,7 +36,7 @@ evaluation). --branches picks a subset of the set by name.
 
 
 def add_parser(sub, name, help_text):
-    p = sub.add_parser(name, help=help_text, description=module_doc("study.train").split("\n\n", 1)[1], epilog=EPILOG,
+    p = sub.add_parser(name, help=help_text, description=module_doc("study.engine.train").split("\n\n", 1)[1], epilog=EPILOG,
                        formatter_class=Formatter)
     p.add_argument("data", type=dataset_dir, help="dataset directory")
     p.add_argument("--out", required=True, type=out_dir, help="run directory (created; an existing run is resumed)")
@@ -85,9 +85,9 @@ def add_parser(sub, name, help_text):
 
 
 def run(args) -> int:
-    from study import train as training
-    from study.distributed import from_env
-    from study.reference_model import resolve_run
+    from study.engine import train as training
+    from study.engine.distributed import from_env
+    from study.engine.reference_model import resolve_run
 
     job = from_env()
     # cuda:N under torchrun, or a device this machine does not have: refused before anything is written
@@ -116,6 +116,6 @@ def _resolve_sampling(choice: str, out: Path) -> str:
     cfg_path = out / "config.json"
     if cfg_path.exists():
         return json.loads(cfg_path.read_text()).get("sampling", "global")
-    from study.distributed import from_env
+    from study.engine.distributed import from_env
 
     return "per-frame" if from_env().world > 1 else "global"

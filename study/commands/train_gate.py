@@ -1,11 +1,10 @@
-"""`hydrabench train-gate`: the command line of `study.branch_gate_study.train_gate` (the gate dataset
-and the training are described in `study.gate_data` and `study.branch_gate_study`)."""
+"""`hydrabench train-gate`: the command line of `study.engine.gate_training.train_gate` (the gate dataset
+and the training are described in `study.engine.gate_data` and `study.engine.gate_training`)."""
 
 from __future__ import annotations
 
 from pathlib import Path
 
-from study import branch_gate_study
 from study.cli import (
     Formatter,
     checkpoint_arg,
@@ -21,7 +20,8 @@ from study.cli import (
     training_run,
 )
 from study.commands.device import add_device_args
-from study.device import resolve_device
+from study.engine import gate_training as branch_gate_study
+from study.engine.device import resolve_device
 
 TRAIN_EPILOG = """\
 examples:

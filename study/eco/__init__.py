@@ -1,7 +1,7 @@
 """EcoFusion on a trained run (EcoFusion, DAC 2022): the configuration dataset, the configuration
 gates, measured latency and energy, the joint optimisation, and Tables 1-3 / Figures 4-5.
 
-**Configuration dataset** (`EcoData`, the gate dataset of `study.gate_data.GateData` with more per-frame
+**Configuration dataset** (`EcoData`, the gate dataset of `study.engine.gate_data.GateData` with more per-frame
 arrays): for every frame, the pooled stem features (what the learned gates read), each branch's
 detections (every branch runs once per frame, in its own frame), and for every configuration phi
 of the set Phi (`fusion.eco.configurations`) the parts of the fused loss L_f(phi)
@@ -20,7 +20,7 @@ thread count and checkpoint.
 
 **Gates** (`train_eco_gate`): the deep and attention configuration gates regress L_f of every
 configuration from the pooled stem features, with mean absolute error and Adam at lr 5e-5 on the
-run's train split (`study.branch_gate_study.fit_gate`), saved in `RUN/eco/gates/<gate>/`.
+run's train split (`study.engine.gate_training.fit_gate`), saved in `RUN/eco/gates/<gate>/`.
 
 **Evaluation** (`evaluate_eco`, `sweep`): on the run's test split, each gate's predictions go
 through the joint optimisation (Eq. 7-9, `fusion.eco.optimise`) at lambda_E and gamma; the chosen

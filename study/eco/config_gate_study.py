@@ -11,7 +11,8 @@ import numpy as np
 
 from fusion.eco.loss import FusedLossSpec
 from sim.errors import UserError
-from study.branch_gate_study import (
+from study.eco.data import EcoSettings, eco_gate_frames, open_eco_run
+from study.engine.gate_training import (
     OBJECTIVE_LABEL,
     GateTrainConfig,
     choice_table,
@@ -20,7 +21,6 @@ from study.branch_gate_study import (
     predict_losses,
     with_frame_context,
 )
-from study.eco.data import EcoSettings, eco_gate_frames, open_eco_run
 from study.outputs import torch_save_atomic, write_json_atomic
 
 
@@ -28,7 +28,7 @@ def train_eco_gate(run_dir, data, gate: str, cfg: GateTrainConfig, s: EcoSetting
                    progress: bool = True, fresh: bool = False, out: Path | None = None) -> dict:
     """`hydrabench eco-train-gate`: the deep or attention configuration gate, trained on L_f of
     every configuration with `cfg.objective` (Adam; "auto": every objective, the lowest validation
-    regret kept), on the run's gate split (`cfg.targets`, `study.selection.gate_frames`); saved in
+    regret kept), on the run's gate split (`cfg.targets`, `study.experiments.selection.gate_frames`); saved in
     `out` (default RUN/eco/gates/<gate>/; resumable, like train-gate)."""
     from fusion.eco.config_gates import CONFIG_GATES, build_config_gate
     from sensors.dataset import DatasetReader
@@ -101,7 +101,7 @@ def load_eco_gate(run_dir, name: str, model, configs, ed, s: EcoSettings = EcoSe
     if not path.exists():
         raise UserError(f"no trained {name} configuration gate in {run_dir}{' for' + fp if fp else ''} "
                         f"(run: hydrabench eco-train-gate {run_dir} DATA --gate {name}{fp})")
-    from study.checkpoints import load_checkpoint, load_weights
+    from study.engine.checkpoints import load_checkpoint, load_weights
 
     saved = load_checkpoint(path, ("options", "state"))
     if saved.get("data_key") != ed.key and saved.get("model_key") != ed.model_key:

@@ -11,7 +11,7 @@ from pathlib import Path
 import numpy as np
 
 from sim.errors import UserError
-from study.gate_data import GateData
+from study.engine.gate_data import GateData
 
 ECO_DATA_VERSION = 1
 LOSS_VARIANTS = {
@@ -89,13 +89,13 @@ class EcoData(GateData):
     def extra_identity(self) -> dict:
         return {"eco_version": ECO_DATA_VERSION, "configurations": [list(m) for m in self.configurations.members],
                 "fusion": self.fusion, "loss": dataclasses.asdict(self.loss_spec), "max_detections": self.max_det,
-                "ground_truth": "study.scoring.ground_truth camera_right"}
+                "ground_truth": "study.engine.scoring.ground_truth camera_right"}
 
     def compute(self, model, inputs, targets, metas, features) -> dict[str, np.ndarray]:
         from fusion.eco.loss import loss_terms
         from fusion.late import fuse, to_reference
         from sensors.rig import Calibration
-        from study.scoring import ground_truth, to_detections
+        from study.engine.scoring import ground_truth, to_detections
 
         frames = model.branch_frames
         dets = model(inputs, selection=list(self.branches))
@@ -158,7 +158,7 @@ class EcoSettings:
         fusion: late-fusion method of the configurations (nms, soft-nms, wbf): WBF by default, as
             EcoFusion's Section 4.4 fuses. (On the `cpu` study's validation frames Soft-NMS scores late
             fusion higher, 0.323 against 0.278; the study fuses its fixed methods with the method its
-            validation frames choose, `study.study_eval`, and EcoFusion's L_f with this one.)
+            validation frames choose, `study.pipeline.evaluation`, and EcoFusion's L_f with this one.)
         checkpoint: the run's checkpoint ("latest" or "epoch-NNN").
         power: "px2" (45.4 W) or watts: P of Eq. 6 where no energy counter exists.
         energy_scale: "px2" (E / E_late x 3.798 J), "late" (E / E_late) or "joules" (`fusion.eco.optimise`).
@@ -210,13 +210,13 @@ def open_eco_run(run_dir, data, s: EcoSettings, threads: int = 2, device: str = 
     Loads the run's network at `s.checkpoint`, builds the configuration set of `s.configurations`
     over its branches, and the configuration dataset (`EcoData`) of `data` under `s`'s loss and
     fusion method, the model on `device` (the configuration dataset is computed where the model is;
-    its cache key names the device type, `study.gate_data`). UserError if the run's branches share no
+    its cache key names the device type, `study.engine.gate_data`). UserError if the run's branches share no
     stems (the learned gates read them)."""
     import torch
 
     from fusion.eco.configurations import build_configurations, load_configurations_config
     from fusion.nets.branch_gates import gate_sensors
-    from study.scoring import fusion_method, load_run
+    from study.engine.scoring import fusion_method, load_run
 
     torch.set_num_threads(threads)
     method = fusion_method(s.fusion)
@@ -237,9 +237,9 @@ def _subsample(indices: list[int], n: int) -> list[int]:
 
 
 def eco_splits(cfg, data, max_frames: int = 0) -> tuple[list[int], list[int]]:
-    """The run's (train, test) dataset indices of `data` (`study.scoring.run_train_test`), each cut
+    """The run's (train, test) dataset indices of `data` (`study.engine.scoring.run_train_test`), each cut
     to at most `max_frames` evenly spaced frames (0 = all)."""
-    from study.scoring import run_train_test
+    from study.engine.scoring import run_train_test
 
     train, test = run_train_test(cfg, data, "EcoFusion")
     return _subsample(train, max_frames), _subsample(test, max_frames)
@@ -247,11 +247,11 @@ def eco_splits(cfg, data, max_frames: int = 0) -> tuple[list[int], list[int]]:
 
 def eco_gate_frames(cfg, data, max_frames: int = 0, targets: str = "auto", val_fraction: float = 0.15,
                     seed: int = 0, who: str = "EcoFusion"):
-    """`study.selection.gate_frames` of an EcoFusion run, its fitting and test frames cut to at most
+    """`study.experiments.selection.gate_frames` of an EcoFusion run, its fitting and test frames cut to at most
     `max_frames` evenly spaced ones (0 = all)."""
     import dataclasses as dc
 
-    from study.selection import gate_frames
+    from study.experiments.selection import gate_frames
 
     f = gate_frames(cfg, data, targets, val_fraction, seed, who)
     return dc.replace(f, fit=_subsample(f.fit, max_frames), test=_subsample(f.test, max_frames))
@@ -262,12 +262,12 @@ def build_eco_data(run_dir, data, s: EcoSettings = EcoSettings(), progress: bool
     """`hydrabench eco-data`: build (or complete) the configuration dataset (the run's training,
     gate-split and test frames) and report how well L_f ranks configurations by per-frame AP (rank
     correlation, per definition variant) on the gates' validation frames (`val_fraction`, `seed`:
-    `study.selection.gate_frames`, from the gate split when the run has one), so a choice of L_f's
+    `study.experiments.selection.gate_frames`, from the gate split when the run has one), so a choice of L_f's
     weights made from it reads no test frame; on every fitting frame when there are too few
-    sequences to carve any. The network runs on `device` (a torch device string, `study.device`),
+    sequences to carve any. The network runs on `device` (a torch device string, `study.engine.device`),
     in fp32."""
     from fusion.eco.loss import FusedLossSpec
-    from study.scoring import frames_for
+    from study.engine.scoring import frames_for
 
     run_dir, data = Path(run_dir), Path(data)
     model, cfg, configs, ed = open_eco_run(run_dir, data, s, device=device)

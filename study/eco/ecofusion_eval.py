@@ -14,7 +14,6 @@ import numpy as np
 from fusion.metrics import MAX_BOOTSTRAP
 from sim.errors import UserError
 from sim.progress import progress as progress_bar
-from study.branch_gate_study import predict_losses
 from study.eco.config_gate_study import load_eco_gate
 from study.eco.data import (
     EcoSettings,
@@ -24,6 +23,7 @@ from study.eco.data import (
     open_eco_run,
 )
 from study.eco.latency_energy import energy_table
+from study.engine.gate_training import predict_losses
 
 GATE_ORDER = ("knowledge", "deep", "attention", "loss_based")
 """Gates that read the stems' features, so every stem they read runs before they decide."""
@@ -139,7 +139,7 @@ class EcoEval:
         """mAP, mean actual L_f, energy and latency of per-frame configuration choices; with `gate`,
         the energy and latency include what that gate costs to decide (`gate_overhead`)."""
         from fusion.eco.energy import total_energy
-        from study.scoring import score
+        from study.engine.scoring import score
 
         selection = [self.configs.members[i] for i in choice]
         sc = score(self.fused(choice), self.reader, "camera_right", protocol=self.ed.protocol)
@@ -180,7 +180,7 @@ class EcoEval:
 
     def fused(self, choice: np.ndarray) -> list:
         """[(meta, Detections)]: each frame's chosen configuration fused in the right camera."""
-        from study.scoring import fuse_selection, fusion_method
+        from study.engine.scoring import fuse_selection, fusion_method
 
         selection = [self.configs.members[i] for i in choice]
         return fuse_selection(list(zip(self.metas, self.dets)), selection, self.model.branch_frames,
@@ -207,7 +207,7 @@ def evaluate_eco(run_dir, data, lambda_e: float = 0.01, gamma: float = 0.5, s: E
     """`hydrabench eco-evaluate`: every gate at one lambda_E and gamma against the fixed baselines
     and the oracle (regret = gate minus loss-based, in mean joint loss and mean L_f). `bootstrap`:
     95 % intervals of every mAP and every paired mAP difference (gate minus late fusion above all)
-    from that many draws of whole sequences (`study.scoring.context_bootstrap`), as "ci95"."""
+    from that many draws of whole sequences (`study.engine.scoring.context_bootstrap`), as "ci95"."""
     if not 0 <= bootstrap <= MAX_BOOTSTRAP:
         raise UserError(f"--bootstrap must be 0..{MAX_BOOTSTRAP} draws, got {bootstrap}")
     from fusion.eco.optimise import joint_loss
@@ -238,7 +238,7 @@ def evaluate_eco(run_dir, data, lambda_e: float = 0.01, gamma: float = 0.5, s: E
                          "latency_ratio": round(r["latency_ms"] / late["latency_ms"], 4)}
     ci = None
     if bootstrap:
-        from study.scoring import context_bootstrap
+        from study.engine.scoring import context_bootstrap
 
         sources = {g: ev.fused(ev.choose(g, lambda_e, gamma)) for g in ev.predicted}
         sources.update({name: ev.fused(ev.fixed(name)) for name in ev.configs.baselines if name not in sources})
@@ -265,7 +265,7 @@ def execute_ecofusion(run_dir, data, gate: str, lambda_e: float, gamma: float, s
     from fusion.eco.config_gates import EcoFusionSelector, build_config_gate
     from fusion.late import fuse
     from sensors.rig import Calibration
-    from study.scoring import fuse_selection, fusion_method, to_detections
+    from study.engine.scoring import fuse_selection, fusion_method, to_detections
 
     ev = ev or EcoEval(run_dir, data, s, [gate], progress=progress)
     model = ev.model

@@ -19,7 +19,7 @@ import numpy as np
 from sim.errors import UserError
 from sim.progress import progress as progress_bar
 from study.eco.data import EcoSettings, eco_splits, open_eco_run
-from study.gate_data import cached_sha256, checkpoint_path
+from study.engine.gate_data import cached_sha256, checkpoint_path
 from study.outputs import write_json_atomic
 
 LATENCY_VERSION = 1
@@ -57,7 +57,7 @@ def measure_latency(model, data, indices, configs, method: str = "soft_nms", rep
     from fusion.late import fuse
     from fusion.nets import SENSORS
     from sensors.rig import Calibration
-    from study.scoring import to_detections
+    from study.engine.scoring import to_detections
 
     torch.set_num_threads(threads)
     ctr = open_counter(counter, "cpu")
@@ -186,7 +186,7 @@ def energy_table(run_dir, data, s: EcoSettings = EcoSettings(), threads: int = 1
     latency and energy. `reuse`: take a cached table of this checkpoint measured with other
     thread / counter settings (what evaluation does) instead of measuring again."""
     from fusion.eco.energy import LatencyModel, configuration_energy, power_model
-    from study.scoring import fusion_method
+    from study.engine.scoring import fusion_method
 
     run_dir, data = Path(run_dir), Path(data)
     if model is None:
@@ -235,7 +235,7 @@ def gate_latency(run_dir, data, gates: dict, indices, repeats: int = 3, threads:
     import torch
 
     from fusion.data import FrameDataset, collate
-    from study.scoring import load_run
+    from study.engine.scoring import load_run
 
     torch.set_num_threads(threads)
     model, _cfg = load_run(run_dir)

@@ -255,7 +255,7 @@ def test_operating_point_counts_vehicle_hits_at_one_threshold_per_severity():
     detection is ignored, and a pedestrian (not a vehicle) that plays no part."""
     from fusion.late import Detections
     from sim.actors import CLASSES
-    from study.scoring import operating_point
+    from study.engine.scoring import operating_point
 
     car, van, truck, bus, ped = (CLASSES.index(c) + 1 for c in ("car", "van", "truck", "bus", "pedestrian"))
     labels = {0: {"camera_right": {"boxes": [A, B], "labels": [car, van], "difficult": [False, False]}},
@@ -285,7 +285,7 @@ def test_recall_by_visibility_bins_objects_by_distance_over_mor_and_adds_up_to_t
     difficult (not counted) and a car at 60 m missed. d / MOR: 0.1, 0.4, 0.8 | 0.75, 1.25, 1.5."""
     from fusion.late import Detections
     from sim.actors import CLASSES
-    from study.scoring import operating_point, recall_by_visibility
+    from study.engine.scoring import operating_point, recall_by_visibility
 
     car, van, truck, bus = (CLASSES.index(c) + 1 for c in ("car", "van", "truck", "bus"))
     D = [0.5, 0.1, 0.7, 0.3]  # overlaps no other box

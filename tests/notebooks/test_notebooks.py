@@ -5,7 +5,7 @@ outputs are checked for shape here, never compared with a run's, and each run st
 
 The fusion-theory notebook reads its simulated measurements from $HYDRABENCH_CACHE/theory, pointed
 here at the session's shared cache: whichever of this test and tests/study/test_theory_measured.py
-runs first measures study.theory.SMALL_CONFIG and the fog bank, the other reads them.
+runs first measures study.experiments.theory.SMALL_CONFIG and the fog bank, the other reads them.
 """
 
 import json
@@ -125,8 +125,8 @@ def test_selective_fusion_notebook_reads_a_tiny_study_and_answers_its_three_ques
                                                                                       cache_lock):
     """03 on the tiny study (configs/study/tiny.yaml), shared with tests/study/test_study_runner.py:
     whichever runs first runs the study, the other finds every stage done."""
-    from study.stages import run_study
-    from study.study_config import load_study_config
+    from study.pipeline.stages import run_study
+    from study.pipeline.config import load_study_config
 
     cache = shared_cache
     study = Path(os.environ.get("HYDRABENCH_TINY_STUDY") or cache / "study-tiny")
@@ -151,8 +151,8 @@ def test_when_to_drop_a_sensor_notebook_derives_the_crossover_and_reads_a_studys
     """04 on the tiny study: the covariance argument's crossover in closed form equals its Monte Carlo
     check (the notebook asserts it within 5 %), and the study's measured crossovers and physical gate
     are read and shown. The visibility is restated here: r2* = r1 + 2 r2_hat, MOR* = 6 d / ln(r2* / r2_hat)."""
-    from study.stages import run_study
-    from study.study_config import load_study_config
+    from study.pipeline.stages import run_study
+    from study.pipeline.config import load_study_config
 
     study = Path(os.environ.get("HYDRABENCH_TINY_STUDY") or shared_cache / "study-tiny")
     with cache_lock("study-tiny"):

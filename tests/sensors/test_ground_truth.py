@@ -234,7 +234,7 @@ def test_score_per_range_bin_counts_each_bin_alone(data):
     """Ground truth as detections scores 1 in every bin that holds vehicles; removing the detections
     of one bin makes that bin 0 and leaves the others at 1."""
     from fusion.late import Detections
-    from study.scoring import score
+    from study.engine.scoring import score
 
     _, reader, _ = data
     per_frame = []

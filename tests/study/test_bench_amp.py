@@ -7,7 +7,7 @@ import pytest
 
 from sim.errors import UserError
 from study.bench.amp import bench_amp
-from study.device import native_bf16
+from study.engine.device import native_bf16
 
 TINY = {"camera": {"size": (64, 96)}, "bev": {"size": (64, 64)}, "roi_channels": 32, "box_head_width": 64,
         "box_batch_size_per_image": 32, "rpn_pre_nms_top_n_train": 200, "rpn_post_nms_top_n_train": 100}

@@ -10,7 +10,7 @@ from sensors.generate import GenerateConfig
 from sim.errors import UserError
 from study.bench.recipe import _curve_at, aim_reached, bench_recipe, parse_candidate
 from study.cli import main
-from study.scoring import frames_for
+from study.engine.scoring import frames_for
 
 
 @pytest.fixture(autouse=True, scope="module")
@@ -56,12 +56,12 @@ def test_candidates_are_scored_per_epoch_on_the_gate_split_and_chosen_at_equal_b
 
     plot_recipe(again, out / "curves.png")  # its own figure beside the runs does not stop a resume
     assert (out / "curves.png").stat().st_size > 0
-    import study.scoring
+    import study.engine.scoring
 
     def no_loading(*a, **k):
         raise AssertionError("a kept score was computed again")
 
-    monkeypatch.setattr(study.scoring, "load_run", no_loading)  # scores kept beside each run: nothing rescored
+    monkeypatch.setattr(study.engine.scoring, "load_run", no_loading)  # scores kept beside each run: nothing rescored
     kept = bench_recipe(str(data), out, "radar", CANDIDATES, epochs=2, threads=1, bootstrap=0, progress=False)
     assert [c["curve"] for c in kept["candidates"].values()] == [c["curve"] for c in r["candidates"].values()]
     monkeypatch.undo()

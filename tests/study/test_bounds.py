@@ -1,4 +1,4 @@
-"""study.bounds and what reads it: the context oracle picks the best constant per context on the test
+"""study.experiments.bounds and what reads it: the context oracle picks the best constant per context on the test
 frames and is re-chosen in every draw; room for context carries its interval and p-value; the verdict
 Holm-corrects its per-context orders; the regret at k is the oracle's mAP minus the gate's with the
 interval of the same draws; the best single sensor is chosen on the validation frames only; the
@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 
 from fusion.metrics import ImageMatches
-from study.bounds import (
+from study.experiments.bounds import (
     A_POSTERIORI_LABEL,
     CONTEXT_ORACLE,
     CONTEXT_ORACLE_LABEL,
@@ -22,9 +22,9 @@ from study.bounds import (
     coverage_sets,
     room_for_context,
 )
-from study.regrets import hydra_regret, regret_intervals
-from study.selection import SelectionLog, TestSplitLeak
-from study.verdict import best_single, orders, verdict_sentences
+from study.experiments.regrets import hydra_regret, regret_intervals
+from study.experiments.selection import SelectionLog, TestSplitLeak
+from study.report.verdict import best_single, orders, verdict_sentences
 
 ROOT = Path(__file__).resolve().parents[2]
 
@@ -189,7 +189,7 @@ def test_the_regret_at_k_is_the_oracles_map_minus_the_gates_with_the_interval_of
 
 
 class FakeValidation:
-    """What `best_single_on_validation` reads of a `study.bounds.ValidationFrames`."""
+    """What `best_single_on_validation` reads of a `study.experiments.bounds.ValidationFrames`."""
 
     def __init__(self, indices, maps):
         self.indices, self.sequences, self.maps = list(indices), 4, maps
@@ -257,8 +257,8 @@ def _bounds_report() -> dict:
 
 
 def test_the_report_and_the_readme_block_name_each_bound_for_what_it_is(tmp_path):
-    from study.report import Doc
-    from study.report_bounds import add_coverage, add_optimal_appendix, add_room, main_methods
+    from study.report.bounds import add_coverage, add_optimal_appendix, add_room, main_methods
+    from study.report.build import Doc
 
     report = _bounds_report()
     r = report["results"]
@@ -326,7 +326,7 @@ def test_the_intervals_draw_by_the_declared_design_and_sequence_is_the_draws_the
 
 def test_evaluate_interval_is_validated():
     from sim.errors import UserError
-    from study.study_config import EvaluateSection
+    from study.pipeline.config import EvaluateSection
 
     assert EvaluateSection().interval == "sequence"
     assert EvaluateSection(interval="rescaled").interval == "rescaled"

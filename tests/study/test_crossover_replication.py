@@ -1,4 +1,4 @@
-"""study.crossover_replication: two crossover records compared level by level, crossings against
+"""study.experiments.crossover_replication: two crossover records compared level by level, crossings against
 each other's intervals; on synthetic records with a known truth, and on the committed verdict's two
 sweep sets (results/study_cpu_verdict)."""
 
@@ -10,7 +10,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from study.crossover_replication import inside, replicate
+from study.experiments.crossover_replication import inside, replicate
 
 ROOT = Path(__file__).resolve().parents[2]
 RESULTS = ROOT / "results" / "study_cpu_verdict"

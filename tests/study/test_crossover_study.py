@@ -1,4 +1,4 @@
-"""study.crossover_study: the sets dropped per sensor, the curves assembled from per-frame scores
+"""study.experiments.crossover: the sets dropped per sensor, the curves assembled from per-frame scores
 with a known crossing on the physical axis (fog visibility falling, snow rate rising), the twins
 scored on the same draws, the figures written, and the physical gate's candidates taken from the
 all-branches curves only."""
@@ -6,8 +6,8 @@ all-branches curves only."""
 import numpy as np
 import pytest
 
-from study.crossover_study import curves_record, drop_sets, half_widths, plot_crossovers, summary_rows
-from study.physical_gate_study import candidates_of
+from study.experiments.crossover import curves_record, drop_sets, half_widths, plot_crossovers, summary_rows
+from study.experiments.physical_gate import candidates_of
 
 BRANCHES = ("radar", "camera_right", "lidar", "radar_lidar")
 SENSORS = {"radar": ("radar",), "camera_right": ("camera_right",), "lidar": ("lidar",), "radar_lidar": ("radar", "lidar")}

@@ -1,5 +1,5 @@
 """A study's dataset view (sensors.combine) read through the run's splits: the detectors' train split
-is the one their own dataset gives, the gate and test sets are whole parts (study.scoring.frames_for)."""
+is the one their own dataset gives, the gate and test sets are whole parts (study.engine.scoring.frames_for)."""
 
 import shutil
 
@@ -9,7 +9,7 @@ from sensors.combine import combine
 from sensors.dataset import DatasetReader
 from sensors.generate import GenerateConfig
 from sim.errors import UserError
-from study.scoring import frames_for
+from study.engine.scoring import frames_for
 
 
 @pytest.fixture(scope="module")

@@ -1,11 +1,11 @@
-"""`study.device` and the device-facing parts of training, checked on the CPU: the precision choice
+"""`study.engine.device` and the device-facing parts of training, checked on the CPU: the precision choice
 (--amp auto reads the CPU's bf16 flags), TF32 off, torchrun's refusal of cuda:N and its per-rank
 thread share, the CUDA RNG state in checkpoints (faked generators), loss sums without host syncs."""
 
 import pytest
 import torch
 
-import study.device as device
+import study.engine.device as device
 from sim.errors import UserError
 
 INTEL_AMX = "processor\t: 0\nflags\t\t: fpu sse2 avx2 avx512f avx512_bf16 amx_bf16 amx_tile\n"
@@ -73,7 +73,7 @@ def test_torchrun_with_cuda_n_is_refused(monkeypatch, tmp_path):
     assert device.rank_device("cuda:1", 1, 0) == "cuda:1"  # outside torchrun: as asked
     if not torch.cuda.is_available():
         assert device.rank_device("auto", 2, 1) == "cpu"
-    from study.train import TrainConfig, train
+    from study.engine.train import TrainConfig, train
 
     with pytest.raises(UserError, match="under torchrun"):  # before the dataset is read or --out made
         train(TrainConfig(data=str(tmp_path / "no-data"), device="cuda:1"), tmp_path / "run", progress=False)
@@ -93,7 +93,7 @@ def test_under_torchrun_each_rank_takes_its_share_of_the_cores(monkeypatch):
 
 
 def test_checkpoints_carry_the_cuda_generators_when_training_on_cuda(monkeypatch):
-    import study.train as st
+    import study.engine.train as st
 
     assert st.rng_state(cuda=False)["cuda_rng"] is None  # CPU-only: nothing CUDA is touched
     gens = [torch.arange(4, dtype=torch.uint8), torch.arange(4, 8, dtype=torch.uint8)]
@@ -112,7 +112,7 @@ def test_checkpoints_carry_the_cuda_generators_when_training_on_cuda(monkeypatch
 
 
 def test_loss_sums_stay_on_the_device_and_equal_float_sums():
-    import study.train as st
+    import study.engine.train as st
 
     g = torch.Generator().manual_seed(0)
     sums, ref = {}, {}
@@ -129,7 +129,7 @@ def test_loss_sums_stay_on_the_device_and_equal_float_sums():
 
 def test_a_checkpoint_saved_twice_has_the_same_bytes(tmp_path):
     """The study keys on checkpoint bytes: saving through a random temporary name must not leak the name."""
-    import study.train as st
+    import study.engine.train as st
 
     obj = {"model": {"w": torch.arange(6.0)}, "epoch": 1}
     st.torch_save_atomic(obj, tmp_path / "a.pt")

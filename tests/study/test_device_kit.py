@@ -77,7 +77,7 @@ def test_the_walk_finds_module_level_and_function_level_imports(tmp_path):
 
 def test_every_module_the_check_imports_is_on_the_gpu_image_or_in_the_kit():
     eager, lazy, reached = kit_script.import_walk(ROOT, KIT["entry"])
-    assert {"study.bench.gpu_check", "sensors.generate", "study.train", "fusion.nets.branch_gates"} <= reached
+    assert {"study.bench.gpu_check", "sensors.generate", "study.engine.train", "fusion.nets.branch_gates"} <= reached
     provided = KIT["image"] | set(KIT["kit"])
     for module in sorted((set(eager) | set(lazy)) - set(KIT["lazy"])):
         dists = _distributions(module)
@@ -186,8 +186,8 @@ def test_a_renderer_that_cannot_load_its_gl_libraries_does_not_stop_the_check(tm
 
 def test_the_renderer_modules_are_the_ones_the_training_path_does_not_import():
     """Only modules that generation alone needs may fail softly: training and bench must not import them."""
-    eager, lazy, _ = kit_script.import_walk(ROOT, "study.train")
-    for entry in ("study.bench.nets", "fusion.nets.branch_gates", "study.device"):
+    eager, lazy, _ = kit_script.import_walk(ROOT, "study.engine.train")
+    for entry in ("study.bench.nets", "fusion.nets.branch_gates", "study.engine.device"):
         e, lz, _ = kit_script.import_walk(ROOT, entry)
         eager.update(e)
         lazy.update(lz)

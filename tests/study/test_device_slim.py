@@ -163,7 +163,7 @@ def test_restore_outside_a_git_checkout_has_nothing_to_do(tmp_path):
 
 def test_the_gpu_check_reads_none_of_the_files_slim_moves():
     _, _, reached = kit_script.import_walk(ROOT, KIT["entry"])
-    assert "study.reference_model" not in reached  # the one module that opens models/
+    assert "study.engine.reference_model" not in reached  # the one module that opens models/
     tops = {g.split("/")[0] + "/" for g in KIT["slim"]["paths"]}
     for module in reached:
         path = kit_script._module_file(ROOT, module)

@@ -20,7 +20,7 @@ import torch
 
 from sensors.generate import GenerateConfig
 from study.cli import main
-from study.train import TrainConfig, train
+from study.engine.train import TrainConfig, train
 from tests.conftest import NARROW_ARGS, NARROW_MODEL
 
 ARGS = dict(branches=("radar",), epochs=2, batch_size=2, warmup_steps=2, lr=2e-3, eval_frames=1, checkpoint_steps=1,
@@ -143,7 +143,7 @@ def test_per_frame_sampling_changes_nothing_but_the_draws_and_global_stays_the_d
     """A one-process run with the default sampling is the run the code made before devices existed
     (torchvision's sampler untouched); per-frame sampling is recorded and kept on resume."""
     from fusion.nets.sampling import FrameSeededSampler
-    from study.scoring import load_run
+    from study.engine.scoring import load_run
 
     assert json.loads((single / "config.json").read_text())["sampling"] == "per-frame"
     assert TrainConfig(data="x").sampling == "global"
@@ -152,7 +152,7 @@ def test_per_frame_sampling_changes_nothing_but_the_draws_and_global_stays_the_d
 
 
 def test_device_options_refuse_what_this_machine_cannot_do(data, single, tmp_path, capsys):
-    from study.device import resolve_device
+    from study.engine.device import resolve_device
 
     setup = resolve_device(device="cpu", threads=1, apply=False)
     assert (setup.device, setup.threads, setup.amp) == ("cpu", 1, False)
@@ -197,7 +197,7 @@ def test_dataloader_workers_decode_the_same_batches_as_the_main_process(data):
     import numpy as np
 
     from fusion.data import FrameDataset
-    from study.train import _batch_stream
+    from study.engine.train import _batch_stream
 
     ds = FrameDataset(data, list(range(8)), bev_size=(128, 256))
     order = np.random.default_rng(0).permutation(8)

@@ -12,7 +12,7 @@ import torch
 
 from sensors.generate import GenerateConfig
 from study.cli import main
-from study.train import TrainConfig, train
+from study.engine.train import TrainConfig, train
 from tests.conftest import NARROW_MODEL
 
 BRANCHES = ("radar", "camera_left", "camera_right", "lidar", "camera_lidar")  # none, early and late exist
@@ -65,7 +65,7 @@ def test_eco_data_reports_loss_ap_rank_correlation_and_subsets_fused_afterwards_
     from sensors.dataset import DatasetReader
     from sensors.rig import Calibration
     from study.eco.data import EcoData
-    from study.scoring import ground_truth, load_run, to_detections
+    from study.engine.scoring import ground_truth, load_run, to_detections
 
     assert main(["eco-data", str(eco), str(data), "--json"]) == 0
     r = _json(capsys)
@@ -188,7 +188,7 @@ def test_fp_weight_reweights_cached_terms_and_keeps_its_gates_apart(eco, data, c
     from fusion.eco.configurations import build_configurations
     from fusion.eco.loss import FusedLossSpec
     from study.eco.data import EcoData, EcoSettings, eco_splits
-    from study.scoring import load_run
+    from study.engine.scoring import load_run
 
     assert main(["eco-data", str(eco), str(data), "--fp-weight", "0.25", "--json"]) == 0
     r = _json(capsys)

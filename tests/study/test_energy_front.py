@@ -1,4 +1,4 @@
-"""The mAP-energy front (`study.energy_front`, issue 36): the Pareto set of the fixed
+"""The mAP-energy front (`study.experiments.energy_front`, issue 36): the Pareto set of the fixed
 configurations, each gate compared with the best fixed configuration at no more energy by the
 study's paired intervals, the chord of time-sharing, and the figure."""
 
@@ -9,7 +9,7 @@ from pathlib import Path
 
 import pytest
 
-from study.energy_front import chord, energy_front, front_figure, front_sentence, is_fixed, pareto
+from study.experiments.energy_front import chord, energy_front, front_figure, front_sentence, is_fixed, pareto
 
 ROOT = Path(__file__).resolve().parents[2]
 

@@ -22,7 +22,7 @@ from sensors.export import nuscenes as ns
 from sensors.generate import GenerateConfig
 from sensors.labels import reference_labels
 from sensors.rig import Calibration
-from study.nuscenes_export import SPLIT_NAMES, export_nuscenes, hydrabench_splits
+from study.experiments.nuscenes_export import SPLIT_NAMES, export_nuscenes, hydrabench_splits
 
 matplotlib.use("Agg")
 

@@ -15,7 +15,8 @@ from sensors.export.nuscenes import load_tables, results_from_labels
 from sensors.generate import GenerateConfig
 from sensors.rig import Calibration
 from study.cli import main
-from study.external import (
+from study.engine.scoring import fused, ground_truth, score
+from study.experiments.external import (
     ExportIndex,
     MergedReader,
     bev_results,
@@ -25,8 +26,7 @@ from study.external import (
     merge_labels,
     score_external,
 )
-from study.nuscenes_export import export_nuscenes
-from study.scoring import fused, ground_truth, score
+from study.experiments.nuscenes_export import export_nuscenes
 
 # the config tests/study/test_export_nuscenes.py uses: no new dataset
 CONFIG = GenerateConfig(contexts=("junction", "fog"), frames_per_context=4, sequence_length=2, seed=9)
@@ -120,8 +120,8 @@ def test_a_known_share_dropped_scores_what_it_implies(export, tmp_path):
 
 
 def test_the_own_networks_predictions_exported_and_read_back_score_the_same(export, tmp_path):
-    from study import reference_model as rm
-    from study.predictions import predict
+    from study.engine import reference_model as rm
+    from study.engine.predictions import predict
 
     data, out = export
     reader = DatasetReader(data)

@@ -45,8 +45,8 @@ def test_a_method_registered_in_fusion_boxes_is_taken_everywhere(registered):
     from fusion.late import Detections, fuse
     from sensors.rig import load_profile, make_calibration, profile_names
     from study.cli import fusion_arg
-    from study.scoring import fusion_method
-    from study.study_config import _fusion
+    from study.engine.scoring import fusion_method
+    from study.pipeline.config import _fusion
 
     assert registered in method_labels() and fusion_arg(registered) == registered
     assert fusion_method(registered) == "keep_all" and fusion_method("keep_all") == "keep_all"

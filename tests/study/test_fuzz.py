@@ -77,7 +77,7 @@ def _count_cases(request):
 @pytest.fixture(scope="module")
 def world(tmp_path_factory):
     from sensors.generate import GenerateConfig, generate
-    from study.train import TrainConfig, train
+    from study.engine.train import TrainConfig, train
 
     root = tmp_path_factory.mktemp("fuzz")
     data = root / "data"
@@ -988,13 +988,13 @@ def test_gate_data_label_and_lidar_fog_bars_print_whole_lines_into_a_log(capsys,
     from sim.progress import progress as progress_bar
 
     monkeypatch.setenv("HYDRABENCH_PROGRESS_S", "0")  # a line at every update
-    bar = progress_bar(total=3, desc="gate data", enabled=True)  # as study.gate_data makes its bar
+    bar = progress_bar(total=3, desc="gate data", enabled=True)  # as study.engine.gate_data makes its bar
     assert isinstance(bar, LineProgress)
     bar.update(2)
     bar.close()
     err = capsys.readouterr().err
     assert "\r" not in err and err.splitlines()[0].startswith("gate data: 2/3 it (67%)")
-    for path in ("study/label_stats.py", "study/bench/lidar_fog.py", "study/gate_data.py"):
+    for path in ("study/experiments/label_stats.py", "study/bench/lidar_fog.py", "study/engine/gate_data.py"):
         assert "from tqdm import" not in (Path(__file__).resolve().parents[2] / path).read_text(), path
 
 
@@ -1020,7 +1020,7 @@ def test_study_config_is_checked_whole_before_its_first_stage(world, tmp_path, c
     --until generate too: the config is checked whole), with no study folder."""
     import yaml
 
-    from study.study_config import PRESETS_DIR, study_config_from_dict
+    from study.pipeline.config import PRESETS_DIR, study_config_from_dict
 
     tiny = yaml.safe_load((PRESETS_DIR / "tiny.yaml").read_text())
 
@@ -1051,7 +1051,7 @@ def test_study_config_is_checked_whole_before_its_first_stage(world, tmp_path, c
             (doc, captured.err[-1500:])
         assert captured.out == "" and not out.exists() and snapshot(tmp_path) == before
     # what the check lets through: knowledge needs no trained gate; an existing run to start from
-    from study.study_checks import check_study_config
+    from study.pipeline.checks import check_study_config
 
     check_study_config(study_config_from_dict(edited(gates={"gates": []}, evaluate={
         "hydra_gate": "knowledge", "eco_gate": "knowledge"}, train={"init_from": str(world["run"])})))
@@ -1189,7 +1189,7 @@ def test_evaluate_names_the_missing_epoch_and_the_epochs_there(sandbox, capsys):
 def test_every_workers_option_has_the_one_bound(sandbox, capsys):
     """Every --workers (generation pools and DataLoader processes alike) stops at MAX_WORKERS: 10,000
     once started forking 10,000 data-loader processes on train, evaluate, compare and train-gate."""
-    from study.device import MAX_WORKERS
+    from study.engine.device import MAX_WORKERS
 
     world, seen = sandbox, []
     for words, p in commands(build_parser()):
@@ -1317,8 +1317,8 @@ def test_a_full_disk_during_generate_is_one_line_and_leaves_nothing_partial(worl
 def test_compare_refuses_a_plot_without_intervals_before_the_networks_run(sandbox, capsys, monkeypatch):
     """`compare --plot` needs intervals: with --bootstrap 0, or on frames without a box to find (every
     mAP undefined), it is refused before any network runs (it once worked 17 s first)."""
-    import study.gate_tables
-    import study.predictions
+    import study.engine.gate_tables
+    import study.engine.predictions
 
     world = sandbox
     empty = world["root"] / "no_boxes"
@@ -1336,8 +1336,8 @@ def test_compare_refuses_a_plot_without_intervals_before_the_networks_run(sandbo
     def ran(*args, **kwargs):
         raise AssertionError("the networks ran")
 
-    monkeypatch.setattr(study.gate_tables, "gate_pass", ran)
-    monkeypatch.setattr(study.predictions, "_pass", ran)  # compare's one pass over the frames
+    monkeypatch.setattr(study.engine.gate_tables, "gate_pass", ran)
+    monkeypatch.setattr(study.engine.predictions, "_pass", ran)  # compare's one pass over the frames
     plot = str(world["box"] / "p.png")
     for data, extra, needle in ((world["data"], ["--bootstrap", "0"], "--bootstrap"),
                                 (empty, ["--bootstrap", "20"], "no box to find")):

@@ -1,4 +1,4 @@
-"""hydrabench score --gate: gates from outside (study.gate_protocol, docs/nuscenes.md) loaded by module path or
+"""hydrabench score --gate: gates from outside (study.experiments.gate_protocol, docs/nuscenes.md) loaded by module path or
 entry point, read only what a car measures and the detections, and are scored exactly as the selection file
 of their choice; every broken return or import is one line naming the gate and the frame."""
 
@@ -14,15 +14,15 @@ from sensors.dataset import DatasetReader
 from sensors.export.nuscenes import results_from_labels
 from sensors.generate import GenerateConfig
 from study.cli import main
-from study.external import ExportIndex, load_external, read_selection, score_external
-from study.gate_protocol import (
+from study.engine.scoring import fuse_selection
+from study.experiments.external import ExportIndex, load_external, read_selection, score_external
+from study.experiments.gate_protocol import (
     ENTRY_POINT_GROUP,
     WEATHER_READINGS,
     GateFrame,
     gate_selection,
     load_gate,
 )
-from study.scoring import fuse_selection
 from tests.study.data import example_gates
 
 # the config tests/study/test_external.py and test_export_nuscenes.py use: no new dataset
@@ -152,7 +152,7 @@ def test_a_gate_reads_what_a_car_measures_and_the_detections(world):
                 f.detections[b].scores[...] = 0
     assert len({f.sequence for f in seen}) == 4 and seen[1].time_s > seen[0].time_s
     # without --export there is no sample token
-    from study.external import coco_results
+    from study.experiments.external import coco_results
 
     (world.box / "coco.json").write_text(json.dumps(coco_results(ext.per_frame, "lidar")))
     ext2, _ = load_external(reader, coco=[f"cam={world.box / 'coco.json'}"])

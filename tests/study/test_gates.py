@@ -11,9 +11,9 @@ import torch
 
 from sensors.generate import GenerateConfig
 from study.cli import main
-from study.gate_data import GateData
-from study.scoring import load_run
-from study.train import TrainConfig, train
+from study.engine.gate_data import GateData
+from study.engine.scoring import load_run
+from study.engine.train import TrainConfig, train
 from tests.conftest import NARROW_MODEL
 
 BRANCHES = ("radar", "camera_right", "lidar", "radar_lidar")  # k = 1, 3 and all exist for 4 branches
@@ -111,7 +111,7 @@ def test_gate_dataset_is_cached_keyed_and_resumable(run, data, trained, tmp_path
     # the device type and precision the network ran in are part of the key and of info.json
     assert gd.identity["device"] == "cpu" and gd.identity["precision"] == "fp32"
     assert json.loads((gd.dir / "info.json").read_text())["device"] == "cpu"
-    import study.gate_data as gate_data
+    import study.engine.gate_data as gate_data
 
     real_device = gate_data.model_device
     gate_data.model_device = lambda m: "cuda:1"  # as if the network were on a GPU

@@ -8,7 +8,7 @@ import pytest
 import torch
 
 from fusion.nets.branch_gates import GATES
-from study.branch_gate_study import (
+from study.engine.gate_training import (
     GateTrainConfig,
     fit_gate,
     fit_objectives,
@@ -253,7 +253,7 @@ def test_the_context_router_learns_the_context_table_and_is_kept_or_dropped_by_v
         context_targets,
         regret,
     )
-    from study.branch_gate_study import OBJECTIVE_LABEL, ROUTER
+    from study.engine.gate_training import OBJECTIVE_LABEL, ROUTER
 
     (xf, yf, cf), (xv, yv, cv), (xt, yt, ct) = (context_visible(n, s) for n, s in ((512, 1), (128, 2), (512, 3)))
     cfg = dataclasses.replace(CFG, objective="auto", epochs=6)

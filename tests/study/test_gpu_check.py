@@ -30,7 +30,7 @@ def _restore_threads():
 @pytest.fixture
 def tiny_model(monkeypatch):
     from fusion.nets import build_hydrafusion
-    from study.train import branch_set
+    from study.engine.train import branch_set
 
     def build(profile):
         torch.manual_seed(0)
@@ -83,7 +83,7 @@ def test_training_speed_counts_the_timed_steps_alone(monkeypatch):
             now["t"] += 30.0 if self.calls == 1 else 0.5  # the first (warm-up) step is slow
             return {"total": (self.w * inputs["x"]).sum()}
 
-    from study.device import resolve_device
+    from study.engine.device import resolve_device
 
     setup = resolve_device(device="cpu", threads=1, amp=False)
     batches = [({"x": torch.ones(4, 1)}, [{}] * 4) for _ in range(5)]
@@ -115,7 +115,7 @@ def test_render_workers_are_forked_before_cuda_is_initialised(tmp_path, monkeypa
         raise Stop
 
     monkeypatch.setattr("sensors.generate.generate", fake_generate)
-    monkeypatch.setattr("study.device.resolve_device", fake_resolve)
+    monkeypatch.setattr("study.engine.device.resolve_device", fake_resolve)
     with pytest.raises(Stop):
         gpu_check.run_check(tmp_path, parts=("generate", "train"))
     assert events == ["generate", "resolve_device"]

@@ -1,11 +1,11 @@
-"""study.interval_coverage: disjoint sets dealt by context, each set's interval against the rest's
+"""study.experiments.interval_coverage: disjoint sets dealt by context, each set's interval against the rest's
 pooled estimate, on synthetic detections (the coverage arithmetic itself: tests/fusion/test_intervals.py)."""
 
 import numpy as np
 import pytest
 
 from fusion.metrics import ImageMatches
-from study.interval_coverage import coverage_over_deals, coverage_over_sets, deal_sets
+from study.experiments.interval_coverage import coverage_over_deals, coverage_over_sets, deal_sets
 
 
 def _toy(n_ctx=4, n_seq=16, frames=2, seed=0):

@@ -212,7 +212,7 @@ def test_no_import_circles_among_the_projects_modules():
     """An import circle (layers <-> profile, detect <-> train) works only while one side imports
     lazily, and breaks when someone moves that import to the top: the dependency goes one way."""
     graph = _import_graph()
-    assert "study.run_config" in graph["study.scoring"], "the graph must see imports inside functions"
+    assert "study.engine.run_config" in graph["study.engine.scoring"], "the graph must see imports inside functions"
     circles, seen = [], set()
     for m in sorted(graph):
         circle = _circle_through(graph, m)
@@ -298,9 +298,9 @@ def _layout_problems(text: str) -> list[str]:
 
 def test_the_layout_tables_name_what_exists():
     assert _layout_problems((ROOT / "docs" / "development.md").read_text()) == []
-    broken = "## Layout of `study/`\n\n| a | b |\n|---|---|\n| x | `study/stages.py`: `run_studies`, `study/nope.py` |\n"
+    broken = "## Layout of `study/`\n\n| a | b |\n|---|---|\n| x | `study/pipeline/stages.py`: `run_studies`, `study/nope.py` |\n"
     assert _layout_problems(broken) == ["study/nope.py does not exist",
-                                        "`run_studies`: not defined in study/stages.py"]
+                                        "`run_studies`: not defined in study/pipeline/stages.py"]
 
 
 MAX_MODULE_LINES, MAX_FUNCTION_LINES = 600, 100
@@ -329,3 +329,21 @@ def test_no_study_module_over_600_lines_and_no_function_over_100(tmp_path):
     (pkg / "big.py").write_text("def f():\n" + "    x = 1\n" * 100 + "\n" * 500)
     modules, functions = _sizes(pkg)
     assert modules == ["study/big.py: 601 lines"] and functions == ["study/big.py:1 f: 101 lines"]
+
+
+ROOMS = ("engine", "experiments", "report", "pipeline", "commands", "eco", "bench")
+
+
+def test_study_is_arranged_in_rooms_by_job():
+    """Issue 47 item 4: at most 15 top-level modules and rooms in `study/`, every room a package whose
+    docstring says what it holds, and docs/development.md's table of rooms naming each one."""
+    study = ROOT / "study"
+    top = sorted(p.name for p in study.iterdir() if (p.suffix == ".py" or (p.is_dir() and p.name != "__pycache__")))
+    assert len(top) <= 15, top
+    rooms = sorted(p.name for p in study.iterdir() if p.is_dir() and p.name != "__pycache__")
+    assert set(rooms) == set(ROOMS), rooms
+    doc = (ROOT / "docs" / "development.md").read_text()
+    for room in rooms:
+        init = study / room / "__init__.py"
+        assert init.is_file() and ast.get_docstring(ast.parse(init.read_text())), f"study/{room}/__init__.py: no docstring"
+        assert f"`study/{room}/`" in doc, f"docs/development.md: no row for study/{room}/"

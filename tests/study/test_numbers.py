@@ -4,7 +4,7 @@ import math
 
 import numpy as np
 
-from study.gate_tables import selection_rates
+from study.engine.gate_tables import selection_rates
 from study.numbers import interval_text, number_text, rounded, rounded_interval, significant
 
 

@@ -1,4 +1,4 @@
-"""hydrabench score --nuscenes-metrics: the nuScenes devkit's own detection evaluation (study.nuscenes_metrics)
+"""hydrabench score --nuscenes-metrics: the nuScenes devkit's own detection evaluation (study.experiments.nuscenes_metrics)
 beside VOC mAP@0.5: the labels written back score 1 overall, per context and per severity; a known share
 dropped scores what its recall cap implies; and on the boxes both metrics count, both find the same true
 positives."""
@@ -16,8 +16,8 @@ from sensors.dataset import DatasetReader
 from sensors.export.nuscenes import CLASS_TABLE, load_tables, results_from_labels
 from sensors.generate import GenerateConfig
 from study.cli import main
-from study.external import merge_labels
-from study.nuscenes_metrics import CONFIG, open_export
+from study.experiments.external import merge_labels
+from study.experiments.nuscenes_metrics import CONFIG, open_export
 
 # the config tests/study/test_external.py and test_export_nuscenes.py use: no new dataset
 CONFIG_DATA = GenerateConfig(contexts=("junction", "fog"), frames_per_context=4, sequence_length=2, seed=9)

@@ -1,5 +1,5 @@
 """One scoring path (issue 36): every table cell that shows a method holds the method's own mAP
-(`study.one_path`), checked on the stored studies and on a results record with one cell changed."""
+(`study.experiments.one_path`), checked on the stored studies and on a results record with one cell changed."""
 
 from __future__ import annotations
 
@@ -11,8 +11,8 @@ from pathlib import Path
 import pytest
 
 from sim.errors import UserError
-from study.one_path import disagreements, one_path_record, shown_maps
-from study.study_config import load_study_config
+from study.experiments.one_path import disagreements, one_path_record, shown_maps
+from study.pipeline.config import load_study_config
 
 RESULTS = Path(__file__).resolve().parents[2] / "results"
 
@@ -53,7 +53,7 @@ def test_a_changed_cell_is_found_and_another_fusions_column_is_not_checked():
 
 
 def test_a_declared_fusion_must_be_ecofusions_too():
-    from study.study_checks import check_study_config
+    from study.pipeline.checks import check_study_config
 
     cfg = load_study_config("tiny")
     declared = dataclasses.replace(cfg, evaluate=dataclasses.replace(cfg.evaluate, fusion="soft-nms"))

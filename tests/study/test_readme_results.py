@@ -87,7 +87,7 @@ def test_replacing_keeps_the_rest_and_is_idempotent(tmp_path):
 
 
 def test_verdict_and_figure_print_and_draw_and_leave_the_readme_alone(tmp_path, capsys):
-    from study.verdict import verdict_sentences
+    from study.report.verdict import verdict_sentences
 
     report = ROOT / "results" / "study_cpu" / "report.json"
     readme = tmp_path / "README.md"
@@ -575,7 +575,7 @@ VERDICT_METHODS = {"physical knowledge gate": "physical_gate", "all_branches": "
 def test_the_cpu_verdict_tables_in_the_results_page_are_its_report():
     """docs/results.md's two tables of the stored cpu-verdict study: every estimate and interval is the
     report's, rounded as the README block rounds (a 0.0155 bound is +0.015, never retyped as +0.016)."""
-    from study.scoring import difference_interval
+    from study.engine.scoring import difference_interval
 
     r = _load("study_cpu_verdict/report.json")["results"]
     ci, ms = r["intervals"]["per_context"]["all"], r["methods"]

@@ -1,4 +1,4 @@
-"""Reference models (study.reference_model) and `hydrabench compare`, end to end on a tiny dataset
+"""Reference models (study.engine.reference_model) and `hydrabench compare`, end to end on a tiny dataset
 and a one-step run of a narrow (width 0.25) network: float16 export, the manifest that loading
 checks, gates that travel with the weights, names resolved to a cache copy, warm starts refused
 across widths, and the selective-against-fixed comparison checked against `evaluate`."""
@@ -11,11 +11,11 @@ import pytest
 import torch
 
 from sensors.generate import GenerateConfig
-from study import reference_model as rm
 from study.cli import main
-from study.compare import verdict
-from study.scoring import load_run
-from study.train import TrainConfig, train
+from study.engine import reference_model as rm
+from study.engine.scoring import load_run
+from study.engine.train import TrainConfig, train
+from study.experiments.compare import verdict
 
 BRANCHES = ("radar", "camera_right", "lidar", "radar_lidar")
 
@@ -317,7 +317,7 @@ def test_the_committed_reference_model_is_whole_and_runs_by_name(data, tmp_path,
 def test_the_bootstrap_ranked_once_gives_the_pooled_intervals_on_a_networks_detections(run, data):
     """`context_bootstrap` scoring each draw by weights on detections ranked once gives the intervals
     of pooling every draw (the old path), overall and per context, for each design."""
-    from study.scoring import context_bootstrap, fused, load_run, run_branches
+    from study.engine.scoring import context_bootstrap, fused, load_run, run_branches
 
     model, _ = load_run(run)
     from sensors.dataset import DatasetReader
@@ -367,9 +367,9 @@ def test_predictions_of_cpu_frontier_are_what_the_two_passes_they_replace_gave_a
     of `gate_pass` and the losses and pooled features of `GateData` (the two passes `compare` ran
     before; checked on the first batch), so `compare`'s numbers do not move; `compare` reuses the set
     `predict` cached, and `compare --predictions` scores a copy of it with no network to the same JSON."""
-    from study.gate_data import GateData
-    from study.gate_tables import gate_pass, setup_run
-    from study.predictions import predict
+    from study.engine.gate_data import GateData
+    from study.engine.gate_tables import gate_pass, setup_run
+    from study.engine.predictions import predict
 
     monkeypatch.setenv("HYDRABENCH_CACHE", str(tmp_path / "cache"))
     run = rm.resolve_run("cpu-frontier")

@@ -1,4 +1,4 @@
-"""study.robustness_table: the report's per-severity scores in the field's metrics, checked by hand on
+"""study.experiments.robustness_table: the report's per-severity scores in the field's metrics, checked by hand on
 a small sweep and against the committed cpu study's numbers."""
 
 import json
@@ -7,7 +7,7 @@ from pathlib import Path
 import pytest
 
 from fusion.robustness import severity_value
-from study.robustness_table import robustness_table
+from study.experiments.robustness_table import robustness_table
 
 ROOT = Path(__file__).resolve().parents[2]
 

@@ -1,4 +1,4 @@
-"""`study.scoring.frame_ground_truth`: every method scored on a dataset reads one copy of each
+"""`study.engine.scoring.frame_ground_truth`: every method scored on a dataset reads one copy of each
 frame's ground truth, equal to `ground_truth`'s, read-only, and gone with its reader."""
 
 import gc
@@ -8,7 +8,7 @@ import pytest
 
 from sensors.dataset import DatasetReader
 from sensors.generate import GenerateConfig
-from study import scoring
+from study.engine import scoring
 
 
 @pytest.fixture(scope="module")

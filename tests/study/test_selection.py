@@ -5,7 +5,7 @@ from types import SimpleNamespace
 
 import pytest
 
-from study.selection import SelectionLog, TestSplitLeak
+from study.experiments.selection import SelectionLog, TestSplitLeak
 
 
 def test_a_choice_on_validation_frames_is_recorded_with_its_candidates():
@@ -42,8 +42,8 @@ def test_the_study_validation_frames_pass_the_guard(monkeypatch):
     """bounds.ValidationFrames reads the validation split through the guard: a split that hands
     it a test frame (a bug in the carve) stops the evaluation before anything is scored."""
     import study.eco.data as eco_data
-    from study.bounds import ValidationFrames
-    from study.selection import GateFrames
+    from study.experiments.bounds import ValidationFrames
+    from study.experiments.selection import GateFrames
 
     manifest = {"frames": [{"context": "fog", "shard": f"s{i // 2}"} for i in range(12)]}
     ev = SimpleNamespace(reader=SimpleNamespace(manifest=manifest), train=list(range(8)), test=[8, 9, 10, 11],
@@ -73,8 +73,8 @@ def _run_cfg(data, holdout):
 
 def test_gate_frames_split_train_gate_and_test_and_validate_both_targets_on_the_same_frames(split_data):
     from sim.errors import UserError
-    from study.scoring import frames_for
-    from study.selection import gate_frames
+    from study.engine.scoring import frames_for
+    from study.experiments.selection import gate_frames
 
     cfg = _run_cfg(split_data, 0.5)
     train, gate, test = (frames_for(cfg, split_data, s)[0] for s in ("train", "gate", "test"))
@@ -101,8 +101,8 @@ def test_training_with_a_gate_holdout_never_reads_the_gate_split(split_data, tmp
     it, before any step), and the split is recorded in config.json, where frames_for reads it."""
     import json
 
-    import study.train as training
-    from study.scoring import frames_for
+    import study.engine.train as training
+    from study.engine.scoring import frames_for
 
     seen = {}
 
@@ -128,7 +128,7 @@ def test_training_with_a_gate_holdout_never_reads_the_gate_split(split_data, tmp
 
 
 def test_fewer_frames_takes_whole_sequences_evenly_from_each_context():
-    from study.selection import fewer_frames
+    from study.experiments.selection import fewer_frames
 
     class Reader:  # 2 contexts x 6 sequences of 4 frames
         manifest = {"frames": [{"context": c, "shard": f"{c}-{s}"} for c in ("fog", "city") for s in range(6)

@@ -10,7 +10,7 @@ from typing import get_type_hints
 import pytest
 
 from sim.errors import UserError
-from study.study_config import DataSection, GatesSection, TrainSection, section_of, study_config_from_dict
+from study.pipeline.config import DataSection, GatesSection, TrainSection, section_of, study_config_from_dict
 
 SECTIONS = (DataSection, TrainSection, GatesSection)
 STUDY_DEFAULTS = {DataSection: {"contexts": ("all",), "twins": True}}

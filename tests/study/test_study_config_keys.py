@@ -2,7 +2,7 @@
 the experiments' configs (issue 38): a refactoring of the config may not rerun a finished study.
 
 A stage key hashes the stage's config inputs and, through `stage_identity`, the code, the device and
-the profiles (`study.stages` module docstring). Only the config part is a function of the config
+the profiles (`study.pipeline.stages` module docstring). Only the config part is a function of the config
 alone, so the test takes that part: `stage_identity` returns nothing and the stages are stand-ins
 that return fixed digests. `data/study_config_keys.json` holds, per preset (and for an empty config) and stage, the inputs and
 the key computed by the code before the change (`python -m tests.study.test_study_config_keys` from
@@ -17,10 +17,10 @@ from pathlib import Path
 
 import pytest
 
-import study.stage_cache as stage_cache
-import study.stages as stages
-from study.device import DeviceSetup
-from study.study_config import PRESETS_DIR, StudyConfig, load_study_config
+import study.pipeline.cache as stage_cache
+import study.pipeline.stages as stages
+from study.engine.device import DeviceSetup
+from study.pipeline.config import PRESETS_DIR, StudyConfig, load_study_config
 
 FIXTURE = Path(__file__).parent / "data" / "study_config_keys.json"
 DEFAULTS = "(defaults)"

@@ -14,10 +14,10 @@ from pathlib import Path
 
 import pytest
 
-import study.stages as stages
-from study.device import DeviceSetup
-from study.stages import STAGES, run_study
-from study.study_config import load_study_config
+import study.pipeline.stages as stages
+from study.engine.device import DeviceSetup
+from study.pipeline.config import load_study_config
+from study.pipeline.stages import STAGES, run_study
 
 
 @pytest.fixture
@@ -81,11 +81,11 @@ def test_changed_model_profile_contents_rerun_train_and_below(fake_stages, tmp_p
     assert _rerun(tmp_path, fake_stages, monkeypatch, changed) == list(STAGES[1:])
 
 
-@pytest.mark.parametrize("module, first", [("study.report", "report"), ("study.branch_gate_study", "gates"),
-                                           ("study.train", "train"), ("sensors.generate", "generate")])
+@pytest.mark.parametrize("module, first", [("study.report.build", "report"), ("study.engine.gate_training", "gates"),
+                                           ("study.engine.train", "train"), ("sensors.generate", "generate")])
 def test_changed_code_of_a_module_reruns_the_first_stage_that_runs_it_and_below(fake_stages, tmp_path, monkeypatch,
                                                                               module, first):
-    import study.code_identity as ci
+    import study.engine.code_identity as ci
 
     real = ci.read_module
 
@@ -99,13 +99,13 @@ def test_changed_code_of_a_module_reruns_the_first_stage_that_runs_it_and_below(
 
 
 def test_a_changed_comment_or_docstring_reruns_nothing(fake_stages, tmp_path, monkeypatch):
-    import study.code_identity as ci
+    import study.engine.code_identity as ci
 
     real = ci.read_module
 
     def changed():
         monkeypatch.setattr(ci, "read_module", lambda m: '"""Another docstring."""\n# a comment\n' +
-                            real(m).split('"""', 2)[2] if m == "study.train" else real(m))
+                            real(m).split('"""', 2)[2] if m == "study.engine.train" else real(m))
 
     assert _rerun(tmp_path, fake_stages, monkeypatch, changed) == []
 
@@ -139,8 +139,8 @@ def test_train_model_overrides_and_init_from_are_checked_and_keyed(tmp_path, mon
     import shutil
 
     from sim.errors import UserError
-    from study import reference_model as rm
-    from study.stages import _init_from, stage_identity
+    from study.engine import reference_model as rm
+    from study.pipeline.stages import _init_from, stage_identity
 
     cfg = load_study_config("tiny")
     with pytest.raises(UserError, match="fixed by the dataset"):
@@ -166,16 +166,16 @@ def test_train_model_overrides_and_init_from_are_checked_and_keyed(tmp_path, mon
 
 
 def test_no_stage_above_evaluate_holds_evaluation_code_in_its_key():
-    """A change to the evaluation (study.study_eval, study.bounds, the report) reruns evaluate and
-    report only: the gates stage once imported a string constant from study.study_eval, and every
+    """A change to the evaluation (study.pipeline.evaluation, study.experiments.bounds, the report) reruns evaluate and
+    report only: the gates stage once imported a string constant from study.pipeline.evaluation, and every
     change of the evaluation retrained the gates."""
     import inspect
     import textwrap
 
-    import study.stages as st
-    from study.code_identity import _imports, closure
+    import study.pipeline.stages as st
+    from study.engine.code_identity import _imports, closure
 
-    evaluation = {"study.study_eval", "study.bounds", "study.report", "study.energy_front", "study.verdict"}
+    evaluation = {"study.pipeline.evaluation", "study.experiments.bounds", "study.report.build", "study.experiments.energy_front", "study.report.verdict"}
     for name in ("generate", "train", "gatedata", "gates"):
         modules, func = st.STAGE_CODE[name]
         entry = set(modules) | set(_imports(func.__module__, textwrap.dedent(inspect.getsource(func))))

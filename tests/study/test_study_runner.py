@@ -23,8 +23,8 @@ from pathlib import Path
 import pytest
 
 from sim.errors import UserError
-from study.stages import STAGES, run_study
-from study.study_config import load_study_config, study_config_from_dict
+from study.pipeline.config import load_study_config, study_config_from_dict
+from study.pipeline.stages import STAGES, run_study
 
 ROOT = Path(__file__).resolve().parents[2]
 
@@ -180,7 +180,7 @@ def test_report_numbers_follow_their_definitions(tiny):
 
 
 def test_the_front_record_places_every_gate_among_every_fixed_branch_set(tiny):
-    """bounds.front (`study.bounds.front_record`): every EcoFusion configuration is a fixed one; a
+    """bounds.front (`study.experiments.bounds.front_record`): every EcoFusion configuration is a fixed one; a
     method's mAP is its own score, its energy Table 4's; a fixed configuration's energy interval is a
     point (the same branches on every frame); the report's front is drawn from it."""
     report = json.loads((tiny["out"] / "report.json").read_text())
@@ -331,7 +331,7 @@ def test_bad_configs_are_one_line_errors(tmp_path, capsys):
 
 def test_every_preset_loads_and_the_help_names_it(capsys):
     from study.cli import main
-    from study.study_config import PRESETS_DIR
+    from study.pipeline.config import PRESETS_DIR
 
     names = sorted(p.stem for p in PRESETS_DIR.glob("*.yaml"))
     assert {"tiny", "smoke", "cpu", "cpu-long", "paper"} <= set(names)
@@ -352,10 +352,10 @@ def test_every_preset_loads_and_the_help_names_it(capsys):
 def test_the_twin_columns_are_scored_on_the_clear_twins(tiny, tmp_path, monkeypatch):
     """The severity sweep's "clear" column runs the branches on the clear-weather arrays (a study once
     ran them on the degraded frames again, so every twin equalled its frame, lidar in dense fog too)."""
-    import study.scoring as detect
-    from study.stage_cache import link_farm
-    from study.stages import _device_setup, eco_settings
-    from study.study_eval import evaluate_study
+    import study.engine.scoring as detect
+    from study.pipeline.cache import link_farm
+    from study.pipeline.evaluation import evaluate_study
+    from study.pipeline.stages import _device_setup, eco_settings
 
     stages = {n: Path(s["dir"]) for n, s in tiny["first"]["stages"].items()}
     real, calls = detect.run_branches, []
@@ -380,7 +380,7 @@ def test_a_gate_set_and_a_test_set_run_end_to_end_on_the_tiny_detectors(tiny, tm
     linked: same keys, so skipped) with a gate set and a test set of their own seeds; the gates fit on
     the gate set, every choice is made on its validation sequences, every method is scored on the
     test set, and no detector trains."""
-    from study.study_config import SetSection
+    from study.pipeline.config import SetSection
 
     cfg = tiny["cfg"]
     cfg = dataclasses.replace(
@@ -388,7 +388,7 @@ def test_a_gate_set_and_a_test_set_run_end_to_end_on_the_tiny_detectors(tiny, tm
         gates=dataclasses.replace(cfg.gates, gates=("attention",), epochs=1, val_fraction=0.5, compare_targets=False,
                                   curve=(2,)),
         evaluate=dataclasses.replace(cfg.evaluate, twins=False, bootstrap=0))
-    from study.stage_cache import Study
+    from study.pipeline.cache import Study
 
     out = tmp_path / "sets"
     Study(cfg, out, progress=False).prepare()

@@ -15,17 +15,17 @@ from pathlib import Path
 
 import pytest
 
-import study.stages as stages
+import study.pipeline.stages as stages
 from sim.errors import UserError
-from study.device import DeviceSetup
-from study.stages import STAGES, run_study
-from study.study_config import SetSection, load_study_config, study_config_from_dict
+from study.engine.device import DeviceSetup
+from study.pipeline.config import SetSection, load_study_config, study_config_from_dict
+from study.pipeline.stages import STAGES, run_study
 
 
 @pytest.fixture
 def fake_stages(monkeypatch):
     """Each stage's work replaced by a stand-in that records the stage's name (from its record)."""
-    from study import stage_cache
+    from study.pipeline import cache as stage_cache
 
     ran: list[str] = []
 
@@ -161,7 +161,7 @@ def _run_of(tmp_path: Path, data_config: dict, branches=("radar", "camera_right"
 
 
 def test_adopted_detectors_must_come_from_the_studys_data(tmp_path):
-    from study.study_checks import check_adopted
+    from study.pipeline.checks import check_adopted
 
     cfg = load_study_config("tiny")
     mine = cfg.data.generate_config(cfg.profile).to_dict()
@@ -174,7 +174,7 @@ def test_adopted_detectors_must_come_from_the_studys_data(tmp_path):
 
 
 def test_the_train_stage_adopts_detectors_and_keys_them_by_digest(tmp_path, monkeypatch):
-    from study.stages import stage_identity, train_stage
+    from study.pipeline.stages import stage_identity, train_stage
 
     cfg = load_study_config("tiny")
     mine = cfg.data.generate_config(cfg.profile).to_dict()
@@ -182,7 +182,7 @@ def test_the_train_stage_adopts_detectors_and_keys_them_by_digest(tmp_path, monk
     data = tmp_path / "data"
     data.mkdir()
     monkeypatch.setattr("sensors.dataset.read_manifest", lambda root: {"config": mine} if Path(root) == data else {})
-    monkeypatch.setattr("study.study_checks.init_from_run", lambda text, key="": Path(text))
+    monkeypatch.setattr("study.pipeline.checks.init_from_run", lambda text, key="": Path(text))
     t = dataclasses.replace(cfg.train, detectors=str(run), early_fusion=False)
     said = []
     digest, extra = train_stage(tmp_path / "work", data, t, cfg.profile, None, said.append, progress=False)
@@ -204,8 +204,8 @@ def test_the_train_stage_adopts_detectors_and_keys_them_by_digest(tmp_path, monk
 
 
 def test_the_train_stage_adopts_the_early_fusion_models_too(tmp_path, monkeypatch):
-    from study.stages import train_stage
-    from study.study_checks import check_study_config
+    from study.pipeline.checks import check_study_config
+    from study.pipeline.stages import train_stage
 
     cfg = load_study_config("tiny")
     mine = cfg.data.generate_config(cfg.profile).to_dict()
@@ -215,7 +215,7 @@ def test_the_train_stage_adopts_the_early_fusion_models_too(tmp_path, monkeypatc
     (early / "config.json").write_text(json.dumps({"data_config": mine, "branches": ["early_radar_lidar"]}))
     data = tmp_path / "data"
     monkeypatch.setattr("sensors.dataset.read_manifest", lambda root: {"config": mine} if Path(root) == data else {})
-    monkeypatch.setattr("study.study_checks.init_from_run", lambda text, key="": Path(text))
+    monkeypatch.setattr("study.pipeline.checks.init_from_run", lambda text, key="": Path(text))
     t = dataclasses.replace(cfg.train, detectors=str(paper), early_detectors=str(early))
     said = []
     digest, extra = train_stage(tmp_path / "work", data, t, cfg.profile, None, said.append, progress=False)

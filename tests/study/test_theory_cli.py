@@ -5,7 +5,7 @@ import json
 import pytest
 
 import study.cli as cli
-from study import theory
+from study.experiments import theory
 
 RESULT_KEYS = {"mse_single", "mse_full_nominal", "mse_full_true", "mse_selective", "mse_gated", "nees_mean",
                "nees_bounds"}

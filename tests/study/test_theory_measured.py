@@ -1,6 +1,6 @@
 """HydraFusion Sec. 1.1 stated on measured data: rendered, degraded frames of the simulator.
 
-The data is study.theory.SMALL_CONFIG (motorway fog, rain and night; severities 0, 3, 5; 24
+The data is study.experiments.theory.SMALL_CONFIG (motorway fog, rain and night; severities 0, 3, 5; 24
 frames per cell in two sequences, the same traffic in every cell) and the fog-bank sequence, measured
 once per test session into a shared cache (the notebook test reads the same cache). Every number
 below is a measurement of this fixed sample, not a draw that changes from run to run; the
@@ -18,7 +18,7 @@ from scipy import stats
 
 from fusion.estimation.error_model import evaluate_strategies, sensor_errors
 from fusion.estimation.measurements import SENSORS
-from study import theory
+from study.experiments import theory
 
 CHI2_MEDIAN = float(stats.chi2.median(2))  # 1.386
 

@@ -15,7 +15,7 @@ import torch
 from sensors.generate import GenerateConfig, generate
 from sim.errors import UserError
 from study.cli import main
-from study.train import TrainConfig, train
+from study.engine.train import TrainConfig, train
 from tests.conftest import NARROW_ARGS, NARROW_MODEL
 
 BRANCHES = ("camera_right", "radar")
@@ -79,7 +79,7 @@ def test_a_run_records_its_model_profile_and_is_loaded_with_it(reference_run, tm
 
     from fusion.nets.profile import load_profile, parse_model_overrides
     from sim.config import to_dict
-    from study.scoring import load_run
+    from study.engine.scoring import load_run
 
     ref, _ = reference_run
     cfg = json.loads((ref / "config.json").read_text())
@@ -128,7 +128,7 @@ def test_kill_9_mid_training_then_rerun_gives_the_same_weights(data, resume_refe
 def test_a_resumed_epoch_reports_the_mean_loss_of_the_whole_epoch(data, reference_run, tmp_path, monkeypatch):
     """Interrupted after the first step of epoch 2 and resumed: metrics.csv holds the same mean losses
     as the uninterrupted run (the running sums travel in the checkpoint), not the mean of the rest."""
-    import study.train as st
+    import study.engine.train as st
 
     ref, _ = reference_run  # two branches: each branch's running sum travels
     out = tmp_path / "run"
@@ -158,7 +158,7 @@ def test_time_based_checkpoints_land_mid_epoch_and_do_not_change_the_weights(dat
                                                                             monkeypatch, seconds, mid_epoch):
     """On a loaded machine 100 steps can take hours: `checkpoint_seconds` also checkpoints when that
     much time passed since the last save (0 = off), and where a run checkpoints changes nothing."""
-    import study.train as st
+    import study.engine.train as st
 
     ref = resume_reference
     real, saves = st.torch_save_atomic, []
@@ -241,8 +241,8 @@ def test_evaluate_reports_map_per_class_and_context(data, reference_run, capsys)
 
 def test_warm_start_copies_matching_modules_and_maps_branches(reference_run):
     from fusion.nets import build_hydrafusion
-    from study.train import branch_set
-    from study.warm_start import warm_start
+    from study.engine.train import branch_set
+    from study.engine.warm_start import warm_start
 
     ref, _ = reference_run
     from fusion.nets.profile import load_profile, parse_model_overrides
@@ -271,8 +271,8 @@ def test_warm_start_from_several_runs_takes_each_module_from_the_first_that_has_
     (even though the second run has same-named ones), radar and lidar ones from the second run;
     the merge conv of a fused camera branch then passes the right camera's features through."""
     from fusion.nets import build_hydrafusion
-    from study.train import branch_set
-    from study.warm_start import warm_start
+    from study.engine.train import branch_set
+    from study.engine.warm_start import warm_start
 
     paper = branch_set("paper", "cpu")
     torch.manual_seed(1)
@@ -307,8 +307,8 @@ def test_warm_start_from_several_runs_takes_each_module_from_the_first_that_has_
 def test_evaluate_twins_scores_the_same_frames_in_clear_weather(reference_run, data, tmp_path, capsys, monkeypatch):
     """--twins: each branch on the degraded frames and on their clear twins, and the ratio."""
     from sensors.dataset import DatasetReader
-    from study.run_eval import evaluate
-    from study.scoring import bev_crop_of, load_run, native, run_branches, score
+    from study.engine.run_eval import evaluate
+    from study.engine.scoring import bev_crop_of, load_run, native, run_branches, score
 
     ref, _ = reference_run
     twins = tmp_path / "twins"
@@ -330,7 +330,7 @@ def test_evaluate_twins_scores_the_same_frames_in_clear_weather(reference_run, d
     op = t["fused"]["at_score_0.5"]
     assert set(op) == {"degraded", "clear", "by_distance_over_visibility"} and set(op["clear"]) == {"recall", "precision"}
     # the twin is binned by its fog frame's visibility, so both sides count the same objects
-    from study.scoring import operating_point, recall_by_visibility
+    from study.engine.scoring import operating_point, recall_by_visibility
 
     bins = t["branches"]["radar"]["at_score_0.5"]["by_distance_over_visibility"]
     deg = run_branches(model, twins, range(4), ["radar"])
@@ -342,7 +342,7 @@ def test_evaluate_twins_scores_the_same_frames_in_clear_weather(reference_run, d
     assert [v["clear"] for v in bins.values()] == [v["recall"] for v in mine.values()]
     assert r["map_vehicles_per_severity"].keys() == set(sev)
     # --bootstrap: sequences drawn with replacement, each draw scored degraded and clear
-    from study.scoring import paired_bootstrap
+    from study.engine.scoring import paired_bootstrap
 
     crop, clear_reader = bev_crop_of(model, reader), DatasetReader(twins, clear=True)
     args = (native(deg, "radar"), native(clear, "radar"), reader, clear_reader, "bev", crop)
@@ -368,7 +368,7 @@ def test_evaluate_twins_scores_the_same_frames_in_clear_weather(reference_run, d
     # twins made before the overcast sky was kept (no `overcast` record) are named, not scored silently
     import shutil
 
-    from study.run_eval import stale_twins
+    from study.engine.run_eval import stale_twins
 
     old = tmp_path / "old_twins"
     shutil.copytree(twins, old)
@@ -436,7 +436,7 @@ def test_bev_label_ranges_match_the_camera_labels_distances(data):
     """The BEV boxes' ranges (used to bin recall by distance / visibility) agree with the camera
     labels' distances of the same objects to within the radar-camera offset."""
     from sensors.dataset import DatasetReader
-    from study.scoring import bev_distances
+    from study.engine.scoring import bev_distances
 
     reader = DatasetReader(data)
     diffs = []
@@ -450,8 +450,8 @@ def test_bev_label_ranges_match_the_camera_labels_distances(data):
 def test_split_data_test_is_the_datasets_own_test_split(reference_run, data):
     """--split data-test: on the run's own dataset the same frames and mAP as its test split; it
     also works on another dataset, where --split test is refused."""
-    from study.run_eval import evaluate
-    from study.scoring import frames_for
+    from study.engine.run_eval import evaluate
+    from study.engine.scoring import frames_for
 
     ref, _ = reference_run
     a, b = evaluate(ref, data, split="test"), evaluate(ref, data, split="data-test")
@@ -467,7 +467,7 @@ def test_only_the_main_rank_judges_the_run_directory(tmp_path):
     """Rank 0 creates --out and writes config.json through a temporary file; a rank that looked at that
     moment used to see "not empty, no config.json" and exit 2, failing a good DDP launch under load."""
     from sim.errors import UserError
-    from study.train import check_run_dir
+    from study.engine.train import check_run_dir
 
     out = tmp_path / "run"
     out.mkdir()
@@ -492,7 +492,7 @@ def test_a_checkpoint_holds_the_rng_states_and_config_json_the_device_and_precis
 
 def test_frames_as_uint8_become_the_same_float_inputs_where_they_are_used(data):
     from fusion.data import FrameDataset, collate
-    from study.device import to_device
+    from study.engine.device import to_device
 
     f32 = FrameDataset(data, [0, 3], bev_size=(128, 256))
     u8 = FrameDataset(data, [0, 3], bev_size=(128, 256), uint8=True)

@@ -28,7 +28,7 @@ def test_the_registries_list_their_trainable_gates_a_new_one_too(new_gate):
 
 
 def test_compare_runs_a_new_trainable_gate_only_once_the_run_holds_it(new_gate, tmp_path):
-    from study.predictions import usable_gates
+    from study.engine.predictions import usable_gates
 
     asked = ["knowledge", "deep", new_gate, "optimal"]
     assert usable_gates(tmp_path, asked) == ["knowledge", "optimal"]

@@ -1,4 +1,4 @@
-"""study.training_seeds and its script: headline rows of two training seeds on one test set beside one
+"""study.experiments.training_seeds and its script: headline rows of two training seeds on one test set beside one
 training on two test sets, on synthetic reports with known answers; the script refuses a seed pair
 scored on different test sets."""
 
@@ -9,7 +9,7 @@ from pathlib import Path
 
 import pytest
 
-from study.training_seeds import headline_rows, spread, training_variance
+from study.experiments.training_seeds import headline_rows, spread, training_variance
 
 ROOT = Path(__file__).resolve().parents[2]
 

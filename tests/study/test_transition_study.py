@@ -1,4 +1,4 @@
-"""study.transition_study: a parameter chosen on validation sequences is the one of least regret, and
+"""study.experiments.transitions: a parameter chosen on validation sequences is the one of least regret, and
 the scoring of variants over test sequences (regret, its paired difference with the per-frame gate,
 lags, switches, clock-gating wake-ups) on synthetic sequences whose best branch changes at a known
 frame."""
@@ -6,7 +6,7 @@ frame."""
 import numpy as np
 import pytest
 
-from study.transition_study import choose_parameter, score_variants, sequences, variant_choices
+from study.experiments.transitions import choose_parameter, score_variants, sequences, variant_choices
 
 
 def _sequence(rng, T=40, change=20, noise=0.15):

@@ -1,4 +1,4 @@
-"""study.verdict: the sentences say exactly what the stored intervals say (checked against the
+"""study.report.verdict: the sentences say exactly what the stored intervals say (checked against the
 committed cpu study's report, interval by interval, and on a small report whose answer is known),
 an interval that holds 0 is never a win, oracles are never counted as wins, the wording is
 deterministic, and the figure is written."""
@@ -9,8 +9,8 @@ from pathlib import Path
 
 import pytest
 
-from study.scoring import difference_interval
-from study.verdict import (
+from study.engine.scoring import difference_interval
+from study.report.verdict import (
     ORACLES,
     answer_sentences,
     best_single,
@@ -173,13 +173,13 @@ def test_the_figure_is_written(tmp_path):
 
 
 def test_the_report_opens_with_the_answer_and_its_figure_and_ends_with_the_stages(tmp_path):
-    """study.report.build on the stored cpu study: the answer (study.verdict) and the figure come before
+    """study.report.build.build on the stored cpu study: the answer (study.report.verdict) and the figure come before
     any table; the robustness table and the stage times follow the papers' tables."""
     import json
     from pathlib import Path
 
-    from study.report import build
-    from study.verdict import answer_sentences
+    from study.report.build import build
+    from study.report.verdict import answer_sentences
 
     rep = json.loads((Path(__file__).parents[2] / "results/study_cpu/report.json").read_text())
     doc, _ = build(rep["results"], {"scale": "cpu", "stages": rep["stages"]}, tmp_path, tmp_path)

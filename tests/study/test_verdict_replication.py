@@ -1,4 +1,4 @@
-"""study.verdict_replication: two reports' pairs compared on synthetic reports with known answers, the
+"""study.experiments.verdict_replication: two reports' pairs compared on synthetic reports with known answers, the
 script's extract reads back the same comparison, and the stored replication agrees with the stored
 verdict it names."""
 
@@ -10,7 +10,7 @@ from pathlib import Path
 
 import pytest
 
-from study.verdict_replication import HEADLINE, pair_difference, replicate
+from study.experiments.verdict_replication import HEADLINE, pair_difference, replicate
 
 ROOT = Path(__file__).resolve().parents[2]
 VERDICT = ROOT / "results" / "study_cpu_verdict"

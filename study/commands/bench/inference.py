@@ -44,7 +44,7 @@ def run_inference(args) -> int:
     from fusion.nets import load_profile
     from study.bench.boxes import bench_box_fusion
     from study.bench.nets import bench_inference
-    from study.device import resolve_device
+    from study.engine.device import resolve_device
 
     load_profile(args.profile)  # an unknown profile is refused before any worker process starts
     setup = resolve_device(args, apply=False)  # each measurement runs in a fresh process, which applies it

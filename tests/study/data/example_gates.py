@@ -1,5 +1,5 @@
 """Gates written outside hydrabench, as a user writes them (docs/nuscenes.md, "Score your own gate"):
-plain callables that read a `study.gate_protocol.GateFrame` and import nothing from hydrabench.
+plain callables that read a `study.experiments.gate_protocol.GateFrame` and import nothing from hydrabench.
 tests/study/test_gate_protocol.py loads them with `hydrabench score --gate
 tests.study.data.example_gates:NAME`."""
 
