@@ -44,15 +44,19 @@ QUANTITY_LABELS = {"map": "a method's mAP", "difference": "a paired difference"}
 def coverage_table(result: dict, quantity: str) -> str:
     """The Markdown table docs/study.md quotes for `quantity` ("map" or "difference": the result's
     quantity of that kind): one row per number of sequences, one cell per interval, "coverage (median
-    width)" to 3 decimals, the estimator's bias and the draws' bias beside."""
+    width)" to 3 decimals, and beside them the estimator's bias (mean estimate - population value),
+    the draws' bias (mean of a sample's draws - its estimate) and the median position of the estimate
+    in its percentile interval (0.5: central; below: the interval sits high)."""
     key = next(q for q in result["truth"] if q.split(":", 1)[0] == quantity)
     first = next(iter(result["by_sequences"].values()))["quantities"][key]["coverage"]
     methods = list(first)
-    lines = ["| sequences | bias | draws' bias | " + " | ".join(methods) + " |",
-             "|" + "---|" * (3 + len(methods))]
+    lines = ["| sequences | bias | draws' bias | estimate in percentile | " + " | ".join(methods) + " |",
+             "|" + "---|" * (4 + len(methods))]
     for n, rec in result["by_sequences"].items():
         q = rec["quantities"][key]
         dg = q["diagnostics"]
         cells = [f"{q['coverage'][m]['coverage']:.3f} ({q['coverage'][m]['median_width']:.2f})" for m in methods]
-        lines.append(f"| {n} | {dg['estimator_bias']:+.3f} | {dg['bootstrap_bias']:+.3f} | " + " | ".join(cells) + " |")
+        pos = q["coverage"]["percentile"]["median_position"]
+        lines.append(f"| {n} | {dg['estimator_bias']:+.3f} | {dg['bootstrap_bias']:+.3f} | {pos:.2f} | "
+                     + " | ".join(cells) + " |")
     return "\n".join(lines)
