@@ -5,12 +5,12 @@ from __future__ import annotations
 
 from study.bench.pipeline import machine
 from study.cli import Formatter, emit, int_list, int_range, nonneg_int, out_file
-from study.commands.bench.common import bench_doc
+from study.commands.bench.common import format_bench_doc
 
 
 def add_parser(what) -> None:
     c = what.add_parser("coverage", help="coverage of per-context mAP intervals (percentile, basic, BCa, studentized, "
-                        "jackknife, rescaled) on a synthetic problem with known AP", description=bench_doc("study.bench.coverage"),
+                        "jackknife, rescaled) on a synthetic problem with known AP", description=format_bench_doc("study.bench.coverage"),
                         formatter_class=Formatter)
     c.add_argument("--sequences", type=int_list(2, 400, "sequences"), default="6,12,24",
                    help="comma-separated numbers of sequences per context (the study's test sets hold 48, "
