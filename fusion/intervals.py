@@ -242,6 +242,32 @@ def jackknife_t_interval(estimate: float, jackknife, level: float = 0.95) -> tup
     return estimate - half, estimate + half
 
 
+def jackknife_p_value(estimate: float, jackknife) -> float:
+    """Two-sided p-value of "the statistic is 0" that matches `jackknife_t_interval`: ``2 (1 -
+    F_{t, n-1}(|theta_hat| / se_jack))``, so p < 1 - level exactly when that interval excludes 0 (NaN
+    with fewer than 2 finite values; 0 when se is 0 and the estimate is not)."""
+    from scipy.stats import t
+
+    jk = np.asarray(jackknife, dtype=float)
+    n = int(np.isfinite(jk).sum())
+    se = jackknife_se(jk)
+    if n < 2 or not (math.isfinite(estimate) and math.isfinite(se)):
+        return float("nan")
+    if se == 0:
+        return 1.0 if estimate == 0 else 0.0
+    return float(2.0 * t.sf(abs(estimate) / se, n - 1))
+
+
+def leave_one_out_rows(rows_by_sequence: Mapping[Hashable, Sequence[int]]) -> list[list[int]]:
+    """For each sequence of {sequence: [rows]} in sorted order, the rows of all the others (in the
+    same order): the jackknife's "draws", to pass where a bootstrap takes draws of rows
+    (`fusion.bounds.bootstrap_table(..., draws=...)`), so derived statistics are recomputed too."""
+    seqs = sorted(rows_by_sequence)
+    if len(seqs) < 2:
+        raise ValueError("leave_one_out_rows: needs at least 2 sequences")
+    return [[r for q in seqs if q != left for r in rows_by_sequence[q]] for left in seqs]
+
+
 def bootstrap_interval(method: str, values, estimate: float | None = None, jackknife=None, se: float | None = None,
                        draw_se=None, level: float = 0.95) -> tuple[float, float] | None:
     """The `level` interval of draws `values` by one of `INTERVALS`; "basic" needs the `estimate`,

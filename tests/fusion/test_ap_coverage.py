@@ -22,8 +22,10 @@ from fusion.intervals import (
     bca_interval,
     bootstrap_interval,
     draw_jackknife_se,
+    jackknife_p_value,
     jackknife_se,
     jackknife_t_interval,
+    leave_one_out_rows,
     map_draws,
     map_intervals,
     percentile_interval,
@@ -237,3 +239,29 @@ def test_trial_and_experiment_report_every_interval():
     assert r["truth"]["map:late"] == pytest.approx(m.true_map("late"))
     with pytest.raises(ValueError, match="sequences per context"):
         coverage_experiment(m, (1,), 3, 30)
+
+
+def test_jackknife_p_value_agrees_with_its_interval():
+    """p < 0.05 exactly when the jackknife-t interval excludes 0; for a mean it is the one-sample
+    t-test's p-value."""
+    rng = np.random.default_rng(6)
+    for shift in (0.0, 0.3, 0.8, 1.5):
+        x = rng.normal(shift, 1.0, 7)
+        jk = (x.sum() - x) / 6
+        p = jackknife_p_value(x.mean(), jk)
+        assert p == pytest.approx(stats.ttest_1samp(x, 0.0).pvalue)
+        lo, hi = jackknife_t_interval(x.mean(), jk)
+        assert (p < 0.05) == (lo > 0 or hi < 0)
+    assert math.isnan(jackknife_p_value(1.0, [0.5]))
+
+
+def test_leave_one_out_rows_feed_the_jackknife_through_any_scorer():
+    """The rows without each sequence, scored by the pooled mAP, are the jackknife map_intervals uses."""
+    matches, by = _small_problem()
+    loo = leave_one_out_rows(by["fog"])
+    assert len(loo) == 7 and loo[0] == list(range(2, 14)) and loo[6] == list(range(12))
+    r = map_intervals(matches, by, 20, 0, ("jackknife",))
+    jk = [matches["late"].mean_ap(rows) for rows in loo]
+    assert r["intervals"]["jackknife"]["late"] == pytest.approx(jackknife_t_interval(r["estimate"]["late"], jk))
+    with pytest.raises(ValueError, match="2 sequences"):
+        leave_one_out_rows({"s": [0, 1]})
