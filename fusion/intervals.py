@@ -142,6 +142,263 @@ def percentile_interval(values, level: float = 0.95) -> tuple[float, float] | No
     return float(np.percentile(v, tail)), float(np.percentile(v, 100.0 - tail))
 
 
+INTERVALS = ("percentile", "basic", "bca", "studentized", "jackknife")
+"""How `bootstrap_interval` turns draws of a statistic into an interval (Davison and Hinkley 1997,
+Ch. 5; Efron and Tibshirani 1993, Ch. 12-14): "percentile", the draws' central quantiles;
+"basic", those quantiles reflected about the estimate (2 theta_hat - q), which removes the bias the
+draws show once; "bca", the percentile levels moved by the draws' median bias z0 and the jackknife's
+acceleration a; "studentized", the estimate minus quantiles of the draws' t = (theta* - theta_hat) /
+se*, scaled by the estimate's own standard error (each draw's se from a jackknife inside it);
+"jackknife", no draws at all: the estimate plus or minus Student's t with n - 1 degrees of freedom
+times the jackknife standard error over the n units (for a mean, exactly the t-interval)."""
+
+
+def basic_interval(values, estimate: float, level: float = 0.95) -> tuple[float, float] | None:
+    """The basic (reflected percentile) interval ``(2 theta_hat - q_hi, 2 theta_hat - q_lo)`` of the
+    finite draws around `estimate` (None when none is finite or the estimate is not finite)."""
+    q = percentile_interval(values, level)
+    if q is None or not math.isfinite(estimate):
+        return None
+    return 2.0 * estimate - q[1], 2.0 * estimate - q[0]
+
+
+def bca_interval(values, estimate: float, jackknife, level: float = 0.95) -> tuple[float, float] | None:
+    """Efron's bias-corrected and accelerated interval (Efron 1987; Efron and Tibshirani 1993, Eq.
+    14.9-14.15) of the finite draws `values` around `estimate`, with `jackknife` the statistic with
+    each unit (sequence) left out once:
+
+        z0 = Phi^-1( (#(theta* < theta_hat) + #(theta* = theta_hat) / 2) / B )
+        a  = sum (m - theta_(i))^3 / (6 (sum (m - theta_(i))^2)^(3/2)),  m = mean theta_(i)
+        level_k = Phi( z0 + (z0 + z_k) / (1 - a (z0 + z_k)) ),  z_k = Phi^-1(alpha/2), Phi^-1(1 - alpha/2)
+
+    and the interval is the draws' quantiles at those two levels. Ties count half (so a statistic
+    whose draws often equal the estimate is not pushed aside); a is 0 when the jackknife values are
+    all equal (or fewer than 2 finite); None when no draw is finite, every draw lies on one side of
+    the estimate (z0 infinite) or the estimate is not finite. scipy.stats.bootstrap(method="BCa")
+    computes the same (tested)."""
+    from scipy.stats import norm
+
+    if not 0.0 < level < 1.0:
+        raise ValueError(f"level must be in (0, 1), got {level!r}")
+    v = np.asarray(values, dtype=float)
+    v = v[np.isfinite(v)]
+    if not len(v) or not math.isfinite(estimate):
+        return None
+    share = (np.sum(v < estimate) + 0.5 * np.sum(v == estimate)) / len(v)
+    if not 0.0 < share < 1.0:
+        return None
+    z0 = float(norm.ppf(share))
+    jk = np.asarray(jackknife, dtype=float)
+    jk = jk[np.isfinite(jk)]
+    a = 0.0
+    if len(jk) >= 2:
+        dev = jk.mean() - jk
+        ss = float(np.sum(dev ** 2))
+        a = float(np.sum(dev ** 3)) / (6.0 * ss ** 1.5) if ss > 0 else 0.0
+    z = norm.ppf([0.5 - level / 2.0, 0.5 + level / 2.0])
+    levels = norm.cdf(z0 + (z0 + z) / (1.0 - a * (z0 + z)))
+    lo, hi = np.percentile(v, 100.0 * levels)
+    return float(lo), float(hi)
+
+
+def studentized_interval(values, estimate: float, se: float, draw_se, level: float = 0.95) -> tuple[float, float] | None:
+    """The bootstrap-t interval: t*_b = (theta*_b - theta_hat) / se*_b over the draws with a finite,
+    positive se*_b, and ``(theta_hat - q_hi(t*) se, theta_hat - q_lo(t*) se)`` with `se` the
+    estimate's standard error (Efron and Tibshirani 1993, Eq. 12.22). None when no draw has a t."""
+    v, s = np.asarray(values, dtype=float), np.asarray(draw_se, dtype=float)
+    if v.shape != s.shape:
+        raise ValueError(f"studentized_interval: {v.shape} draws but {s.shape} standard errors")
+    ok = np.isfinite(v) & np.isfinite(s) & (s > 0)
+    if not ok.any() or not (math.isfinite(estimate) and math.isfinite(se)):
+        return None
+    q = percentile_interval((v[ok] - estimate) / s[ok], level)
+    return estimate - q[1] * se, estimate - q[0] * se
+
+
+def jackknife_se(values) -> float:
+    """The jackknife standard error ``sqrt((n - 1) / n sum (theta_(i) - mean)^2)`` of leave-one-out
+    values (NaN with fewer than 2 finite)."""
+    v = np.asarray(values, dtype=float)
+    v = v[np.isfinite(v)]
+    if len(v) < 2:
+        return float("nan")
+    return float(math.sqrt((len(v) - 1) / len(v) * np.sum((v - v.mean()) ** 2)))
+
+
+def jackknife_t_interval(estimate: float, jackknife, level: float = 0.95) -> tuple[float, float] | None:
+    """``theta_hat -+ t_{n-1, (1 + level) / 2} se_jack`` over the n finite leave-one-out values
+    (Efron and Tibshirani 1993, Ch. 11; for a mean it is Student's t-interval); None with fewer than
+    2 or a non-finite estimate."""
+    from scipy.stats import t
+
+    if not 0.0 < level < 1.0:
+        raise ValueError(f"level must be in (0, 1), got {level!r}")
+    jk = np.asarray(jackknife, dtype=float)
+    n = int(np.isfinite(jk).sum())
+    se = jackknife_se(jk)
+    if n < 2 or not (math.isfinite(estimate) and math.isfinite(se)):
+        return None
+    half = float(t.ppf(0.5 + level / 2.0, n - 1)) * se
+    return estimate - half, estimate + half
+
+
+def jackknife_p_value(estimate: float, jackknife) -> float:
+    """Two-sided p-value of "the statistic is 0" that matches `jackknife_t_interval`: ``2 (1 -
+    F_{t, n-1}(|theta_hat| / se_jack))``, so p < 1 - level exactly when that interval excludes 0 (NaN
+    with fewer than 2 finite values; 0 when se is 0 and the estimate is not)."""
+    from scipy.stats import t
+
+    jk = np.asarray(jackknife, dtype=float)
+    n = int(np.isfinite(jk).sum())
+    se = jackknife_se(jk)
+    if n < 2 or not (math.isfinite(estimate) and math.isfinite(se)):
+        return float("nan")
+    if se == 0:
+        return 1.0 if estimate == 0 else 0.0
+    return float(2.0 * t.sf(abs(estimate) / se, n - 1))
+
+
+def leave_one_out_rows(rows_by_sequence: Mapping[Hashable, Sequence[int]]) -> list[list[int]]:
+    """For each sequence of {sequence: [rows]} in sorted order, the rows of all the others (in the
+    same order): the jackknife's "draws", to pass where a bootstrap takes draws of rows
+    (`fusion.bounds.bootstrap_table(..., draws=...)`), so derived statistics are recomputed too."""
+    seqs = sorted(rows_by_sequence)
+    if len(seqs) < 2:
+        raise ValueError("leave_one_out_rows: needs at least 2 sequences")
+    return [[r for q in seqs if q != left for r in rows_by_sequence[q]] for left in seqs]
+
+
+def bootstrap_interval(method: str, values, estimate: float | None = None, jackknife=None, se: float | None = None,
+                       draw_se=None, level: float = 0.95) -> tuple[float, float] | None:
+    """The `level` interval of draws `values` by one of `INTERVALS`; "basic" needs the `estimate`,
+    "bca" the estimate and the `jackknife` values, "studentized" the estimate, its `se` and each
+    draw's `draw_se`."""
+    if method not in INTERVALS:
+        raise ValueError(f"interval must be one of {INTERVALS}, got {method!r}")
+    if method != "percentile" and estimate is None:
+        raise ValueError(f"a {method!r} interval needs the estimate")
+    if method == "percentile":
+        return percentile_interval(values, level)
+    if method == "basic":
+        return basic_interval(values, estimate, level)
+    if method in ("bca", "jackknife"):
+        if jackknife is None:
+            raise ValueError(f"a {method!r} interval needs the jackknife values")
+        return (bca_interval(values, estimate, jackknife, level) if method == "bca"
+                else jackknife_t_interval(estimate, jackknife, level))
+    if se is None or draw_se is None:
+        raise ValueError("a 'studentized' interval needs the estimate's se and each draw's se")
+    return studentized_interval(values, estimate, se, draw_se, level)
+
+
+def _nanmean_rows(table: np.ndarray) -> np.ndarray:
+    """Mean of each row's finite entries (NaN when none): a draw's mAP over the classes it holds."""
+    fin = np.isfinite(table)
+    k = fin.sum(axis=1)
+    return np.divide(np.where(fin, table, 0.0).sum(axis=1), k, out=np.full(len(table), np.nan), where=k > 0)
+
+
+class SequenceStatistic:
+    """Each source's mAP (`DrawScorer`, exact) on weightings of whole sequences: rows of `counts`
+    (draws, sequences) say how often each of `sequences` (a list of image-row lists) is taken."""
+
+    def __init__(self, matches: Mapping[str, ImageMatches], sequences: Sequence[Sequence[int]],
+                 scorers: Mapping[str, DrawScorer] | None = None) -> None:
+        self.names = list(matches)
+        self.scorers = {n: scorers[n] if scorers is not None else DrawScorer(matches[n]) for n in self.names}
+        n_images = len(matches[self.names[0]].per_image)
+        self.incidence = np.zeros((len(sequences), n_images), np.int64)  # sequence x image
+        for j, rows in enumerate(sequences):
+            np.add.at(self.incidence[j], np.asarray(rows, np.int64), 1)
+
+    def class_ap(self, name: str, counts: np.ndarray) -> np.ndarray:
+        """(rows, classes) AP of each class of `name` (NaN where a row holds none of its ground truth)."""
+        per = self.scorers[name].ap_of_multiplicities(np.asarray(counts, np.int64) @ self.incidence)
+        return np.stack([per[c] for c in self.scorers[name].classes], axis=1)
+
+    def __call__(self, counts: np.ndarray) -> np.ndarray:
+        """(rows, sources) mAP over the classes each row holds, as `DrawScorer.mean_ap`."""
+        with np.errstate(invalid="ignore"):
+            return np.stack([_nanmean_rows(self.class_ap(n, counts)) for n in self.names], axis=1)
+
+
+def draw_jackknife_se(statistic, counts: np.ndarray) -> np.ndarray:
+    """(draws, columns) each draw's jackknife standard error inside it: one copy of each of its
+    members left out in turn, ``sqrt((N - 1) / N sum_j k_j (theta_(j) - mean_k)^2)`` over its N members
+    (k_j copies of sequence j, mean_k the k-weighted mean). `statistic(counts) -> (rows, columns)`.
+    NaN where fewer than 2 distinct members have a finite value."""
+    counts = np.asarray(counts, np.int64)
+    owner, member = np.nonzero(counts)
+    rows = counts[owner].copy()
+    rows[np.arange(len(owner)), member] -= 1
+    values = np.asarray(statistic(rows), float).reshape(len(owner), -1)
+    weight = counts[owner, member].astype(float)
+    out = np.full((len(counts), values.shape[1]), np.nan)
+    for col in range(values.shape[1]):
+        x = values[:, col]
+        ok = np.isfinite(x)
+        w, xs = np.where(ok, weight, 0.0), np.where(ok, x, 0.0)
+        n = np.bincount(owner, w, len(counts))  # members with a finite value
+        distinct = np.bincount(owner, ok.astype(float), len(counts))
+        m = np.divide(np.bincount(owner, w * xs, len(counts)), n, out=np.zeros(len(counts)), where=n > 0)
+        ss = np.bincount(owner, w * (xs - m[owner]) ** 2, len(counts))
+        good = distinct >= 2
+        out[good, col] = np.sqrt((n[good] - 1) / n[good] * ss[good])
+    return out
+
+
+def map_intervals(matches: Mapping[str, ImageMatches], by_stratum: Mapping[Hashable, Mapping[Hashable, Sequence]],
+                  resamples: int, seed: int, methods: Sequence[str] = ("percentile",), design: str = "sequence",
+                  pairs: Sequence[tuple[str, str]] = (), scorers: Mapping[str, DrawScorer] | None = None,
+                  level: float = 0.95, keep_draws: bool = False) -> dict:
+    """Each source's mAP and each pair's paired difference (a minus b) on the images of `by_stratum`
+    {stratum: {sequence: [image rows]}}, with a `level` interval by each of `methods` (`INTERVALS`)
+    from the same `resamples` draws of whole sequences (`design_draws`, seeded). BCa's jackknife and
+    the studentized interval's standard errors leave one sequence out (of the estimate, and of every
+    draw: about 0.63 x sequences extra scorings per draw, "studentized" only).
+
+    Returns {"estimate": {name or "a - b": value}, "intervals": {method: {name or "a - b": (lo, hi)
+    or None}}, "sequences": n}; with `keep_draws` also "columns", "draws" (resamples, columns), "counts"
+    (resamples, sequences) and the `SequenceStatistic` under "statistic"."""
+    bad = [m for m in methods if m not in INTERVALS]
+    if bad:
+        raise ValueError(f"interval must be one of {INTERVALS}, got {bad[0]!r}")
+    keys = [(s, q) for s in sorted(by_stratum, key=str) for q in sorted(by_stratum[s])]  # design_draws' order
+    if not keys:
+        raise ValueError("map_intervals: no sequence")
+    index = {k: j for j, k in enumerate(keys)}
+    stat = SequenceStatistic(matches, [by_stratum[s][q] for s, q in keys], scorers)
+    strata = {s: {index[(s, q)]: [index[(s, q)]] for q in by_stratum[s]} for s in by_stratum}  # indices: unique
+    n = len(keys)
+    counts = np.stack([np.bincount(np.asarray(d, np.int64), minlength=n)
+                       for d in design_draws(strata, resamples, seed, design)])
+    names = stat.names
+    cols = list(names) + [f"{a} - {b}" for a, b in pairs]
+
+    def columns(c):
+        v = stat(c)
+        return np.concatenate([v, np.stack([v[:, names.index(a)] - v[:, names.index(b)] for a, b in pairs], axis=1)],
+                              axis=1) if pairs else v
+
+    est = columns(np.ones((1, n), np.int64))[0]
+    draws = columns(counts)
+    jack = columns(np.ones((n, n), np.int64) - np.eye(n, dtype=np.int64)) if n > 1 else None
+    tse = draw_jackknife_se(columns, counts) if "studentized" in methods and n > 2 else None
+    out = {"estimate": {k: float(e) for k, e in zip(cols, est)}, "intervals": {}, "sequences": n}
+    for m in methods:
+        rec = out["intervals"][m] = {}
+        for i, k in enumerate(cols):
+            if m in ("bca", "studentized", "jackknife") and jack is None or m == "studentized" and tse is None:
+                rec[k] = None
+                continue
+            rec[k] = bootstrap_interval(m, draws[:, i], float(est[i]), None if jack is None else jack[:, i],
+                                        jackknife_se(jack[:, i]) if jack is not None else None,
+                                        None if tse is None else tse[:, i], level)
+    if keep_draws:
+        out.update(columns=cols, draws=draws, counts=counts, statistic=stat)
+    return out
+
+
 def bootstrap_p_value(draws) -> float:
     """Two-sided p-value of "the difference is 0" from bootstrap draws of a difference:
     ``min(1, 2 min(#(d <= 0) + 1, #(d >= 0) + 1) / (B + 1))`` over the B finite draws (the +1 keeps

@@ -14,6 +14,7 @@ from study.commands.bench import (
     arch,
     bootstrap,
     boxes,
+    coverage,
     generate,
     inference,
     lidar_fog,
@@ -23,7 +24,7 @@ from study.commands.bench import (
     sim,
 )
 
-FAMILIES = (sim, generate, boxes, bootstrap, inference, amp, amp_parity, profile, recipe, arch, lidar_fog, scale)
+FAMILIES = (sim, generate, boxes, bootstrap, coverage, inference, amp, amp_parity, profile, recipe, arch, lidar_fog, scale)
 """The subcommands, in the order `hydrabench bench --help` lists them."""
 
 
