@@ -26,7 +26,14 @@ from collections.abc import Mapping, Sequence
 import numpy as np
 
 from fusion.bounds import best_constant_map, best_constant_per_stratum, bootstrap_table, composite
-from fusion.intervals import bootstrap_p_value, design_draws, percentile_interval
+from fusion.intervals import (
+    bootstrap_p_value,
+    design_draws,
+    jackknife_p_value,
+    jackknife_t_interval,
+    leave_one_out_rows,
+    percentile_interval,
+)
 from fusion.metrics import ImageMatches
 from study.numbers import rounded, rounded_interval
 
@@ -122,12 +129,19 @@ class StudyMatches:
         for r, c in enumerate(self.contexts):
             groups.setdefault(c, []).append(r)
         out = {"resamples": int(resamples), "unit": "sequence", "design": design, "seed": int(seed),
-               "per_context": {}, "context_oracle_rechosen_per_draw": bool(derived)}
+               "per_context": {}, "context_oracle_rechosen_per_draw": bool(derived),
+               "per_context_interval": PER_CONTEXT_INTERVAL}
         for g, rows in groups.items():
             by_seq = self.by_sequence(rows)
             draws = bootstrap_table(self.matches, plain, by_seq, resamples, seed, derived,
                                     draws=self.draws(rows, resamples, seed, design))
-            out["per_context"][g] = group_record(draws, cols, len(by_seq))
+            jack = None
+            if g != "all" and len(by_seq) >= 2:  # the declared per-context interval: jackknife-t
+                rows_all = [r for q in sorted(by_seq) for r in by_seq[q]]
+                est = bootstrap_table(self.matches, plain, by_seq, 1, seed, derived, draws=[rows_all])[0]
+                loo = leave_one_out_rows(by_seq)
+                jack = (est, bootstrap_table(self.matches, plain, by_seq, len(loo), seed, derived, draws=loo))
+            out["per_context"][g] = group_record(draws, cols, len(by_seq), jack)
         return out
 
     def draws(self, rows, resamples: int, seed: int, design: str = "sequence"):
@@ -184,15 +198,34 @@ def front_record(sm: StudyMatches, scores: Mapping[str, dict], placed: Sequence[
             **rec, "resamples": int(resamples), "seed": int(seed), "design": design}
 
 
-def group_record(draws: np.ndarray, names: Sequence[str], sequences: int) -> dict:
+PER_CONTEXT_INTERVAL = (
+    "per context: jackknife-t (the estimate -+ t(n-1) times the leave-one-sequence-out standard error, its "
+    "p-value from the same t), declared after `hydrabench bench coverage` (docs/study.md: the percentile "
+    "interval of a few sequences' AP sits above the truth, it misses high); overall: the bootstrap percentile")
+
+
+def group_record(draws: np.ndarray, names: Sequence[str], sequences: int, jackknife=None) -> dict:
     """One group's intervals from its draws (resamples, names): each name's mAP, each pair's
-    difference (stored once, "a - b" in `names`' order) and its two-sided bootstrap p-value."""
+    difference (stored once, "a - b" in `names`' order) and its two-sided p-value; by the bootstrap's
+    percentiles, or, with `jackknife` = (estimates (names,), leave-one-out values (n, names)), by
+    jackknife-t (`fusion.intervals.jackknife_t_interval`, `jackknife_p_value`)."""
     names = list(names)
     pairs = [(a, b) for i, a in enumerate(names) for b in names[i + 1:]]
+    col = {n: i for i, n in enumerate(names)}
 
     def diff(a, b):
-        return draws[:, names.index(a)] - draws[:, names.index(b)]
+        return draws[:, col[a]] - draws[:, col[b]]
 
+    if jackknife is not None:
+        est, loo = jackknife
+        return {"sequences": int(sequences), "interval": "jackknife-t",
+                "map": {n: rounded_interval(jackknife_t_interval(est[i], loo[:, i])) for n, i in col.items()},
+                "difference": {f"{a} - {b}": rounded_interval(jackknife_t_interval(est[col[a]] - est[col[b]],
+                                                                                   loo[:, col[a]] - loo[:, col[b]]))
+                               for a, b in pairs},
+                "p_value": {f"{a} - {b}": rounded(jackknife_p_value(est[col[a]] - est[col[b]],
+                                                                    loo[:, col[a]] - loo[:, col[b]]))
+                            for a, b in pairs}}
     return {"sequences": int(sequences),
             "map": {n: rounded_interval(percentile_interval(draws[:, i])) for i, n in enumerate(names)},
             "difference": {f"{a} - {b}": rounded_interval(percentile_interval(diff(a, b))) for a, b in pairs},

@@ -237,7 +237,7 @@ def test_fp_weight_reweights_cached_terms_and_keeps_its_gates_apart(eco, data, c
     (["eco-evaluate", "--lambda-e", "2"], "lambda_E must be in [0, 1]"),
     (["eco-evaluate", "--gamma", "-1"], "--gamma: must be >= 0"),
     (["eco-evaluate", "--gates", "magic"], "unknown gate 'magic'"),
-    (["eco-evaluate", "--fusion", "max"], "--fusion: invalid choice: 'max'"),
+    (["eco-evaluate", "--fusion", "max"], "--fusion: unknown fusion method 'max' (choose from: nms, soft-nms, wbf)"),
     (["eco-train-gate", "--gate", "knowledge"], "nothing to train"),
     (["eco-train-gate", "--gate", "deep", "--targets", "holdout"], "need a gate split, and this run has none"),
     (["eco-sweep", "--out", "/proc/no/such", "--gates", "knowledge"], "/proc is not writable"),
