@@ -474,6 +474,8 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "eco-sweep": ("study.commands.eco:add_eco_sweep", "EcoFusion Tables 1-3 and Figures 4-5 over a lambda_E sweep"),
     "predict": ("study.commands.predict:add_parser", "run a model once over a dataset and keep every branch's "
                 "detections, losses and gate inputs (the predictions every score reads)"),
+    "pem": ("study.commands.pem:add_parser", "perception error models fitted on a model's predictions: fit, draw "
+            "predictions compare scores (detector strength as a knob), check against the network"),
     "compare": ("study.commands.compare:add_parser", "selective (gated) against fixed fusion on one dataset, with intervals"),
     "score": ("study.commands.score:add_parser", "score detections and per-frame selections made outside hydrabench "
               "(nuScenes or COCO results) as compare scores the own networks"),

@@ -144,7 +144,7 @@ def predict(run_dir, data, out=None, *, gates=GATES, split: str = "auto",
                 "data": str(data), "branches": list(model.branches), "branch_frames": dict(model.branch_frames),
                 "branch_sensors": {b: list(s) for b, s in model.branch_sensors.items()}, "gates": trained,
                 "best_gate": best_gate(run_dir, trained), "arrays": ARRAYS}
-    _write(out, manifest, _pass(run_dir, data, model, cfg, trained, indices, batch_size, progress))
+    write(out, manifest, _pass(run_dir, data, model, cfg, trained, indices, batch_size, progress))
     return load(out)
 
 
@@ -258,7 +258,7 @@ def _pass(run_dir, data, model, cfg, gates, indices, batch_size, progress):
         yield chunk()
 
 
-def _write(out: Path, manifest: dict, chunks) -> None:
+def write(out: Path, manifest: dict, chunks) -> None:
     """Write the chunks and the manifest into a folder beside `out`, then rename it into place (a
     stale set at `out` is replaced only once the new one is whole)."""
     out.parent.mkdir(parents=True, exist_ok=True)

@@ -98,6 +98,9 @@ def compare(run_dir, data, *, gates=GATES, k: int = 2, fusion: str = "soft-nms",
         raise UserError(f"{need_intervals} needs intervals: give --bootstrap N > 0")
     reader = DatasetReader(data)
     gp = _predictions(run_dir, data, reader, predictions, gates, split, batch_size, setup, progress, need_intervals)
+    if twins and gp.manifest.get("pem"):
+        raise UserError("--twins runs the network on the clear-weather twins: not with a perception error model's "
+                        "--predictions (draw the PEM on the twins' dataset and compare that instead)")
     protocol = gp.manifest["identity"]["protocol"]
     used_split = gp.manifest["identity"]["split"]
     indices = [int(m["dataset_index"]) for m, _ in gp.per_frame]
@@ -182,6 +185,9 @@ def _predictions(run_dir, data, reader, predictions, gates, split, batch_size, s
     gp = load(predictions)
     check_predictions(gp, run_dir, data)
     missing = [g for g in usable_gates(run_dir, gates) if g not in gp.gates]
+    if missing and gp.manifest.get("pem"):
+        raise UserError(f"--predictions {predictions}: drawn by a perception error model, which has no stem features "
+                        f"or losses, so no {missing[0]!r} gate: give --gates knowledge")
     if missing:
         raise UserError(f"--predictions {predictions}: holds no outputs of gate {missing[0]!r} (it has: "
                         f"{', '.join(gp.gates) or 'none'}; hydrabench predict --gates names them)")

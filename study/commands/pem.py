@@ -1,0 +1,114 @@
+"""`hydrabench pem`: perception error models fitted on a model's predictions (`study.pem_study`):
+fit, draw predictions, check against the network on held-out frames."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+from study.cli import (
+    Formatter,
+    bootstrap_int,
+    count_int,
+    dataset_dir,
+    emit,
+    in_file,
+    module_doc,
+    out_file,
+    pos_float,
+    pos_int,
+    predictions_dir,
+    training_run,
+)
+
+EPILOG = """\
+examples:
+  hydrabench pem fit cpu-frontier data/fit7 --out pem.json          (fit on a dataset of its own seed)
+  hydrabench pem predict pem.json demo/test --out pred_pem --seed 0
+  hydrabench compare cpu-frontier demo/test --predictions pred_pem --gates knowledge
+  hydrabench pem check cpu-frontier demo/test --network PRED_NET --pem pred_pem --plot pem_check.png
+  hydrabench pem predict pem.json demo/test --out pred_pem_s4 --strength 4   (a stronger detector)
+"""
+
+
+def add_parser(sub, name, help_text):
+    p = sub.add_parser(name, help=help_text, description=module_doc("study.pem_study"), epilog=EPILOG,
+                       formatter_class=Formatter)
+    what = p.add_subparsers(dest="what", metavar="<what>", required=True)
+    f = what.add_parser("fit", help="fit one PEM per branch on a model's predictions on a fitting dataset",
+                        description=module_doc("fusion.pem"), formatter_class=Formatter)
+    f.add_argument("run_dir", metavar="MODEL", type=training_run,
+                   help="training run directory, or a reference model (models/: e.g. cpu-frontier)")
+    f.add_argument("data", metavar="FITDATA", type=dataset_dir,
+                   help="the dataset to fit on (not the one you test on: generate it with another --seed)")
+    f.add_argument("--out", required=True, type=out_file(".json"), metavar="PEM.json", help="the PEM file to write")
+    f.add_argument("--predictions", type=predictions_dir, default=None, metavar="PRED",
+                   help="stored predictions of MODEL on FITDATA (hydrabench predict) [made, or read from MODEL's cache]")
+    f.add_argument("--batch-size", type=pos_int, default=4, help="frames per forward pass (when predicting)")
+    f.add_argument("--json", action="store_true", help="print one JSON object on stdout")
+    f.set_defaults(run=run_fit)
+    d = what.add_parser("predict", help="draw every branch's detections from a PEM on a dataset, as predictions "
+                        "`compare --predictions` scores (knowledge gate only)", formatter_class=Formatter)
+    d.add_argument("pem", metavar="PEM.json", type=in_file, help="a PEM file (hydrabench pem fit)")
+    d.add_argument("data", metavar="DATA", type=dataset_dir, help="dataset directory (not the one the PEM was fitted on)")
+    d.add_argument("--out", required=True, metavar="PRED", help="the predictions directory to write (new or empty, "
+                   "or predictions to replace)")
+    d.add_argument("--strength", type=pos_float, default=1.0,
+                   help="1: the fitted detector; s: every object's odds of detection times s, box error / s, "
+                        "false-alarm rate / s")
+    d.add_argument("--seed", type=count_int, default=0, help="the draws' seed (same seed, same detections)")
+    d.add_argument("--split", default="auto", choices=["auto", "test", "all"],
+                   help="auto: the run's test split on its own dataset, every frame on another")
+    d.add_argument("--json", action="store_true", help="print one JSON object on stdout")
+    d.set_defaults(run=run_predict)
+    c = what.add_parser("check", help="PEM against network on held-out frames: mAP per branch, late fusion and "
+                        "context inside the network's intervals; recall by range and score calibration",
+                        formatter_class=Formatter)
+    c.add_argument("run_dir", metavar="MODEL", type=training_run, help="the model the PEM was fitted on")
+    c.add_argument("data", metavar="DATA", type=dataset_dir, help="the held-out dataset")
+    c.add_argument("--network", required=True, type=predictions_dir, metavar="PRED",
+                   help="the network's predictions on DATA (hydrabench predict)")
+    c.add_argument("--pem", required=True, type=predictions_dir, metavar="PRED", help="the PEM's predictions on DATA")
+    c.add_argument("--bootstrap", type=bootstrap_int, default=500, metavar="N", help="sequence draws for the intervals")
+    c.add_argument("--plot", type=out_file(".png", ".pdf", ".svg"), default=None, help="draw the curves here")
+    c.add_argument("--out", type=out_file(".json"), default=None, help="also write the result as JSON here")
+    c.add_argument("--json", action="store_true", help="print one JSON object on stdout")
+    c.set_defaults(run=run_check)
+
+
+def run_fit(args) -> int:
+    from study.device import resolve_device
+    from study.pem_study import fit
+
+    r = fit(Path(args.run_dir), Path(args.data), Path(args.out), predictions=args.predictions,
+            batch_size=args.batch_size, setup=None if args.predictions else resolve_device(purpose="eval"))
+    emit(r, args.json, lambda r: "\n".join(
+        [f"{r['pem']}: fitted on {r['frames']} frames of {r['fit_data']} in {r['seconds']} s"]
+        + [f"  {b}: {c['found']}/{c['objects']} objects found, {c['false_alarms']} false alarms"
+           for b, c in r["branches"].items()]))
+    return 0
+
+
+def run_predict(args) -> int:
+    from study.pem_study import predict_pem
+
+    r = predict_pem(Path(args.pem), Path(args.data), Path(args.out), strength=args.strength, seed=args.seed,
+                    split=args.split)
+    emit(r, args.json, lambda r: (f"{r['predictions']}: {r['frames']} frames ({r['split']}) drawn at strength "
+                                  f"{r['strength']:g}, seed {r['seed']}, in {r['seconds']} s"))
+    return 0
+
+
+def run_check(args) -> int:
+    from study.pem_study import check, format_check, plot_check
+
+    r = check(Path(args.run_dir), Path(args.data), Path(args.network), {"pem": Path(args.pem)},
+              resamples=args.bootstrap)
+    if args.plot:
+        plot_check(r, args.plot)
+        r["plot"] = str(args.plot)
+    if args.out:
+        Path(args.out).parent.mkdir(parents=True, exist_ok=True)
+        Path(args.out).write_text(json.dumps(r, indent=1))
+    emit(r, args.json, format_check)
+    return 0
