@@ -34,7 +34,7 @@ RECALL_EDGES = (0.0, 10.0, 20.0, 30.0, 40.0, 60.0, 100.0)
 SCORE_EDGES = tuple(np.linspace(0.0, 1.0, 11))
 
 
-def _truth(reader, meta, protocol) -> dict:
+def truth_and_features(reader, meta, protocol) -> dict:
     """The scored right-camera ground truth of a frame (as `study.scoring.ground_truth` reads it), with
     ids and truncation, and the per-object features (`fusion.pem.object_table`)."""
     from fusion.pem import object_table
@@ -48,7 +48,7 @@ def _truth(reader, meta, protocol) -> dict:
             "distance_m": np.asarray(truth["distance_m"], float)}, table
 
 
-def _image_size(meta) -> tuple[int, int]:
+def image_size(meta) -> tuple[int, int]:
     from sensors.rig import Calibration
 
     cam = Calibration.from_dict(meta["calibration"]).camera("camera_right")
@@ -92,8 +92,8 @@ def fit(run_dir, data, out, *, predictions=None, batch_size: int = 4, setup=None
     reader = DatasetReader(data)
     per_branch = {b: [] for b in pred.branches}
     for meta, per in reference_detections(pred):
-        truth, table = _truth(reader, meta, protocol)
-        size = _image_size(meta)
+        truth, table = truth_and_features(reader, meta, protocol)
+        size = image_size(meta)
         for b, d in per.items():
             per_branch[b].append(FitFrame(d.boxes, d.scores, d.labels, truth, table, meta["context"], size))
     sensors = pred.branch_sensors
@@ -178,8 +178,8 @@ def predict_pem(pem_path, data, out, *, strength: float = 1.0, seed: int = 0, sp
             take = _appender(arrays)
             for i in part:
                 meta = dict(reader.meta(i), dataset_index=int(i))
-                truth, table = _truth(reader, meta, doc["protocol"])
-                size = _image_size(meta)
+                truth, table = truth_and_features(reader, meta, doc["protocol"])
+                size = image_size(meta)
                 take("indices", np.array([i], np.int64))
                 take("meta", np.array([json.dumps(meta)]))
                 take("gate.knowledge", np.array([_knowledge(meta, branches, sensors, doc["model_frames"])], np.float32))
@@ -232,7 +232,7 @@ def curves(per_frame_ref: list, reader, protocol, branches) -> dict:
         tp = np.zeros(len(SCORE_EDGES) - 1)
         n = np.zeros(len(SCORE_EDGES) - 1)
         for meta, per in per_frame_ref:
-            truth, _ = _truth(reader, meta, protocol)
+            truth, _ = truth_and_features(reader, meta, protocol)
             d = per[b]
             m = match(d.boxes, d.scores, truth["boxes"])
             ok = np.zeros(len(m), bool)
@@ -365,4 +365,46 @@ def format_check(r: dict) -> str:
     for p in pems:
         c = r["sets"][p]["per_context_inside"]
         lines.append(f"{p}: per-context mAP inside the network's interval in {c['inside']} of {c['of']} (method, context)")
+    return "\n".join(lines)
+
+
+def sweep(run_dir, data, pem_path, strengths, out_dir, *, seed: int = 0, resamples: int = 500,
+          fusion: str = "soft-nms", k: int = 2, progress: bool = False) -> dict:
+    """The verdict over detector strength: per strength, the PEM drawn on `data` (`predict_pem`, into
+    OUT_DIR/strength-<s>) and scored by `study.compare.compare` (knowledge gate and fixed methods):
+    all_branches minus late and the knowledge gate minus all_branches, each with its 95 % interval
+    and verdict, every method's mAP, and the seconds the point took (draw + score + bootstrap)."""
+    from study.compare import compare
+
+    points = []
+    for s in strengths:
+        t0 = time.perf_counter()
+        pred = Path(out_dir) / f"strength-{s:g}"
+        predict_pem(pem_path, data, pred, strength=s, seed=seed)
+        r = compare(run_dir, data, gates=("knowledge",), k=k, fusion=fusion, resamples=resamples,
+                    predictions=pred, progress=progress)
+        m = r["methods"]
+        points.append({"strength": float(s), "maps": {n: row["map"] for n, row in m.items()},
+                       "all_branches_minus_late": m.get("all_branches", {}).get("minus_late"),
+                       "knowledge_minus_all_branches": m.get("hydrafusion:knowledge", {}).get("minus_all_branches"),
+                       "knowledge_minus_late": m.get("hydrafusion:knowledge", {}).get("minus_late"),
+                       "seconds": round(time.perf_counter() - t0, 1)})
+    return {"data": str(data), "pem": str(pem_path), "seed": seed, "resamples": resamples, "fusion": fusion, "k": k,
+            "points": points}
+
+
+def format_sweep(r: dict) -> str:
+    def cell(d):
+        if not d:
+            return "-"
+        iv = d.get("ci95")
+        return f"{d['value']:+.3f}" + (f" [{iv[0]:+.3f}, {iv[1]:+.3f}] {d['verdict']}" if iv else "")
+
+    lines = [f"PEM {r['pem']} on {r['data']} (seed {r['seed']}, {r['resamples']} sequence draws, k {r['k']})",
+             f"{'strength':>8s} {'late':>6s} {'all':>6s}  {'all_branches - late':36s} {'knowledge - all_branches':36s} s"]
+    for p in r["points"]:
+        mp = p["maps"]
+        lines.append(f"{p['strength']:8g} {mp.get('late') or 0:6.3f} {mp.get('all_branches') or 0:6.3f}  "
+                     f"{cell(p['all_branches_minus_late']):36s} {cell(p['knowledge_minus_all_branches']):36s} "
+                     f"{p['seconds']}")
     return "\n".join(lines)

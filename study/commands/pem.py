@@ -9,6 +9,7 @@ from pathlib import Path
 from study.cli import (
     Formatter,
     bootstrap_int,
+    cache_dir,
     count_int,
     dataset_dir,
     emit,
@@ -74,6 +75,30 @@ def add_parser(sub, name, help_text):
     c.add_argument("--out", type=out_file(".json"), default=None, help="also write the result as JSON here")
     c.add_argument("--json", action="store_true", help="print one JSON object on stdout")
     c.set_defaults(run=run_check)
+    w = what.add_parser("sweep", help="the verdict over detector strength: all_branches minus late and the "
+                        "knowledge gate minus all_branches, with intervals, per strength", formatter_class=Formatter)
+    w.add_argument("run_dir", metavar="MODEL", type=training_run, help="the model the PEM was fitted on")
+    w.add_argument("pem", metavar="PEM.json", type=in_file, help="a PEM file (hydrabench pem fit)")
+    w.add_argument("data", metavar="DATA", type=dataset_dir, help="the held-out dataset to draw and score on")
+    w.add_argument("--strengths", default="0.5,1,2,4", type=_strengths, metavar="S[,S...]",
+                   help="the strengths, comma-separated (1: the fitted detector)")
+    w.add_argument("--work", required=True, type=cache_dir, metavar="DIR",
+                   help="where each strength's predictions are written (DIR/strength-<s>)")
+    w.add_argument("--seed", type=count_int, default=0, help="the draws' seed")
+    w.add_argument("--bootstrap", type=bootstrap_int, default=500, metavar="N", help="sequence draws for the intervals")
+    w.add_argument("--out", type=out_file(".json"), default=None, help="also write the result as JSON here")
+    w.add_argument("--json", action="store_true", help="print one JSON object on stdout")
+    w.set_defaults(run=run_sweep)
+
+
+def _strengths(text: str) -> list[float]:
+    out = []
+    for part in str(text).split(","):
+        out.append(pos_float(part))
+    return out
+
+
+_strengths.kind = "strengths"
 
 
 def run_fit(args) -> int:
@@ -111,4 +136,16 @@ def run_check(args) -> int:
         Path(args.out).parent.mkdir(parents=True, exist_ok=True)
         Path(args.out).write_text(json.dumps(r, indent=1))
     emit(r, args.json, format_check)
+    return 0
+
+
+def run_sweep(args) -> int:
+    from study.pem_study import format_sweep, sweep
+
+    r = sweep(Path(args.run_dir), Path(args.data), Path(args.pem), args.strengths, Path(args.work), seed=args.seed,
+              resamples=args.bootstrap)
+    if args.out:
+        Path(args.out).parent.mkdir(parents=True, exist_ok=True)
+        Path(args.out).write_text(json.dumps(r, indent=1))
+    emit(r, args.json, format_sweep)
     return 0

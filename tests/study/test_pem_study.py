@@ -1,0 +1,116 @@
+"""hydrabench pem: a PEM's predictions load and score through compare (the one scoring path), fit
+reads stored predictions, and what a PEM cannot give is refused in one line. No network runs: the
+first PEM is fitted on boxes drawn from the ground truth."""
+
+import json
+
+import numpy as np
+import pytest
+
+from sensors.generate import GenerateConfig
+from sim.errors import UserError
+from study.cli import main
+
+FIT = GenerateConfig(contexts=("city", "fog"), frames_per_context=3, sequence_length=3, seed=21)
+TEST = GenerateConfig(contexts=("city", "fog"), frames_per_context=3, sequence_length=3, seed=22)
+
+
+def _seed_pem(run_dir, data, path):
+    """A PEM file whose every branch is fitted on the ground truth moved a little (no network)."""
+    from fusion.pem import FitFrame, apply_error, fit_branch
+    from sensors.dataset import DatasetReader
+    from study.gate_data import cached_sha256, checkpoint_path
+    from study.pem_study import FORMAT, VERSION, image_size, truth_and_features
+
+    cfg = json.loads((run_dir / "config.json").read_text())
+    specs = {s["name"]: s for s in cfg["branch_specs"]}
+    reader = DatasetReader(data)
+    rng = np.random.default_rng(0)
+    frames = []
+    for i in range(len(reader)):
+        meta = dict(reader.meta(i), dataset_index=i)
+        truth, table = truth_and_features(reader, meta, cfg["protocol"])
+        keep = rng.random(len(truth["boxes"])) < 0.7
+        boxes = apply_error(truth["boxes"], 0.03 * rng.standard_normal((len(keep), 4)))[keep]
+        fa = np.array([[10.0, 10.0, 40.0, 40.0]])
+        frames.append(FitFrame(np.vstack([boxes, fa]), np.r_[rng.uniform(0.5, 1, keep.sum()), 0.3],
+                               np.r_[truth["labels"][keep], 1], truth, table, meta["context"], image_size(meta)))
+    doc = {"format": FORMAT, "version": VERSION, "run": str(run_dir),
+           "checkpoint_sha256": cached_sha256(checkpoint_path(run_dir)), "fit_data": "synthetic",
+           "fit_dataset_sha256": "none", "fit_frames": len(frames), "protocol": cfg["protocol"],
+           "branches": list(specs), "branch_sensors": {b: s["sensors"] for b, s in specs.items()},
+           "model_frames": {b: s["frame"] for b, s in specs.items()},
+           "branch_pem": {b: fit_branch(frames, s["sensors"]).to_dict() for b, s in specs.items()}}
+    path.write_text(json.dumps(doc))
+
+
+@pytest.fixture(scope="module")
+def setup(shared_dataset, tmp_path_factory):
+    from study.reference_model import resolve_run
+
+    run_dir = resolve_run("cpu-frontier")
+    fit_data, test_data = shared_dataset(FIT), shared_dataset(TEST)
+    tmp = tmp_path_factory.mktemp("pem")
+    _seed_pem(run_dir, fit_data, tmp / "seed.json")
+    return run_dir, fit_data, test_data, tmp
+
+
+def test_pem_predictions_score_through_compare(setup, capsys):
+    from study.compare import compare
+    from study.predictions import load
+
+    run_dir, fit_data, test_data, tmp = setup
+    # draw on the fitting set, refit on those draws through the command (stored predictions, no network)
+    assert main(["pem", "predict", str(tmp / "seed.json"), str(fit_data), "--out", str(tmp / "p_fit")]) == 0
+    assert main(["pem", "fit", str(run_dir), str(fit_data), "--predictions", str(tmp / "p_fit"),
+                 "--out", str(tmp / "pem.json"), "--json"]) == 0
+    fitted = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
+    assert fitted["frames"] == 6 and set(fitted["branches"]) == {"radar", "camera_right", "lidar", "radar_lidar"}
+    assert all(c["found"] > 0 and c["false_alarms"] > 0 for c in fitted["branches"].values()), fitted
+    for out, seed in (("a", 3), ("b", 3), ("c", 4)):
+        assert main(["pem", "predict", str(tmp / "pem.json"), str(test_data), "--out", str(tmp / out),
+                     "--seed", str(seed)]) == 0
+    a, b, c = (load(tmp / x) for x in "abc")
+    assert a.gates == ["knowledge"] and a.manifest["pem"]["strength"] == 1.0
+    boxes = [[d.boxes for d in per.values()] for _, per in a.per_frame]
+    assert all(np.array_equal(x, y) for bx, by in zip(boxes, [[d.boxes for d in per.values()] for _, per in b.per_frame])
+               for x, y in zip(bx, by))
+    assert any(not np.array_equal(x.scores, y.scores) for (_, pa), (_, pc) in zip(a.per_frame, c.per_frame)
+               for x, y in zip(pa.values(), pc.values()))
+    # the one scoring path: compare on the stored predictions, knowledge gate and fixed methods
+    r = compare(run_dir, test_data, gates=("knowledge",), resamples=20, predictions=tmp / "a", progress=False)
+    assert set(r["methods"]) >= {"single:radar", "late", "all_branches", "hydrafusion:knowledge"}
+    assert all(m["map"] is not None and 0 < m["map"] <= 1 for m in r["methods"].values())
+    assert r["methods"]["hydrafusion:knowledge"]["minus_all_branches"]["ci95"] is not None
+    # the knowledge gate ranks as the model's own gate does (from the model's frames, not camera_right)
+    from fusion.nets.branch_gates import branch_quality, sensor_reliability
+
+    meta = a.per_frame[0][0]
+    assert a.predicted["knowledge"][0][1] == pytest.approx(
+        1 - branch_quality(sensor_reliability(meta), ("camera_right",), "camera_right"))
+    assert a.predicted["knowledge"][0][0] == pytest.approx(1 - branch_quality(sensor_reliability(meta), ("radar",), "bev"))
+
+
+def test_what_a_pem_cannot_give_is_refused(setup):
+    from study.compare import compare
+    from study.pem_study import predict_pem
+
+    run_dir, fit_data, test_data, tmp = setup
+    predict_pem(tmp / "seed.json", test_data, tmp / "r")
+    with pytest.raises(UserError, match="perception error model.*give --gates knowledge"):
+        compare(run_dir, test_data, gates=("knowledge", "deep"), resamples=0, predictions=tmp / "r", progress=False)
+    with pytest.raises(UserError, match="--twins"):
+        compare(run_dir, test_data, gates=("knowledge",), resamples=0, predictions=tmp / "r", twins=True,
+                progress=False)
+    with pytest.raises(UserError, match="strength"):
+        predict_pem(tmp / "seed.json", test_data, tmp / "s", strength=0)
+    (tmp / "bad.json").write_text("{}")
+    with pytest.raises(UserError, match="not a hydrabench-pem"):
+        predict_pem(tmp / "bad.json", test_data, tmp / "s")
+    doc = json.loads((tmp / "seed.json").read_text())
+    from study.gate_data import dataset_sha256
+
+    doc["fit_dataset_sha256"] = dataset_sha256(test_data)
+    (tmp / "same.json").write_text(json.dumps(doc))
+    with pytest.raises(UserError, match="fitted on this dataset"):
+        predict_pem(tmp / "same.json", test_data, tmp / "s")
