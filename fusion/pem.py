@@ -12,15 +12,20 @@ The family of models (one `BranchPEM` per branch, every part fitted, nothing han
   maximum likelihood (Newton / IRLS, penalty `RIDGE` on every weight but the intercept).
 - **box error** in the right camera: e = (dcx / w, dcy / h, log(w' / w), log(h' / h)) of a found
   object's box (w, h: the true box's width and height), independent Gaussians whose mean and sd are
-  fitted per range bin (`RANGE_EDGES`; a bin with under `MIN_BIN` matches uses all of them).
+  fitted per range bin (`RANGE_EDGES`; a bin with under `MIN_BIN` matches uses all of them); drawn
+  conditioned on the drawn box matching its object (IoU >= `MATCH_IOU`, by rejection), as the fitted
+  errors are of matched boxes only.
 - **scores**: a found object's score from the empirical quantiles (`QUANTILES`) of the matched
   detections' scores, per tercile of the fitted detection probability (so an easy object gets the
-  scores easy objects got); a false alarm's score from the false alarms' quantiles.
-- **class**: the detected class from the fitted confusion matrix of matched pairs (row: true class).
+  scores easy objects got).
+- **class**: the detected class from the fitted confusion matrix of matched pairs (row: true class;
+  prior: one correct detection per class).
 - **false alarms** (detections matched to no object, duplicates included): Poisson per frame, with a
   rate per context (the maximum-likelihood rate: false alarms / frames; a context not fitted gets the
-  pooled rate); each box a draw of a Gaussian kernel density of the false alarms' (cx / W, cy / H,
-  log w, log h) with Silverman's bandwidth, and its class drawn from their classes.
+  pooled rate); each one a fitted false alarm drawn at random, its class and score kept and its box
+  (cx / W, cy / H, log w, log h) moved by a Gaussian kernel of Silverman's bandwidth (a kernel
+  density estimate of the false alarms' boxes; class and score are drawn jointly with the box, so
+  a class whose false alarms score low keeps them low).
 
 Matching (`match`): greedily by falling score, each detection to the unmatched true box of largest
 IoU, found when IoU >= `MATCH_IOU`, class-agnostic (a wrong class is a found object with a confused
@@ -53,6 +58,7 @@ MIN_BIN = 8
 QUANTILES = np.linspace(0.0, 1.0, 41)
 NUM_CLASSES = 9  # 0 (background) and 1..8 (sim.actors.CLASSES)
 MAX_FA_BOXES = 4000
+ERROR_TRIES = 8
 
 SENSOR_FEATURES = {
     "radar": ("log_radar_cells",),
@@ -205,11 +211,12 @@ class BranchPEM:
     p_edges: list  # the detection-probability edges between score groups
     tp_score_q: list  # per score group, the quantiles
     fa_score_q: list
-    confusion: list  # NUM_CLASSES x NUM_CLASSES counts + 1 (true class row -> detected class)
+    confusion: list  # NUM_CLASSES x NUM_CLASSES counts (true class row -> detected class) + identity prior
     fa_rate: dict  # context -> false alarms per frame
     fa_rate_pooled: float
     fa_boxes: list  # (m, 4) (cx / W, cy / H, log w, log h) of the false alarms fitted on
     fa_labels: list
+    fa_scores: list
     fa_bandwidth: list
     counts: dict = field(default_factory=dict)
 
@@ -229,6 +236,17 @@ class BranchPEM:
         logit = w[0] + self.design(table) @ w[1:] + math.log(strength)
         return 1.0 / (1.0 + np.exp(-logit))
 
+    def _boxes(self, gt: np.ndarray, bins: np.ndarray, z: np.ndarray, strength: float) -> np.ndarray:
+        """Each true box moved by the first of its ERROR_TRIES error draws that keeps IoU >= MATCH_IOU
+        with it (the fitted errors are of matched boxes only; a draw past that would turn a found
+        object into a miss and a false alarm, counted twice), else by the draw of largest IoU."""
+        cand = [apply_error(gt, (np.asarray(self.loc_mean)[bins] + np.asarray(self.loc_sd)[bins] * zt) / strength)
+                for zt in z]
+        ious = np.stack([np.diag(box_iou(c, gt)) for c in cand])  # (tries, n)
+        ok = ious >= MATCH_IOU
+        pick = np.where(ok.any(axis=0), ok.argmax(axis=0), ious.argmax(axis=0))
+        return np.stack(cand)[pick, np.arange(len(gt))]
+
     def sample(self, rng: np.random.Generator, truth: dict, table: dict, context: str, image_size: tuple,
                strength: float = 1.0) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """One frame's detections (boxes (n, 4) in the right camera, scores, labels) drawn for the
@@ -242,18 +260,17 @@ class BranchPEM:
         n = len(gt)
         # fixed draw order (each part from the same stream in the same amounts) keeps frames comparable
         u_det, u_score, u_label = rng.random(n), rng.random(n), rng.random(n)
-        z = rng.standard_normal((n, 4))
+        z = rng.standard_normal((ERROR_TRIES, n, 4))
         p_calibrated = self.detection_probability(table) if n else np.zeros(0)
         p = self.detection_probability(table, strength) if n else np.zeros(0)
         found = u_det < p
         bins = np.clip(np.searchsorted(RANGE_EDGES, np.asarray(table["range_m"], float), side="right") - 1,
                        0, len(RANGE_EDGES) - 2) if n else np.zeros(0, int)
-        e = (np.asarray(self.loc_mean)[bins] + np.asarray(self.loc_sd)[bins] * z) / strength if n else np.zeros((0, 4))
-        boxes = apply_error(gt, e)
+        boxes = self._boxes(gt, bins, z, strength) if n else np.zeros((0, 4))
         group = np.searchsorted(self.p_edges, p_calibrated, side="right") if n else np.zeros(0, int)
         scores = np.array([_draw_quantiles(self.tp_score_q[g], np.array([u]))[0] for g, u in zip(group, u_score)])
         conf = np.asarray(self.confusion, float)
-        cdf = np.cumsum(conf / conf.sum(axis=1, keepdims=True), axis=1)
+        cdf = np.cumsum(conf / np.maximum(conf.sum(axis=1, keepdims=True), 1e-12), axis=1)
         labels = np.array([int(np.searchsorted(cdf[c], u, side="right")) for c, u in zip(gl, u_label)], int)
         labels = np.clip(labels, 1, NUM_CLASSES - 1)
         keep = found
@@ -267,7 +284,7 @@ class BranchPEM:
             v = src[pick] + rng.standard_normal((m, 4)) * np.asarray(self.fa_bandwidth, float)
             cx, cy, w, h = v[:, 0] * width, v[:, 1] * height, np.exp(v[:, 2]), np.exp(v[:, 3])
             fb = np.column_stack([cx - w / 2, cy - h / 2, cx + w / 2, cy + h / 2])
-            fs = _draw_quantiles(self.fa_score_q, rng.random(m))
+            fs = np.asarray(self.fa_scores, float)[pick]
             fl = np.asarray(self.fa_labels, int)[pick]
             boxes, scores, labels = np.vstack([boxes, fb]), np.r_[scores, fs], np.r_[labels, fl]
         boxes = boxes.reshape(-1, 4)
@@ -296,7 +313,8 @@ def fit_branch(frames: list[FitFrame], sensors) -> BranchPEM:
     """A branch's PEM fitted on its matched detections in `frames` (module docstring)."""
     feats = branch_features(sensors)
     xs, ys, errs, err_range, tp_scores, tp_x = [], [], [], [], [], []
-    conf = np.ones((NUM_CLASSES, NUM_CLASSES))
+    conf = np.eye(NUM_CLASSES)  # prior: one correct detection per class (a class never matched keeps its label)
+    conf[0, 0] = 0.0
     fa_count: dict = {}
     fa_frames: dict = {}
     fa_boxes, fa_labels, fa_scores = [], [], []
@@ -361,7 +379,7 @@ def fit_branch(frames: list[FitFrame], sensors) -> BranchPEM:
     fa = np.asarray(fa_boxes, float).reshape(-1, 4)
     if len(fa) > MAX_FA_BOXES:
         keep = np.random.default_rng(0).choice(len(fa), MAX_FA_BOXES, replace=False)
-        fa, fa_labels = fa[keep], [fa_labels[i] for i in keep]
+        fa, fa_labels, fa_scores = fa[keep], [fa_labels[i] for i in keep], [fa_scores[i] for i in keep]
     bandwidth = (fa.std(axis=0) * (4 / (6 * max(len(fa), 1))) ** (1 / 8)).tolist() if len(fa) > 1 else [0.0] * 4
     n_frames = sum(fa_frames.values())
     return BranchPEM(
@@ -370,6 +388,7 @@ def fit_branch(frames: list[FitFrame], sensors) -> BranchPEM:
         fa_score_q=_quantiles(fa_scores) or [0.0] * len(QUANTILES), confusion=conf.tolist(),
         fa_rate={c: fa_count[c] / fa_frames[c] for c in sorted(fa_frames)},
         fa_rate_pooled=sum(fa_count.values()) / max(n_frames, 1), fa_boxes=fa.tolist(), fa_labels=list(fa_labels),
+        fa_scores=list(fa_scores),
         fa_bandwidth=bandwidth,
         counts={"frames": n_frames, "objects": int(len(y)), "found": int(y.sum()), "false_alarms": int(len(fa_scores))})
 
