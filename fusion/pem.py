@@ -16,12 +16,17 @@ The family of models (one `BranchPEM` per branch, every part fitted, nothing han
   conditioned on the drawn box matching its object (IoU >= `MATCH_IOU`, by rejection), as the fitted
   errors are of matched boxes only.
 - **scores**: a found object's score from the empirical quantiles (`QUANTILES`) of the matched
-  detections' scores, per tercile of the fitted detection probability (so an easy object gets the
-  scores easy objects got).
+  detections' scores, per true class (a class with under 3 x `MIN_BIN` matches uses every class's)
+  and per tercile of the fitted detection probability within it (so an easy object gets the scores
+  easy objects of its class got).
 - **class**: the detected class from the fitted confusion matrix of matched pairs (row: true class;
   prior: one correct detection per class).
-- **false alarms** (detections matched to no object, duplicates included): Poisson per frame, with a
-  rate per context (the maximum-likelihood rate: false alarms / frames; a context not fitted gets the
+- **false alarms near an object** (detections matched to no object whose IoU with some true box
+  exceeds `NEAR_IOU`: duplicates and boxes placed too far off; most of a network's high-scoring
+  false alarms): per object, Poisson with a rate fitted per status (found or missed by the branch:
+  near false alarms / objects of that status); each one a fitted near false alarm of that status,
+  its error vector e applied to this object's box, its score and class kept.
+- **other false alarms**: Poisson per frame, with a rate per context (the maximum-likelihood rate: false alarms / frames; a context not fitted gets the
   pooled rate); each one a fitted false alarm drawn at random, its class and score kept and its box
   (cx / W, cy / H, log w, log h) moved by a Gaussian kernel of Silverman's bandwidth (a kernel
   density estimate of the false alarms' boxes; class and score are drawn jointly with the box, so
@@ -33,7 +38,7 @@ class, as VOC scoring then sees it: a miss and a false alarm).
 
 Strength (`BranchPEM.sample(..., strength=s)`): s = 1 is the fitted model. A stronger detector
 multiplies every object's odds of detection by s (adds ln s to the logit: the measured effect of
-each feature is kept), divides the box error's mean and sd by s, and divides the false-alarm rate
+each feature is kept), divides the box error's mean and sd by s, and divides both false-alarm rates
 by s; scores and classes are unchanged. s < 1 is a weaker one by the same rule.
 
 What it does not model: the correlation of errors across branches (each branch draws on its own
@@ -59,6 +64,7 @@ QUANTILES = np.linspace(0.0, 1.0, 41)
 NUM_CLASSES = 9  # 0 (background) and 1..8 (sim.actors.CLASSES)
 MAX_FA_BOXES = 4000
 ERROR_TRIES = 8
+NEAR_IOU = 0.1
 
 SENSOR_FEATURES = {
     "radar": ("log_radar_cells",),
@@ -208,8 +214,8 @@ class BranchPEM:
     weights: list
     loc_mean: list  # per range bin, 4 numbers
     loc_sd: list
-    p_edges: list  # the detection-probability edges between score groups
-    tp_score_q: list  # per score group, the quantiles
+    p_edges: dict  # per true class ("0": any class), the detection-probability edges between score groups
+    tp_score_q: dict  # per true class ("0": any class), per score group, the quantiles
     fa_score_q: list
     confusion: list  # NUM_CLASSES x NUM_CLASSES counts (true class row -> detected class) + identity prior
     fa_rate: dict  # context -> false alarms per frame
@@ -217,6 +223,8 @@ class BranchPEM:
     fa_boxes: list  # (m, 4) (cx / W, cy / H, log w, log h) of the false alarms fitted on
     fa_labels: list
     fa_scores: list
+    near: list  # the near false alarms: (e (4), score, class, found) each
+    near_rate: list  # near false alarms per missed object, per found object
     fa_bandwidth: list
     counts: dict = field(default_factory=dict)
 
@@ -267,14 +275,30 @@ class BranchPEM:
         bins = np.clip(np.searchsorted(RANGE_EDGES, np.asarray(table["range_m"], float), side="right") - 1,
                        0, len(RANGE_EDGES) - 2) if n else np.zeros(0, int)
         boxes = self._boxes(gt, bins, z, strength) if n else np.zeros((0, 4))
-        group = np.searchsorted(self.p_edges, p_calibrated, side="right") if n else np.zeros(0, int)
-        scores = np.array([_draw_quantiles(self.tp_score_q[g], np.array([u]))[0] for g, u in zip(group, u_score)])
+        keys = [str(c) if str(c) in self.tp_score_q else "0" for c in gl]
+        group = [int(np.searchsorted(self.p_edges[k], pc, side="right")) for k, pc in zip(keys, p_calibrated)]
+        scores = np.array([_draw_quantiles(self.tp_score_q[k][g], np.array([u]))[0]
+                           for k, g, u in zip(keys, group, u_score)])
         conf = np.asarray(self.confusion, float)
         cdf = np.cumsum(conf / np.maximum(conf.sum(axis=1, keepdims=True), 1e-12), axis=1)
         labels = np.array([int(np.searchsorted(cdf[c], u, side="right")) for c, u in zip(gl, u_label)], int)
         labels = np.clip(labels, 1, NUM_CLASSES - 1)
+        # false alarms near an object: per object Poisson(near rate of its status), each a fitted one
+        # of that status, its error applied to this object's box, its score and class kept
+        near = np.asarray(self.near, float).reshape(-1, 7)
+        counts = rng.poisson(np.asarray(self.near_rate, float)[found.astype(int)] / strength) if n else np.zeros(0, int)
+        nb, ns, nl = [], [], []
+        for j in np.where(counts > 0)[0] if len(near) else []:
+            pool = np.where(near[:, 6] == int(found[j]))[0]
+            pool = pool if len(pool) else np.arange(len(near))
+            rec = near[pool[rng.integers(0, len(pool), counts[j])]]
+            nb.append(apply_error(np.repeat(gt[j][None], len(rec), axis=0), rec[:, :4]))
+            ns.append(rec[:, 4])
+            nl.append(rec[:, 5].astype(int))
         keep = found
         boxes, scores, labels = boxes[keep], scores[keep], labels[keep]
+        if nb:
+            boxes, scores, labels = np.vstack([boxes, *nb]), np.r_[scores, *ns], np.r_[labels, *nl]
         # false alarms
         rate = self.fa_rate.get(context, self.fa_rate_pooled) / strength
         m = int(rng.poisson(rate)) if self.fa_boxes else 0
@@ -309,15 +333,26 @@ class FitFrame:
     image_size: tuple
 
 
+def _score_groups(p: np.ndarray, scores: np.ndarray) -> tuple[list, list]:
+    """Tercile edges of the detection probabilities `p` of found objects (none under 3 x MIN_BIN of
+    them) and the quantiles of their `scores` per tercile."""
+    edges = np.quantile(p, [1 / 3, 2 / 3]).tolist() if len(p) >= 3 * MIN_BIN else []
+    group = np.searchsorted(edges, p, side="right")
+    return edges, [_quantiles(scores[group == g]) if (group == g).sum() else _quantiles(scores)
+                   for g in range(len(edges) + 1)]
+
+
 def fit_branch(frames: list[FitFrame], sensors) -> BranchPEM:
     """A branch's PEM fitted on its matched detections in `frames` (module docstring)."""
     feats = branch_features(sensors)
-    xs, ys, errs, err_range, tp_scores, tp_x = [], [], [], [], [], []
+    xs, ys, errs, err_range, tp_scores, tp_x, tp_class = [], [], [], [], [], [], []
     conf = np.eye(NUM_CLASSES)  # prior: one correct detection per class (a class never matched keeps its label)
     conf[0, 0] = 0.0
     fa_count: dict = {}
     fa_frames: dict = {}
     fa_boxes, fa_labels, fa_scores = [], [], []
+    near: list = []  # (e (4), score, class, found) of the false alarms near an object
+    objects_by_status = [0, 0]  # missed, found
     for f in frames:
         gt = np.asarray(f.truth["boxes"], float).reshape(-1, 4)
         gl = np.asarray(f.truth["labels"], int).reshape(-1)
@@ -333,9 +368,21 @@ def fit_branch(frames: list[FitFrame], sensors) -> BranchPEM:
             err_range.append(np.asarray(f.table["range_m"], float)[m[hit]])
             tp_scores.append(np.asarray(f.det_scores, float)[hit])
             tp_x.append(x[m[hit]])
+            tp_class.append(gl[m[hit]])
             for d in hit:
                 conf[gl[m[d]], int(f.det_labels[d])] += 1
         miss = np.where(m < 0)[0]
+        near_to = np.full(len(miss), -1)
+        if len(gt) and len(miss):
+            ious = box_iou(np.asarray(f.det_boxes, float)[miss], gt)
+            near_to = np.where(ious.max(axis=1) > NEAR_IOU, ious.argmax(axis=1), -1)
+        objects_by_status[0] += int((~found).sum())
+        objects_by_status[1] += int(found.sum())
+        for d, g in zip(miss, near_to):
+            if g >= 0:
+                near.append(box_error(np.asarray(f.det_boxes[d], float)[None], gt[g][None])[0].tolist()
+                            + [float(f.det_scores[d]), int(f.det_labels[d]), int(found[g])])
+        miss = miss[near_to < 0]
         fa_frames[f.context] = fa_frames.get(f.context, 0) + 1
         fa_count[f.context] = fa_count.get(f.context, 0) + len(miss)
         w, h = f.image_size
@@ -366,16 +413,15 @@ def fit_branch(frames: list[FitFrame], sensors) -> BranchPEM:
         else:
             loc_mean.append(pooled_mean.tolist())
             loc_sd.append(pooled_sd.tolist())
-    # scores of found objects per tercile of the fitted detection probability
+    # scores of found objects per class and tercile of the fitted detection probability
     tps = np.concatenate(tp_scores) if tp_scores else np.zeros(0)
+    edges, tp_q = {"0": []}, {"0": [[0.5] * len(QUANTILES)]}
     if len(tps):
-        tx = np.vstack(tp_x)
+        tx, tc = np.vstack(tp_x), np.concatenate(tp_class)
         pt = 1.0 / (1.0 + np.exp(-(w[0] + ((tx - mean) / scale) @ w[1:])))
-        edges = np.quantile(pt, [1 / 3, 2 / 3]).tolist() if len(tps) >= 3 * MIN_BIN else []
-        group = np.searchsorted(edges, pt, side="right")
-        tp_q = [_quantiles(tps[group == g]) if (group == g).sum() else _quantiles(tps) for g in range(len(edges) + 1)]
-    else:
-        edges, tp_q = [], [[0.5] * len(QUANTILES)]
+        for key, sel in (("0", np.ones(len(tps), bool)), *((str(c), tc == c) for c in range(1, NUM_CLASSES))):
+            if key == "0" or sel.sum() >= 3 * MIN_BIN:
+                edges[key], tp_q[key] = _score_groups(pt[sel], tps[sel])
     fa = np.asarray(fa_boxes, float).reshape(-1, 4)
     if len(fa) > MAX_FA_BOXES:
         keep = np.random.default_rng(0).choice(len(fa), MAX_FA_BOXES, replace=False)
@@ -388,7 +434,8 @@ def fit_branch(frames: list[FitFrame], sensors) -> BranchPEM:
         fa_score_q=_quantiles(fa_scores) or [0.0] * len(QUANTILES), confusion=conf.tolist(),
         fa_rate={c: fa_count[c] / fa_frames[c] for c in sorted(fa_frames)},
         fa_rate_pooled=sum(fa_count.values()) / max(n_frames, 1), fa_boxes=fa.tolist(), fa_labels=list(fa_labels),
-        fa_scores=list(fa_scores),
+        fa_scores=list(fa_scores), near=near,
+        near_rate=[sum(1 for r in near if r[6] == k) / max(objects_by_status[k], 1) for k in (0, 1)],
         fa_bandwidth=bandwidth,
         counts={"frames": n_frames, "objects": int(len(y)), "found": int(y.sum()), "false_alarms": int(len(fa_scores))})
 

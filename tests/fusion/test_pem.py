@@ -13,6 +13,7 @@ TRUE_W = {"intercept": -0.5, "log_radar_cells": 1.2, "range_m": -0.04}
 TRUE_MU = np.array([0.03, -0.02, -0.05, 0.04])
 TRUE_SD = np.array([0.04, 0.03, 0.05, 0.04])
 TRUE_RATE = {"city": 0.5, "fog": 3.0}
+TRUE_NEAR = 0.3
 IMAGE = (672, 376)
 
 
@@ -43,6 +44,9 @@ def _frames(count=500, seed=0):
         e = TRUE_MU + TRUE_SD * rng.standard_normal((n, 4))
         boxes = pem.apply_error(gt, e)[found]
         scores = rng.beta(5, 2, found.sum())
+        dup = found & (rng.random(n) < TRUE_NEAR)  # a found object's duplicate, shifted by 0.6 of its width
+        boxes = np.vstack([boxes, pem.apply_error(gt[dup], np.tile([0.6, 0, 0, 0], (dup.sum(), 1)))])
+        scores = np.r_[scores, np.full(dup.sum(), 0.4)]
         m = rng.poisson(TRUE_RATE[ctx])
         fa = np.column_stack([rng.uniform(0, 600, m), rng.uniform(220, 300, m)])
         fa = np.column_stack([fa, fa + rng.uniform(10, 60, (m, 2))])
@@ -64,11 +68,14 @@ def test_fit_recovers_the_known_model(fitted):
     # box error: every range bin with data has the true mean and sd
     assert np.allclose(np.asarray(fitted.loc_mean), TRUE_MU, atol=0.012)
     assert np.allclose(np.asarray(fitted.loc_sd), TRUE_SD, atol=0.012)
-    # false alarms: the Poisson rate per context
+    # false alarms near an object: only found objects have them, at the true rate, 0.6 of a width off
+    assert fitted.near_rate[0] == 0 and fitted.near_rate[1] == pytest.approx(TRUE_NEAR, rel=0.1)
+    assert np.allclose(np.asarray(fitted.near)[:, :4], [0.6, 0, 0, 0], atol=1e-9)
+    # other false alarms: the Poisson rate per context
     for ctx, rate in TRUE_RATE.items():
         assert fitted.fa_rate[ctx] == pytest.approx(rate, rel=0.15)
     # scores: found objects' Beta(5, 2) median, false alarms' Beta(2, 5) median
-    assert np.median([q[len(pem.QUANTILES) // 2] for q in fitted.tp_score_q]) == pytest.approx(0.736, abs=0.04)
+    assert np.median([q[len(pem.QUANTILES) // 2] for q in fitted.tp_score_q["0"]]) == pytest.approx(0.736, abs=0.04)
     assert fitted.fa_score_q[len(pem.QUANTILES) // 2] == pytest.approx(0.264, abs=0.04)
     # classes: every match was class 1
     conf = np.asarray(fitted.confusion)
