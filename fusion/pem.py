@@ -6,9 +6,10 @@ detections in the right camera matched to the ground truth; then it stands in fo
 The family of models (one `BranchPEM` per branch, every part fitted, nothing hand-set):
 
 - **detection**: P(an object is found) = logistic(w . z(x)), z the standardised features `x` of the
-  object that the branch's sensors see (`FEATURES`: log lidar points, log radar cells, log visible
-  pixels and occlusion for the camera) plus what every branch sees (range, truncation, class, the
-  weather state: log visibility, log rain and snow rate, log illuminance), fitted by ridge-penalised
+  object that the branch's sensors see (`SENSOR_FEATURES`: log lidar points, log radar cells, log
+  visible pixels and occlusion for the camera) plus what every branch sees (`COMMON_FEATURES`: range,
+  piecewise linear; truncation; class; the weather state: log visibility, log rain and snow rate,
+  log illuminance), fitted by ridge-penalised
   maximum likelihood (Newton / IRLS, penalty `RIDGE` on every weight but the intercept).
 - **box error** in the right camera: e = (dcx / w, dcy / h, log(w' / w), log(h' / h)) of a found
   object's box (w, h: the true box's width and height), independent Gaussians whose mean and sd are
@@ -75,9 +76,10 @@ SENSOR_FEATURES = {
 }
 """Per sensor, the object features only it sees."""
 
-COMMON_FEATURES = ("range_m", "truncation", "log_visibility", "log_rain", "log_snow", "log_illuminance",
+COMMON_FEATURES = ("range_m", "range_below_10", "range_above_25", "truncation", "log_visibility", "log_rain", "log_snow", "log_illuminance",
                    *(f"class_{c}" for c in range(1, NUM_CLASSES)))
-"""What every branch's detection probability reads: the object's range, how much of it is outside
+"""What every branch's detection probability reads: the object's range (piecewise linear: hinges at
+10 and 25 m, as a network's recall can rise and then fall with range), how much of it is outside
 the image, the weather state, and its class (one indicator per class)."""
 
 
@@ -112,6 +114,8 @@ def object_table(objects: dict, truth: dict, visible: dict, weather: dict) -> di
         "log_left_px": np.log1p(col("camera_left_px")) if "camera_left_px" in objects else np.zeros(n),
         "right_occlusion": np.array([occl.get(i, 1.0) for i in ids], float),
         "range_m": np.asarray(truth["distance_m"], float).reshape(n),
+        "range_below_10": np.maximum(10.0 - np.asarray(truth["distance_m"], float).reshape(n), 0.0),
+        "range_above_25": np.maximum(np.asarray(truth["distance_m"], float).reshape(n) - 25.0, 0.0),
         "truncation": np.asarray(truth.get("truncation", np.zeros(n)), float).reshape(n),
         "log_visibility": np.full(n, math.log(max(float(weather.get("visibility_m", 1e4)), 1.0))),
         "log_rain": np.full(n, math.log1p(float(weather.get("rain_mm_h", 0.0)))),
