@@ -255,10 +255,47 @@ def curves(per_frame_ref: list, reader, protocol, branches) -> dict:
     return out
 
 
+def found_matrix(per_frame_ref: list, reader, protocol, branches) -> np.ndarray:
+    """(objects, branches) bool: each non-difficult true box found by each branch (IoU >= 0.5, same
+    class), over the frames of `per_frame_ref`."""
+    from fusion.pem import match
+
+    rows = []
+    for meta, per in per_frame_ref:
+        truth, _ = truth_and_features(reader, meta, protocol)
+        cols = []
+        for b in branches:
+            d = per[b]
+            m = match(d.boxes, d.scores, truth["boxes"])
+            hit = np.zeros(len(truth["boxes"]), bool)
+            if len(truth["labels"]):
+                ok = (m >= 0) & (np.asarray(d.labels) == truth["labels"][np.maximum(m, 0)])
+                hit[m[ok]] = True
+            cols.append(hit)
+        rows.append(np.column_stack(cols)[~truth["difficult"]] if cols else np.zeros((0, 0), bool))
+    return np.vstack(rows) if rows else np.zeros((0, len(branches)), bool)
+
+
+def co_detection(per_frame_ref: list, reader, protocol, branches) -> dict:
+    """Do branches find the same objects? Per pair of branches "a|b": P(a finds), P(b finds), P(both)
+    and the lift P(both) / (P(a) P(b)) (1: independent; above 1: they find and miss the same objects)."""
+    f = found_matrix(per_frame_ref, reader, protocol, branches)
+    out = {}
+    for i, a in enumerate(branches):
+        for j in range(i + 1, len(branches)):
+            pa, pb, both = f[:, i].mean(), f[:, j].mean(), (f[:, i] & f[:, j]).mean()
+            out[f"{a}|{branches[j]}"] = {"p_a": round(float(pa), 4), "p_b": round(float(pb), 4),
+                                         "p_both": round(float(both), 4),
+                                         "lift": round(float(both / (pa * pb)), 3) if pa * pb > 0 else None,
+                                         "objects": int(len(f))}
+    return out
+
+
 def check(run_dir, test_data, net_pred, pem_preds: dict, *, resamples: int = 500, fusion: str = "soft-nms") -> dict:
     """The PEM predictions `pem_preds` ({label: predictions directory}) against the network's `net_pred`
-    on `test_data`: per branch and late fusion, mAP overall and per context, the network's 95 %
-    interval (sequence bootstrap) and whether each PEM's mAP is inside it; `curves` of each."""
+    on `test_data`: per branch, late fusion and all branches fused, mAP overall and per context, the
+    network's 95 % interval (sequence bootstrap) and whether each PEM's mAP is inside it; `curves`
+    and `co_detection` of each."""
     from sensors.dataset import DatasetReader
     from study.compare import check_predictions
     from study.predictions import load
@@ -275,6 +312,8 @@ def check(run_dir, test_data, net_pred, pem_preds: dict, *, resamples: int = 500
         check_predictions(sets[label], run_dir, test_data)
     singles = [b for b in net.branches if len(net.branch_sensors[b]) == 1]
     methods = {**{b: (b,) for b in net.branches}, "late": tuple(singles)}
+    if len(singles) < len(net.branches):
+        methods["all_branches"] = tuple(net.branches)
     result = {"data": str(test_data), "frames": len(net.per_frame), "fusion": fusion, "protocol": protocol,
               "metric": "VOC all-point AP at IoU 0.5, every class, right camera", "resamples": resamples, "sets": {}}
     for label, p in sets.items():
@@ -282,7 +321,8 @@ def check(run_dir, test_data, net_pred, pem_preds: dict, *, resamples: int = 500
                    for name, sel in methods.items()}
         scores = {n: score(s, reader, "camera_right", protocol=protocol) for n, s in sources.items()}
         entry = {"methods": {n: {"map": s["map"], "map_per_context": s["map_per_context"]} for n, s in scores.items()},
-                 "curves": curves(reference_detections(p), reader, protocol, p.branches)}
+                 "curves": curves(reference_detections(p), reader, protocol, p.branches),
+                 "co_detection": co_detection(reference_detections(p), reader, protocol, p.branches)}
         if label == "network" and resamples:
             boot = context_bootstrap(sources, reader, "camera_right", protocol=protocol, resamples=resamples,
                                      classes="all", desc="bootstrap the network")

@@ -97,10 +97,8 @@ def compare(run_dir, data, *, gates=GATES, k: int = 2, fusion: str = "soft-nms",
     if need_intervals and not resamples:
         raise UserError(f"{need_intervals} needs intervals: give --bootstrap N > 0")
     reader = DatasetReader(data)
-    gp = _predictions(run_dir, data, reader, predictions, gates, split, batch_size, setup, progress, need_intervals)
-    if twins and gp.manifest.get("pem"):
-        raise UserError("--twins runs the network on the clear-weather twins: not with a perception error model's "
-                        "--predictions (draw the PEM on the twins' dataset and compare that instead)")
+    gp = _predictions(run_dir, data, reader, predictions, gates, split, batch_size, setup, progress, need_intervals,
+                      twins)
     protocol = gp.manifest["identity"]["protocol"]
     used_split = gp.manifest["identity"]["split"]
     indices = [int(m["dataset_index"]) for m, _ in gp.per_frame]
@@ -165,7 +163,8 @@ def compare(run_dir, data, *, gates=GATES, k: int = 2, fusion: str = "soft-nms",
     }
 
 
-def _predictions(run_dir, data, reader, predictions, gates, split, batch_size, setup, progress, need_intervals):
+def _predictions(run_dir, data, reader, predictions, gates, split, batch_size, setup, progress, need_intervals,
+                 twins=False):
     """The predictions `compare` scores: `predictions` loaded and checked against the run and the data,
     or made by one pass (`study.engine.predictions.predict`; refused first when `need_intervals` and no
     frame holds a box to find)."""
@@ -184,6 +183,9 @@ def _predictions(run_dir, data, reader, predictions, gates, split, batch_size, s
         return predict(run_dir, data, gates=gates, split=split, batch_size=batch_size, setup=setup, progress=progress)
     gp = load(predictions)
     check_predictions(gp, run_dir, data)
+    if twins and gp.manifest.get("pem"):
+        raise UserError("--twins runs the network on the clear-weather twins: not with a perception error model's "
+                        "--predictions (draw the PEM on the twins' dataset and compare that instead)")
     missing = [g for g in usable_gates(run_dir, gates) if g not in gp.gates]
     if missing and gp.manifest.get("pem"):
         raise UserError(f"--predictions {predictions}: drawn by a perception error model, which has no stem features "

@@ -114,3 +114,35 @@ def test_what_a_pem_cannot_give_is_refused(setup):
     (tmp / "same.json").write_text(json.dumps(doc))
     with pytest.raises(UserError, match="fitted on this dataset"):
         predict_pem(tmp / "same.json", test_data, tmp / "s")
+
+
+def test_docs_numbers_are_the_results():
+    """docs/pem.md's tables are the results files' numbers."""
+    import re
+    from pathlib import Path
+
+    root = Path(__file__).resolve().parents[2]
+    doc = (root / "docs" / "pem.md").read_text()
+    check = json.loads((root / "results" / "pem_check_2026-12-07.json").read_text())["check"]
+    net, pem = check["sets"]["network"]["methods"], check["sets"]["pem"]["methods"]
+    for n in net:
+        iv = net[n]["ci95"]
+        row = (f"| {n} | {net[n]['map']:.3f} [{iv[0]:.3f}, {iv[1]:.3f}] | {pem[n]['map']:.3f} | "
+               f"{'in' if pem[n]['in_network_ci95'] else 'out'} |")
+        assert row in doc, row
+    inside = check["sets"]["pem"]["per_context_inside"]
+    assert f"inside the network's interval in {inside['inside']} of {inside['of']}" in doc
+    for pair, co in check["sets"]["network"]["co_detection"].items():
+        row = f"| {pair.replace('|', ' / ')} | {co['lift']:.2f} | {check['sets']['pem']['co_detection'][pair]['lift']:.2f} |"
+        assert row in doc, row
+    sweep = json.loads((root / "results" / "pem_sweep_2026-12-07.json").read_text())["sweep"]
+    for p in sweep["points"]:
+        a, k = p["all_branches_minus_late"], p["knowledge_minus_all_branches"]
+        row = (f"| {p['strength']:g} | {p['maps']['late']:.3f} | {p['maps']['all_branches']:.3f} | "
+               f"{a['value']:+.3f} [{a['ci95'][0]:+.3f}, {a['ci95'][1]:+.3f}] | "
+               f"{k['value']:+.3f} [{k['ci95'][0]:+.3f}, {k['ci95'][1]:+.3f}] | {p['seconds']} |")
+        assert row in doc, row
+    compare = json.loads((root / "results" / "compare_cpu_frontier_demo_2026-12-05.json").read_text())["methods"]
+    a, k = compare["all_branches"]["minus_late"], compare["hydrafusion:knowledge"]["minus_all_branches"]
+    assert (f"all_branches - late {a['value']:+.3f} [{a['ci95'][0]:+.3f}, {a['ci95'][1]:+.3f}], knowledge - "
+            f"all_branches {k['value']:+.3f} [{k['ci95'][0]:+.3f}, {k['ci95'][1]:+.3f}]") in re.sub(r"\s+", " ", doc)
