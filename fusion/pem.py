@@ -42,9 +42,11 @@ multiplies every object's odds of detection by s (adds ln s to the logit: the me
 each feature is kept), divides the box error's mean and sd by s, and divides both false-alarm rates
 by s; scores and classes are unchanged. s < 1 is a weaker one by the same rule.
 
-What it does not model: the correlation of errors across branches (each branch draws on its own
-random stream: two branches that miss the same hard object do so only as often as their
-probabilities say) and across frames of a sequence.
+Errors across branches: besides the features they share, branches find the same objects through
+one standard normal per object shared by every branch (a Gaussian copula: `fit_loadings` fits each
+branch's loading on it to the observed share of objects two branches both find; each branch's own
+detection probability is unchanged). Box errors, scores and false alarms are drawn per branch
+independently, and nothing is correlated across the frames of a sequence.
 
 Deterministic: a frame's draws depend only on (seed, frame key, branch), not on the order frames
 are drawn in.
@@ -260,10 +262,12 @@ class BranchPEM:
         return np.stack(cand)[pick, np.arange(len(gt))]
 
     def sample(self, rng: np.random.Generator, truth: dict, table: dict, context: str, image_size: tuple,
-               strength: float = 1.0) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+               strength: float = 1.0, shared=None, loading: float = 0.0) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """One frame's detections (boxes (n, 4) in the right camera, scores, labels) drawn for the
         true boxes `truth` ({"boxes", "labels"}) with features `table` (`object_table`) in `context`
-        on an image of `image_size` (width, height); `strength` as the module docstring says."""
+        on an image of `image_size` (width, height); `strength` as the module docstring says.
+        `shared`: (n,) standard normal per object, the same for every branch of the frame, weighted by
+        this branch's `loading` (the Gaussian copula of `fit_loadings`; 0: independent)."""
         if not strength > 0:
             raise ValueError(f"strength must be > 0, got {strength!r}")
         width, height = image_size
@@ -275,6 +279,11 @@ class BranchPEM:
         z = rng.standard_normal((ERROR_TRIES, n, 4))
         p_calibrated = self.detection_probability(table) if n else np.zeros(0)
         p = self.detection_probability(table, strength) if n else np.zeros(0)
+        if shared is not None and loading and n:
+            from scipy.special import ndtr, ndtri
+
+            z = loading * np.asarray(shared, float) + math.sqrt(1.0 - loading ** 2) * ndtri(np.clip(u_det, 1e-12, 1 - 1e-12))
+            u_det = ndtr(z)
         found = u_det < p
         bins = np.clip(np.searchsorted(RANGE_EDGES, np.asarray(table["range_m"], float), side="right") - 1,
                        0, len(RANGE_EDGES) - 2) if n else np.zeros(0, int)
@@ -442,6 +451,60 @@ def fit_branch(frames: list[FitFrame], sensors) -> BranchPEM:
         near_rate=[sum(1 for r in near if r[6] == k) / max(objects_by_status[k], 1) for k in (0, 1)],
         fa_bandwidth=bandwidth,
         counts={"frames": n_frames, "objects": int(len(y)), "found": int(y.sum()), "false_alarms": int(len(fa_scores))})
+
+
+LOADING_GRID = np.round(np.linspace(0.0, 0.95, 20), 3)
+COPULA_DRAWS = 200
+
+
+def joint_found(p: np.ndarray, loadings, draws: int = COPULA_DRAWS, seed: int = 0) -> np.ndarray:
+    """(B, B) mean over objects of P(branch a and branch b find the object) when each branch finds it
+    with probability p[:, b] and their draws share a standard normal with `loadings` (Monte Carlo with
+    `draws` fixed draws per object, independent across objects)."""
+    from scipy.special import ndtr
+
+    rng = np.random.default_rng(seed)
+    n, b = p.shape
+    u = rng.standard_normal((draws, n, 1))
+    e = rng.standard_normal((draws, n, b))
+    lam = np.asarray(loadings, float)[None, None, :]
+    found = ndtr(lam * u + np.sqrt(1 - lam ** 2) * e) < p[None, :, :]  # (draws, n, b)
+    f = found.astype(float)
+    return np.einsum("kna,knb->ab", f, f) / (draws * n)
+
+
+def fit_loadings(found: np.ndarray, p: np.ndarray, sweeps: int = 3) -> list[float]:
+    """Per branch, the loading on one normal shared by every branch of an object (a Gaussian copula:
+    each branch's own detection probability is unchanged) whose joint detection P(a and b find it),
+    averaged over objects, is nearest (least squares over pairs) to the observed share of objects
+    `found` (n, B) by both, given the fitted probabilities `p` (n, B); coordinate descent on
+    `LOADING_GRID`. The pair correlation of the latent draws is the product of the two loadings."""
+    found = np.asarray(found, float)
+    observed = found.T @ found / max(len(found), 1)
+    b = found.shape[1]
+    off = ~np.eye(b, dtype=bool)
+    lam = np.zeros(b)
+    # fixed draws per object: the same for every candidate, so the search is smooth
+    for _ in range(sweeps):
+        for j in range(b):
+            best, best_err = lam[j], None
+            for g in LOADING_GRID:
+                cand = lam.copy()
+                cand[j] = g
+                err = float(((joint_found(p, cand) - observed)[off] ** 2).sum())
+                if best_err is None or err < best_err:
+                    best, best_err = g, err
+            lam[j] = best
+    return lam.tolist()
+
+
+def shared_normals(seed: int, key: int, n: int) -> np.ndarray:
+    """The (n,) shared standard normals of a frame's objects (the same for every branch; its own
+    stream, apart from every branch's `frame_rng`)."""
+    return np.random.default_rng([int(seed), int(key), SHARED_STREAM]).standard_normal(n)
+
+
+SHARED_STREAM = 2 ** 31 - 1
 
 
 def frame_rng(seed: int, key: int, branch_index: int) -> np.random.Generator:

@@ -4,7 +4,8 @@ and predictions drawn from them in the same store as the networks' (`study.predi
 
 - `fit`: the model's predictions on a fitting dataset (made once by `hydrabench predict`, cached),
   each branch's detections in the right camera matched to the scored ground truth (the run's
-  protocol) -> one `fusion.pem.BranchPEM` per branch, written as JSON with what it was fitted on.
+  protocol) -> one `fusion.pem.BranchPEM` per branch and each branch's loading on the normal an
+  object shares across branches (`fit_shared_loadings`), written as JSON with what it was fitted on.
 - `predict`: per frame of a dataset, each branch's detections drawn from its PEM (seed and strength
   given) -> a predictions directory. What a PEM cannot give is absent: no stem features (the deep and
   attention gates read them) and no Faster R-CNN losses (the optimal gate reads them); the gate stored
@@ -97,19 +98,45 @@ def fit(run_dir, data, out, *, predictions=None, batch_size: int = 4, setup=None
         for b, d in per.items():
             per_branch[b].append(FitFrame(d.boxes, d.scores, d.labels, truth, table, meta["context"], size))
     sensors = pred.branch_sensors
-    models = {b: fit_branch(frames, sensors[b]).to_dict() for b, frames in per_branch.items()}
+    fitted = {b: fit_branch(frames, sensors[b]) for b, frames in per_branch.items()}
+    models = {b: m.to_dict() for b, m in fitted.items()}
+    loadings = fit_shared_loadings(per_branch, fitted)
     cfg = json.loads((run_dir / "config.json").read_text())
     doc = {"format": FORMAT, "version": VERSION, "run": str(run_dir),
            "checkpoint_sha256": cached_sha256(checkpoint_path(run_dir)), "fit_data": str(data),
            "fit_dataset_sha256": dataset_sha256(data), "fit_frames": len(pred.per_frame), "protocol": protocol,
            "branches": pred.branches, "branch_sensors": {b: list(s) for b, s in sensors.items()},
            "model_frames": {s["name"]: s["frame"] for s in cfg.get("branch_specs", [])} or pred.branch_frames,
-           "predictions": str(pred.root), "branch_pem": models}
+           "predictions": str(pred.root), "loadings": loadings, "branch_pem": models}
     out = Path(out)
     out.parent.mkdir(parents=True, exist_ok=True)
     out.write_text(json.dumps(doc, indent=1))
     return {"pem": str(out), "run": str(run_dir), "fit_data": str(data), "frames": len(pred.per_frame),
-            "branches": {b: m["counts"] for b, m in models.items()}, "seconds": round(time.perf_counter() - t0, 1)}
+            "branches": {b: m["counts"] for b, m in models.items()}, "loadings": loadings, "seconds": round(time.perf_counter() - t0, 1)}
+
+
+def fit_shared_loadings(per_branch: dict, fitted: dict) -> dict:
+    """Each branch's loading on the normal its objects share with the other branches
+    (`fusion.pem.fit_loadings`), from which true boxes of the fitting frames each branch found
+    (`fusion.pem.match`, as the fit matches) and the fitted detection probabilities."""
+    from fusion.pem import fit_loadings, match
+
+    branches = list(per_branch)
+    found, prob = [], []
+    for frames in zip(*(per_branch[b] for b in branches)):
+        truth, table = frames[0].truth, frames[0].table
+        n = len(truth["boxes"])
+        if not n:
+            continue
+        f = np.zeros((n, len(branches)), bool)
+        for k, fr in enumerate(frames):
+            m = match(fr.det_boxes, fr.det_scores, truth["boxes"])
+            f[m[m >= 0], k] = True
+        found.append(f)
+        prob.append(np.column_stack([fitted[b].detection_probability(table) for b in branches]))
+    if not found:
+        return {b: 0.0 for b in branches}
+    return dict(zip(branches, fit_loadings(np.vstack(found), np.vstack(prob))))
 
 
 def load_pem(path) -> dict:
@@ -141,7 +168,7 @@ def _appender(arrays: dict):
 def predict_pem(pem_path, data, out, *, strength: float = 1.0, seed: int = 0, split: str = "auto") -> dict:
     """Draw every branch's detections from the PEM `pem_path` on `data`'s frames (`split` as the run's
     `frames_for` gives them) and write them as predictions at `out` (`study.predictions` format)."""
-    from fusion.pem import BranchPEM, frame_rng
+    from fusion.pem import BranchPEM, frame_rng, shared_normals
     from sensors.dataset import DatasetReader
     from study.gate_data import dataset_sha256
     from study.predictions import ARRAYS, write
@@ -167,6 +194,7 @@ def predict_pem(pem_path, data, out, *, strength: float = 1.0, seed: int = 0, sp
     branches = list(doc["branches"])
     sensors = {b: tuple(s) for b, s in doc["branch_sensors"].items()}
     pems = {b: BranchPEM.from_dict(doc["branch_pem"][b]) for b in branches}
+    loadings = {b: float(v) for b, v in (doc.get("loadings") or {}).items()}
     pem_sha = hashlib.sha256(Path(pem_path).read_bytes()).hexdigest()
 
     def chunks():
@@ -183,9 +211,10 @@ def predict_pem(pem_path, data, out, *, strength: float = 1.0, seed: int = 0, sp
                 take("indices", np.array([i], np.int64))
                 take("meta", np.array([json.dumps(meta)]))
                 take("gate.knowledge", np.array([_knowledge(meta, branches, sensors, doc["model_frames"])], np.float32))
+                shared = shared_normals(seed, i, len(truth["boxes"]))
                 for k, b in enumerate(branches):
                     boxes, scores, labels = pems[b].sample(frame_rng(seed, i, k), truth, table, meta["context"], size,
-                                                           strength)
+                                                           strength, shared, loadings.get(b, 0.0))
                     for prefix in ("det", "ref"):
                         take(f"{prefix}.{b}.count", np.array([len(scores)], np.int32))
                         take(f"{prefix}.{b}.boxes", boxes.astype(np.float32).reshape(-1, 4))
@@ -332,7 +361,12 @@ def check(run_dir, test_data, net_pred, pem_preds: dict, *, resamples: int = 500
                                                           if c != "all"}
         result["sets"][label] = entry
     net_m = result["sets"]["network"]["methods"]
-    for label in pem_preds:
+    labels = list(pem_preds)
+    if len(labels) > 1:
+        result["sets"]["pem_mean"] = {"methods": _mean_methods([result["sets"][x]["methods"] for x in labels]),
+                                      "of": labels}
+        labels.append("pem_mean")
+    for label in labels:
         inside, total = 0, 0
         rows = result["sets"][label]["methods"]
         for n, row in rows.items():
@@ -349,6 +383,19 @@ def check(run_dir, test_data, net_pred, pem_preds: dict, *, resamples: int = 500
     return result
 
 
+def _mean_methods(sets: list) -> dict:
+    """Per method the mean mAP over PEM draws (overall and per context), with the smallest and largest."""
+    out = {}
+    for n in sets[0]:
+        maps = [m[n]["map"] for m in sets if m[n]["map"] is not None]
+        ctx = {c: [m[n]["map_per_context"].get(c) for m in sets] for c in sets[0][n]["map_per_context"]}
+        out[n] = {"map": round(float(np.mean(maps)), 4) if maps else None,
+                  "map_range": [min(maps), max(maps)] if maps else None,
+                  "map_per_context": {c: round(float(np.mean([v for v in vs if v is not None])), 4)
+                                      if any(v is not None for v in vs) else None for c, vs in ctx.items()}}
+    return out
+
+
 def plot_check(result: dict, path, label: str = "pem") -> None:
     """Recall against range and score calibration per branch, the PEM `label` beside the network."""
     import matplotlib
@@ -357,7 +404,7 @@ def plot_check(result: dict, path, label: str = "pem") -> None:
     import matplotlib.pyplot as plt
 
     net = result["sets"]["network"]["curves"]
-    pem = result["sets"][label]["curves"]
+    pem = result["sets"][label]["curves"]  # one draw
     branches = list(net)
     fig, axes = plt.subplots(2, len(branches), figsize=(3.4 * len(branches), 6.4), squeeze=False)
     rc = [(a + b) / 2 for a, b in zip(RECALL_EDGES[:-1], RECALL_EDGES[1:])]

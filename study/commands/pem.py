@@ -69,7 +69,9 @@ def add_parser(sub, name, help_text):
     c.add_argument("data", metavar="DATA", type=dataset_dir, help="the held-out dataset")
     c.add_argument("--network", required=True, type=predictions_dir, metavar="PRED",
                    help="the network's predictions on DATA (hydrabench predict)")
-    c.add_argument("--pem", required=True, type=predictions_dir, metavar="PRED", help="the PEM's predictions on DATA")
+    c.add_argument("--pem", required=True, type=predictions_dir, nargs="+", metavar="PRED",
+                   help="the PEM's predictions on DATA: one draw, or several (other --seed), then also their mean "
+                        "(pem_mean) is checked; the figure shows the first")
     c.add_argument("--bootstrap", type=bootstrap_int, default=500, metavar="N", help="sequence draws for the intervals")
     c.add_argument("--plot", type=out_file(".png", ".pdf", ".svg"), default=None, help="draw the curves here")
     c.add_argument("--out", type=out_file(".json"), default=None, help="also write the result as JSON here")
@@ -127,8 +129,8 @@ def run_predict(args) -> int:
 def run_check(args) -> int:
     from study.pem_study import check, format_check, plot_check
 
-    r = check(Path(args.run_dir), Path(args.data), Path(args.network), {"pem": Path(args.pem)},
-              resamples=args.bootstrap)
+    pems = {("pem" if i == 0 else f"pem{i + 1}"): Path(p) for i, p in enumerate(args.pem)}
+    r = check(Path(args.run_dir), Path(args.data), Path(args.network), pems, resamples=args.bootstrap)
     if args.plot:
         plot_check(r, args.plot)
         r["plot"] = str(args.plot)

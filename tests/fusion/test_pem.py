@@ -135,3 +135,48 @@ def test_round_trip_and_errors(fitted):
         pem.fit_branch([], SENSORS)
     assert pem.match(np.zeros((0, 4)), np.zeros(0), np.zeros((3, 4))).shape == (0,)
     assert math.isclose(pem.box_iou([[0, 0, 2, 2]], [[1, 0, 3, 2]])[0, 0], 1 / 3)
+
+
+def test_shared_loadings_are_recovered_and_keep_each_branch_calibrated():
+    from scipy.special import ndtr
+
+    rng = np.random.default_rng(11)
+    n, true = 1500, np.array([0.8, 0.6, 0.0])
+    p = rng.uniform(0.1, 0.9, (n, 3))
+    z = true * rng.standard_normal((n, 1)) + np.sqrt(1 - true ** 2) * rng.standard_normal((n, 3))
+    found = ndtr(z) < p
+    lam = np.asarray(pem.fit_loadings(found, p, sweeps=2))
+    # three branches identify the loadings through their pair products (the latent correlations)
+    assert lam[0] * lam[1] == pytest.approx(true[0] * true[1], abs=0.12)
+    assert lam[0] * lam[2] < 0.15 and lam[1] * lam[2] < 0.15
+    # the pair correlation makes two branches find the same objects; each branch's rate is unchanged
+    joint = pem.joint_found(p, lam)
+    assert joint[0, 1] == pytest.approx((found[:, 0] & found[:, 1]).mean(), abs=0.02)
+    assert np.allclose(np.diag(joint), p.mean(axis=0), atol=0.02)
+
+
+def test_sampling_with_a_shared_normal(fitted):
+    frames = _frames(300, seed=8)
+    hits = {}
+    for lam in (0.0, 0.9):
+        both, each = 0, np.zeros(2)
+        for k, f in enumerate(frames):
+            shared = pem.shared_normals(5, k, len(f.truth["boxes"]))
+            found = []
+            for b in range(2):
+                boxes, _, _ = fitted.sample(pem.frame_rng(5, k, b), f.truth, f.table, f.context, IMAGE, 1.0, shared, lam)
+                m = pem.match(boxes, np.ones(len(boxes)), f.truth["boxes"])
+                hit = np.zeros(len(f.truth["boxes"]), bool)
+                hit[m[m >= 0]] = True
+                found.append(hit)
+            both += (found[0] & found[1]).sum()
+            each += [found[0].sum(), found[1].sum()]
+        hits[lam] = (both, each)
+    # a loading of 0 is the independent model; 0.9 finds the same objects more often at the same rate
+    assert hits[0.9][0] > 1.08 * hits[0.0][0]
+    assert np.allclose(hits[0.9][1], hits[0.0][1], rtol=0.1)
+    f = frames[0]
+    plain = fitted.sample(pem.frame_rng(5, 0, 0), f.truth, f.table, f.context, IMAGE)
+    zero = fitted.sample(pem.frame_rng(5, 0, 0), f.truth, f.table, f.context, IMAGE, 1.0,
+                         pem.shared_normals(5, 0, len(f.truth["boxes"])), 0.0)
+    assert all(np.array_equal(a, b) for a, b in zip(plain, zero))
