@@ -364,7 +364,7 @@ def check(run_dir, test_data, net_pred, pem_preds: dict, *, resamples: int = 500
     labels = list(pem_preds)
     if len(labels) > 1:
         result["sets"]["pem_mean"] = {"methods": _mean_methods([result["sets"][x]["methods"] for x in labels]),
-                                      "of": labels}
+                                      "of": list(labels)}
         labels.append("pem_mean")
     for label in labels:
         inside, total = 0, 0

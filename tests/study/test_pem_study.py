@@ -67,6 +67,7 @@ def test_pem_predictions_score_through_compare(setup, capsys):
     fitted = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
     assert fitted["frames"] == 6 and set(fitted["branches"]) == {"radar", "camera_right", "lidar", "radar_lidar"}
     assert all(c["found"] > 0 and c["false_alarms"] > 0 for c in fitted["branches"].values()), fitted
+    assert set(fitted["loadings"]) == set(fitted["branches"]) and all(0 <= v < 1 for v in fitted["loadings"].values())
     for out, seed in (("a", 3), ("b", 3), ("c", 4)):
         assert main(["pem", "predict", str(tmp / "pem.json"), str(test_data), "--out", str(tmp / out),
                      "--seed", str(seed)]) == 0
@@ -117,32 +118,42 @@ def test_what_a_pem_cannot_give_is_refused(setup):
 
 
 def test_docs_numbers_are_the_results():
-    """docs/pem.md's tables are the results files' numbers."""
+    """docs/pem.md's tables and counts are the results files' numbers."""
     import re
     from pathlib import Path
 
     root = Path(__file__).resolve().parents[2]
     doc = (root / "docs" / "pem.md").read_text()
+    flat = re.sub(r"\s+", " ", doc)
     check = json.loads((root / "results" / "pem_check_2026-12-07.json").read_text())["check"]
-    net, pem = check["sets"]["network"]["methods"], check["sets"]["pem"]["methods"]
+    net, mean = check["sets"]["network"]["methods"], check["sets"]["pem_mean"]["methods"]
+    assert check["sets"]["pem_mean"]["of"] == ["pem", "pem2", "pem3"]
     for n in net:
-        iv = net[n]["ci95"]
-        row = (f"| {n} | {net[n]['map']:.3f} [{iv[0]:.3f}, {iv[1]:.3f}] | {pem[n]['map']:.3f} | "
-               f"{'in' if pem[n]['in_network_ci95'] else 'out'} |")
+        iv, rg = net[n]["ci95"], mean[n]["map_range"]
+        row = (f"| {n} | {net[n]['map']:.3f} [{iv[0]:.3f}, {iv[1]:.3f}] | {mean[n]['map']:.3f} [{rg[0]:.3f}, {rg[1]:.3f}] | "
+               f"{'in' if mean[n]['in_network_ci95'] else 'out'} |")
         assert row in doc, row
-    inside = check["sets"]["pem"]["per_context_inside"]
-    assert f"inside the network's interval in {inside['inside']} of {inside['of']}" in doc
+    inside = check["sets"]["pem_mean"]["per_context_inside"]
+    assert f"inside the network's interval in {inside['inside']} of {inside['of']}" in flat
     for pair, co in check["sets"]["network"]["co_detection"].items():
-        row = f"| {pair.replace('|', ' / ')} | {co['lift']:.2f} | {check['sets']['pem']['co_detection'][pair]['lift']:.2f} |"
+        lifts = ", ".join(f"{check['sets'][x]['co_detection'][pair]['lift']:.2f}" for x in ("pem", "pem2", "pem3"))
+        row = f"| {pair.replace('|', ' / ')} | {co['lift']:.2f} | {lifts} |"
         assert row in doc, row
-    sweep = json.loads((root / "results" / "pem_sweep_2026-12-07.json").read_text())["sweep"]
-    for p in sweep["points"]:
-        a, k = p["all_branches_minus_late"], p["knowledge_minus_all_branches"]
-        row = (f"| {p['strength']:g} | {p['maps']['late']:.3f} | {p['maps']['all_branches']:.3f} | "
-               f"{a['value']:+.3f} [{a['ci95'][0]:+.3f}, {a['ci95'][1]:+.3f}] | "
-               f"{k['value']:+.3f} [{k['ci95'][0]:+.3f}, {k['ci95'][1]:+.3f}] | {p['seconds']} |")
-        assert row in doc, row
+    loadings = json.loads((root / "results" / "pem_check_2026-12-07.json").read_text())["loadings"]
+    assert ", ".join(f"{b} {v:g}" for b, v in loadings.items()) + "." in flat
+    sweeps = json.loads((root / "results" / "pem_sweep_2026-12-07.json").read_text())["sweeps"]
+    below = 0
+    for seed, sweep in sweeps.items():
+        for p in sweep["points"]:
+            a, k = p["all_branches_minus_late"], p["knowledge_minus_all_branches"]
+            row = (f"| {p['strength']:g} | {seed} | {p['maps']['late']:.3f} | {p['maps']['all_branches']:.3f} | "
+                   f"{a['value']:+.3f} [{a['ci95'][0]:+.3f}, {a['ci95'][1]:+.3f}] | "
+                   f"{k['value']:+.3f} [{k['ci95'][0]:+.3f}, {k['ci95'][1]:+.3f}] | {p['seconds']} |")
+            assert row in doc, row
+            assert a["verdict"] == "above" and k["verdict"] != "above"
+            below += k["verdict"] == "below"
+    assert f"({below} of 12 below)" in doc
     compare = json.loads((root / "results" / "compare_cpu_frontier_demo_2026-12-05.json").read_text())["methods"]
     a, k = compare["all_branches"]["minus_late"], compare["hydrafusion:knowledge"]["minus_all_branches"]
     assert (f"all_branches - late {a['value']:+.3f} [{a['ci95'][0]:+.3f}, {a['ci95'][1]:+.3f}], knowledge - "
-            f"all_branches {k['value']:+.3f} [{k['ci95'][0]:+.3f}, {k['ci95'][1]:+.3f}]") in re.sub(r"\s+", " ", doc)
+            f"all_branches {k['value']:+.3f} [{k['ci95'][0]:+.3f}, {k['ci95'][1]:+.3f}]") in flat
