@@ -1,4 +1,4 @@
-"""`hydrabench pem`: perception error models fitted on a model's predictions (`study.pem_study`):
+"""`hydrabench pem`: perception error models fitted on a model's predictions (`study.experiments.pem`):
 fit, draw predictions, check against the network on held-out frames."""
 
 from __future__ import annotations
@@ -33,7 +33,7 @@ examples:
 
 
 def add_parser(sub, name, help_text):
-    p = sub.add_parser(name, help=help_text, description=module_doc("study.pem_study"), epilog=EPILOG,
+    p = sub.add_parser(name, help=help_text, description=module_doc("study.experiments.pem"), epilog=EPILOG,
                        formatter_class=Formatter)
     what = p.add_subparsers(dest="what", metavar="<what>", required=True)
     f = what.add_parser("fit", help="fit one PEM per branch on a model's predictions on a fitting dataset",
@@ -104,8 +104,8 @@ _strengths.kind = "strengths"
 
 
 def run_fit(args) -> int:
-    from study.device import resolve_device
-    from study.pem_study import fit
+    from study.engine.device import resolve_device
+    from study.experiments.pem import fit
 
     r = fit(Path(args.run_dir), Path(args.data), Path(args.out), predictions=args.predictions,
             batch_size=args.batch_size, setup=None if args.predictions else resolve_device(purpose="eval"))
@@ -117,7 +117,7 @@ def run_fit(args) -> int:
 
 
 def run_predict(args) -> int:
-    from study.pem_study import predict_pem
+    from study.experiments.pem import predict_pem
 
     r = predict_pem(Path(args.pem), Path(args.data), Path(args.out), strength=args.strength, seed=args.seed,
                     split=args.split)
@@ -127,7 +127,7 @@ def run_predict(args) -> int:
 
 
 def run_check(args) -> int:
-    from study.pem_study import check, format_check, plot_check
+    from study.experiments.pem import check, format_check, plot_check
 
     pems = {("pem" if i == 0 else f"pem{i + 1}"): Path(p) for i, p in enumerate(args.pem)}
     r = check(Path(args.run_dir), Path(args.data), Path(args.network), pems, resamples=args.bootstrap)
@@ -142,7 +142,7 @@ def run_check(args) -> int:
 
 
 def run_sweep(args) -> int:
-    from study.pem_study import format_sweep, sweep
+    from study.experiments.pem import format_sweep, sweep
 
     r = sweep(Path(args.run_dir), Path(args.data), Path(args.pem), args.strengths, Path(args.work), seed=args.seed,
               resamples=args.bootstrap)

@@ -19,8 +19,8 @@ def _seed_pem(run_dir, data, path):
     """A PEM file whose every branch is fitted on the ground truth moved a little (no network)."""
     from fusion.pem import FitFrame, apply_error, fit_branch
     from sensors.dataset import DatasetReader
-    from study.gate_data import cached_sha256, checkpoint_path
-    from study.pem_study import FORMAT, VERSION, image_size, truth_and_features
+    from study.engine.gate_data import cached_sha256, checkpoint_path
+    from study.experiments.pem import FORMAT, VERSION, image_size, truth_and_features
 
     cfg = json.loads((run_dir / "config.json").read_text())
     specs = {s["name"]: s for s in cfg["branch_specs"]}
@@ -46,7 +46,7 @@ def _seed_pem(run_dir, data, path):
 
 @pytest.fixture(scope="module")
 def setup(shared_dataset, tmp_path_factory):
-    from study.reference_model import resolve_run
+    from study.engine.reference_model import resolve_run
 
     run_dir = resolve_run("cpu-frontier")
     fit_data, test_data = shared_dataset(FIT), shared_dataset(TEST)
@@ -56,8 +56,8 @@ def setup(shared_dataset, tmp_path_factory):
 
 
 def test_pem_predictions_score_through_compare(setup, capsys):
-    from study.compare import compare
-    from study.predictions import load
+    from study.engine.predictions import load
+    from study.experiments.compare import compare
 
     run_dir, fit_data, test_data, tmp = setup
     # draw on the fitting set, refit on those draws through the command (stored predictions, no network)
@@ -93,8 +93,8 @@ def test_pem_predictions_score_through_compare(setup, capsys):
 
 
 def test_what_a_pem_cannot_give_is_refused(setup):
-    from study.compare import compare
-    from study.pem_study import predict_pem
+    from study.experiments.compare import compare
+    from study.experiments.pem import predict_pem
 
     run_dir, fit_data, test_data, tmp = setup
     predict_pem(tmp / "seed.json", test_data, tmp / "r")
@@ -109,7 +109,7 @@ def test_what_a_pem_cannot_give_is_refused(setup):
     with pytest.raises(UserError, match="not a hydrabench-pem"):
         predict_pem(tmp / "bad.json", test_data, tmp / "s")
     doc = json.loads((tmp / "seed.json").read_text())
-    from study.gate_data import dataset_sha256
+    from study.engine.gate_data import dataset_sha256
 
     doc["fit_dataset_sha256"] = dataset_sha256(test_data)
     (tmp / "same.json").write_text(json.dumps(doc))

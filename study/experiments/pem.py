@@ -1,5 +1,5 @@
 """`hydrabench pem`: perception error models (`fusion.pem`) fitted on a model's stored predictions,
-and predictions drawn from them in the same store as the networks' (`study.predictions`), so that
+and predictions drawn from them in the same store as the networks' (`study.engine.predictions`), so that
 `hydrabench compare MODEL DATA --predictions PRED` scores them with no network.
 
 - `fit`: the model's predictions on a fitting dataset (made once by `hydrabench predict`, cached),
@@ -36,7 +36,7 @@ SCORE_EDGES = tuple(np.linspace(0.0, 1.0, 11))
 
 
 def truth_and_features(reader, meta, protocol) -> dict:
-    """The scored right-camera ground truth of a frame (as `study.scoring.ground_truth` reads it), with
+    """The scored right-camera ground truth of a frame (as `study.engine.scoring.ground_truth` reads it), with
     ids and truncation, and the per-object features (`fusion.pem.object_table`)."""
     from fusion.pem import object_table
     from fusion.protocol import frame_labels
@@ -73,17 +73,17 @@ def fit(run_dir, data, out, *, predictions=None, batch_size: int = 4, setup=None
     """Fit one PEM per branch of `run_dir` on its predictions on `data` (every frame of a dataset the
     run was not trained on; its own test split otherwise) and write them to `out` (JSON).
     `predictions`: stored predictions of the run on `data` to fit on (else made, or read from the
-    run's cache, by `study.predictions.predict`)."""
+    run's cache, by `study.engine.predictions.predict`)."""
     from fusion.pem import FitFrame, fit_branch
     from sensors.dataset import DatasetReader
-    from study.gate_data import cached_sha256, checkpoint_path, dataset_sha256
-    from study.predictions import predict
+    from study.engine.gate_data import cached_sha256, checkpoint_path, dataset_sha256
+    from study.engine.predictions import predict
 
     t0 = time.perf_counter()
     run_dir, data = Path(run_dir), Path(data)
     if predictions is not None:
-        from study.compare import check_predictions
-        from study.predictions import load
+        from study.engine.predictions import load
+        from study.experiments.compare import check_predictions
 
         pred = load(predictions)
         check_predictions(pred, run_dir, data)
@@ -167,14 +167,14 @@ def _appender(arrays: dict):
 
 def predict_pem(pem_path, data, out, *, strength: float = 1.0, seed: int = 0, split: str = "auto") -> dict:
     """Draw every branch's detections from the PEM `pem_path` on `data`'s frames (`split` as the run's
-    `frames_for` gives them) and write them as predictions at `out` (`study.predictions` format)."""
+    `frames_for` gives them) and write them as predictions at `out` (`study.engine.predictions` format)."""
     from fusion.pem import BranchPEM, frame_rng, shared_normals
     from sensors.dataset import DatasetReader
-    from study.gate_data import dataset_sha256
-    from study.predictions import ARRAYS, write
-    from study.predictions import FORMAT as PRED_FORMAT
-    from study.predictions import VERSION as PRED_VERSION
-    from study.scoring import frames_for
+    from study.engine.gate_data import dataset_sha256
+    from study.engine.predictions import ARRAYS, write
+    from study.engine.predictions import FORMAT as PRED_FORMAT
+    from study.engine.predictions import VERSION as PRED_VERSION
+    from study.engine.scoring import frames_for
 
     if not strength > 0:
         raise UserError(f"--strength must be > 0, got {strength}")
@@ -198,7 +198,7 @@ def predict_pem(pem_path, data, out, *, strength: float = 1.0, seed: int = 0, sp
     pem_sha = hashlib.sha256(Path(pem_path).read_bytes()).hexdigest()
 
     def chunks():
-        from study.predictions import CHUNK_FRAMES
+        from study.engine.predictions import CHUNK_FRAMES
 
         for start in range(0, len(indices), CHUNK_FRAMES):
             part = indices[start:start + CHUNK_FRAMES]
@@ -326,9 +326,9 @@ def check(run_dir, test_data, net_pred, pem_preds: dict, *, resamples: int = 500
     network's 95 % interval (sequence bootstrap) and whether each PEM's mAP is inside it; `curves`
     and `co_detection` of each."""
     from sensors.dataset import DatasetReader
-    from study.compare import check_predictions
-    from study.predictions import load
-    from study.scoring import context_bootstrap, fuse_selection, fusion_method, score
+    from study.engine.predictions import load
+    from study.engine.scoring import context_bootstrap, fuse_selection, fusion_method, score
+    from study.experiments.compare import check_predictions
 
     reader = DatasetReader(test_data)
     method = fusion_method(fusion)
@@ -458,10 +458,10 @@ def format_check(r: dict) -> str:
 def sweep(run_dir, data, pem_path, strengths, out_dir, *, seed: int = 0, resamples: int = 500,
           fusion: str = "soft-nms", k: int = 2, progress: bool = False) -> dict:
     """The verdict over detector strength: per strength, the PEM drawn on `data` (`predict_pem`, into
-    OUT_DIR/strength-<s>) and scored by `study.compare.compare` (knowledge gate and fixed methods):
+    OUT_DIR/strength-<s>) and scored by `study.experiments.compare.compare` (knowledge gate and fixed methods):
     all_branches minus late and the knowledge gate minus all_branches, each with its 95 % interval
     and verdict, every method's mAP, and the seconds the point took (draw + score + bootstrap)."""
-    from study.compare import compare
+    from study.experiments.compare import compare
 
     points = []
     for s in strengths:
