@@ -203,12 +203,17 @@ def parser(description: str, epilog: str) -> argparse.ArgumentParser:
     return p
 
 
-def write_results(path: Path, results: dict, meta: dict) -> None:
-    """The results file, written beside `path` and renamed when complete."""
+def write_json(path: Path, doc) -> None:
+    """`doc` as JSON at `path`, written beside it and renamed when complete."""
     path.parent.mkdir(parents=True, exist_ok=True)
     tmp = path.with_name(f".{path.name}.tmp")
-    tmp.write_text(json.dumps({"meta": meta, "results": results}))
+    tmp.write_text(json.dumps(doc))
     os.replace(tmp, path)
+
+
+def write_results(path: Path, results: dict, meta: dict) -> None:
+    """A nuScenes detection-results file: {"meta": meta, "results": {sample token: [box, ...]}}."""
+    write_json(path, {"meta": meta, "results": results})
 
 
 def run(args, channel: str, detect, meta: dict, name: str) -> int:
