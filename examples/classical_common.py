@@ -243,6 +243,27 @@ def run(args, channel: str, detect, meta: dict, name: str) -> int:
     return 0
 
 
+def command(doc: str, channel: str, detect, sensor: str) -> argparse.ArgumentParser:
+    """The command line of a detector of one `sensor` ("lidar", "radar") on `channel`: `doc` (its
+    module docstring: what it does, step by step) as its description, --no-map, its meta block from
+    the sensor and the map."""
+    name = f"{sensor}_detector"
+    p = parser(doc.strip(), f"example:\n  hydrabench export nuscenes data --out data-ns\n"
+               f"  python examples/{name}.py --export data-ns --out {sensor}.json\n"
+               f"  hydrabench score data --export data-ns --nuscenes {sensor}={sensor}.json")
+    p.add_argument("--no-map", action="store_true",
+                   help="keep what lies off the road and sidewalks too (meta use_map false)")
+
+    def go(args):
+        meta = {"use_camera": False, "use_lidar": sensor == "lidar", "use_radar": sensor == "radar",
+                "use_map": not args.no_map, "use_external": False}
+        return run(args, channel, lambda nusc, sample, ctx: detect(nusc, sample, {**ctx, "use_map": not args.no_map}),
+                   meta, name)
+
+    p.set_defaults(run=go)
+    return p
+
+
 def main(build, argv=None) -> int:
     """Parse, run, and turn a DetectorError into one line and exit code 2."""
     args = build().parse_args(argv)

@@ -60,8 +60,7 @@ def selection(nusc, score: dict) -> tuple[dict, dict]:
 
 
 def build() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0], epilog=__doc__.split("\n\n")[1],
-                                formatter_class=argparse.RawDescriptionHelpFormatter)
+    p = argparse.ArgumentParser(description=__doc__.strip(), formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--score", type=Path, required=True, help="a `hydrabench score --json` result")
     p.add_argument("--export", type=Path, required=True, metavar="DIR", help="the nuScenes export it scored")
     p.add_argument("--out", type=Path, required=True, metavar="FILE.json", help="the selection file to write")

@@ -8,7 +8,8 @@ Per sample, from the LIDAR_TOP sweep alone (read with the devkit's LidarPointClo
 2. ground removal: a plane fitted by RANSAC to the points within GROUND_FIT_RANGE_M (vectorised:
    RANSAC_ITERATIONS candidate planes scored at once, the best refined by least squares on its
    inliers); the points between MIN_HEIGHT_M and MAX_HEIGHT_M above it, within MAX_RANGE_M, are kept;
-3. Euclidean clustering: DBSCAN on the kept points' ground positions (x, y), CLUSTER_EPS_M;
+3. Euclidean clustering of the kept points' ground positions (x, y): DBSCAN with min_samples 1 at
+   CLUSTER_EPS_M, on cells of VOXEL_M (each point takes its cell's cluster);
 4. an oriented box per cluster by L-shape fitting (Zhang et al., "Efficient L-shape fitting for
    vehicle detection using laser scanners", IV 2017: the rectangle direction that maximises the
    closeness criterion, searched over 90 headings at 1 degree, all at once), from the ground to the
@@ -18,10 +19,10 @@ Per sample, from the LIDAR_TOP sweep alone (read with the devkit's LidarPointClo
 6. a score from the point count (n / (n + SCORE_HALF_POINTS)), lowered for a box the rule had to
    complete a lot; with a map (default), boxes whose centre is off the road and sidewalks are dropped.
 
-The boxes go to the global frame by the sample's ego pose and written as nuScenes detection
+The boxes are taken to the global frame by the sample's ego pose and written as nuScenes detection
 results, `meta` {"use_lidar": true, "use_map": true (false with --no-map), the rest false}.
 No learning: every threshold below is a constant chosen by hand on a dataset other than the one
-the docs score (docs/examples.md).
+the docs score (docs/nuscenes.md).
 """
 
 from __future__ import annotations
@@ -37,11 +38,10 @@ from classical_common import (  # noqa: E402
     Detection,
     along_line_of_sight,
     clusters,
+    command,
     main,
     map_mask_of,
-    parser,
     poses,
-    run,
     sensor_data,
     transform,
 )
@@ -152,9 +152,8 @@ def complete(center: np.ndarray, yaw: float, along: float, across: float, name: 
              sensor_xy: np.ndarray) -> tuple[np.ndarray, float, float, float, float]:
     """The box a class's typical size makes of a partly seen cluster: its longer side becomes the
     length unless it is at most 1.5 times the class's width and nearer its width than its length (a
-    car seen from one end); each side is at least
-    the typical one, the growth away from the sensor. Returns (centre, yaw, length, width, share of
-    the box's footprint that was seen)."""
+    car seen from one end); each side is at least the typical one, grown away from the sensor.
+    Returns (centre, yaw, length, width, share of the box's footprint that was seen)."""
     length, width, _ = TYPICAL_SIZE[name]
     if across > along:
         along, across, yaw = across, along, yaw + math.pi / 2
@@ -213,27 +212,5 @@ def detect(nusc, sample: dict, ctx: dict) -> list[Detection]:
     return out
 
 
-def build():
-    p = parser(__doc__.split("\n\n")[0], "example:\n  hydrabench export nuscenes data --out data-ns\n"
-               "  python examples/lidar_detector.py --export data-ns --out lidar.json\n"
-               "  hydrabench score data --export data-ns --nuscenes lidar=lidar.json")
-    p.add_argument("--no-map", action="store_true",
-                   help="keep boxes off the road and sidewalks too (meta use_map false)")
-    p.set_defaults(run=lambda args: run(args, CHANNEL, _with_map(args), _meta(args), "lidar_detector"))
-    return p
-
-
-def _with_map(args):
-    def go(nusc, sample, ctx):
-        ctx["use_map"] = not args.no_map
-        return detect(nusc, sample, ctx)
-    return go
-
-
-def _meta(args) -> dict:
-    return {"use_camera": False, "use_lidar": True, "use_radar": False, "use_map": not args.no_map,
-            "use_external": False}
-
-
 if __name__ == "__main__":
-    sys.exit(main(build))
+    sys.exit(main(lambda: command(__doc__, CHANNEL, detect, "lidar")))

@@ -25,7 +25,7 @@ docs/nuscenes.md):
 
 Written as nuScenes detection results, `meta` {"use_radar": true, "use_map": true (false with
 --no-map), the rest false}. No learning: every constant below was chosen by hand on a dataset
-other than the one the docs score (docs/examples.md).
+other than the one the docs score (docs/nuscenes.md).
 """
 
 from __future__ import annotations
@@ -41,11 +41,10 @@ from classical_common import (  # noqa: E402
     Detection,
     along_line_of_sight,
     clusters,
+    command,
     main,
     map_mask_of,
-    parser,
     poses,
-    run,
     sensor_data,
     transform,
 )
@@ -138,27 +137,5 @@ def detect(nusc, sample: dict, ctx: dict) -> list[Detection]:
     return out
 
 
-def build():
-    p = parser(__doc__.split("\n\n")[0], "example:\n  hydrabench export nuscenes data --out data-ns\n"
-               "  python examples/radar_detector.py --export data-ns --out radar.json\n"
-               "  hydrabench score data --export data-ns --nuscenes radar=radar.json")
-    p.add_argument("--no-map", action="store_true",
-                   help="keep returns off the road and sidewalks too (meta use_map false)")
-    p.set_defaults(run=lambda args: run(args, CHANNEL, _with_map(args), _meta(args), "radar_detector"))
-    return p
-
-
-def _with_map(args):
-    def go(nusc, sample, ctx):
-        ctx["use_map"] = not args.no_map
-        return detect(nusc, sample, ctx)
-    return go
-
-
-def _meta(args) -> dict:
-    return {"use_camera": False, "use_lidar": False, "use_radar": True, "use_map": not args.no_map,
-            "use_external": False}
-
-
 if __name__ == "__main__":
-    sys.exit(main(build))
+    sys.exit(main(lambda: command(__doc__, CHANNEL, detect, "radar")))

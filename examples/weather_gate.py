@@ -48,7 +48,7 @@ def branches(text: str) -> list[str]:
 
 
 def build() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0],
+    p = argparse.ArgumentParser(description=__doc__.strip(),
                                 epilog="example:\n  python examples/weather_gate.py --export data-ns --out gate.json\n"
                                        "  hydrabench score data --export data-ns --nuscenes lidar=lidar.json "
                                        "--nuscenes radar=radar.json --selection weather=gate.json",
