@@ -177,6 +177,12 @@ def docs_block(record: dict, name: str) -> str:
                 f"{_num(nm['single:lidar']['map'])} against the classical lidar's "
                 f"{_num(sc['methods']['single:lidar']['map'])}, their radar branch {_num(nm['single:radar']['map'])} "
                 f"against the classical radar's {_num(sc['methods']['single:radar']['map'])}."]
+        for sensor in ("lidar", "radar"):
+            mine, theirs = sc["methods"][f"single:{sensor}"]["map_per_context"], nm[f"single:{sensor}"]["map_per_context"]
+            above = [c for c in ctx if (mine[c] or 0) > (theirs[c] or 0)]
+            out.append(f"The classical {sensor} scores above the own {sensor} branch in "
+                       + (", ".join(f"{c} ({_num(mine[c])} against {_num(theirs[c])})" for c in above) or "no context")
+                       + (", below it elsewhere." if above else "."))
     dk = record["devkit"]
     out += ["", "The devkit's own evaluation (`DetectionEval`, detection_cvpr_2019, every scene; AP averaged over "
             "the 0.5-4 m centre-distance thresholds): " + "; ".join(

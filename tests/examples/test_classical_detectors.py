@@ -25,8 +25,32 @@ FIELDS = {"sample_token", "translation", "size", "rotation", "velocity", "detect
 
 
 def run_example(name: str, *args) -> subprocess.CompletedProcess:
+    """`python examples/NAME.py ARGS` as a user runs it, in its own interpreter."""
     return subprocess.run([sys.executable, str(EXAMPLES / f"{name}.py"), *map(str, args)], capture_output=True,
                           text=True, cwd=ROOT, timeout=300)
+
+
+def example(name: str):
+    """The module examples/NAME.py, imported (its `main` called in this process: no interpreter start)."""
+    import importlib.util
+
+    spec = importlib.util.spec_from_file_location(f"examples_{name}", EXAMPLES / f"{name}.py")
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+def in_process(capsys, name: str, *args) -> tuple[int, str, str]:
+    """(exit code, stdout, stderr) of examples/NAME.py's main on ARGS, in this process."""
+    module = example(name)
+    argv = [str(a) for a in args]
+    try:
+        code = module.main(argv) if name in ("weather_gate", "context_oracle") else module.main(
+            lambda: module.command(module.__doc__, module.CHANNEL, module.detect, name.split("_")[0]), argv)
+    except SystemExit as exc:  # argparse: --help, usage errors
+        code = exc.code
+    out = capsys.readouterr()
+    return code, out.out, out.err
 
 
 @pytest.fixture(scope="module")
@@ -128,8 +152,8 @@ def test_a_results_file_with_a_broken_meta_is_refused(detected, capsys):
 def test_the_weather_gate_and_the_context_oracle_are_scored_as_gates(detected, capsys):
     data, export, files, tmp = detected
     gate = tmp / "gate.json"
-    done = run_example("weather_gate", "--export", export, "--out", gate, "--adverse", "lidar,radar")
-    assert done.returncode == 0, done.stderr
+    code, _, err = in_process(capsys, "weather_gate", "--export", export, "--out", gate, "--adverse", "lidar,radar")
+    assert code == 0, err
     from sensors.export.nuscenes import load_tables
 
     samples = load_tables(export)["sample"]
@@ -141,8 +165,8 @@ def test_the_weather_gate_and_the_context_oracle_are_scored_as_gates(detected, c
     constants = tmp / "constants.json"
     constants.write_text(json.dumps(_score(capsys, data, export, *nuscenes, "--bootstrap", "0")))
     oracle = tmp / "oracle.json"
-    done = run_example("context_oracle", "--score", constants, "--export", export, "--out", oracle)
-    assert done.returncode == 0, done.stderr
+    code, _, err = in_process(capsys, "context_oracle", "--score", constants, "--export", export, "--out", oracle)
+    assert code == 0, err
     r = _score(capsys, data, export, *nuscenes, "--selection", f"weather={gate}", "--selection",
                f"context_oracle={oracle}", "--bootstrap", "20")
     m = r["methods"]
@@ -157,16 +181,19 @@ def test_the_weather_gate_and_the_context_oracle_are_scored_as_gates(detected, c
     assert m["selection:weather"]["minus_late"]["verdict"] in ("above", "below", "not resolved")
 
 
-def test_the_examples_explain_themselves_and_refuse_bad_input_in_one_line(tmp_path):
+def test_the_examples_explain_themselves_and_refuse_bad_input_in_one_line(tmp_path, capsys):
     for name in ("lidar_detector", "radar_detector", "weather_gate", "context_oracle"):
-        done = run_example(name, "--help")
-        assert done.returncode == 0 and "--export" in done.stdout and "--out" in done.stdout, name
-    done = run_example("lidar_detector", "--export", tmp_path / "nowhere", "--out", tmp_path / "x.json")
-    assert done.returncode == 2 and done.stderr.strip().count("\n") == 0
-    assert "no such directory" in done.stderr and "hydrabench export nuscenes" in done.stderr
+        code, out, _ = in_process(capsys, name, "--help")
+        assert code == 0 and "--export" in out and "--out" in out, name
+    code, _, err = in_process(capsys, "lidar_detector", "--export", tmp_path / "nowhere", "--out", tmp_path / "x.json")
+    assert code == 2 and err.strip().count("\n") == 0
+    assert "no such directory" in err and "hydrabench export nuscenes" in err
     (tmp_path / "empty").mkdir()
-    done = run_example("radar_detector", "--export", tmp_path / "empty", "--out", tmp_path / "x.json")
-    assert done.returncode == 2 and "no nuScenes table folders" in done.stderr
+    code, _, err = in_process(capsys, "radar_detector", "--export", tmp_path / "empty", "--out", tmp_path / "x.json")
+    assert code == 2 and "no nuScenes table folders" in err
+    code, _, err = in_process(capsys, "context_oracle", "--score", tmp_path / "none.json", "--export", tmp_path,
+                              "--out", tmp_path / "x.json")
+    assert code == 2 and "not a hydrabench score --json result" in err
     assert not (tmp_path / "x.json").exists()
 
 
@@ -197,8 +224,10 @@ def test_the_docs_hold_the_newest_record_and_its_reading():
     assert m["selection:weather_radar"]["minus_late"]["verdict"] == "below"
     assert abs(m["selection:weather_add_radar"]["minus_late"]["value"]) < 0.01
     assert 0 <= m["selection:context_oracle"]["minus_late"]["value"] < 0.01
-    # "far below the own networks' radar branch"
+    # "far below the own networks' radar branch"; "for the own networks the same path finds room (all_branches
+    # above late)"
     nets = record["networks"]["score"]["methods"]
     assert nets["single:radar"]["map"] > 3 * m["single:radar"]["map"]
+    assert nets["all_branches"]["minus_late"]["verdict"] == "above"
     # the detectors run in well under a minute of CPU each on 192 frames
     assert all(d["cpu_seconds"] < 60 for d in record["detectors"].values())
