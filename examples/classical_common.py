@@ -26,9 +26,6 @@ DETECTION_NAMES = ("car", "truck", "bus", "trailer", "construction_vehicle", "pe
                    "traffic_cone", "barrier")
 """nuScenes' ten detection classes (the devkit's `detection_cvpr_2019`): every box names one."""
 
-DEFAULT_ATTRIBUTE = {"car": "vehicle.moving", "truck": "vehicle.moving", "bus": "vehicle.moving",
-                     "motorcycle": "cycle.with_rider", "bicycle": "cycle.with_rider", "pedestrian": "pedestrian.moving"}
-"""An attribute per class (nuScenes results carry one; these detectors cannot tell moving from stopped)."""
 
 
 class DetectorError(Exception):
@@ -171,7 +168,9 @@ def along_line_of_sight(center_xy: np.ndarray, sensor_xy: np.ndarray, yaw: float
 
 def result_box(token: str, det: Detection, global_from_ego: np.ndarray) -> dict:
     """A nuScenes results box: `det` (ego frame) in the global frame, size (width, length, height),
-    rotation (w, x, y, z)."""
+    rotation (w, x, y, z). A single sweep gives no velocity and no moving/stopped attribute: velocity
+    NaN and attribute "" say "not estimated" (so the devkit's metrics report no mAVE, mAAE or NDS for
+    them rather than errors of a guess)."""
     from pyquaternion import Quaternion
 
     c, s = math.cos(det.yaw), math.sin(det.yaw)
@@ -180,8 +179,8 @@ def result_box(token: str, det: Detection, global_from_ego: np.ndarray) -> dict:
     length, width, height = det.size
     return {"sample_token": token, "translation": [float(v) for v in transform(det.center[None], global_from_ego)[0]],
             "size": [float(width), float(length), float(height)], "rotation": [float(v) for v in q.elements],
-            "velocity": [0.0, 0.0], "detection_name": det.name, "detection_score": float(det.score),
-            "attribute_name": DEFAULT_ATTRIBUTE.get(det.name, "")}
+            "velocity": [math.nan, math.nan], "detection_name": det.name, "detection_score": float(det.score),
+            "attribute_name": ""}
 
 
 # ------------------------------------------------------------------------------------------------

@@ -8,6 +8,14 @@ through the devkit: what a visibility meter and a rain sensor on the car would m
 scenario's label) and chooses `--adverse` when the visibility is below --visibility-m or anything
 falls (rain or snow), else `--clear`. Branch names are the NAMEs given to `hydrabench score
 --nuscenes NAME=FILE`.
+
+The same rule as gates of hydrabench's gate protocol (docs/nuscenes.md, "Score your own gate"), called
+per frame with what a car measures:
+
+    hydrabench score DATA --export DIR --nuscenes lidar=lidar.json --nuscenes radar=radar.json \
+        --gate weather=examples.weather_gate:switch_to_radar --gate weather_add=examples.weather_gate:add_radar
+
+(run from the repository root, where `examples` imports).
 """
 
 from __future__ import annotations
@@ -26,6 +34,16 @@ def adverse(weather: dict, visibility_m: float = VISIBILITY_M) -> bool:
     """Whether a sample's weather (visibility_m, rain_mm_h, snow_mm_h) is fog, rain or snow."""
     return (weather["visibility_m"] < visibility_m or weather["rain_mm_h"] > 0.0
             or weather["snow_mm_h"] > 0.0)
+
+
+def switch_to_radar(frame) -> list[str]:
+    """A gate (study.gate_protocol.GateFrame in): the radar in fog, rain or snow, the lidar otherwise."""
+    return ["radar"] if adverse(frame.weather) else ["lidar"]
+
+
+def add_radar(frame) -> list[str]:
+    """A gate: the lidar and the radar in fog, rain or snow, the lidar alone otherwise."""
+    return ["lidar", "radar"] if adverse(frame.weather) else ["lidar"]
 
 
 def selection(nusc, samples: list[dict], clear: list[str], bad: list[str], visibility_m: float) -> dict:

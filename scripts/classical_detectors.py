@@ -8,9 +8,9 @@ Runs what a user runs, each as its own command, timed by wall clock: the nuScene
 the radar detector, the weather rule gate in two forms (radar alone, or lidar and radar, in fog, rain and
 snow; lidar alone otherwise), a first `hydrabench score` without intervals from which the context oracle
 is picked (examples/context_oracle.py), then `hydrabench score` of both detectors, late fusion, the
-gates and the oracle with 500 sequence draws. Also the devkit's own detection evaluation of each
-detector (`DetectionEval`, detection_cvpr_2019, every scene), and with --networks a trained run's own
-branches written out as results files and scored by the same command. The record holds the commands,
+gates and the oracle with 500 sequence draws and the devkit's detection evaluation beside
+(`--nuscenes-metrics`), and with --networks a trained run's own branches written out as results files
+and scored by the same command. The record holds the commands,
 the wall and CPU times, the sizes, the CPU and its load, and each score result as `hydrabench score
 --json` printed it. `--docs RECORD` writes the measured block of docs/nuscenes.md from a record
 (`--check`: exit 1 when the page differs; the tests run it).
@@ -59,26 +59,7 @@ def shown(cmd: list[str]) -> str:
     return " ".join(str(w).replace(str(ROOT) + "/", "") for w in words)
 
 
-def devkit_metrics(export: Path, results: Path) -> dict:
-    """The nuScenes devkit's detection evaluation of `results` on every scene of `export`."""
-    import tempfile
-
-    from nuscenes import NuScenes
-    from nuscenes.eval.common.config import config_factory
-    from nuscenes.eval.detection.evaluate import DetectionEval
-
-    nusc = NuScenes(version="v1.0-hydrabench", dataroot=str(export), verbose=False)
-    with tempfile.TemporaryDirectory() as tmp:
-        ev = DetectionEval(nusc, config_factory("detection_cvpr_2019"), str(results), "hydrabench-all", tmp,
-                           verbose=False)
-        metrics, _ = ev.evaluate()
-    s = metrics.serialize()
-    return {"mean_ap": s["mean_ap"], "nd_score": s["nd_score"],
-            "mean_dist_aps": {k: round(v, 4) for k, v in s["mean_dist_aps"].items()},
-            "note": "devkit 1.2.0, detection_cvpr_2019: mean_ap averages nuScenes' ten classes (hydrabench makes six)"}
-
-
-def networks(run: str, data: Path, ns: Path, work: Path, resamples: int) -> dict:
+def networks(run: str, data: Path, ns: Path, work: Path, resamples: int, predictions: Path | None) -> dict:
     """`run`'s branches on `data` (study.predictions), written out as results files by
     study.external's writers and scored by `hydrabench score` like any detector from outside."""
     from sensors.dataset import DatasetReader
@@ -87,7 +68,8 @@ def networks(run: str, data: Path, ns: Path, work: Path, resamples: int) -> dict
     from study.predictions import predict
 
     t0 = time.perf_counter()
-    pred = predict(reference_model.resolve_run(run), data, work / "predictions", gates=("knowledge",), split="all")
+    pred = predict(reference_model.resolve_run(run), data, predictions or work / "predictions", gates=("knowledge",),
+                   split="all")
     seconds = round(time.perf_counter() - t0, 1)
     reader = DatasetReader(data)
     index = ExportIndex(ns, reader)
@@ -102,7 +84,8 @@ def networks(run: str, data: Path, ns: Path, work: Path, resamples: int) -> dict
         else:
             path.write_text(json.dumps(coco_results(per_frame, b)))
             args += ["--coco", f"{b}={path}"]
-    cmd = [*HYDRABENCH, "score", str(data), "--export", str(ns), *args, "--bootstrap", str(resamples), "--json"]
+    cmd = [*HYDRABENCH, "score", str(data), "--export", str(ns), *args, "--bootstrap", str(resamples),
+           "--nuscenes-metrics", "--json"]
     print("$ " + " ".join(cmd), file=sys.stderr, flush=True)
     done = subprocess.run(cmd, check=True, stdout=subprocess.PIPE, cwd=ROOT, text=True)
     return {"run": run, "predict_seconds": seconds, "command": shown(cmd), "score": json.loads(done.stdout)}
@@ -183,12 +166,27 @@ def docs_block(record: dict, name: str) -> str:
             out.append(f"The classical {sensor} scores above the own {sensor} branch in "
                        + (", ".join(f"{c} ({_num(mine[c])} against {_num(theirs[c])})" for c in above) or "no context")
                        + (", below it elsewhere." if above else "."))
-    dk = record["devkit"]
-    out += ["", "The devkit's own evaluation (`DetectionEval`, detection_cvpr_2019, every scene; AP averaged over "
-            "the 0.5-4 m centre-distance thresholds): " + "; ".join(
-                f"{n}: car {dk[n]['mean_dist_aps']['car']:.3f}, pedestrian {dk[n]['mean_dist_aps']['pedestrian']:.3f}, "
-                f"truck {dk[n]['mean_dist_aps']['truck']:.3f}, mAP {dk[n]['mean_ap']:.3f} over its ten classes, NDS "
-                f"{dk[n]['nd_score']:.3f}" for n in dk) + "."]
+    rows = {f"classical {n}": sc["methods"][f"single:{n}"]["nuscenes"] for n in ("lidar", "radar")}
+    if nets:
+        rows.update({f"{nets['run']} {m.split(':')[1]}": v["nuscenes"] for m, v in nets["score"]["methods"].items()
+                     if "nuscenes" in v})
+    out += ["", "Beside it, the devkit's own evaluation of the same files (`--nuscenes-metrics`: `DetectionEval`, "
+            "detection_cvpr_2019, centre distance on the ground all around the car, mAP over the classes present; "
+            "no NDS: the classical detectors estimate no velocity and no attribute):", "",
+            f"| branch | mAP | car AP | pedestrian AP | mATE | {' | '.join(ctx)} |",
+            f"|---|---|---|---|---|{'---|' * len(ctx)}"]
+    for name, v in rows.items():
+        o = v["overall"]
+        out.append(f"| {name} | {_num(o['map'])} | {_num(o['ap_per_class'].get('car'))} | "
+                   f"{_num(o['ap_per_class'].get('pedestrian'))} | {_num(o['tp_errors']['mATE'])} | "
+                   + " | ".join(_num(v["per_context"][c]["map"]) if c in v["per_context"] else "-" for c in ctx) + " |")
+    if nets:
+        line = []
+        for sensor in ("lidar", "radar"):
+            mine, theirs = rows[f"classical {sensor}"]["overall"]["map"], rows[f"{nets['run']} {sensor}"]["overall"]["map"]
+            line.append(f"the classical {sensor} scores {'above' if mine > theirs else 'below'} the {nets['run']} {sensor} "
+                        f"branch ({_num(mine)} against {_num(theirs)})")
+        out += ["", "By the devkit's metric, " + " and ".join(line) + "."]
     return "\n".join(out)
 
 
@@ -220,6 +218,9 @@ def main(argv=None) -> int:
     p.add_argument("--networks", default=None, metavar="RUN",
                    help="also score this run's own networks (e.g. cpu-frontier) through the same path: each branch's "
                         "detections written as nuScenes (BEV branches) or COCO (the camera) results")
+    p.add_argument("--predictions", type=Path, default=None, metavar="DIR",
+                   help="with --networks: the predictions folder (reused when it holds this run's predictions on DATA; "
+                        "default: WORK/predictions)")
     args = p.parse_args(argv)
     if args.docs:
         return write_docs(args.docs, args.page, args.check)
@@ -259,7 +260,7 @@ def main(argv=None) -> int:
                             str(work / "score_constants.json"), "--export", str(ns), "--out", str(gates["context_oracle"])])
     with open(work / "score.json", "w") as fh:
         step("score", [*score, *[a for n, f in gates.items() for a in ("--selection", f"{n}={f}")],
-                       "--bootstrap", str(args.bootstrap), "--json"], fh)
+                       "--bootstrap", str(args.bootstrap), "--nuscenes-metrics", "--json"], fh)
     result = json.loads((work / "score.json").read_text())
     boxes = {n: sum(len(v) for v in json.loads(f.read_text())["results"].values()) for n, f in files.items()}
     export_bytes = size(ns)
@@ -274,11 +275,10 @@ def main(argv=None) -> int:
                                        "cpu_seconds": round(cpu_seconds["export"] / frames * 1000, 1),
                                        "gb": round(export_bytes / frames * 1000 / 1e9, 3)}},
         "detectors": {n: {"seconds": seconds[n], "cpu_seconds": cpu_seconds[n], "boxes": boxes[n]} for n in files},
-        "devkit": {n: devkit_metrics(ns, f) for n, f in files.items()},
         "score": result,
     }
     if args.networks:
-        record["networks"] = networks(args.networks, data, ns, work, args.bootstrap)
+        record["networks"] = networks(args.networks, data, ns, work, args.bootstrap, args.predictions)
     out.parent.mkdir(parents=True, exist_ok=True)
     out.write_text(json.dumps(record, indent=1) + "\n")
     print(f"wrote {out}", file=sys.stderr)

@@ -188,6 +188,7 @@ def test_bring_your_own_detector_notebook_scores_the_classical_detectors_and_a_r
     for method in ("single:lidar", "single:radar", "late", "selection:weather_radar", "selection:weather_add_radar",
                    "selection:context_oracle"):
         assert f"\n{method} " in text, method
+    assert "--gate examples.weather_gate:switch_to_radar: the same choice as weather_radar.json on 8 of 8 frames" in text
     assert "junction  best fixed: single:lidar" in text and "selection:context_oracle minus late:" in text
     assert "results/classical_detectors_" in text and ": 192 frames," in text
     assert "cpu-frontier lidar branch" in text and "the classical one is above in:" in text
