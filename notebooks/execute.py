@@ -1,11 +1,12 @@
 """Execute the teaching notebooks top to bottom and store them with their outputs, so that a reader who
 opens one on GitHub sees its figures.
 
-    HYDRABENCH_CACHE=out/cache python notebooks/execute.py                 (all four)
+    HYDRABENCH_CACHE=out/cache python notebooks/execute.py                 (all five)
     python notebooks/execute.py notebooks/02_degradation_physics.ipynb     (one)
 
-Notebook 03 reads the study in $HYDRABENCH_STUDY, by default the committed results/study_cpu
-(docs/notebooks.md says what each notebook runs on).
+Notebook 03 reads the study in $HYDRABENCH_STUDY, by default the committed results/study_cpu; notebook
+05 generates a small dataset unless $HYDRABENCH_BYOD_DATA names one (docs/notebooks.md says what each
+notebook runs on).
 
 Each notebook runs in a kernel whose working directory is the repository root, as under
 tests/notebooks/test_notebooks.py. Nothing that changes from run to run beyond the printed timings is

@@ -168,12 +168,39 @@ def test_when_to_drop_a_sensor_notebook_derives_the_crossover_and_reads_a_studys
     assert "physical_gate" in text and "hydrafusion:knowledge" in text
 
 
+def test_bring_your_own_detector_notebook_scores_the_classical_detectors_and_a_rule_gate(monkeypatch, shared_cache,
+                                                                                       shared_dataset):
+    """05 on the 8-frame junction/fog dataset tests/examples and tests/study/test_external.py use
+    (HYDRABENCH_BYOD_DATA): it exports it, runs both example detectors, scores them, the weather gates
+    and the context oracle, and reads the committed record of the demo set."""
+    from sensors.generate import GenerateConfig
+
+    data = shared_dataset(GenerateConfig(contexts=("junction", "fog"), frames_per_context=4, sequence_length=2, seed=9))
+    monkeypatch.setenv("HYDRABENCH_BYOD_DATA", str(data))
+    monkeypatch.setenv("HYDRABENCH_BYOD_BOOTSTRAP", "50")
+    nb = run_notebook("05_bring_your_own_detector.ipynb", monkeypatch, shared_cache)
+    assert not [o for o in _outputs(nb) if o.get("output_type") == "error"]
+    # the frames, per context, the demo set's record, and its classical detectors against the networks
+    assert len([o for o in _outputs(nb) if "image/png" in o.get("data", {})]) >= 4
+    text = "".join(o.get("text", "") for o in _outputs(nb) if o.get("output_type") == "stream")
+    assert "$ hydrabench export nuscenes" in text and "$ python examples/lidar_detector.py" in text
+    assert "8 frames -> 4 scenes, 8 samples" in text and "8 frames, classes merged" in text
+    for method in ("single:lidar", "single:radar", "late", "selection:weather_radar", "selection:weather_add_radar",
+                   "selection:context_oracle"):
+        assert f"\n{method} " in text, method
+    assert "--gate examples.weather_gate:switch_to_radar: the same choice as weather_radar.json on 8 of 8 frames" in text
+    assert "junction  best fixed: single:lidar" in text and "selection:context_oracle minus late:" in text
+    assert "results/classical_detectors_" in text and ": 192 frames," in text
+    assert "cpu-frontier lidar branch" in text and "the classical one is above in:" in text
+
+
 def _outputs(nb) -> list:
     return [o for c in nb.cells if c.cell_type == "code" for o in c.get("outputs", [])]
 
 
 @pytest.mark.parametrize("name, figures", [("01_fusion_theory.ipynb", 5), ("02_degradation_physics.ipynb", 5),
-                                           ("03_selective_fusion.ipynb", 3), ("04_when_to_drop_a_sensor.ipynb", 2)])
+                                           ("03_selective_fusion.ipynb", 3), ("04_when_to_drop_a_sensor.ipynb", 2),
+                                           ("05_bring_your_own_detector.ipynb", 4)])
 def test_notebooks_are_stored_executed_with_their_figures(name, figures):
     """Stored as one top-to-bottom run: every code cell executed in order, its figures as PNG, no error, no
     per-cell timing metadata (a diff of a rerun shows what changed, not when), a size GitHub renders."""
