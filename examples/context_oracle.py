@@ -8,8 +8,8 @@ Reads a `hydrabench score --json` result and, for each context, picks among its 
 (each branch alone, `late`, `all_branches`) the one with the best mAP on that context's frames; every
 sample of the context gets that method's branches. It is chosen on the very frames it is then scored
 on, so it is a bound on any gate that reads only the context, not a gate a car could run
-(study.bounds' context oracle, for detections from outside). Scored as a selection file, its interval
-holds that choice fixed in every bootstrap draw, so it is optimistic (study.bounds chooses again
+(study.experiments.bounds' context oracle, for detections from outside). Scored as a selection file, its interval
+holds that choice fixed in every bootstrap draw, so it is optimistic (study.experiments.bounds chooses again
 inside each draw). The sample's context is the export's
 `sample["hydrabench"]["context"]`, read through the devkit.
 """

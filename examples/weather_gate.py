@@ -37,7 +37,7 @@ def adverse(weather: dict, visibility_m: float = VISIBILITY_M) -> bool:
 
 
 def switch_to_radar(frame) -> list[str]:
-    """A gate (study.gate_protocol.GateFrame in): the radar in fog, rain or snow, the lidar otherwise."""
+    """A gate (study.experiments.gate_protocol.GateFrame in): the radar in fog, rain or snow, the lidar otherwise."""
     return ["radar"] if adverse(frame.weather) else ["lidar"]
 
 

@@ -60,12 +60,12 @@ def shown(cmd: list[str]) -> str:
 
 
 def networks(run: str, data: Path, ns: Path, work: Path, resamples: int, predictions: Path | None) -> dict:
-    """`run`'s branches on `data` (study.predictions), written out as results files by
-    study.external's writers and scored by `hydrabench score` like any detector from outside."""
+    """`run`'s branches on `data` (study.engine.predictions), written out as results files by
+    study.experiments.external's writers and scored by `hydrabench score` like any detector from outside."""
     from sensors.dataset import DatasetReader
-    from study import reference_model
-    from study.external import ExportIndex, bev_results, coco_results
-    from study.predictions import predict
+    from study.engine import reference_model
+    from study.experiments.external import ExportIndex, bev_results, coco_results
+    from study.engine.predictions import predict
 
     t0 = time.perf_counter()
     pred = predict(reference_model.resolve_run(run), data, predictions or work / "predictions", gates=("knowledge",),
@@ -154,7 +154,7 @@ def docs_block(record: dict, name: str) -> str:
     if nets:
         nm = nets["score"]["methods"]
         out += ["", f"The own networks (`{nets['command']}`; the `{nets['run']}` run's branches written out by "
-                "`study.external.bev_results` / `coco_results`, so scored by the same path in the same merged "
+                "`study.experiments.external.bev_results` / `coco_results`, so scored by the same path in the same merged "
                 f"classes): late {_num(nm['late']['map'])} {_iv(nm['late'].get('ci95'))}, all_branches "
                 f"{_num(nm['all_branches']['map'])} {_iv(nm['all_branches'].get('ci95'))}; their lidar branch "
                 f"{_num(nm['single:lidar']['map'])} against the classical lidar's "

@@ -14,7 +14,7 @@ import pytest
 
 from sensors.generate import GenerateConfig
 from study.cli import main
-from study.nuscenes_export import export_nuscenes
+from study.experiments.nuscenes_export import export_nuscenes
 
 ROOT = Path(__file__).resolve().parents[2]
 EXAMPLES = ROOT / "examples"
