@@ -71,6 +71,10 @@ SLOW_FILES_FIRST = (
     "tests/study/test_bench_recipe.py",
     "tests/study/test_bench_generate_against.py",
     "tests/study/test_gates.py",
+    "tests/examples/test_classical_detectors.py",
+    "tests/study/test_pem_study.py",
+    "tests/study/test_nuscenes_metrics.py",
+    "tests/study/test_gate_protocol.py",
     "tests/study/test_bench_amp.py",
     "tests/sensors/test_ray_backend.py",
 )
