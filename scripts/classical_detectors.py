@@ -64,8 +64,8 @@ def networks(run: str, data: Path, ns: Path, work: Path, resamples: int, predict
     study.experiments.external's writers and scored by `hydrabench score` like any detector from outside."""
     from sensors.dataset import DatasetReader
     from study.engine import reference_model
-    from study.experiments.external import ExportIndex, bev_results, coco_results
     from study.engine.predictions import predict
+    from study.experiments.external import ExportIndex, bev_results, coco_results
 
     t0 = time.perf_counter()
     pred = predict(reference_model.resolve_run(run), data, predictions or work / "predictions", gates=("knowledge",),

@@ -264,8 +264,8 @@ ROOM_RESAMPLES = 200
 ROOM_PERMUTATIONS = 100
 
 
-def corrected_room(sm: StudyMatches, resamples: int, seed: int = 0) -> dict:
-    """`fusion.context_room.room_for_context` of the study's candidate constants over all_branches, on the
+def corrected_room(sm: StudyMatches, resamples: int, seed: int = 0, reference: str = "all_branches") -> dict:
+    """`fusion.context_room.room_for_context` of the study's candidate constants over `reference`, on the
     test frames (pooled mAP per context, all classes), at most ROOM_RESAMPLES draws and ROOM_PERMUTATIONS
     null permutations: {"naive": {...}, "split": {...}, "what", "candidates", "sequences"}."""
     from fusion.context_room import matches_scorer
@@ -278,7 +278,7 @@ def corrected_room(sm: StudyMatches, resamples: int, seed: int = 0) -> dict:
     for c, q in zip(sm.contexts, sm.sequences):
         context_of.setdefault(q, c)
     scorer = matches_scorer([sm.matches[n] for n in names], [index[q] for q in sm.sequences])
-    out = room(scorer, [context_of[q] for q in order], names.index("all_branches"), len(names),
+    out = room(scorer, [context_of[q] for q in order], names.index(reference), len(names),
                resamples=min(resamples, ROOM_RESAMPLES), seed=seed, permutations=min(resamples, ROOM_PERMUTATIONS))
     rec = {k: {"estimate": rounded(v["estimate"]), "interval": rounded_interval(v["interval"]),
                "null_mean": rounded(v["null_mean"]), "null_upper": rounded(v["null_upper"]),
@@ -288,7 +288,7 @@ def corrected_room(sm: StudyMatches, resamples: int, seed: int = 0) -> dict:
     if fewest < 2:  # a context with one sequence cannot be halved: nothing is chosen apart from what is scored
         rec["split"] = {"skipped": f"a context has {fewest} test sequence; halving needs at least 2 in every context "
                                    f"(sequences per context: {per_context})"}
-    return {**rec, "what": ROOM_CORRECTED_WHAT, "candidates": names, "sequences": len(order),
+    return {**rec, "what": ROOM_CORRECTED_WHAT, "reference": reference, "candidates": names, "sequences": len(order),
             "sequences_per_context": per_context,
             "resamples": min(resamples, ROOM_RESAMPLES), "permutations": min(resamples, ROOM_PERMUTATIONS)}
 

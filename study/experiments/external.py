@@ -400,6 +400,38 @@ def read_selection(path, ext: ExternalSet, index: ExportIndex | None) -> list[tu
     return [chosen[f] for f in frames]
 
 
+ORACLE_FIXED = "; scored here with its choice held fixed in every draw, so its interval is optimistic too"
+
+
+def context_oracle(ext: ExternalSet, chosen: dict, scores: dict, resamples: int, reader, protocol, sources) -> dict | None:
+    """The context oracle of the fixed configurations (each branch alone, late fusion, all branches):
+    per context the one of best mAP on the scored frames (a bound, chosen on test; ties: the first), its
+    per-frame selection, and the room for context without its optimism (`study.experiments.bounds.corrected_room`:
+    split-sample and naive, each beside its null), over all_branches (late fusion where there is no
+    all_branches). None with fewer than two configurations."""
+    from study.experiments.bounds import StudyMatches, corrected_room
+
+    fixed = [k for k in chosen if k.startswith("single:") or k in ("late", "all_branches")]
+    if len(fixed) < 2:
+        return None
+    contexts = sorted({m["context"] for m, _ in ext.per_frame})
+
+    def value(k, c):
+        v = scores[k]["map_per_context"].get(c)
+        return -np.inf if v is None or not np.isfinite(v) else v
+
+    pick = {c: max(fixed, key=lambda k, c=c: value(k, c)) for c in contexts}  # max keeps the first of ties
+    selection = [chosen[pick[m["context"]]][i] for i, (m, _) in enumerate(ext.per_frame)]
+    reference = "all_branches" if "all_branches" in fixed else "late" if "late" in fixed else fixed[0]
+    room = None
+    if resamples:
+        sm = StudyMatches.of({k: sources[k] for k in fixed}, {k: tuple(chosen[k][0]) for k in fixed}, {}, reader,
+                             protocol)
+        room = corrected_room(sm, resamples, reference=reference)
+    return {"selection": selection, "choice": pick, "candidates": fixed, "chosen_on": "the scored frames (a bound)",
+            "room_corrected": room}
+
+
 def score_external(reader, ext: ExternalSet, *, selections=None, gates=None, fusion: str = "soft-nms",
                    resamples: int = 500, protocol: str = "reference", interval: str = "sequence") -> dict:
     """Each branch alone, `late` (the single-sensor branches fused), `all_branches` (every branch
@@ -419,6 +451,7 @@ def score_external(reader, ext: ExternalSet, *, selections=None, gates=None, fus
         fusion_method,
         score,
     )
+    from study.experiments.bounds import CONTEXT_ORACLE, CONTEXT_ORACLE_LABEL
     from study.experiments.compare import map_difference, verdict
     from study.numbers import rounded
 
@@ -439,6 +472,11 @@ def score_external(reader, ext: ExternalSet, *, selections=None, gates=None, fus
         kinds[f"gate:{name}"], chosen[f"gate:{name}"] = "gate from outside (study.experiments.gate_protocol)", sel
     sources = {k: fuse_selection(ext.per_frame, sel, frames, method) for k, sel in chosen.items()}
     scores = {k: score(s, rdr, "camera_right", protocol=protocol) for k, s in sources.items()}
+    oracle = context_oracle(ext, chosen, scores, resamples, rdr, protocol, sources)
+    if oracle:
+        chosen[CONTEXT_ORACLE], kinds[CONTEXT_ORACLE] = oracle.pop("selection"), CONTEXT_ORACLE_LABEL + ORACLE_FIXED
+        sources[CONTEXT_ORACLE] = fuse_selection(ext.per_frame, chosen[CONTEXT_ORACLE], frames, method)
+        scores[CONTEXT_ORACLE] = score(sources[CONTEXT_ORACLE], rdr, "camera_right", protocol=protocol)
     boot = (context_bootstrap(sources, rdr, "camera_right", protocol=protocol, resamples=resamples, classes="all",
                               desc="bootstrap the methods", design=interval) if resamples else None)
     ref = "late" if "late" in scores else None
@@ -470,7 +508,7 @@ def score_external(reader, ext: ExternalSet, *, selections=None, gates=None, fus
     return {"frames": n, "contexts": contexts, "fusion": fusion, "protocol": protocol, "branches": ext.branches,
             "branch_sensors": {b: list(s) for b, s in ext.branch_sensors.items()}, "sources": ext.sources,
             "classes": "merged (van -> car, group_of_pedestrians -> pedestrian)" if ext.merged else "RADIATE (8)",
-            "left_out_frames_scored_empty": ext.left_out, "methods": methods,
+            "left_out_frames_scored_empty": ext.left_out, "methods": methods, "context_oracle": oracle,
             "not_available": {"deep, attention": "learned gates read the own networks' stem features",
                               "optimal": "reads each branch's Faster R-CNN losses, which external detections lack"},
             "bootstrap": {"resamples": resamples, "unit": "sequence", "design": interval} if boot else None,

@@ -218,8 +218,18 @@ def test_a_selection_file_is_scored_as_a_gate_with_intervals(export, tmp_path, c
     m = r["methods"]
     assert m["selection:pick"]["map"] == m["single:lidar"]["map"] == 1.0
     assert m["selection:other"]["map"] == m["single:radar"]["map"] < 1.0
-    assert set(m) == {"single:lidar", "single:radar", "late", "selection:pick", "selection:other"}
+    assert set(m) == {"single:lidar", "single:radar", "late", "selection:pick", "selection:other", "context_oracle"}
     assert m["selection:other"]["minus_late"]["ci95"] is not None
+    # the context oracle (a bound): per context the best of the fixed configurations on these frames
+    oracle = r["context_oracle"]
+    assert set(oracle["candidates"]) == {"single:lidar", "single:radar", "late"} and "bound" in oracle["chosen_on"]
+    for c in r["contexts"]:
+        best = max(m[k]["map_per_context"][c] for k in oracle["candidates"])
+        assert m[oracle["choice"][c]]["map_per_context"][c] == best
+        assert m["context_oracle"]["map_per_context"][c] == pytest.approx(best, abs=1e-9)
+    assert "not a method" in m["context_oracle"]["kind"] and "optimistic" in m["context_oracle"]["kind"]
+    room = oracle["room_corrected"]
+    assert room["reference"] == "late" and room["naive"]["estimate"] >= 0
     assert set(m["selection:pick"]["ci95_per_context"]) == set(r["contexts"])
     bad = _write(tmp_path / "g3.json", {tokens[0]: ["sonar"]})
     p = _hb(capsys, data, "--export", out, "--nuscenes", lidar, "--selection", bad, "--bootstrap", "0")
