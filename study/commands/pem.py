@@ -6,6 +6,7 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
+from sim.errors import UserError
 from study.cli import (
     Formatter,
     bootstrap_int,
@@ -15,6 +16,7 @@ from study.cli import (
     emit,
     in_file,
     module_doc,
+    out_dir,
     out_file,
     pos_float,
     pos_int,
@@ -52,7 +54,7 @@ def add_parser(sub, name, help_text):
                         "`compare --predictions` scores (knowledge gate only)", formatter_class=Formatter)
     d.add_argument("pem", metavar="PEM.json", type=in_file, help="a PEM file (hydrabench pem fit)")
     d.add_argument("data", metavar="DATA", type=dataset_dir, help="dataset directory (not the one the PEM was fitted on)")
-    d.add_argument("--out", required=True, metavar="PRED", help="the predictions directory to write (new or empty, "
+    d.add_argument("--out", required=True, type=out_dir, metavar="PRED", help="the predictions directory to write (new or empty, "
                    "or predictions to replace)")
     d.add_argument("--strength", type=pos_float, default=1.0,
                    help="1: the fitted detector; s: every object's odds of detection times s, box error / s, "
@@ -69,9 +71,9 @@ def add_parser(sub, name, help_text):
     c.add_argument("data", metavar="DATA", type=dataset_dir, help="the held-out dataset")
     c.add_argument("--network", required=True, type=predictions_dir, metavar="PRED",
                    help="the network's predictions on DATA (hydrabench predict)")
-    c.add_argument("--pem", required=True, type=predictions_dir, nargs="+", metavar="PRED",
-                   help="the PEM's predictions on DATA: one draw, or several (other --seed), then also their mean "
-                        "(pem_mean) is checked; the figure shows the first")
+    c.add_argument("--pem", required=True, type=predictions_dir, action="append", metavar="PRED",
+                   help="the PEM's predictions on DATA: one draw, or several (repeat --pem; other --seed), then also "
+                        "their mean (pem_mean) is checked; the figure shows the first")
     c.add_argument("--bootstrap", type=bootstrap_int, default=500, metavar="N", help="sequence draws for the intervals")
     c.add_argument("--plot", type=out_file(".png", ".pdf", ".svg"), default=None, help="draw the curves here")
     c.add_argument("--out", type=out_file(".json"), default=None, help="also write the result as JSON here")
@@ -119,7 +121,10 @@ def run_fit(args) -> int:
 def run_predict(args) -> int:
     from study.experiments.pem import predict_pem
 
-    r = predict_pem(Path(args.pem), Path(args.data), Path(args.out), strength=args.strength, seed=args.seed,
+    out = Path(args.out)  # checked before the PEM file is read: what the user wrote last is often the slip
+    if out.exists() and (not out.is_dir() or (any(out.iterdir()) and not (out / "manifest.json").is_file())):
+        raise UserError(f"--out {out}: exists and is not a predictions directory (choose a new or empty one)")
+    r = predict_pem(Path(args.pem), Path(args.data), out, strength=args.strength, seed=args.seed,
                     split=args.split)
     emit(r, args.json, lambda r: (f"{r['predictions']}: {r['frames']} frames ({r['split']}) drawn at strength "
                                   f"{r['strength']:g}, seed {r['seed']}, in {r['seconds']} s"))

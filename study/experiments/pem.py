@@ -327,9 +327,10 @@ def check(run_dir, test_data, net_pred, pem_preds: dict, *, resamples: int = 500
     and `co_detection` of each."""
     from sensors.dataset import DatasetReader
     from study.engine.predictions import load
-    from study.engine.scoring import context_bootstrap, fuse_selection, fusion_method, score
+    from study.engine.scoring import context_bootstrap, fuse_selection, fusion_method, load_run, score
     from study.experiments.compare import check_predictions
 
+    load_run(run_dir)  # the model first: a damaged checkpoint is named before any predictions are read
     reader = DatasetReader(test_data)
     method = fusion_method(fusion)
     net = load(net_pred)
@@ -461,8 +462,10 @@ def sweep(run_dir, data, pem_path, strengths, out_dir, *, seed: int = 0, resampl
     OUT_DIR/strength-<s>) and scored by `study.experiments.compare.compare` (knowledge gate and fixed methods):
     all_branches minus late and the knowledge gate minus all_branches, each with its 95 % interval
     and verdict, every method's mAP, and the seconds the point took (draw + score + bootstrap)."""
+    from study.engine.scoring import load_run
     from study.experiments.compare import compare
 
+    load_run(run_dir)  # the model first: a damaged checkpoint is named before the PEM file is read
     points = []
     for s in strengths:
         t0 = time.perf_counter()

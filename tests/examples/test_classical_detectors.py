@@ -103,7 +103,7 @@ def test_scored_by_hydrabench_they_find_vehicles_in_clear_air(detected, capsys):
     data, export, files, _ = detected
     r = _score(capsys, data, export, "--nuscenes", f"lidar={files['lidar']}", "--nuscenes", f"radar={files['radar']}",
                "--bootstrap", "0")
-    assert set(r["methods"]) == {"single:lidar", "single:radar", "late"}
+    assert set(r["methods"]) == {"single:lidar", "single:radar", "late", "context_oracle"}  # the oracle: a bound
     for name in ("single:lidar", "single:radar"):
         clear = r["methods"][name]["map_vehicles_per_severity"]["0"]  # junction: severity 0, clear air
         assert clear is not None and clear > 0, (name, clear)
@@ -174,6 +174,8 @@ def test_the_weather_gate_and_the_context_oracle_are_scored_as_gates(detected, c
     for ctx in r["contexts"]:  # the oracle takes each context's best constant there
         best = max(m[k]["map_per_context"][ctx] for k in ("single:lidar", "single:radar", "late"))
         assert m["selection:context_oracle"]["map_per_context"][ctx] == pytest.approx(best, abs=1e-12)
+        # the example's selection file is score's own context oracle
+        assert m["context_oracle"]["map_per_context"][ctx] == pytest.approx(best, abs=1e-12)
     # the weather gate is the lidar in clear air and late fusion in fog, context by context
     assert m["selection:weather"]["map_per_context"]["junction"] == pytest.approx(
         m["single:lidar"]["map_per_context"]["junction"], abs=1e-12)

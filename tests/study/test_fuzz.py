@@ -114,7 +114,11 @@ def world(tmp_path_factory):
         copy = damaged_runs / name
         shutil.copytree(run, copy)
         damage(copy)
-    return {"root": root, "data": data, "run": run, "box": box, "damaged": damaged, "damaged_runs": damaged_runs}
+    predictions = root / "predictions"  # a predictions directory as far as parsing reads it (its manifest's format)
+    predictions.mkdir()
+    (predictions / "manifest.json").write_text('{"format": "hydrabench-predictions"}\n')
+    return {"root": root, "data": data, "run": run, "box": box, "damaged": damaged, "damaged_runs": damaged_runs,
+            "predictions": predictions}
 
 
 def _rehash(d: Path) -> None:
@@ -425,6 +429,10 @@ def valid_value(action, world) -> str:
         return str(box / "new" / "out.png")
     if k == "study_config":
         return "tiny"
+    if k == "in_file":  # an existing file (a command reads what it holds after parsing)
+        return str(world["root"] / "a_file")
+    if k == "predictions":
+        return str(world["predictions"])
     if action.choices:
         return str(list(action.choices)[0])
     for opt in action.option_strings:
