@@ -177,7 +177,10 @@ def family_sentence(report: dict) -> str:
     text = (f"Per context, an order is resolved only if its interval excludes 0 and its p-value, {CORRECTION_NAMES[CORRECTION]} "
             f"together with every per-context order of this verdict ({m}: every pair in every context, one family), "
             f"is below {ALPHA:g}.")
-    b = _results(report)["intervals"]["resamples"]
+    intervals = _results(report)["intervals"]
+    if intervals.get("per_context_interval"):  # jackknife-t per context: p-values from t, no floor set by draws
+        return text + f" Per-context intervals and p-values: {intervals['per_context_interval']}."
+    b = intervals["resamples"]
     p_min = 2.0 / (b + 1)  # fusion.intervals.bootstrap_p_value's smallest value
     if CORRECTION == "holm" and p_min * m >= ALPHA:
         text += (f" With {b} draws the smallest p-value a difference can have is {p_min:.4f}, so over {m} orders "

@@ -195,6 +195,11 @@ def test_the_verdict_says_when_its_draws_are_too_few_for_any_per_context_order_t
     assert "With 100 draws the smallest p-value a difference can have is 0.0198, so over 4 orders this " \
            "correction resolves none; it would take at least 160 draws." in few
     assert "it would take" not in " ".join(verdict_sentences(_twin_report(resamples=1000)))
+    # a report whose per-context p-values are jackknife-t's (from t, not from draws) has no such floor
+    jack = _twin_report(resamples=100)
+    jack["results"]["intervals"]["per_context_interval"] = "per context: jackknife-t (...)"
+    text = " ".join(verdict_sentences(jack))
+    assert "it would take" not in text and "Per-context intervals and p-values: per context: jackknife-t" in text
 
 
 def test_the_regret_at_k_is_the_oracles_map_minus_the_gates_with_the_interval_of_the_same_draws():
