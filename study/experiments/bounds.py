@@ -293,10 +293,10 @@ def corrected_room(sm: StudyMatches, resamples: int, seed: int = 0, reference: s
             "resamples": min(resamples, ROOM_RESAMPLES), "permutations": min(resamples, ROOM_PERMUTATIONS)}
 
 
-def context_constant_on_validation(val, candidates: Mapping[str, tuple[str, ...]], method: str, log) -> dict[str, str]:
-    """Issue 50 item 1a: per context, the candidate constant (`candidate_configurations`) of best mAP on
-    the validation frames, each choice recorded in `log`; "all": the best overall, for a context the
-    validation frames lack. {group: candidate name}."""
+def best_on_validation(val, candidates: Mapping[str, tuple[str, ...]], method: str, log, what: str) -> dict[str, str]:
+    """Overall ("all") and per context, the candidate ({name: branches fused on every frame}) of best mAP on
+    the validation frames (`ValidationFrames`), each choice recorded in `log` as "<what> (<group>)..."
+    {group: candidate name}."""
     n = len(val.indices)
     scored = {name: val.score([tuple(b)] * n, method) for name, b in candidates.items()}
     contexts = sorted({c for sc in scored.values() for c in sc["map_per_context"]})
@@ -304,9 +304,16 @@ def context_constant_on_validation(val, candidates: Mapping[str, tuple[str, ...]
     for g in ["all", *contexts]:
         cands = {name: (sc["map"] if g == "all" else sc["map_per_context"].get(g)) for name, sc in scored.items()}
         if any(v is not None for v in cands.values()):
-            out[g] = log.choose(f"per-context constant ({'overall' if g == 'all' else g}), a method", cands,
-                                val.indices, lower_is_better=False, measure="mAP", sequences=val.sequences)
+            out[g] = log.choose(what.format(group="overall" if g == "all" else g), cands, val.indices,
+                                lower_is_better=False, measure="mAP", sequences=val.sequences)
     return out
+
+
+def context_constant_on_validation(val, candidates: Mapping[str, tuple[str, ...]], method: str, log) -> dict[str, str]:
+    """Issue 50 item 1a: per context, the candidate constant (`candidate_configurations`) of best mAP on
+    the validation frames, each choice recorded in `log`; "all": the best overall, for a context the
+    validation frames lack. {group: candidate name}."""
+    return best_on_validation(val, candidates, method, log, "per-context constant ({group}), a method")
 
 
 def add_context_constant(ev, val, singles, late, method: str, log, selections: dict, kinds: dict) -> dict:
@@ -399,15 +406,8 @@ class ValidationFrames:
 def best_single_on_validation(val, singles: Sequence[str], method: str, log) -> dict[str, str]:
     """The best single sensor overall ("all") and per context, by mAP on the validation frames
     (`study.experiments.bounds.ValidationFrames`), each choice recorded in `log`: {group: "single:<branch>"}."""
-    scored = {b: val.score([(b,)] * len(val.indices), method) for b in singles}
-    contexts = sorted({c for sc in scored.values() for c in sc["map_per_context"]})
-    out = {}
-    for g in ["all", *contexts]:
-        cands = {f"single:{b}": (sc["map"] if g == "all" else sc["map_per_context"].get(g)) for b, sc in scored.items()}
-        if any(v is not None for v in cands.values()):
-            out[g] = log.choose(f"best single sensor ({'overall' if g == 'all' else g}), for the verdict", cands,
-                                val.indices, lower_is_better=False, measure="mAP", sequences=val.sequences)
-    return out
+    return best_on_validation(val, {f"single:{b}": (b,) for b in singles}, method, log,
+                              "best single sensor ({group}), for the verdict")
 
 
 def evaluate_bounds(M, ev, selections: dict, kinds: dict, scores: dict, early_fused: dict, singles, late,
