@@ -49,18 +49,21 @@ NARROW_ARGS = [arg for item in NARROW_MODEL for arg in ("--model", item)]
 # first (the sum of their tests' durations in a `make test` on the 2-core AVX2-only EPYC, 2026-12-07:
 # 103 s for the tiny study's file down to 20 s),
 # so that the many short files fill in at the end and both workers finish at about the same time.
-# The two that compute the session caches come first: test_study_runner (the tiny study, read by the
+# The two that compute the session caches come early: test_study_runner (the tiny study, read by the
 # notebook test) and test_theory_measured (the theory cells, read by test_theory_cli and a notebook),
-# and the notebooks only after two other files, so that no reader waits on the lock while a writer
-# runs on the other worker. A file missing here
-# just runs later; the order changes no result.
+# and the notebooks only after three other files, so that no reader waits on the lock while a writer
+# runs on the other worker. test_gates_fit (torch alone) comes before the theory cells: from a fresh
+# clone the numba kernels compile on first use (~40 s of one core), and the tiny study and the theory
+# cells both render at once, so each worker compiled the same sensor kernels beside the other; now the
+# second worker trains gates while the first compiles, then renders from its cache. A file missing
+# here just runs later; the order changes no result.
 SLOW_FILES_FIRST = (
     "tests/study/test_study_runner.py",
+    "tests/study/test_gates_fit.py",
     "tests/study/test_theory_measured.py",
     "tests/study/test_train.py",
     "tests/study/test_reference_model.py",
     "tests/notebooks/test_notebooks.py",
-    "tests/study/test_gates_fit.py",
     "tests/study/test_fuzz.py",
     "tests/study/test_bench_scale.py",
     "tests/study/test_distributed.py",

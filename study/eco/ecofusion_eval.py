@@ -151,6 +151,9 @@ class EcoEval:
         e, e_raw = self.e[choice] * scale, self.e_raw[choice] * scale
         out = {"map": sc["map"], "map_vehicles": sc["map_vehicles"], "avg_loss": round(float(lf.mean()), 4),
                "energy": round(float(e.mean()), 4),
+               # the configurations' own energy, what Eq. 9 trades against the predicted loss (`energy` adds
+               # what the gate costs to decide, measured: with it, a larger lambda_E need not spend less)
+               "energy_configuration": round(float(self.e[choice].mean()), 4),
                "energy_j": round(float(e_raw.mean()), 4),
                "latency_ms": round(1000 * float(t.mean()), 2),
                "gate_ms": round(1000 * float(extra.mean()), 2),

@@ -87,7 +87,8 @@ def sweep(run_dir, data, out: Path, gamma: float = 0.5, lambdas=SWEEP_LAMBDAS, s
                                     "energy_clock_gated_j": round(sensor_energy(d, False, FRAME_HZ), 4),
                                     "energy_per_measurement_j": round(sensor_energy(d, True), 4), "source": d.source}
                                 for k, d in SENSOR_DEVICES.items()},
-        "figure4": {g: {f"{lam:g}": {k: curve[g][lam][k] for k in ("avg_loss", "energy", "map")} for lam in lambdas}
+        "figure4": {g: {f"{lam:g}": {k: curve[g][lam][k] for k in ("avg_loss", "energy", "energy_configuration", "map")}
+                        for lam in lambdas}
                     for g in gates},
         "pareto_lambdas": {g: [f"{x:g}" for x in v] for g, v in fronts.items()},
         "curve": {g: {f"{lam:g}": {k: v for k, v in curve[g][lam].items() if k != "per_scene"} for lam in lambdas}

@@ -5,6 +5,13 @@
 those inside functions too, so the set errs on the side of too many). Each module counts by its
 syntax tree without docstrings (`ast.dump`): a changed comment, docstring or layout keeps the
 digest, a changed statement changes it.
+
+Parsing every module is most of a command's fixed cost (2-3 s for the ~60-120 modules a stage
+reads, on a 2-core EPYC), so each module's result (its syntax-tree digest and the first-party
+modules it imports) is also kept on disk, in `<cache_root>/code-identity-v1.json`, under the SHA-256
+of the module's text (and its name, for the imports): a value is a function of its key, so an
+edited module is parsed again and a stale entry cannot be read. Where the cache directory cannot
+be used, everything is computed as before.
 """
 
 from __future__ import annotations
@@ -12,6 +19,8 @@ from __future__ import annotations
 import ast
 import hashlib
 import inspect
+import json
+import os
 import textwrap
 from functools import cache, lru_cache
 from pathlib import Path
@@ -46,9 +55,64 @@ def _strip_docstrings(tree: ast.AST) -> ast.AST:
     return tree
 
 
+DISK_FILE = "code-identity-v1.json"
+_disk: dict | None = None
+_disk_dirty = False
+
+
+def _disk_entries() -> dict:
+    """{key: value} kept on disk (module docstring); {} where the cache cannot be read."""
+    global _disk
+    if _disk is None:
+        _disk = {}
+        try:
+            from study.outputs import cache_root
+
+            loaded = json.loads((cache_root() / DISK_FILE).read_text())
+            if isinstance(loaded, dict):
+                _disk = loaded
+        except Exception:  # no cache, an unusable one or a damaged file: compute
+            pass
+    return _disk
+
+
+def _remembered(key: str, compute):
+    global _disk_dirty
+    entries = _disk_entries()
+    if key not in entries:
+        entries[key] = compute()
+        _disk_dirty = True
+    return entries[key]
+
+
+def _save_disk() -> None:
+    """Write what this process added (atomically; a concurrent writer's entries may be lost, which
+    only costs a parse)."""
+    global _disk_dirty
+    if not _disk_dirty:
+        return
+    _disk_dirty = False
+    try:
+        from study.outputs import cache_root, write_text_atomic
+
+        path = cache_root() / DISK_FILE
+        path.parent.mkdir(parents=True, exist_ok=True)
+        write_text_atomic(path, json.dumps(_disk_entries(), sort_keys=True))
+    except Exception:
+        pass
+
+
+def _text_key(kind: str, source: str, name: str = "") -> str:
+    return f"{kind}:{name}:{hashlib.sha256(source.encode()).hexdigest()}"
+
+
 @lru_cache(maxsize=4096)
 def source_digest(source: str) -> str:
     """SHA-256 of Python source by its syntax tree, docstrings removed."""
+    return _remembered(_text_key("ast", source), lambda: _ast_digest(source))
+
+
+def _ast_digest(source: str) -> str:
     return hashlib.sha256(ast.dump(_strip_docstrings(ast.parse(source))).encode()).hexdigest()
 
 
@@ -59,6 +123,14 @@ def read_module(name: str) -> str:
 
 @lru_cache(maxsize=4096)
 def _imports(name: str, source: str) -> frozenset[str]:
+    """The first-party modules `source` (module `name`) imports."""
+    # (relative imports resolve against the package: whether `name` is one is part of the key)
+    key = _text_key("imports", source, f"{name}:{module_path(name).name}")
+    found = _remembered(key, lambda: sorted(_parse_imports(name, source)))
+    return frozenset(n for n in found if module_path(n) is not None)
+
+
+def _parse_imports(name: str, source: str) -> set[str]:
     out: set[str] = set()
     package = name if module_path(name).name == "__init__.py" else name.rpartition(".")[0]
     for node in ast.walk(ast.parse(source)):
@@ -76,7 +148,7 @@ def _imports(name: str, source: str) -> frozenset[str]:
     for n in list(out):
         parts = n.split(".")
         out.update(".".join(parts[:i]) for i in range(1, len(parts)))
-    return frozenset(n for n in out if module_path(n) is not None)
+    return out  # every name, first-party or not: which of them are modules is read from disk each time
 
 
 def closure(modules) -> list[str]:
@@ -104,4 +176,5 @@ def code_digest(modules, functions=()) -> str:
         h.update(f"{m}\0{source_digest(read_module(m))}\0".encode())
     for name, src in sources.items():
         h.update(f"{name}\0{source_digest(src)}\0".encode())
+    _save_disk()
     return h.hexdigest()

@@ -504,7 +504,7 @@ def context_bootstrap(sources: dict, reader, frame: str = "camera_right", protoc
     class_ids = [CLASSES.index(c) + 1 for c in VEHICLES] if classes == "vehicles" else list(range(1, len(CLASSES) + 1))
     key = "map_vehicles" if classes == "vehicles" else "map"
     meta_of = {meta["dataset_index"]: meta for meta, _ in sources[names[0]]}
-    gts = [ground_truth(reader.labels(k), frame, None, meta_of[k], protocol) for k in keys]
+    gts = [frame_ground_truth(reader, meta_of[k], frame, None, protocol) for k in keys]
     matches = {n: image_matches(sources[n], keys, gts, class_ids) for n in names}
     row = {k: j for j, k in enumerate(keys)}
     groups = {"all": keys}
@@ -566,15 +566,20 @@ def fuse_selection(per_frame: list, selection, frames: dict, method: str, weight
     """The one way a gate's choice becomes scored boxes: [(meta, fused Detections in the right
     camera)] for [(meta, {branch: Detections})] and `selection` (per frame, the tuple of branch names
     to fuse; branches a frame lacks are left out). `memo`: a dict reused across calls of one method
-    and one `per_frame`, keyed on (frame position, tuple)."""
+    and one `per_frame`: each (frame position, tuple) is fused once, and each branch mapped to the
+    right camera once (`fuse` of mapped detections is `fuse` of the originals: it maps first)."""
+    from fusion.late import REFERENCE, to_reference
+
     memo = {} if memo is None else memo
     out = []
     for i, ((meta, per), frame_selection) in enumerate(zip(per_frame, selection, strict=True)):
         key = (i, tuple(frame_selection))
         if key not in memo:
             calib = Calibration.from_dict(meta["calibration"])
-            memo[key] = fuse({n: per[n] for n in frame_selection if n in per}, frames, calib, method=method,
-                             weights=weights)
+            for n in (n for n in frame_selection if n in per and ("reference", i, n) not in memo):
+                memo["reference", i, n] = to_reference(per[n], frames[n], calib)
+            mapped = {n: memo["reference", i, n] for n in frame_selection if n in per}
+            memo[key] = fuse(mapped, dict.fromkeys(mapped, REFERENCE), calib, method=method, weights=weights)
         out.append((meta, memo[key]))
     return out
 

@@ -115,7 +115,9 @@ def compare(run_dir, data, *, gates=GATES, k: int = 2, fusion: str = "soft-nms",
     skipped = [g for g in gates if g not in trained]
     frames = gp.branch_frames
     kinds, selections = _selections(gp, singles, trained, k)
-    sources = {name: fuse_selection(gp.per_frame, selection, frames, method) for name, selection in selections.items()}
+    memo: dict = {}  # one method: each (frame, branch set) fused once, each branch mapped once
+    sources = {name: fuse_selection(gp.per_frame, selection, frames, method, memo=memo)
+               for name, selection in selections.items()}
     scores = {n: score(s, reader, "camera_right", protocol=protocol) for n, s in sources.items()}
     boot = (context_bootstrap(sources, reader, "camera_right", protocol=protocol, resamples=resamples,
                               classes="all", desc="bootstrap the methods", design=interval) if resamples else None)
@@ -208,10 +210,10 @@ def _need_ground_truth(need_intervals: str, reader, indices, protocol, used_spli
 def _has_ground_truth(reader, indices, protocol) -> bool:
     """Whether any of the frames `indices` holds a box to find (not difficult) in the right camera
     under `protocol`: without one every mAP, and so every interval, is undefined."""
-    from study.engine.scoring import ground_truth
+    from study.engine.scoring import frame_ground_truth
 
-    return any((~ground_truth(reader.labels(i), "camera_right", None, reader.meta(i), protocol)["difficult"]).any()
-               for i in indices)
+    return any((~frame_ground_truth(reader, {**reader.meta(i), "dataset_index": i}, "camera_right", None,
+                                    protocol)["difficult"]).any() for i in indices)
 
 
 def coverage(sources: dict, reader, protocol, deals: int, resamples: int, progress: bool = True,

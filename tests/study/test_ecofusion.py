@@ -175,9 +175,16 @@ def test_eco_sweep_writes_tables_and_figures(eco, data, tmp_path, capsys):
     assert set(t3["late_fusion"]) == {"city", "fog", "overall"} and "ecofusion_knowledge_savings_pct" in t3
     for f in r["figures"]:
         assert os.path.getsize(f) > 10_000
-    # lambda_E = 1 never spends more energy than lambda_E = 0 (same candidates, energy decides)
+    # Eq. 9 on the same predicted losses: a larger lambda_E never chooses configurations of more energy
+    # ((1 - l) L + l E has the argmin of L + m E, m = l / (1 - l) rising with l; if c1 is chosen at m1 and c2
+    # at m2 > m1, adding the two optimality conditions gives (m2 - m1)(E(c2) - E(c1)) <= 0; at l = 1 the
+    # least energy among the candidates). The gates' own measured decision time is not part of the trade, so
+    # the theorem holds for the configurations' energy; with the gate's cost added it holds where the gate
+    # costs nothing to decide (the a-posteriori loss_based oracle)
     for g in ("deep", "attention", "loss_based"):
-        assert r["figure4"][g]["1"]["energy"] <= r["figure4"][g]["0"]["energy"] + 1e-9
+        for lo, hi in (("0", "0.01"), ("0.01", "0.5"), ("0.5", "1")):
+            assert r["figure4"][g][hi]["energy_configuration"] <= r["figure4"][g][lo]["energy_configuration"], (g, lo, hi)
+    assert r["figure4"]["loss_based"]["1"]["energy"] <= r["figure4"]["loss_based"]["0"]["energy"]
 
 
 def test_fp_weight_reweights_cached_terms_and_keeps_its_gates_apart(eco, data, capsys):
