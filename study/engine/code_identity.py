@@ -20,7 +20,6 @@ import ast
 import hashlib
 import inspect
 import json
-import os
 import textwrap
 from functools import cache, lru_cache
 from pathlib import Path
