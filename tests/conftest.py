@@ -1,6 +1,7 @@
 import contextlib
 import fcntl
 import os
+import signal
 from pathlib import Path
 
 import pytest
@@ -33,6 +34,13 @@ def _pin_xdist_worker() -> None:
 
 
 _pin_xdist_worker()
+
+# A shell that starts the suite in the background without job control (`make test &` in a script,
+# nohup, some CI runners) hands it SIGINT ignored, and an ignored signal stays ignored across exec:
+# the tests of Ctrl-C would send a SIGINT that neither the test process nor the commands it starts
+# receive. The suite takes Python's default back, for itself and (at exec, as SIG_DFL) for its children.
+if signal.getsignal(signal.SIGINT) is signal.SIG_IGN:
+    signal.signal(signal.SIGINT, signal.default_int_handler)
 
 # The network the tests train: the cpu profile at a quarter of its width with a small head
 # (`train --model`). What the tests check (resume, determinism, the stages, the tables' equations)

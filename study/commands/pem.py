@@ -31,6 +31,7 @@ examples:
   hydrabench compare cpu-frontier demo/test --predictions pred_pem --gates knowledge
   hydrabench pem check cpu-frontier demo/test --network PRED_NET --pem pred_pem --plot pem_check.png
   hydrabench pem predict pem.json demo/test --out pred_pem_s4 --strength 4   (a stronger detector)
+  hydrabench pem known-answer pem.json demo/test --gate-set data/gate6 --work ka   (do the gates find a known rule?)
 """
 
 
@@ -93,6 +94,22 @@ def add_parser(sub, name, help_text):
     w.add_argument("--out", type=out_file(".json"), default=None, help="also write the result as JSON here")
     w.add_argument("--json", action="store_true", help="print one JSON object on stdout")
     w.set_defaults(run=run_sweep)
+    k = what.add_parser("known-answer", help="a world where the best branch per context is known by construction: "
+                        "do the gates that read context find it?", description=module_doc("study.experiments.known_answer"),
+                        formatter_class=Formatter)
+    k.add_argument("pem", metavar="PEM.json", type=in_file, help="a PEM file (hydrabench pem fit)")
+    k.add_argument("data", metavar="TESTDATA", type=dataset_dir, help="the test set the gates are scored on")
+    k.add_argument("--gate-set", required=True, type=dataset_dir, metavar="GATEDATA",
+                   help="the gate set: the learners fit and choose on it (two sequences or more per context)")
+    k.add_argument("--work", required=True, type=cache_dir, metavar="DIR",
+                   help="where the world's predictions are written (DIR/gate, DIR/test)")
+    k.add_argument("--strong", type=pos_float, default=8.0, help="the answer branch's strength in its context")
+    k.add_argument("--weak", type=pos_float, default=0.125, help="every other branch's strength (below --strong)")
+    k.add_argument("--seed", type=count_int, default=0, help="the gate set's draws (the test set's: seed + 1)")
+    k.add_argument("--bootstrap", type=bootstrap_int, default=500, metavar="N", help="sequence draws for the intervals")
+    k.add_argument("--out", type=out_file(".json"), default=None, help="also write the result as JSON here")
+    k.add_argument("--json", action="store_true", help="print one JSON object on stdout")
+    k.set_defaults(run=run_known_answer)
 
 
 def _strengths(text: str) -> list[float]:
@@ -155,4 +172,18 @@ def run_sweep(args) -> int:
         Path(args.out).parent.mkdir(parents=True, exist_ok=True)
         Path(args.out).write_text(json.dumps(r, indent=1))
     emit(r, args.json, format_sweep)
+    return 0
+
+
+def run_known_answer(args) -> int:
+    from study.experiments.known_answer import format_result, run
+
+    if not args.strong > args.weak:
+        raise UserError(f"--strong ({args.strong:g}) must exceed --weak ({args.weak:g})")
+    r = run(Path(args.pem), Path(args.gate_set), Path(args.data), Path(args.work), strong=args.strong,
+            weak=args.weak, seed=args.seed, resamples=args.bootstrap)
+    if args.out:
+        Path(args.out).parent.mkdir(parents=True, exist_ok=True)
+        Path(args.out).write_text(json.dumps(r, indent=1))
+    emit(r, args.json, format_result)
     return 0

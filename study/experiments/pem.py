@@ -165,9 +165,12 @@ def _appender(arrays: dict):
     return take
 
 
-def predict_pem(pem_path, data, out, *, strength: float = 1.0, seed: int = 0, split: str = "auto") -> dict:
+def predict_pem(pem_path, data, out, *, strength: float = 1.0, seed: int = 0, split: str = "auto",
+                world: dict | None = None) -> dict:
     """Draw every branch's detections from the PEM `pem_path` on `data`'s frames (`split` as the run's
-    `frames_for` gives them) and write them as predictions at `out` (`study.engine.predictions` format)."""
+    `frames_for` gives them) and write them as predictions at `out` (`study.engine.predictions` format).
+    `world`: {branch: {context: factor}}, each branch's strength in a frame's context multiplied by
+    its factor (`fusion.pem.known_answer_world`); a context it does not name keeps `strength`."""
     from fusion.pem import BranchPEM, frame_rng, shared_normals
     from sensors.dataset import DatasetReader
     from study.engine.gate_data import dataset_sha256
@@ -213,8 +216,9 @@ def predict_pem(pem_path, data, out, *, strength: float = 1.0, seed: int = 0, sp
                 take("gate.knowledge", np.array([_knowledge(meta, branches, sensors, doc["model_frames"])], np.float32))
                 shared = shared_normals(seed, i, len(truth["boxes"]))
                 for k, b in enumerate(branches):
+                    s_b = strength * (world or {}).get(b, {}).get(meta["context"], 1.0)
                     boxes, scores, labels = pems[b].sample(frame_rng(seed, i, k), truth, table, meta["context"], size,
-                                                           strength, shared, loadings.get(b, 0.0))
+                                                           s_b, shared, loadings.get(b, 0.0))
                     for prefix in ("det", "ref"):
                         take(f"{prefix}.{b}.count", np.array([len(scores)], np.int32))
                         take(f"{prefix}.{b}.boxes", boxes.astype(np.float32).reshape(-1, 4))
@@ -230,7 +234,7 @@ def predict_pem(pem_path, data, out, *, strength: float = 1.0, seed: int = 0, sp
                 "split": used_split, "frames": len(indices),
                 "indices_sha256": hashlib.sha256(json.dumps([int(i) for i in indices]).encode()).hexdigest(),
                 "pem_sha256": pem_sha, "strength": float(strength), "seed": int(seed), "branches": branches,
-                "gates": ["knowledge"]}
+                "gates": ["knowledge"], **({"world": world} if world else {})}
     manifest = {"format": PRED_FORMAT, "version": PRED_VERSION, "identity": identity, "run": str(run_dir),
                 "data": str(data), "branches": branches, "branch_frames": {b: "camera_right" for b in branches},
                 "branch_sensors": {b: list(s) for b, s in sensors.items()}, "gates": ["knowledge"], "best_gate": None,

@@ -1,0 +1,200 @@
+"""A known-answer world for the gates (issue 49, item 4): `hydrabench pem known-answer`.
+
+A PEM drawn in `fusion.pem.known_answer_world`: in each context one single-sensor branch is drawn
+strong (the camera in clear daylight, the lidar at night, the radar in fog, rain and snow) and every
+other branch weak, so the best branch of each context is known before anything is scored. The world
+is drawn on a gate set (split by sequence, alternately, into fitting and validation frames) and on a
+test set (another seed of the draws); each gate picks one branch per test frame (k = 1), scored by
+the one scoring path (`fuse_selection`, `score`, `context_bootstrap`) and against the answer:
+
+- `answer`: the construction's branch per context; every other method is also scored minus it.
+- `context_constant` (a learner): per context, the branch of best mAP on the validation frames.
+- `measured_gate` (a learner): a gate of the gate protocol that reads what a car measures (its
+  `GateFrame`: the road type and the weather readings, never the context label): one-vs-rest
+  logistic regressions (`fusion.pem.fit_logistic`) on the standardised readings, fitted on the
+  fitting frames to each frame's best branch (`frame_utility`; a frame where branches tie is left out).
+- `best_constant`: the one branch best on validation over every context. Blind to context, it must
+  miss the rule wherever the answer is another branch: the check that this check can fail.
+- `knowledge`: HydraFusion's Table 1 (`KnowledgeGate`), fixed by the paper and reading the context
+  label: reported, not required to agree.
+- `context_oracle`: per context the best branch on the test frames themselves, a bound: it checks
+  the construction (it must be the answer).
+
+A learner recovers the rule when it chooses the answer on at least `RECOVER` of the test frames of
+every context. Nothing is chosen on the test frames but the oracle's bound.
+"""
+
+from __future__ import annotations
+
+import time
+from pathlib import Path
+
+import numpy as np
+
+from sim.errors import UserError
+
+RECOVER = 0.9
+LEARNERS = ("context_constant", "measured_gate")
+ROADS = ("city", "junction", "motorway", "rural")
+
+
+def readings(view) -> list[float]:
+    """What `measured_gate` reads from a `GateFrame`: the road type (one-hot) and the weather readings
+    on log scales."""
+    w = view.weather
+    return [*(float(view.road == r) for r in ROADS), np.log10(max(w["visibility_m"], 1.0)),
+            np.log1p(w["rain_mm_h"]), np.log1p(w["snow_mm_h"]), np.log10(1.0 + w["illuminance_lux"])]
+
+
+class MeasuredGate:
+    """A gate of the gate protocol (called with a `GateFrame`, returns one branch) fitted on frames'
+    readings and each frame's best branch."""
+
+    def __init__(self, branches, x: np.ndarray, best: list[str]):
+        from fusion.pem import fit_logistic
+
+        self.branches = list(branches)
+        self.mean, self.sd = x.mean(axis=0), x.std(axis=0) + 1e-9
+        z = (x - self.mean) / self.sd
+        y = np.array(best)
+        self.weights = {b: fit_logistic(z, (y == b).astype(float)) for b in self.branches if (y == b).any()}
+
+    def __call__(self, view) -> str:
+        z = (np.array(readings(view)) - self.mean) / self.sd
+        logits = {b: w[0] + z @ w[1:] for b, w in self.weights.items()}
+        return max(logits, key=logits.get)
+
+
+def frame_utility(d, gt) -> float:
+    """The scores of `d`'s detections that find a true box minus the scores of those that find none
+    (IoU >= 0.5, greedy by score, difficult boxes left out): what a frame's AP rewards, per frame."""
+    from fusion.pem import match
+
+    m = match(d.boxes, d.scores, gt["boxes"][~gt["difficult"]])
+    return float(d.scores[m >= 0].sum() - d.scores[m < 0].sum())
+
+
+def split_by_sequence(per_frame: list) -> tuple[list, list]:
+    """(fitting, validation) positions of `per_frame`: each context's sequences in order, alternately."""
+    seqs: dict = {}
+    for pos, (meta, _) in enumerate(per_frame):
+        seqs.setdefault(meta["context"], {}).setdefault(meta["sequence_id"], []).append(pos)
+    fit, val = [], []
+    for ctx, by_seq in sorted(seqs.items()):
+        if len(by_seq) < 2:
+            raise UserError(f"the gate set has one sequence of {ctx}: the known-answer check needs two per context "
+                            "(one to fit on, one to choose on)")
+        for j, sid in enumerate(sorted(by_seq)):
+            (fit if j % 2 == 0 else val).extend(by_seq[sid])
+    return sorted(fit), sorted(val)
+
+
+def run(pem_path, gate_data, test_data, work, *, strong: float = 8.0, weak: float = 0.125, seed: int = 0,
+        resamples: int = 500, fusion: str = "soft-nms") -> dict:
+    """The known-answer check (module docstring) -> a JSON-able dict; predictions in `work`/gate, /test."""
+    from fusion.pem import known_answer_world
+    from sensors.dataset import DatasetReader
+    from study.engine.predictions import load
+    from study.engine.scoring import (
+        context_bootstrap,
+        difference_interval,
+        frame_ground_truth,
+        fuse_selection,
+        fusion_method,
+        score,
+    )
+    from study.experiments.gate_protocol import gate_frame
+    from study.experiments.pem import load_pem, predict_pem
+
+    t0 = time.perf_counter()
+    doc = load_pem(pem_path)
+    sensors = {b: tuple(s) for b, s in doc["branch_sensors"].items()}
+    branches = list(doc["branches"])
+    readers = {"gate": DatasetReader(gate_data), "test": DatasetReader(test_data)}
+    contexts = sorted({r.meta(i)["context"] for r in readers.values() for i in range(len(r))})
+    try:
+        world, answer = known_answer_world(sensors, contexts, strong, weak)
+    except ValueError as exc:
+        raise UserError(str(exc)) from None
+    work = Path(work)
+    for part, data, s in (("gate", gate_data, seed), ("test", test_data, seed + 1)):
+        predict_pem(pem_path, data, work / part, seed=s, world=world)
+    gp, tp = load(work / "gate"), load(work / "test")
+    method, protocol = fusion_method(fusion), doc["protocol"]
+    frames = tp.branch_frames
+
+    def per_context(per_frame, reader, branch):
+        sel = [(branch,)] * len(per_frame)
+        return score(fuse_selection(per_frame, sel, frames, method), reader, "camera_right", protocol=protocol)
+
+    fit_pos, val_pos = split_by_sequence(gp.per_frame)
+    val = [gp.per_frame[p] for p in val_pos]
+    val_scores = {b: per_context(val, readers["gate"], b) for b in branches}
+    best_constant = max(branches, key=lambda b: val_scores[b]["map"] or -1.0)
+    context_constant = {c: max(branches, key=lambda b: val_scores[b]["map_per_context"].get(c) or -1.0)
+                        for c in contexts}
+    x, best = [], []
+    for p in fit_pos:
+        meta, per = gp.per_frame[p]
+        gt = frame_ground_truth(readers["gate"], meta, "camera_right", None, protocol)
+        u = {b: frame_utility(per[b], gt) for b in branches}
+        top = max(u.values())
+        if sum(v == top for v in u.values()) > 1:
+            continue  # no one best branch (a frame with nothing found): it teaches the gate nothing
+        x.append(readings(gate_frame(meta, per, sensors)))
+        best.append(max(branches, key=u.get))
+    gate = MeasuredGate(branches, np.array(x), best)
+    test_scores = {b: per_context(tp.per_frame, readers["test"], b) for b in branches}
+    oracle = {c: max(branches, key=lambda b: test_scores[b]["map_per_context"].get(c) or -1.0) for c in contexts}
+    ctx_of = [meta["context"] for meta, _ in tp.per_frame]
+    picks = {
+        "answer": [answer[c] for c in ctx_of],
+        "context_constant": [context_constant[c] for c in ctx_of],
+        "measured_gate": [gate(gate_frame(meta, per, sensors)) for meta, per in tp.per_frame],
+        "best_constant": [best_constant] * len(ctx_of),
+        "knowledge": [s[0] for s in tp.selection("knowledge", 1)],
+        "context_oracle": [oracle[c] for c in ctx_of],
+    }
+    memo: dict = {}
+    sources = {n: fuse_selection(tp.per_frame, [(b,) for b in p], frames, method, memo=memo) for n, p in picks.items()}
+    scored = {n: score(s, readers["test"], "camera_right", protocol=protocol) for n, s in sources.items()}
+    boot = (context_bootstrap(sources, readers["test"], "camera_right", protocol=protocol, resamples=resamples,
+                              classes="all", desc="bootstrap the gates") if resamples else None)
+    methods = {}
+    for n, p in picks.items():
+        agree = {c: round(float(np.mean([b == answer[c] for b, cc in zip(p, ctx_of) if cc == c])), 4) for c in contexts}
+        row = {"map": scored[n]["map"], "map_per_context": scored[n]["map_per_context"], "agreement": agree,
+               "agreement_all": round(float(np.mean([b == answer[c] for b, c in zip(p, ctx_of)])), 4)}
+        if boot and n != "answer":
+            row["minus_answer_ci95"] = difference_interval(boot["per_context"]["all"], n, "answer")
+        if n in LEARNERS or n == "best_constant":
+            row["recovers_the_rule"] = all(a >= RECOVER for a in agree.values())
+        methods[n] = row
+    return {
+        "world": {"answer": answer, "strong": strong, "weak": weak, "strengths": world},
+        "construction_holds": methods["context_oracle"]["agreement_all"] == 1.0,
+        "methods": methods, "chosen_on_validation": {"context_constant": context_constant, "best_constant": best_constant},
+        "frames": {"fit": len(fit_pos), "validation": len(val_pos), "test": len(tp.per_frame)},
+        "measured_gate_targets": {b: best.count(b) for b in branches},
+        "recover": RECOVER, "fusion": fusion, "k": 1, "seed": seed, "bootstrap": resamples,
+        "predictions": {"gate": str(work / "gate"), "test": str(work / "test")},
+        "seconds": round(time.perf_counter() - t0, 1),
+    }
+
+
+def format_result(r: dict) -> str:
+    w = r["world"]
+    lines = [f"known answer (strong {w['strong']:g}, weak {w['weak']:g}): "
+             + ", ".join(f"{c} -> {b}" for c, b in w["answer"].items()),
+             f"construction: the test set's own per-context best is the answer in every context: "
+             f"{'yes' if r['construction_holds'] else 'NO'}",
+             f"{r['frames']['test']} test frames; agreement with the answer, mAP and minus the answer (95 % interval):"]
+    for n, m in r["methods"].items():
+        ci = m.get("minus_answer_ci95")
+        iv = f"[{ci[0]:+.3f}, {ci[1]:+.3f}]" if ci else ""
+        verdict = ("" if "recovers_the_rule" not in m else
+                   "  recovers the rule" if m["recovers_the_rule"] else "  DOES NOT recover the rule")
+        worst = min(m["agreement"], key=m["agreement"].get)
+        lines.append(f"  {n:17s} agrees {100 * m['agreement_all']:5.1f} % (least: {worst} {100 * m['agreement'][worst]:.0f} %)"
+                     f"  mAP {m['map'] if m['map'] is not None else '-'} {iv}{verdict}")
+    return "\n".join(lines)
