@@ -200,5 +200,6 @@ def test_the_demo_time_the_readme_quotes_is_its_newest_measurement():
     m = re.search(r"\((\d+) s on an? ([^:]+): `scripts/time_demo.sh`, `(results/demo_time_[0-9-]+\.json)`\)", readme)
     assert m, "README's demo time sentence is missing"
     assert m.group(3) == f"results/{newest.name}" and int(m.group(1)) == round(t["seconds"]) and m.group(2) == t["cpu"]
-    minutes = {1: "a minute", 2: "two minutes", 3: "three minutes", 4: "four minutes", 5: "five minutes"}
-    assert f"about {minutes[max(1, round(t['seconds'] / 60))]}" in readme
+    minutes = {1: "a minute", 1.5: "a minute and a half", 2: "two minutes", 2.5: "two and a half minutes",
+               3: "three minutes", 3.5: "three and a half minutes", 4: "four minutes", 5: "five minutes"}
+    assert f"about {minutes[max(1, round(t['seconds'] / 30) / 2)]}" in readme  # to the nearest half minute
