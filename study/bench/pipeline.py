@@ -81,8 +81,8 @@ def _in_fresh_child(fn, *args, **kwargs):
 
 def bench_generate(profiles=("cpu", "paper"), workers=(1, 2), frames_per_context: int = 10,
                    sequence_length: int = 10, seed: int = 0, start_methods=(None,), rounds: int = 1,
-                   twins: bool = False) -> dict:
-    """Generate a temporary dataset over every context for each profile, worker count and start
+                   twins: bool = False, contexts=("all",)) -> dict:
+    """Generate a temporary dataset over `contexts` (default every context) for each profile, worker count and start
     method of the worker pool (None: `sensors.generate.worker_start_method()`, "fork", "spawn"):
     frames per second, and (at the first worker count and method, first round) milliseconds per
     pipeline component and per degradation model, summed over workers, per rendered frame.
@@ -99,8 +99,11 @@ def bench_generate(profiles=("cpu", "paper"), workers=(1, 2), frames_per_context
     profiles, workers, start_methods = list(profiles), list(workers), list(start_methods)
     if rounds < 1:
         raise ValueError(f"rounds must be >= 1, got {rounds}")
-    configs = {profile: GenerateConfig(frames_per_context=frames_per_context, sequence_length=sequence_length,
-                                       seed=seed, profile=profile, twins=twins)
+    from sim.scenario import CONTEXT_NAMES
+
+    chosen = list(CONTEXT_NAMES) if tuple(contexts) == ("all",) else list(contexts)
+    configs = {profile: GenerateConfig(contexts=chosen, frames_per_context=frames_per_context,
+                                       sequence_length=sequence_length, seed=seed, profile=profile, twins=twins)
                for profile in profiles}  # all valid first
     runs, components = [], {}
     for round_ in range(rounds):
@@ -138,7 +141,7 @@ def bench_generate(profiles=("cpu", "paper"), workers=(1, 2), frames_per_context
         }
     return {"runs": runs, "ratios": ratios, "ms_per_component": components, "degradation": degradation,
             "frames_per_context": frames_per_context, "sequence_length": sequence_length, "rounds": rounds,
-            "twins": twins,
+            "twins": twins, "contexts": chosen,
             **machine()}
 
 
@@ -179,13 +182,13 @@ def dataset_digest(root) -> str:
 
 
 def _generate_from(checkout: dict, out: str, profile: str, workers: int, frames_per_context: int,
-                   sequence_length: int, seed: int, twins: bool, timeout_s: float) -> dict:
+                   sequence_length: int, seed: int, twins: bool, timeout_s: float, contexts=("all",)) -> dict:
     """`python -m study.cli generate ... --json` run from a checkout (its code first on sys.path)."""
     import json
     import subprocess
     import sys
 
-    cmd = [sys.executable, "-m", "study.cli", "generate", "--out", out, "--contexts", "all",
+    cmd = [sys.executable, "-m", "study.cli", "generate", "--out", out, "--contexts", ",".join(contexts),
            "--frames-per-context", str(frames_per_context), "--sequence-length", str(sequence_length),
            "--seed", str(seed), "--profile", profile, "--workers", str(workers), "--json"]
     if twins:
@@ -203,10 +206,10 @@ def _generate_from(checkout: dict, out: str, profile: str, workers: int, frames_
 
 def bench_generate_against(checkouts, profiles=("cpu",), workers=(2,), frames_per_context: int = 20,
                            sequence_length: int = 10, seed: int = 0, rounds: int = 3, twins: bool = False,
-                           timeout_s: float = 3600.0, progress=None) -> dict:
+                           timeout_s: float = 3600.0, progress=None, contexts=("all",)) -> dict:
     """This code's `generate` against other checkouts' (e.g. a git worktree of an older commit), in turn.
 
-    Every run is `python -m study.cli generate --out TMP --contexts all ... --json` started from a
+    Every run is `python -m study.cli generate --out TMP --contexts CONTEXTS ... --json` started from a
     checkout's directory, so each side pays the same process start-up and each times itself with its
     own `frames_per_second` (frames / wall seconds inside `generate`). Per round: this code, then each
     other checkout in the given order (A B C A B C ...), so a machine whose speed drifts slows each
@@ -227,6 +230,10 @@ def bench_generate_against(checkouts, profiles=("cpu",), workers=(2,), frames_pe
         raise UserError(f"--against names this checkout ({here['dir']}) or one directory twice")
     if rounds < 1:
         raise ValueError(f"rounds must be >= 1, got {rounds}")
+    from sensors.generate import GenerateConfig
+    from sim.scenario import CONTEXT_NAMES
+
+    GenerateConfig(contexts=list(CONTEXT_NAMES) if tuple(contexts) == ("all",) else list(contexts))  # refused here, not in a child
     sides = [here, *others]
     runs = []
     for round_ in range(rounds):
@@ -237,7 +244,7 @@ def bench_generate_against(checkouts, profiles=("cpu",), workers=(2,), frames_pe
                     with tempfile.TemporaryDirectory(prefix="hydrabench-against-") as tmp:
                         out = str(Path(tmp) / "data")
                         r = _generate_from(side, out, profile, w, frames_per_context, sequence_length, seed, twins,
-                                           timeout_s)
+                                           timeout_s, contexts)
                         digests[side["dir"]] = dataset_digest(out)
                     runs.append({"round": round_, "profile": profile, "workers": w, "dir": side["dir"],
                                  "commit": side["commit"], "frames": r["frames"], "seconds": r["seconds"],
@@ -258,4 +265,4 @@ def bench_generate_against(checkouts, profiles=("cpu",), workers=(2,), frames_pe
         same[s["dir"]] = all(x["same_bytes"] for x in runs if x["dir"] == s["dir"])
     return {"this": here, "against": others, "runs": runs, "ratios": ratios, "same_bytes": same,
             "frames_per_context": frames_per_context, "sequence_length": sequence_length, "rounds": rounds,
-            "twins": twins, "seed": seed, **machine()}
+            "twins": twins, "seed": seed, "contexts": list(contexts), **machine()}

@@ -19,20 +19,20 @@ ROOT = Path(__file__).resolve().parents[2]
 
 def test_bench_generate_alternates_start_methods_and_reports_their_ratio():
     cmd = [sys.executable, "-m", "study.cli", "bench", "generate", "--profiles", "cpu", "--workers", "2",
-           "--frames-per-context", "1", "--sequence-length", "1", "--start-methods", "spawn,fork", "--rounds", "2",
-           "--twins", "--json"]
+           "--contexts", "city,fog", "--frames-per-context", "1", "--sequence-length", "1",
+           "--start-methods", "spawn,fork", "--rounds", "2", "--twins", "--json"]
     env = {**os.environ, "HYDRABENCH_PROGRESS_S": "0"}
     run = subprocess.run(cmd, capture_output=True, text=True, timeout=900, cwd=ROOT, env=env)
     assert run.returncode == 0, run.stderr[-2000:]
     r = json.loads(run.stdout)
     assert [(x["round"], x["start_method"]) for x in r["runs"]] == [(0, "spawn"), (0, "fork"), (1, "spawn"), (1, "fork")]
-    assert all(x["frames"] == 8 and x["frames_per_second"] > 0 for x in r["runs"])
+    assert all(x["frames"] == 2 and x["frames_per_second"] > 0 for x in r["runs"]) and r["contexts"] == ["city", "fog"]
     med = {m: statistics.median(x["frames_per_second"] for x in r["runs"] if x["start_method"] == m)
            for m in ("spawn", "fork")}
     assert r["ratios"]["cpu/2"] == {"spawn": 1.0, "fork": round(med["fork"] / med["spawn"], 3)}
     assert set(r["ms_per_component"]["cpu"]) >= {"simulation", "camera_raster", "camera_shading", "write"}
     assert r["twins"] is True
-    assert "generate: 8/8 frame" in run.stderr  # progress lines in a log
+    assert "generate: 2/2 frame" in run.stderr  # progress lines in a log
 
 
 @pytest.mark.parametrize("argv, needle", [

@@ -22,7 +22,8 @@ def test_bench_generate_against_a_copy_of_this_code_runs_both_in_turn_with_the_s
     for part in ("sim", "sensors", "fusion", "study", "configs"):
         (copy / part).symlink_to(ROOT / part, target_is_directory=True)
     cmd = [sys.executable, "-m", "study.cli", "bench", "generate", "--against", str(copy), "--profiles", "cpu",
-           "--workers", "1", "--frames-per-context", "1", "--sequence-length", "1", "--rounds", "2", "--json"]
+           "--workers", "1", "--contexts", "city,fog", "--frames-per-context", "1", "--sequence-length", "1",
+           "--rounds", "2", "--json"]
     run = subprocess.run(cmd, capture_output=True, text=True, timeout=900, cwd=ROOT,
                          env={**os.environ, "HYDRABENCH_PROGRESS_S": "0"})
     assert run.returncode == 0, run.stderr[-2000:]
@@ -30,7 +31,8 @@ def test_bench_generate_against_a_copy_of_this_code_runs_both_in_turn_with_the_s
     here, there = str(ROOT.resolve()), str(copy.resolve())
     assert r["this"]["dir"] == here and r["against"] == [{"dir": there, "commit": None}]
     assert [(x["round"], x["dir"]) for x in r["runs"]] == [(0, here), (0, there), (1, here), (1, there)]
-    assert all(x["frames"] == 8 and x["frames_per_second"] > 0 and x["same_bytes"] for x in r["runs"])
+    assert all(x["frames"] == 2 and x["frames_per_second"] > 0 and x["same_bytes"] for x in r["runs"])
+    assert r["contexts"] == ["city", "fog"]  # each side was asked for these two (the child's --contexts)
     med = {d: statistics.median(x["frames_per_second"] for x in r["runs"] if x["dir"] == d) for d in (here, there)}
     assert r["ratios"] == {"cpu/1": {there: round(med[here] / med[there], 3)}}
     assert r["same_bytes"] == {there: True}

@@ -24,6 +24,8 @@ def add_parser(what) -> None:
                         formatter_class=Formatter)
     g.add_argument("--profiles", type=name_list, default="cpu,paper", help="comma-separated sensor profiles, each once")
     g.add_argument("--workers", type=int_list(1, MAX_WORKERS, "workers"), default="1,2", help="comma-separated worker counts, each once")
+    g.add_argument("--contexts", type=name_list, default=("all",),
+                   help="'all' or comma-separated contexts/combinations of each run's dataset, each once [all]")
     g.add_argument("--frames-per-context", type=pos_int, default=10, help="frames per context per run")
     g.add_argument("--sequence-length", type=pos_int, default=10, help="frames per sequence (setup is amortised over it)")
     g.add_argument("--seed", type=nonneg_int, default=0, help="root random seed")
@@ -39,7 +41,7 @@ def add_parser(what) -> None:
                    "frame and its twin once)")
     g.add_argument("--against", type=checkouts_arg, default=(), metavar="DIR[,DIR]",
                    help="compare with other hydrabench checkouts (e.g. `git worktree add /tmp/old COMMIT`): "
-                   "every run is then `python -m study.cli generate --contexts all ... --json` from each checkout "
+                   "every run is then `python -m study.cli generate --contexts ... --json` from each checkout "
                    "in turn (this code first) for --rounds rounds; reports each one's median frames/s, this "
                    "code's ratio to it, and whether its dataset had the same bytes")
     g.add_argument("--json", action="store_true", help="print one JSON object on stdout")
@@ -81,7 +83,7 @@ def run_generate(args) -> int:
         return _run_generate_against(args)
     result = bench_generate(profiles=args.profiles, workers=args.workers, frames_per_context=args.frames_per_context,
                             sequence_length=args.sequence_length, seed=args.seed, start_methods=args.start_methods,
-                            rounds=args.rounds, twins=args.twins)
+                            rounds=args.rounds, twins=args.twins, contexts=args.contexts)
 
     def text(r):
         lines = [f"{x['profile']:6s} workers {x['workers']} ({x['start_method']}, round {x['round'] + 1}): "
@@ -118,7 +120,8 @@ def _run_generate_against(args) -> int:
 
     result = bench_generate_against(args.against, profiles=args.profiles, workers=args.workers,
                                     frames_per_context=args.frames_per_context, sequence_length=args.sequence_length,
-                                    seed=args.seed, rounds=args.rounds, twins=args.twins, progress=progress)
+                                    seed=args.seed, rounds=args.rounds, twins=args.twins, progress=progress,
+                                    contexts=args.contexts)
 
     def text(r):
         names = {s["dir"]: s["commit"] or s["dir"] for s in [r["this"], *r["against"]]}
