@@ -79,6 +79,13 @@ def _in_fresh_child(fn, *args, **kwargs):
     return value
 
 
+def _contexts(contexts) -> list[str]:
+    """A `--contexts` value as `GenerateConfig` takes it: ("all",) -> the eight contexts."""
+    from sim.scenario import CONTEXT_NAMES
+
+    return list(CONTEXT_NAMES) if tuple(contexts) == ("all",) else list(contexts)
+
+
 def bench_generate(profiles=("cpu", "paper"), workers=(1, 2), frames_per_context: int = 10,
                    sequence_length: int = 10, seed: int = 0, start_methods=(None,), rounds: int = 1,
                    twins: bool = False, contexts=("all",)) -> dict:
@@ -99,9 +106,7 @@ def bench_generate(profiles=("cpu", "paper"), workers=(1, 2), frames_per_context
     profiles, workers, start_methods = list(profiles), list(workers), list(start_methods)
     if rounds < 1:
         raise ValueError(f"rounds must be >= 1, got {rounds}")
-    from sim.scenario import CONTEXT_NAMES
-
-    chosen = list(CONTEXT_NAMES) if tuple(contexts) == ("all",) else list(contexts)
+    chosen = _contexts(contexts)
     configs = {profile: GenerateConfig(contexts=chosen, frames_per_context=frames_per_context,
                                        sequence_length=sequence_length, seed=seed, profile=profile, twins=twins)
                for profile in profiles}  # all valid first
@@ -231,9 +236,8 @@ def bench_generate_against(checkouts, profiles=("cpu",), workers=(2,), frames_pe
     if rounds < 1:
         raise ValueError(f"rounds must be >= 1, got {rounds}")
     from sensors.generate import GenerateConfig
-    from sim.scenario import CONTEXT_NAMES
 
-    GenerateConfig(contexts=list(CONTEXT_NAMES) if tuple(contexts) == ("all",) else list(contexts))  # refused here, not in a child
+    GenerateConfig(contexts=_contexts(contexts))  # an unknown context is refused here, not in a child
     sides = [here, *others]
     runs = []
     for round_ in range(rounds):
@@ -265,4 +269,4 @@ def bench_generate_against(checkouts, profiles=("cpu",), workers=(2,), frames_pe
         same[s["dir"]] = all(x["same_bytes"] for x in runs if x["dir"] == s["dir"])
     return {"this": here, "against": others, "runs": runs, "ratios": ratios, "same_bytes": same,
             "frames_per_context": frames_per_context, "sequence_length": sequence_length, "rounds": rounds,
-            "twins": twins, "seed": seed, "contexts": list(contexts), **machine()}
+            "twins": twins, "seed": seed, "contexts": _contexts(contexts), **machine()}

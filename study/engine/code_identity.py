@@ -55,8 +55,12 @@ def _strip_docstrings(tree: ast.AST) -> ast.AST:
 
 
 DISK_FILE = "code-identity-v1.json"
+DISK_ENTRIES = 4096
+"""Entries the file keeps at most: past it, a writer keeps only what it read or computed itself (each edit
+of a module adds entries; without a bound the file would grow with every edit)."""
 _disk: dict | None = None
 _disk_dirty = False
+_used: set[str] = set()
 
 
 def _disk_entries() -> dict:
@@ -78,6 +82,7 @@ def _disk_entries() -> dict:
 def _remembered(key: str, compute):
     global _disk_dirty
     entries = _disk_entries()
+    _used.add(key)
     if key not in entries:
         entries[key] = compute()
         _disk_dirty = True
@@ -96,7 +101,10 @@ def _save_disk() -> None:
 
         path = cache_root() / DISK_FILE
         path.parent.mkdir(parents=True, exist_ok=True)
-        write_text_atomic(path, json.dumps(_disk_entries(), sort_keys=True))
+        entries = _disk_entries()
+        if len(entries) > DISK_ENTRIES:
+            entries = {k: v for k, v in entries.items() if k in _used}
+        write_text_atomic(path, json.dumps(entries, sort_keys=True))
     except Exception:
         pass
 

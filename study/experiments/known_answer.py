@@ -35,14 +35,15 @@ from sim.errors import UserError
 
 RECOVER = 0.9
 LEARNERS = ("context_constant", "measured_gate")
-ROADS = ("city", "junction", "motorway", "rural")
 
 
 def readings(view) -> list[float]:
     """What `measured_gate` reads from a `GateFrame`: the road type (one-hot) and the weather readings
     on log scales."""
+    from sim.scenario import LAYOUT_NAMES
+
     w = view.weather
-    return [*(float(view.road == r) for r in ROADS), np.log10(max(w["visibility_m"], 1.0)),
+    return [*(float(view.road == r) for r in LAYOUT_NAMES), np.log10(max(w["visibility_m"], 1.0)),
             np.log1p(w["rain_mm_h"]), np.log1p(w["snow_mm_h"]), np.log10(1.0 + w["illuminance_lux"])]
 
 

@@ -14,6 +14,7 @@ def _fresh_process(monkeypatch):
     """What a new process starts with: no entries read, no parse remembered."""
     monkeypatch.setattr(ci, "_disk", None)
     monkeypatch.setattr(ci, "_disk_dirty", False)
+    monkeypatch.setattr(ci, "_used", set())
     ci.source_digest.cache_clear()
     ci._imports.cache_clear()
 
@@ -53,3 +54,17 @@ def test_a_damaged_or_unusable_cache_changes_nothing(cache, tmp_path, monkeypatc
     monkeypatch.setenv("HYDRABENCH_CACHE", "/proc/no-such-cache")
     _fresh_process(monkeypatch)
     assert ci.code_digest(MODULES) == first
+
+
+def test_past_its_bound_the_file_keeps_what_the_writer_used(cache, monkeypatch):
+    first = ci.code_digest(MODULES)
+    used = set(json.loads(cache.read_text()))
+    stale = {f"ast::{i:064x}": "0" * 64 for i in range(40)}  # entries of module texts edited away long ago
+    cache.write_text(json.dumps({**json.loads(cache.read_text()), **stale}))
+    monkeypatch.setattr(ci, "DISK_ENTRIES", len(used) + 10)
+    _fresh_process(monkeypatch)
+    real = ci.read_module
+    monkeypatch.setattr(ci, "read_module", lambda name: real(name) + ("\nEDITED = 2\n" if name == MODULES[0] else ""))
+    assert ci.code_digest(MODULES) != first  # one module parsed again: the file is written, now over its bound
+    kept = set(json.loads(cache.read_text()))
+    assert not kept & set(stale) and len(kept - used) == 2 and len(used - kept) == 2  # the edited module: new text, new keys
