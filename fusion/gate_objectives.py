@@ -141,6 +141,26 @@ def regret(costs, choice) -> float:
     return float((chosen_cost(costs, choice) - costs.min(axis=1)).mean())
 
 
+def top_k_regret(costs, scores, k: int = 1) -> float:
+    """Mean over frames of the summed cost of the k choices of lowest score minus the summed cost of
+    the frame's k cheapest choices (issue 50, item 5): the regret of a gate that runs its top k. 0 for
+    a gate that ranks the k cheapest first in any order; `regret` of the top choice at k = 1; 0 at
+    k >= the number of choices. Ties in the scores go to the first choice, as `choose`; nan for no
+    frames."""
+    costs = np.atleast_2d(np.asarray(costs, np.float64))
+    scores = np.atleast_2d(np.asarray(scores, np.float64))
+    if costs.shape != scores.shape:
+        raise ValueError(f"costs and scores: expected the same shape, got {costs.shape} and {scores.shape}")
+    if k < 1:
+        raise ValueError(f"k: must be >= 1, got {k}")
+    if not len(costs):
+        return float("nan")
+    k = min(int(k), costs.shape[1])
+    chosen = np.argsort(scores, axis=1, kind="stable")[:, :k]
+    picked = np.take_along_axis(costs, chosen, axis=1).sum(axis=1)
+    return float((picked - np.sort(costs, axis=1)[:, :k].sum(axis=1)).mean())
+
+
 def constant_choice(costs_fit) -> int:
     """The one choice with the lowest mean cost over the fitting frames."""
     costs_fit = np.asarray(costs_fit, np.float64)

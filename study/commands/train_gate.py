@@ -109,6 +109,10 @@ def add_train_gate(sub, name, help_text):
     p.add_argument("--seed", type=nonneg_int, default=0, help="initialisation, data order, validation split")
     p.add_argument("--checkpoint", type=checkpoint_arg, default="latest", help="latest, or epoch-NNN")
     add_objective_args(p)
+    p.add_argument("--k", type=pos_int, default=1,
+                   help="the branches the gate will run per frame (compare --k): the epoch and objective are chosen "
+                        "by the validation regret of its top k (the summed loss of the k it ranks first minus the "
+                        "frame's k best), so a gate that runs two is chosen for two")
     p.add_argument("--fresh", action="store_true", help="discard a previous training of this gate")
     add_device_args(p, purpose="eval")
     p.add_argument("--json", action="store_true", help="print one JSON object on stdout")
@@ -120,7 +124,7 @@ def run_train_gate(args) -> int:
     cfg = branch_gate_study.GateTrainConfig(gate=args.gate, epochs=args.epochs, batch_size=args.batch_size,
                                             lr=args.lr, val_fraction=args.val_fraction, seed=args.seed,
                                             grid=tuple(args.grid), checkpoint=args.checkpoint, threads=setup.threads,
-                                            **parse_objective_fields(args))
+                                            k=args.k, **parse_objective_fields(args))
     result = branch_gate_study.train_gate(Path(args.run_dir), Path(args.data), cfg, fresh=args.fresh, setup=setup)
 
     def text(r):

@@ -8,7 +8,7 @@ optimiser is ours), on an objective of `fusion.gate_objectives`: the paper's reg
 mean absolute error, or one that targets the choice (the within-frame differences, a soft ranking,
 the expected regret); by default ("auto") one gate per objective, keeping the lowest regret on the
 validation sequences. The epoch is picked by the regret of the gate's
-choice on the validation sequences (ties by MAE). It reports the test split's MAE against constant
+choice on the validation sequences (ties by MAE): of its top k where it runs k (`--k`). It reports the test split's MAE against constant
 predictors (per-branch training mean and median) and the gate's choice against the best constant
 branch, the per-context constant and the oracle.
 
@@ -87,6 +87,10 @@ class GateTrainConfig:
             fitting frames' losses, recorded in the result).
         select_on: what picks the epoch on the validation frames: "regret" (the mean loss of the
             chosen branch minus the per-frame best; ties by MAE) or "mae".
+        k: the branches the gate runs per frame (its top k): the validation regret that picks the
+            epoch and, with "auto", the objective is that of its top-k set (`top_k_regret`: the summed
+            loss of the k it ranks first minus that of the frame's k best), so a gate that runs two
+            is chosen for two (issue 50, item 5). 1: the top choice alone.
         context: the gate also reads the frame's context label (road layout and conditions, what
             a car can know: `fusion.nets.branch_gates.context_features`).
         pooling: "grid" (convs on the pooled grid) or "global" (an MLP on each stem channel's
@@ -116,12 +120,15 @@ class GateTrainConfig:
     context: bool = False
     pooling: str = "grid"
     fit_frames: int = 0
+    k: int = 1
 
     def __post_init__(self) -> None:
         from fusion.gate_objectives import OBJECTIVES
 
         if self.fit_frames < 0:
             raise UserError(f"fit_frames: must be >= 0 (0: every fitting frame), got {self.fit_frames}")
+        if not isinstance(self.k, int) or self.k < 1:
+            raise UserError(f"k: must be an integer >= 1 (the branches the gate runs), got {self.k!r}")
 
         if self.objective not in (AUTO, ROUTER):
             OBJECTIVES.get(self.objective)  # UserError naming the choices
@@ -209,15 +216,16 @@ def fit_gate(gate, x_fit: np.ndarray, y_fit: np.ndarray, x_val: np.ndarray, y_va
     (resumable from the checkpoint dict `state`; `extra` is stored in every checkpoint).
 
     y are the per-frame costs of the gate's choices (branch losses, or L_f per configuration). The
-    epoch is picked on the validation frames by `cfg.select_on`: the regret of the gate's choice
-    (its cost minus the frame's best), ties broken by MAE; or MAE alone.
+    epoch is picked on the validation frames by `cfg.select_on`: the regret of the gate's top
+    `cfg.k` (`top_k_regret`; at k = 1 its choice's cost minus the frame's best), ties broken by MAE;
+    or MAE alone.
 
     Returns {"best_epoch", "best_val_mae", "best_val_regret", "tau", "history"}; the gate holds the
     weights of the best validation epoch (the last epoch when there is no validation set).
     """
     import torch
 
-    from fusion.gate_objectives import OBJECTIVES, choose, default_tau, regret
+    from fusion.gate_objectives import OBJECTIVES, default_tau, top_k_regret
 
     if cfg.objective == AUTO:
         raise ValueError("fit_gate trains one objective; fit_objectives chooses among them (objective 'auto')")
@@ -258,7 +266,7 @@ def fit_gate(gate, x_fit: np.ndarray, y_fit: np.ndarray, x_val: np.ndarray, y_va
         row = {"epoch": epoch, f"train_{cfg.objective}": round(total / max(n, 1), 6), "val_mae": "", "val_regret": ""}
         if len(x_val):
             p_val = predict_losses(gate, x_val)
-            row["val_mae"], row["val_regret"] = round(mae(p_val, y_val), 6), round(regret(y_val, choose(p_val)), 6)
+            row["val_mae"], row["val_regret"] = round(mae(p_val, y_val), 6), round(top_k_regret(y_val, p_val, cfg.k), 6)
             score = [row["val_regret"], row["val_mae"]] if cfg.select_on == "regret" else [row["val_mae"]]
         history.append(row)
         if not len(x_val) or best_val is None or score < best_val:
@@ -291,7 +299,8 @@ def resume_state(ckpt: Path, settings: dict, fresh: bool, what: str, progress: b
     state = load_checkpoint(ckpt, ("config", "epoch", "gate", "optimizer", "best_state", "history", "torch_rng"))
     skip = ("epochs", "threads")
     settings = {k: v for k, v in settings.items() if k not in skip}
-    old = {k: v for k, v in {**state["config"], **{k: state.get(k) for k in settings if k not in state["config"]}}.items()
+    config = {"k": 1, **state["config"]}  # a checkpoint from before `k` was chosen at 1
+    old = {k: v for k, v in {**config, **{k: state.get(k) for k in settings if k not in config}}.items()
            if k not in skip}
     if json.loads(json.dumps(old)) != json.loads(json.dumps(settings)):
         diff = sorted(k for k in settings if json.loads(json.dumps(old.get(k))) != json.loads(json.dumps(settings[k])))
@@ -452,7 +461,8 @@ def train_gate(run_dir, data, cfg: GateTrainConfig, progress: bool = True, fresh
         "targets": frames.targets, "targets_requested": requested, "gate_split": frames.holdout, "context": cfg.context,
         "pooling": cfg.pooling,
         "objective_requested": cfg.objective, "objectives": objectives,
-        "tau": fitted["tau"], "selected_on": f"validation {cfg.select_on}", "epochs": cfg.epochs,
+        "tau": fitted["tau"], "epochs": cfg.epochs, "k": cfg.k,
+        "selected_on": f"validation {cfg.select_on}" + (f" of the top {cfg.k}" if cfg.k > 1 and cfg.select_on == "regret" else ""),
         "best_epoch": fitted["best_epoch"], "val_mae": fitted["best_val_mae"], "val_regret": fitted["best_val_regret"],
         "choice": choice_table(pred, y_fit, y_test, contexts[0], contexts[1], branches,
                                [reader.manifest["frames"][int(i)]["shard"] for i in test_idx]),

@@ -203,8 +203,11 @@ def gatedata_stage(work: Path, run_paper: Path, parts: dict[str, Path], settings
 
 
 def gates_stage(work: Path, gatedata_run: Path, data: Path, gates: GatesSection, settings, setup, say,
-                progress: bool) -> tuple[str, dict]:
-    """The learned HydraFusion and EcoFusion gates and the latency table, under work/run."""
+                progress: bool, k: int = 1) -> tuple[str, dict]:
+    """The learned HydraFusion and EcoFusion gates and the latency table, under work/run. `k`: the
+    branches HydraFusion's gates run in the evaluation (`evaluate.k`): their epoch and objective are
+    chosen by the validation regret of their top k (`GateTrainConfig.k`). EcoFusion's gates choose
+    one configuration: k = 1."""
     import dataclasses
 
     from study.eco.config_gate_study import train_eco_gate
@@ -223,7 +226,7 @@ def gates_stage(work: Path, gatedata_run: Path, data: Path, gates: GatesSection,
     for gate in g.gates:
         gate_cfg = GateTrainConfig(gate=gate, epochs=g.epochs, batch_size=g.batch_size, lr=g.lr,
                                    val_fraction=g.val_fraction, seed=g.seed, threads=setup.threads, targets=g.targets,
-                                   context=g.context, pooling=g.pooling)
+                                   context=g.context, pooling=g.pooling, k=k)
         in_sample = dataclasses.replace(gate_cfg, targets="train")
         say(f"gates: HydraFusion {gate} gate")
         out[f"hydra_{gate}"] = train_gate(run, data, gate_cfg, progress=progress, setup=setup)
@@ -353,6 +356,16 @@ STAGE_CODE = {
 """Per stage: the modules it runs and its stage function; their code is part of its key."""
 
 
+def _gates_k(cfg: StudyConfig) -> int:
+    """The k HydraFusion's gates are chosen at: `evaluate.k` of the paper run's branches (the whole
+    paper set when `train.branches` is empty); 1 where that leaves nothing to rank (k of every branch)."""
+    from study.engine.train import branch_set
+
+    k = cfg.evaluate.k
+    branches = len(cfg.train.branches) or len(branch_set("paper", cfg.profile))
+    return int(k) if isinstance(k, int) and 1 <= k < branches else 1
+
+
 def stage_identity(name: str, cfg: StudyConfig, setup) -> dict:
     """What stage `name`'s output depends on beyond its config section and its upstream stages:
     its code, its device type and precision, and (generate) the sensor model version and sensor
@@ -444,9 +457,10 @@ def run_study(cfg: StudyConfig, out: str | Path, until: str = "report", progress
 
     gate_data = gdr.dir / "data" if len(gate_parts) > 1 else data
     gates_inputs = {k: v for k, v in to_dict(cfg.gates).items() if v or k != "curve"}  # unset: the keys as before
-    gt = study.stage("gates", {"gates": gates_inputs, **ident("gates")}, (gdr,), gates_stage,
-                     gatedata_run=gdr.dir / "run", data=gate_data, gates=cfg.gates, settings=settings, setup=eval_setup,
-                     say=study.say, progress=progress)
+    gates_k = _gates_k(cfg)
+    gt = study.stage("gates", {"gates": gates_inputs, **({"k": gates_k} if gates_k > 1 else {}), **ident("gates")},
+                     (gdr,), gates_stage, gatedata_run=gdr.dir / "run", data=gate_data, gates=cfg.gates,
+                     settings=settings, setup=eval_setup, say=study.say, progress=progress, k=gates_k)
     if last < STAGES.index("crossover"):
         return _finish(study, result, t_start)
 

@@ -169,3 +169,26 @@ def test_context_targets_are_the_per_context_mean_rows_with_the_overall_mean_for
         context_targets(costs, contexts[:3])
     with pytest.raises(ValueError, match="costs_fit"):
         context_targets(np.zeros((0, 2)), [])
+
+
+def test_top_k_regret_is_the_regret_of_the_set_a_gate_runs():
+    """Issue 50 item 5: at k = 1 it is `regret` of the top choice; a gate whose first pick is right and
+    whose second is the worst has no regret at 1 and the gap to the second best at 2; 0 at k = n."""
+    import numpy as np
+
+    from fusion.gate_objectives import choose, regret, top_k_regret
+
+    rng = np.random.default_rng(3)
+    costs, scores = rng.uniform(0, 1, (50, 4)), rng.uniform(0, 1, (50, 4))
+    assert top_k_regret(costs, scores, 1) == pytest.approx(regret(costs, choose(scores)), abs=1e-15)
+    assert top_k_regret(costs, scores, 4) == pytest.approx(0.0, abs=1e-12)
+    assert top_k_regret(costs, scores, 9) == pytest.approx(0.0, abs=1e-12)  # k past the choices: every one runs
+    c = np.array([[0.1, 0.2, 0.9, 0.3]])
+    s = np.array([[0.0, 5.0, 1.0, 4.0]])  # ranks 0 first (right), then 2 (the worst)
+    assert top_k_regret(c, s, 1) == 0.0
+    assert top_k_regret(c, s, 2) == pytest.approx((0.1 + 0.9) - (0.1 + 0.2))
+    assert top_k_regret(c, np.zeros_like(c), 2) == pytest.approx((0.1 + 0.2) - (0.1 + 0.2))  # ties: the first ones
+    with pytest.raises(ValueError, match="k"):
+        top_k_regret(c, s, 0)
+    with pytest.raises(ValueError, match="shape"):
+        top_k_regret(c, s[:, :3], 1)

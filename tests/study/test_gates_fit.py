@@ -293,3 +293,20 @@ def test_the_context_router_learns_the_context_table_and_is_kept_or_dropped_by_v
     one = fit_objectives(lambda: gate_of("deep"), xf, yf, xv, yv, alone, tmp_path / "alone", settings, False,
                          "deep gate", progress=False, contexts_fit=cf)
     assert one[3] == ROUTER and list(one[2]) == [ROUTER] and (tmp_path / "alone" / "checkpoint.pt").exists()
+
+
+@pytest.mark.parametrize("k", [1, 2])
+def test_the_epoch_is_chosen_by_the_regret_of_the_top_k_the_gate_runs(data, k):
+    """GateTrainConfig.k (issue 50 item 5): the validation regret that picks the epoch is that of the
+    gate's top k; the kept weights give exactly the recorded best regret at that k."""
+    from fusion.gate_objectives import top_k_regret
+
+    (xf, yf), (xv, yv), _ = data
+    gate = gate_of("deep")
+    cfg = dataclasses.replace(CFG, epochs=3, k=k)
+    fitted = fit_gate(gate, xf[:96], yf[:96], xv, yv, cfg, progress=False)
+    p = predict_losses(gate, xv)
+    assert fitted["best_val_regret"] == round(top_k_regret(yv, p, k), 6)
+    assert [r["val_regret"] for r in fitted["history"]][fitted["best_epoch"] - 1] == fitted["best_val_regret"]
+    with pytest.raises(Exception, match="k"):
+        dataclasses.replace(CFG, k=0)

@@ -92,6 +92,11 @@ def test_every_stage_runs_and_writes_the_report_with_its_tables(tiny):
     assert res["fusion"] == res["choices"][0]["chosen"]
     assert all(v["chosen_on"] == "validation" for v in res["hydra_table3"].values())
     assert set(res["gate_training"]) == {f"{f}:{g}" for f in ("hydrafusion", "ecofusion") for g in tiny["cfg"].gates.gates}
+    # HydraFusion's gates run their top evaluate.k and are chosen for it (issue 50 item 5); EcoFusion's choose one
+    k = tiny["cfg"].evaluate.k
+    for g in tiny["cfg"].gates.gates:
+        assert res["gate_training"][f"hydrafusion:{g}"]["selected_on"] == f"validation regret of the top {k}"
+        assert res["gate_training"][f"ecofusion:{g}"]["selected_on"] == "validation regret"
     assert "What was chosen where" in md and "Learned gates against the best constant" in md
     # the gate split (train.gate_holdout): the gates learn from it, the choices are made on it, and each gate
     # is also trained on the detectors' own frames for the comparison (issue 26)
