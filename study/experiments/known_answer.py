@@ -75,6 +75,11 @@ def frame_utility(d, gt) -> float:
     return float(d.scores[m >= 0].sum() - d.scores[m < 0].sum())
 
 
+def _value(m) -> float:
+    """An mAP to rank by: an undefined one (no box to find) below every defined one."""
+    return -1.0 if m is None else float(m)
+
+
 def split_by_sequence(per_frame: list) -> tuple[list, list]:
     """(fitting, validation) positions of `per_frame`: each context's sequences in order, alternately."""
     seqs: dict = {}
@@ -117,6 +122,7 @@ def run(pem_path, gate_data, test_data, work, *, strong: float = 8.0, weak: floa
         world, answer = known_answer_world(sensors, contexts, strong, weak)
     except ValueError as exc:
         raise UserError(str(exc)) from None
+    split_by_sequence([(readers["gate"].meta(i), None) for i in range(len(readers["gate"]))])  # refused before drawing
     work = Path(work)
     for part, data, s in (("gate", gate_data, seed), ("test", test_data, seed + 1)):
         predict_pem(pem_path, data, work / part, seed=s, world=world)
@@ -131,8 +137,8 @@ def run(pem_path, gate_data, test_data, work, *, strong: float = 8.0, weak: floa
     fit_pos, val_pos = split_by_sequence(gp.per_frame)
     val = [gp.per_frame[p] for p in val_pos]
     val_scores = {b: per_context(val, readers["gate"], b) for b in branches}
-    best_constant = max(branches, key=lambda b: val_scores[b]["map"] or -1.0)
-    context_constant = {c: max(branches, key=lambda b: val_scores[b]["map_per_context"].get(c) or -1.0)
+    best_constant = max(branches, key=lambda b: _value(val_scores[b]["map"]))
+    context_constant = {c: max(branches, key=lambda b: _value(val_scores[b]["map_per_context"].get(c)))
                         for c in contexts}
     x, best = [], []
     for p in fit_pos:
@@ -146,7 +152,7 @@ def run(pem_path, gate_data, test_data, work, *, strong: float = 8.0, weak: floa
         best.append(max(branches, key=u.get))
     gate = MeasuredGate(branches, np.array(x), best)
     test_scores = {b: per_context(tp.per_frame, readers["test"], b) for b in branches}
-    oracle = {c: max(branches, key=lambda b: test_scores[b]["map_per_context"].get(c) or -1.0) for c in contexts}
+    oracle = {c: max(branches, key=lambda b: _value(test_scores[b]["map_per_context"].get(c))) for c in contexts}
     ctx_of = [meta["context"] for meta, _ in tp.per_frame]
     picks = {
         "answer": [answer[c] for c in ctx_of],
