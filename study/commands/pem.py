@@ -3,7 +3,6 @@ fit, draw predictions, check against the network on held-out frames."""
 
 from __future__ import annotations
 
-import json
 from pathlib import Path
 
 from sim.errors import UserError
@@ -122,6 +121,15 @@ def _strengths(text: str) -> list[float]:
 _strengths.kind = "strengths"
 
 
+def _write_out(args, r: dict) -> None:
+    """`--out`: the result as JSON, written atomically (its folder made)."""
+    if args.out:
+        from study.outputs import write_json_atomic
+
+        Path(args.out).parent.mkdir(parents=True, exist_ok=True)
+        write_json_atomic(args.out, r)
+
+
 def run_fit(args) -> int:
     from study.engine.device import resolve_device
     from study.experiments.pem import fit
@@ -156,9 +164,7 @@ def run_check(args) -> int:
     if args.plot:
         plot_check(r, args.plot)
         r["plot"] = str(args.plot)
-    if args.out:
-        Path(args.out).parent.mkdir(parents=True, exist_ok=True)
-        Path(args.out).write_text(json.dumps(r, indent=1))
+    _write_out(args, r)
     emit(r, args.json, format_check)
     return 0
 
@@ -168,9 +174,7 @@ def run_sweep(args) -> int:
 
     r = sweep(Path(args.run_dir), Path(args.data), Path(args.pem), args.strengths, Path(args.work), seed=args.seed,
               resamples=args.bootstrap)
-    if args.out:
-        Path(args.out).parent.mkdir(parents=True, exist_ok=True)
-        Path(args.out).write_text(json.dumps(r, indent=1))
+    _write_out(args, r)
     emit(r, args.json, format_sweep)
     return 0
 
@@ -182,8 +186,6 @@ def run_known_answer(args) -> int:
         raise UserError(f"--strong ({args.strong:g}) must exceed --weak ({args.weak:g})")
     r = run(Path(args.pem), Path(args.gate_set), Path(args.data), Path(args.work), strong=args.strong,
             weak=args.weak, seed=args.seed, resamples=args.bootstrap)
-    if args.out:
-        Path(args.out).parent.mkdir(parents=True, exist_ok=True)
-        Path(args.out).write_text(json.dumps(r, indent=1))
+    _write_out(args, r)
     emit(r, args.json, format_result)
     return 0
