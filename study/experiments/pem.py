@@ -354,16 +354,23 @@ def check(run_dir, test_data, net_pred, pem_preds: dict, *, resamples: int = 500
         sources = {name: fuse_selection(p.per_frame, [sel] * len(p.per_frame), p.branch_frames, method)
                    for name, sel in methods.items()}
         scores = {n: score(s, reader, "camera_right", protocol=protocol) for n, s in sources.items()}
-        entry = {"methods": {n: {"map": s["map"], "map_per_context": s["map_per_context"]} for n, s in scores.items()},
+        by_sev = by_severity(sources)
+        sev_scores = {n: score(s, reader, "camera_right", protocol=protocol)["map_per_context"] for n, s in by_sev.items()}
+        entry = {"methods": {n: {"map": s["map"], "map_per_context": s["map_per_context"],
+                                 "map_per_severity": sev_scores[n]} for n, s in scores.items()},
                  "curves": curves(reference_detections(p), reader, protocol, p.branches),
                  "co_detection": co_detection(reference_detections(p), reader, protocol, p.branches)}
         if label == "network" and resamples:
             boot = context_bootstrap(sources, reader, "camera_right", protocol=protocol, resamples=resamples,
                                      classes="all", desc="bootstrap the network")
+            boot_sev = context_bootstrap(by_sev, reader, "camera_right", protocol=protocol, resamples=resamples,
+                                         classes="all", desc="bootstrap the network per severity")
             for n in methods:
                 entry["methods"][n]["ci95"] = boot["per_context"]["all"]["map"][n]
                 entry["methods"][n]["ci95_per_context"] = {c: g["map"][n] for c, g in boot["per_context"].items()
                                                           if c != "all"}
+                entry["methods"][n]["ci95_per_severity"] = {c: g["map"][n] for c, g in boot_sev["per_context"].items()
+                                                           if c != "all"}
         result["sets"][label] = entry
     net_m = result["sets"]["network"]["methods"]
     labels = list(pem_preds)
@@ -372,32 +379,43 @@ def check(run_dir, test_data, net_pred, pem_preds: dict, *, resamples: int = 500
                                       "of": list(labels)}
         labels.append("pem_mean")
     for label in labels:
-        inside, total = 0, 0
         rows = result["sets"][label]["methods"]
         for n, row in rows.items():
             iv = net_m[n].get("ci95")
             row["in_network_ci95"] = None if iv is None or row["map"] is None else bool(iv[0] <= row["map"] <= iv[1])
-            row["in_network_ci95_per_context"] = {}
-            for c, v in row["map_per_context"].items():
-                ivc = (net_m[n].get("ci95_per_context") or {}).get(c)
-                ok = None if ivc is None or v is None else bool(ivc[0] <= v <= ivc[1])
-                row["in_network_ci95_per_context"][c] = ok
-                if ok is not None:
-                    inside, total = inside + ok, total + 1
-        result["sets"][label]["per_context_inside"] = {"inside": inside, "of": total}
+        for group in ("context", "severity"):
+            inside, total = 0, 0
+            for n, row in rows.items():
+                row[f"in_network_ci95_per_{group}"] = {}
+                for c, v in (row.get(f"map_per_{group}") or {}).items():
+                    ivc = (net_m[n].get(f"ci95_per_{group}") or {}).get(c)
+                    ok = None if ivc is None or v is None else bool(ivc[0] <= v <= ivc[1])
+                    row[f"in_network_ci95_per_{group}"][c] = ok
+                    if ok is not None:
+                        inside, total = inside + ok, total + 1
+            result["sets"][label][f"per_{group}_inside"] = {"inside": inside, "of": total}
     return result
 
 
+def by_severity(sources: dict) -> dict:
+    """`sources` with each frame's group the weather severity it was drawn at ("severity 0" is clear
+    weather), every condition pooled: the groups `score` and `context_bootstrap` then report per
+    context are per severity (ground truth reads no context)."""
+    return {n: [({**m, "context": f"severity {m.get('severity', 0)}"}, d) for m, d in s] for n, s in sources.items()}
+
+
 def _mean_methods(sets: list) -> dict:
-    """Per method the mean mAP over PEM draws (overall and per context), with the smallest and largest."""
+    """Per method the mean mAP over PEM draws (overall, per context and per severity), with the smallest
+    and largest."""
     out = {}
     for n in sets[0]:
         maps = [m[n]["map"] for m in sets if m[n]["map"] is not None]
-        ctx = {c: [m[n]["map_per_context"].get(c) for m in sets] for c in sets[0][n]["map_per_context"]}
         out[n] = {"map": round(float(np.mean(maps)), 4) if maps else None,
-                  "map_range": [min(maps), max(maps)] if maps else None,
-                  "map_per_context": {c: round(float(np.mean([v for v in vs if v is not None])), 4)
-                                      if any(v is not None for v in vs) else None for c, vs in ctx.items()}}
+                  "map_range": [min(maps), max(maps)] if maps else None}
+        for group in ("map_per_context", "map_per_severity"):
+            per = {c: [m[n][group].get(c) for m in sets] for c in sets[0][n].get(group, {})}
+            out[n][group] = {c: round(float(np.mean([v for v in vs if v is not None])), 4)
+                             if any(v is not None for v in vs) else None for c, vs in per.items()}
     return out
 
 
@@ -457,6 +475,9 @@ def format_check(r: dict) -> str:
     for p in pems:
         c = r["sets"][p]["per_context_inside"]
         lines.append(f"{p}: per-context mAP inside the network's interval in {c['inside']} of {c['of']} (method, context)")
+        c = r["sets"][p]["per_severity_inside"]
+        lines.append(f"{p}: per-severity mAP inside the network's interval in {c['inside']} of {c['of']} "
+                     "(method, severity; every condition pooled)")
     return "\n".join(lines)
 
 

@@ -157,3 +157,52 @@ def test_docs_numbers_are_the_results():
     a, k = compare["all_branches"]["minus_late"], compare["hydrafusion:knowledge"]["minus_all_branches"]
     assert (f"all_branches - late {a['value']:+.3f} [{a['ci95'][0]:+.3f}, {a['ci95'][1]:+.3f}], knowledge - "
             f"all_branches {k['value']:+.3f} [{k['ci95'][0]:+.3f}, {k['ci95'][1]:+.3f}]") in flat
+
+
+def test_docs_per_severity_table_is_the_results_file():
+    """docs/pem.md's per-severity section: the counts and every cell outside the network's interval."""
+    import re
+    from pathlib import Path
+
+    root = Path(__file__).resolve().parents[2]
+    flat = re.sub(r"\s+", " ", (root / "docs" / "pem.md").read_text())
+    check = json.loads((root / "results" / "pem_check_2026-12-08.json").read_text())["check"]
+    net, mean = check["sets"]["network"]["methods"], check["sets"]["pem_mean"]
+    for group in ("context", "severity"):
+        c = mean[f"per_{group}_inside"]
+        assert f"{c['inside']} of {c['of']} (method, {group})" in flat, group
+    outside = 0
+    for n, row in mean["methods"].items():
+        for sv, ok in row["in_network_ci95_per_severity"].items():
+            if ok is False:
+                outside += 1
+                iv = net[n]["ci95_per_severity"][sv]
+                cell = (f"| {n} | {sv.split()[1]} | {net[n]['map_per_severity'][sv]:.3f} [{iv[0]:.3f}, {iv[1]:.3f}] | "
+                        f"{row['map_per_severity'][sv]:.3f} |")
+                assert cell in flat, cell
+    assert outside == mean["per_severity_inside"]["of"] - mean["per_severity_inside"]["inside"]
+
+
+def test_check_groups_by_context_and_severity_and_the_network_checked_against_itself_is_inside(setup, tmp_path):
+    """`pem check` with the network's own predictions as the "PEM": every mAP, overall, per context and
+    per severity, equals the network's and lies inside its interval; the severity groups are the
+    frames' severities (every condition pooled)."""
+    from sensors.dataset import DatasetReader
+    from study.engine.predictions import predict
+    from study.experiments.pem import check
+
+    run_dir, _, test_data, _ = setup
+    net = predict(run_dir, test_data, tmp_path / "net", progress=False)
+    r = check(run_dir, test_data, net.root, {"pem": net.root}, resamples=20)
+    reader = DatasetReader(test_data)
+    severities = {f"severity {reader.meta(i).get('severity', 0)}" for i in range(len(reader))}
+    net_m, same = r["sets"]["network"]["methods"], r["sets"]["pem"]["methods"]
+    for n, row in same.items():
+        assert set(row["map_per_severity"]) == severities, n
+        for group in ("map", "map_per_context", "map_per_severity"):
+            assert row[group] == net_m[n][group], (n, group)
+        assert row["in_network_ci95"] in (True, None)
+        assert all(v in (True, None) for v in row["in_network_ci95_per_severity"].values()), n
+    for group in ("context", "severity"):
+        c = r["sets"]["pem"][f"per_{group}_inside"]
+        assert c["of"] > 0 and c["inside"] == c["of"], group
