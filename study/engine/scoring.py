@@ -54,7 +54,10 @@ def load_run(run: str | Path, which: str = "latest", device: str = "cpu"):
     cfg = json.loads(cfg_path.read_text())
     branches = [BranchSpec(b["name"], tuple(b["sensors"]), b["frame"], b.get("fusion", "features"))
                 for b in cfg["branch_specs"]]
-    model = build_hydrafusion(profile=run_profile(cfg, run), branches=branches)
+    from fusion.nets.uninitialised import uninitialised
+
+    with uninitialised():  # every weight is loaded strictly below: drawing them first is wasted time
+        model = build_hydrafusion(profile=run_profile(cfg, run), branches=branches)
     from study.engine.checkpoints import load_checkpoint, load_weights
 
     load_weights(model, load_checkpoint(ckpt)["model"], ckpt)

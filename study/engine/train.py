@@ -356,12 +356,18 @@ def check_same_run(out: Path, run_cfg: dict) -> None:
         raise UserError(f"{out} holds a run with a different config ({', '.join(diff)}); use another --out")
 
 
-def build_model(cfg: TrainConfig, run_cfg: dict, specs, out: Path):
-    """The network of this run, initialised from `cfg.seed` (per-frame sampling installed if asked)."""
+def build_model(cfg: TrainConfig, run_cfg: dict, specs, out: Path, initialise: bool = True):
+    """The network of this run, initialised from `cfg.seed` (per-frame sampling installed if asked);
+    `initialise=False` for a run that resumes: its checkpoint loads every weight and the generators'
+    states, so the initial draws are skipped (`fusion.nets.uninitialised`)."""
+    import contextlib
+
     from fusion.nets import build_hydrafusion
+    from fusion.nets.uninitialised import uninitialised
 
     torch.manual_seed(cfg.seed)
-    model = build_hydrafusion(profile=run_profile(run_cfg, out), branches=specs)
+    with contextlib.nullcontext() if initialise else uninitialised():
+        model = build_hydrafusion(profile=run_profile(run_cfg, out), branches=specs)
     if cfg.sampling == "per-frame":
         from fusion.nets.sampling import use_frame_seeded_sampling
 
@@ -517,12 +523,12 @@ def train(cfg: TrainConfig, out: Path, progress: bool = True) -> dict:
 
     train_idx, test_idx = split_by_sequence(reader, cfg.train_fraction, cfg.split_seed)
     train_idx, _gate_idx = hold_out_sequences(reader, train_idx, cfg.gate_holdout, cfg.split_seed)
-    model = build_model(cfg, run_cfg, specs, out)
     # Every checkpoint the run reads is read (and its weights loaded) before RUN/ is created or its
     # config.json rewritten: a truncated or foreign checkpoint is refused with nothing changed.
     ckpt_path = out / "checkpoint.pt"
     resuming = ckpt_path.exists()  # (no rank writes a checkpoint before the barrier below)
     state = load_checkpoint(ckpt_path, RESUME_KEYS) if resuming else None
+    model = build_model(cfg, run_cfg, specs, out, initialise=state is None)
     if state is not None:
         load_weights(model, state["model"], ckpt_path)
     sources = [load_checkpoint(s)["model"] for s in srcs] if cfg.init_from and not resuming else []

@@ -4,7 +4,7 @@ and `--model KEY=VALUE` overrides."""
 import pytest
 import torch
 
-from fusion.nets import build_hydrafusion
+from fusion.nets import Stem, build_hydrafusion
 from fusion.nets.profile import load_profile, parse_model_overrides
 from sim.errors import UserError
 
@@ -40,13 +40,33 @@ def test_width_1_is_torchvisions_resnet18_bit_for_bit():
     torch.manual_seed(3)
     model = build_hydrafusion(profile="cpu", branches=CAM)
     torch.manual_seed(3)
-    torchvision.models.resnet18(weights=None, norm_layer=lambda c: torch.nn.GroupNorm(32, c))  # the stem's, first
+    Stem(3, norm="group")  # the stem's draws, first
     ref = torchvision.models.resnet18(weights=None, norm_layer=lambda c: torch.nn.GroupNorm(32, c))
     for name in ("layer2", "layer3", "layer4"):
         mine = dict(getattr(model.branches["cam"], name).named_parameters())
         theirs = dict(getattr(ref, name).named_parameters())
         assert mine.keys() == theirs.keys()
         assert all(torch.equal(mine[k], theirs[k]) for k in mine), name
+
+
+def test_the_stem_is_torchvisions_conv1_to_layer1_initialised_as_torchvision_does():
+    """The stem is built alone (not cut from a whole ResNet-18, whose other 11 M weights it threw away):
+    the same modules and shapes as torchvision's conv1 .. layer1, Kaiming-normal (fan out) convolutions
+    and unit-scale normalisation."""
+    import torchvision
+
+    torch.manual_seed(0)
+    stem = Stem(3, norm="batch")
+    ref = torchvision.models.resnet18(weights=None)
+    theirs = {k: v for k, v in ref.state_dict().items() if k.split(".")[0] in ("conv1", "bn1", "layer1")}
+    assert {k: v.shape for k, v in stem.state_dict().items()} == {k: v.shape for k, v in theirs.items()}
+    for name, m in stem.named_modules():
+        if isinstance(m, torch.nn.Conv2d):  # std sqrt(2 / fan_out): within 10 % on >= 36,864 draws
+            fan_out = m.out_channels * m.kernel_size[0] * m.kernel_size[1]
+            assert float(m.weight.std()) == pytest.approx((2.0 / fan_out) ** 0.5, rel=0.1), name
+        elif isinstance(m, torch.nn.BatchNorm2d):
+            assert torch.all(m.weight == 1) and torch.all(m.bias == 0), name
+    assert Stem(4, norm="batch").conv1.weight.shape == (64, 4, 7, 7)
 
 
 def test_dilation_keeps_the_grid_and_widens_the_receptive_field():
