@@ -358,15 +358,12 @@ def check_same_run(out: Path, run_cfg: dict) -> None:
 
 def build_model(cfg: TrainConfig, run_cfg: dict, specs, out: Path, initialise: bool = True):
     """The network of this run, initialised from `cfg.seed` (per-frame sampling installed if asked);
-    `initialise=False` for a run that resumes: its checkpoint loads every weight and the generators'
-    states, so the initial draws are skipped (`fusion.nets.uninitialised`)."""
-    import contextlib
-
+    without its initial draws for a run that resumes (its checkpoint loads every weight and the RNG)."""
     from fusion.nets import build_hydrafusion
     from fusion.nets.uninitialised import uninitialised
 
     torch.manual_seed(cfg.seed)
-    with contextlib.nullcontext() if initialise else uninitialised():
+    with uninitialised() if not initialise else contextlib.nullcontext():
         model = build_hydrafusion(profile=run_profile(run_cfg, out), branches=specs)
     if cfg.sampling == "per-frame":
         from fusion.nets.sampling import use_frame_seeded_sampling
