@@ -22,10 +22,16 @@ interval and verdict (above / below / not resolved):
   bound) minus all branches, corrected for that choice as the study's report does
   (`study.experiments.bounds.corrected_room`, `fusion.context_room`): the split-sample estimate and its
   interval (the value and verdict), its null beside it, and the naive estimate.
-- `a_posteriori_oracle_minus_all_branches`: per test frame, the constant whose fused detections score
-  best on that frame's own ground truth (`study.experiments.known_answer.frame_utility`; all branches
-  where it ties for best). It reads the ground truth: not achievable. A PEM has no Faster R-CNN losses,
-  so this is not HydraFusion's optimal gate.
+- `a_posteriori_oracle_minus_all_branches`: per test frame, the constant chosen to raise the test
+  set's pooled mAP with every frame's ground truth read (`fusion.bounds.greedy_choice`, coordinate
+  ascent from all branches): the bound of any gate choosing among the constants per frame (a local
+  optimum, at least all branches), not achievable. A PEM has no Faster R-CNN losses, so neither oracle
+  here is HydraFusion's optimal gate.
+- `utility_oracle_minus_all_branches`: per test frame, the constant whose fused detections score best
+  on that frame's own ground truth by `study.experiments.known_answer.frame_utility` (scores of
+  detections finding a true box minus those finding none; all branches where it ties for best). Also
+  a-posteriori; a frame's utility is not its share of the pooled mAP (it counts every false alarm at
+  its score, where AP counts only those ranked above true positives), so this one is no bound.
 
 Nothing is chosen on the test frames but the two oracles, which are bounds and named so.
 """
@@ -41,13 +47,17 @@ from study.numbers import interval_text, rounded
 
 PHYSICAL_GATE = "physical_gate"
 ORACLE = "a_posteriori_oracle"
+UTILITY_ORACLE = "utility_oracle"
 WHAT = {
     CONTEXT_CONSTANT: "per context, the constant branch set of best mAP on the gate set's validation frames",
     PHYSICAL_GATE: ("physical gate: drops a sensor when visibility, rain or snow rate or illuminance passes a "
                     "threshold; candidates seen on the gate set's fitting frames, chosen on its validation frames"),
-    ORACLE: ("a-posteriori oracle: per frame, the constant whose fused detections score best on the frame's own "
-             "ground truth (scores of detections finding a true box minus those finding none): not achievable, "
-             "and not HydraFusion's optimal gate (a PEM has no losses)"),
+    ORACLE: ("a-posteriori oracle: per frame, the constant chosen by coordinate ascent on the test set's pooled mAP, "
+             "every frame's ground truth read: the bound of a per-frame choice among the constants, not achievable "
+             "(a PEM has no losses: not HydraFusion's optimal gate)"),
+    UTILITY_ORACLE: ("per frame, the constant whose fused detections score best on the frame's own ground truth "
+                     "(scores of detections finding a true box minus those finding none): a-posteriori, not "
+                     "achievable, and no bound of mAP"),
     "room_for_context": ("context oracle (best constant per context, chosen on the test frames) minus all branches, "
                          "split-sample (chosen on half the sequences, scored on the other) with its null"),
 }
@@ -60,8 +70,13 @@ COMPARISONS = {
     "physical_gate_minus_all_branches": "physical gate - all_branches",
     "room_for_context": "room for context (split-sample)",
     "a_posteriori_oracle_minus_all_branches": "a-posteriori oracle - all_branches",
+    "utility_oracle_minus_all_branches": "utility oracle - all_branches",
 }
 """Each comparison of a point: its key and its title."""
+PANELS = (("all_branches_minus_late",), ("knowledge_minus_all_branches",), ("context_constant_minus_all_branches",),
+          ("physical_gate_minus_all_branches",), ("room_for_context",),
+          ("a_posteriori_oracle_minus_all_branches", "utility_oracle_minus_all_branches"))
+"""The figure's panels: the comparisons each one draws."""
 NEEDS_GATE_SET = ("context_constant_minus_all_branches", "physical_gate_minus_all_branches")
 
 
@@ -149,6 +164,14 @@ def physical_rules(val: Constants, fit_metas, branches, sensors) -> tuple[list, 
 
 
 def a_posteriori_choice(test: Constants) -> list[str]:
+    """Per frame, the constant `fusion.bounds.greedy_choice` takes to raise the test frames' pooled mAP,
+    starting from all branches."""
+    from fusion.bounds import greedy_choice
+
+    return greedy_choice(test.sm.matches, list(test.constants), "all_branches")
+
+
+def utility_choice(test: Constants) -> list[str]:
     """Per frame, the constant whose fused detections have the highest `frame_utility` on the frame's own
     ground truth (all branches where it ties for the highest)."""
     from study.engine.scoring import frame_ground_truth
@@ -215,6 +238,7 @@ def verdict_at(test_pred, data, gate_pred, gate_data, *, fusion: str, resamples:
     if gate_pred is not None:
         choices, out = gate_choices(test, gate_pred, gate_data, method, branches, sensors)
     choices[ORACLE] = a_posteriori_choice(test)
+    choices[UTILITY_ORACLE] = utility_choice(test)
     choices["all_branches"] = ["all_branches"] * len(test.metas)
     maps = {n: rounded(test.map_of(c)) for n, c in choices.items()}
     boot = None
@@ -339,9 +363,31 @@ def format_sweep(r: dict) -> str:
     return "\n".join(lines)
 
 
+COLOURS = ("#1f5fa8", "#2ca02c")
+
+
+def _curve(ax, s, pts, key, colour, label) -> bool:
+    """One comparison over strength on `ax`: the estimates joined, the 95 % intervals as a band and
+    bars; the room's null (95th percentile) dashed. False when no point has a value."""
+    rows = [(x, p[key]) for x, p in zip(s, pts) if p.get(key) and p[key].get("value") is not None]
+    if not rows:
+        return False
+    band = [(a, d["value"], d["ci95"]) for a, d in rows if d.get("ci95")]
+    if band:
+        xs, vs, ivs = zip(*band)
+        ax.fill_between(xs, [iv[0] for iv in ivs], [iv[1] for iv in ivs], color=colour, alpha=0.18, lw=0)
+        ax.errorbar(xs, vs, yerr=[[v - iv[0] for v, iv in zip(vs, ivs)], [iv[1] - v for v, iv in zip(vs, ivs)]],
+                    fmt="none", ecolor=colour, capsize=3, lw=1)
+    ax.plot([a for a, _ in rows], [d["value"] for _, d in rows], "o-", color=colour, label=f"{label} (95 % interval)")
+    if key == "room_for_context" and all("null_upper" in d for _, d in rows):
+        ax.plot([a for a, _ in rows], [d["null_upper"] for _, d in rows], "x--", color="#c05a00",
+                label="its null, 95th percentile")
+    return True
+
+
 def plot_sweep(r: dict, path) -> None:
-    """One panel per comparison (`COMPARISONS`): the difference over strength (log2 axis) with its 95 %
-    interval as a band, the zero line; the room's null (95th percentile) dashed."""
+    """One panel per entry of `PANELS`: each comparison's difference over strength (log2 axis) with its
+    95 % interval as a band, and the zero line."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -351,22 +397,12 @@ def plot_sweep(r: dict, path) -> None:
 
     pts = r["points"]
     s = [p["strength"] for p in pts]
-    fig, axes = plt.subplots(2, 3, figsize=(13, 7), sharex=True)
-    for ax, (key, title) in zip(axes.flat, COMPARISONS.items()):
-        rows = [(x, p[key]) for x, p in zip(s, pts) if p.get(key) and p[key].get("value") is not None]
+    fig, axes = plt.subplots(2, 3, figsize=(13.5, 7.5), sharex=True)
+    for ax, keys in zip(axes.flat, PANELS):
         ax.axhline(0, color="k", lw=0.8)
-        if rows:
-            x = [a for a, _ in rows]
-            v = [d["value"] for _, d in rows]
-            band = [(a, d["value"], d["ci95"]) for a, d in rows if d.get("ci95")]
-            if band:
-                xs, vs, ivs = zip(*band)
-                ax.fill_between(xs, [iv[0] for iv in ivs], [iv[1] for iv in ivs], color="#1f5fa8", alpha=0.2, lw=0)
-                ax.errorbar(xs, vs, yerr=[[v - iv[0] for v, iv in zip(vs, ivs)], [iv[1] - v for v, iv in zip(vs, ivs)]],
-                            fmt="none", ecolor="#1f5fa8", capsize=3, lw=1, label="95 % interval")
-            ax.plot(x, v, "o-", color="#1f5fa8", label="estimate")
-            if key == "room_for_context" and all("null_upper" in d for _, d in rows):
-                ax.plot(x, [d["null_upper"] for _, d in rows], "x--", color="#c05a00", label="null, 95th percentile")
+        drawn = [_curve(ax, s, pts, key, colour, COMPARISONS[key].split(" - ")[0])
+                 for key, colour in zip(keys, COLOURS)]
+        if any(drawn):
             ax.legend(fontsize=7)
         else:
             ax.text(0.5, 0.5, "not measured\n(no --gate-set)" if r.get("without_gate_set") else "no value",
@@ -374,7 +410,7 @@ def plot_sweep(r: dict, path) -> None:
         ax.set_xscale("log", base=2)
         ax.set_xticks(s, [f"{x:g}" for x in s])
         ax.minorticks_off()
-        ax.set_title(title + " (mAP)", fontsize=10)
+        ax.set_title(" / ".join(COMPARISONS[k] for k in keys) + " (mAP)", fontsize=9)
     for ax in axes[-1]:
         ax.set_xlabel("detector strength s (1: the fitted PEM)")
     gate = f", gate set {Path(r['gate_set']).name}" if r.get("gate_set") else ""
