@@ -73,10 +73,14 @@ COMPARISONS = {
     "utility_oracle_minus_all_branches": "utility oracle - all_branches",
 }
 """Each comparison of a point: its key and its title."""
-PANELS = (("all_branches_minus_late",), ("knowledge_minus_all_branches",), ("context_constant_minus_all_branches",),
-          ("physical_gate_minus_all_branches",), ("room_for_context",),
-          ("a_posteriori_oracle_minus_all_branches", "utility_oracle_minus_all_branches"))
-"""The figure's panels: the comparisons each one draws."""
+PANELS = {"all_branches - late": ("all_branches_minus_late",),
+          "knowledge gate - all_branches": ("knowledge_minus_all_branches",),
+          "per-context constant - all_branches": ("context_constant_minus_all_branches",),
+          "physical gate - all_branches": ("physical_gate_minus_all_branches",),
+          "room for context (split-sample)": ("room_for_context",),
+          "a-posteriori oracles - all_branches": ("a_posteriori_oracle_minus_all_branches",
+                                                  "utility_oracle_minus_all_branches")}
+"""The figure's panels: each one's title and the comparisons it draws."""
 NEEDS_GATE_SET = ("context_constant_minus_all_branches", "physical_gate_minus_all_branches")
 
 
@@ -387,7 +391,7 @@ def _curve(ax, s, pts, key, colour, label) -> bool:
 
 def plot_sweep(r: dict, path) -> None:
     """One panel per entry of `PANELS`: each comparison's difference over strength (log2 axis) with its
-    95 % interval as a band, and the zero line."""
+    95 % interval as a band and bars, and the zero line."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -398,19 +402,21 @@ def plot_sweep(r: dict, path) -> None:
     pts = r["points"]
     s = [p["strength"] for p in pts]
     fig, axes = plt.subplots(2, 3, figsize=(13.5, 7.5), sharex=True)
-    for ax, keys in zip(axes.flat, PANELS):
+    for ax, (title, keys) in zip(axes.flat, PANELS.items()):
         ax.axhline(0, color="k", lw=0.8)
         drawn = [_curve(ax, s, pts, key, colour, COMPARISONS[key].split(" - ")[0])
                  for key, colour in zip(keys, COLOURS)]
         if any(drawn):
-            ax.legend(fontsize=7)
+            lo, hi = ax.get_ylim()
+            ax.set_ylim(lo, hi + 0.3 * (hi - lo))  # room for the legend above the curves
+            ax.legend(fontsize=7, loc="upper left")
         else:
             ax.text(0.5, 0.5, "not measured\n(no --gate-set)" if r.get("without_gate_set") else "no value",
                     transform=ax.transAxes, ha="center", va="center", color="grey")
         ax.set_xscale("log", base=2)
         ax.set_xticks(s, [f"{x:g}" for x in s])
         ax.minorticks_off()
-        ax.set_title(" / ".join(COMPARISONS[k] for k in keys) + " (mAP)", fontsize=9)
+        ax.set_title(f"{title} (mAP)", fontsize=10)
     for ax in axes[-1]:
         ax.set_xlabel("detector strength s (1: the fitted PEM)")
     gate = f", gate set {Path(r['gate_set']).name}" if r.get("gate_set") else ""
