@@ -136,3 +136,95 @@ def test_without_a_gate_set_the_chosen_methods_are_absent_and_the_text_says_why(
     assert main([*base, "--gate-set", str(test), "--bootstrap", "0"]) == 2
     assert "the same frames as the test set" in capsys.readouterr().err
 
+
+
+def _cell(d) -> str:
+    iv = d["ci95"]
+    return f"{d['value']:+.3f} [{iv[0]:+.3f}, {iv[1]:+.3f}]"
+
+
+def _verdicts(points, key) -> dict:
+    out: dict = {}
+    for p in points:
+        out[p[key]["verdict"]] = out.get(p[key]["verdict"], 0) + 1
+    return out
+
+
+def test_docs_sweep_numbers_are_the_record():
+    """docs/pem.md's sweep section of 2026-12-08: every cell is the record's, and so is every count and
+    range its text states (the networks' numbers are the cpu-verdict study's report)."""
+    import re
+    from pathlib import Path
+
+    from study.engine.scoring import difference_interval
+
+    root = Path(__file__).resolve().parents[2]
+    flat = re.sub(r"\s+", " ", (root / "docs" / "pem.md").read_text())
+    rec = json.loads((root / "results" / "pem_sweep_2026-12-08.json").read_text())
+    assert rec["date"] == "2026-12-08" and "EPYC" in rec["cpu"] and "avx512f" in rec["cpu"]
+    assert (root / "results" / "pem_sweep_2026-12-08.png").is_file()
+    points = [p for run in rec["sweeps"].values() for p in run["points"]]
+    assert len(points) == 12 and all(run["resamples"] == 500 and run["gate_set"] for run in rec["sweeps"].values())
+    for seed, run in rec["sweeps"].items():
+        for p in run["points"]:
+            row = (f"| {p['strength']:g} | {seed} | " + " | ".join(_cell(p[k]) for k in (
+                "all_branches_minus_late", "context_constant_minus_all_branches", "physical_gate_minus_all_branches",
+                "room_for_context", "a_posteriori_oracle_minus_all_branches")) + f" | {p['seconds']} |")
+            assert row in flat, row
+            room, naive = p["room_for_context"], p["room_for_context"]["naive"]
+            row = (f"| {p['strength']:g} | {seed} | {room['null_upper']:+.3f} | {naive['estimate']:+.3f} "
+                   f"[{naive['interval'][0]:+.3f}, {naive['interval'][1]:+.3f}] | "
+                   f"{_cell(p['utility_oracle_minus_all_branches'])} |")
+            assert row in flat, row
+    seconds = [p["seconds"] for p in points]
+    assert f"{min(seconds)} to {max(seconds)}" in flat
+    # the counts the answers state
+    gates = {k: _verdicts(points, f"{k}_minus_all_branches") for k in ("knowledge", "context_constant", "physical_gate")}
+    assert sum(v.get("above", 0) for v in gates.values()) == 0 and "0 of 36" in flat
+    below = [gates[k].get("below", 0) for k in gates]
+    assert (f"{sum(below)} of the 36 are resolved below (knowledge {below[0]}, per-context constant {below[1]}, "
+            f"physical gate {below[2]})") in flat
+    room = _verdicts(points, "room_for_context")
+    assert room.get("above", 0) == 0 and not any(p["room_for_context"]["above_null"] for p in points)
+    assert f"resolved below in {room['below']} of 12 points, never above its null" in flat
+    assert not any(iv and iv[0] > 0 for p in points for k, per in p["per_context"].items()
+                   for n, iv in per.items() if "oracle" not in n)
+    fog = sum("camera_right" in p["context_constant"]["without"]["fog"] for p in points)
+    snow = sum(p["context_constant"]["choice"]["snow"] == "single:camera_right" for p in points)
+    rules = [r["text"] for p in points for r in p["physical_gate"]["rules"]]
+    assert (f"the per-context constant in {fog} of 12 points; the physical gate's \"drop camera_right when "
+            f"visibility_m <= 370.8\" in {rules.count('drop camera_right when visibility_m <= 370.8')} of 12") in flat
+    assert f"keep only the camera in snow (the constant in {snow} of 12)" in flat
+    assert f"(\"drop radar when snow_mm_h >= 0.213\" in {rules.count('drop radar when snow_mm_h >= 0.213')} of 12)" in flat
+    oracle = [p["a_posteriori_oracle_minus_all_branches"] for p in points]
+    assert all(d["verdict"] == "above" for d in oracle)
+    assert f"{min(d['value'] for d in oracle):+.3f} to {max(d['value'] for d in oracle):+.3f}, flat over strength" in flat
+    assert f"below all branches in {_verdicts(points, 'utility_oracle_minus_all_branches')['below']} of 12 points" in flat
+    at1 = [p for p in points if p["strength"] == 1.0]
+
+    def span(key, sub=None):
+        v = sorted((p[key] if sub is None else p[key][sub])["value" if sub is None else "estimate"] for p in at1)
+        return v[0], v[-1]
+
+    lo, hi = span("all_branches_minus_late")
+    assert all(p["all_branches_minus_late"]["verdict"] == "above" for p in at1) and f"({lo:+.3f} to {hi:+.3f};" in flat
+    lo, hi = span("room_for_context", "naive")
+    assert all(p["room_for_context"]["naive"]["interval"][0] > 0 for p in at1) and f"the naive room {lo:+.3f} to {hi:+.3f}" in flat
+    lo, hi = span("room_for_context")
+    assert f"The split-sample room at strength 1 ({lo:+.3f} to {hi:+.3f})" in flat
+    pg = [p["physical_gate_minus_all_branches"] for p in at1]
+    assert f"({pg[0]['value']:+.3f} to {min(d['value'] for d in pg):+.3f}, below on draws 1 and 2)" in flat
+    assert [d["verdict"] for d in pg] == ["not resolved", "below", "below"]
+    # the networks' verdict, from the cpu-verdict study's report
+    r = json.loads((root / "results" / "study_cpu_verdict" / "report.json").read_text())["results"]
+    ci, ms = r["intervals"]["per_context"]["all"], r["methods"]
+
+    def net(a, b):
+        lo, hi = difference_interval(ci, a, b)
+        return f"{ms[a]['map'] - ms[b]['map']:+.3f} [{lo:+.3f}, {hi:+.3f}]"
+
+    room_net = r["bounds"]["room_for_context"]["all"]
+    assert f"all_branches - late {net('all_branches', 'late')}, no learned gate" in flat
+    assert f"the physical gate minus all_branches {net('physical_gate', 'all_branches')}" in flat
+    assert (f"room for context {room_net['estimate']:+.3f} [{room_net['interval'][0]:+.3f}, "
+            f"{room_net['interval'][1]:+.3f}] (the naive room)") in flat
