@@ -33,7 +33,8 @@ interval and verdict (above / below / not resolved):
   a-posteriori; a frame's utility is not its share of the pooled mAP (it counts every false alarm at
   its score, where AP counts only those ranked above true positives), so this one is no bound.
 
-Nothing is chosen on the test frames but the two oracles, which are bounds and named so.
+Nothing is chosen on the test frames but what reads their ground truth by design, each named for what
+it is: the two a-posteriori oracles and the context oracle inside room for context.
 """
 
 from __future__ import annotations
