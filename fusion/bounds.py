@@ -9,6 +9,10 @@ Chosen on the frames it is scored on, it is a bound, not a method, and optimisti
 sequences the best of many configurations wins partly by luck. `bootstrap_table` therefore takes
 derived columns that are recomputed on each draw, so the choice is made again inside every draw
 (the honest interval of a max over configurations chosen on the same frames).
+
+`greedy_choice` is the a-posteriori oracle of a per-image choice: each image's configuration chosen,
+with every image's ground truth read, to raise the pooled mAP (a bound of any gate choosing among
+the candidates per image, not a method).
 """
 
 from __future__ import annotations
@@ -82,3 +86,42 @@ def bootstrap_table(matches: Mapping[str, ImageMatches], names: Sequence[str], r
     if i + 1 != resamples:
         raise ValueError(f"bootstrap_table: {i + 1} draws given, {resamples} expected")
     return out
+
+
+def greedy_choice(matches: Mapping[str, ImageMatches], candidates: Sequence[str], start: str,
+                  passes: int = 3) -> list[str]:
+    """Per image, the candidate that maximises the pooled mAP of all the images (every other image's
+    choice held), by coordinate ascent from `start` on every image: images in order, a change only for
+    a strict gain, `passes` sweeps or until none changes. Reads every image's ground truth (through its
+    matching): an a-posteriori oracle, a local optimum whose mAP is at least `start`'s. All candidates
+    matched on the same images over the same classes. Each image's K alternatives are scored together
+    (`fusion.metrics.DrawScorer` over the K sources' images pooled, each alternative a multiplicity)."""
+    from fusion.metrics import DrawScorer
+
+    names = list(candidates)
+    if start not in names:
+        raise ValueError(f"greedy_choice: start {start!r} is not a candidate")
+    k, first = len(names), matches[names[0]]
+    n = len(first.per_image)
+    if any(len(matches[c].per_image) != n for c in names):
+        raise ValueError("greedy_choice: every candidate must hold the same images")
+    pool = DrawScorer(ImageMatches([r for c in names for r in matches[c].per_image], first.classes,
+                                   first.interpolation))
+    choice = np.full(n, names.index(start))
+    taken = np.zeros(k * n, np.int64)
+    taken[choice * n + np.arange(n)] = 1
+    current = _finite(float(pool.mean_ap_of_multiplicities(taken[None])[0]))
+    for _ in range(max(1, passes)):
+        changed = False
+        for i in range(n):
+            trial = np.repeat(taken[None], k, axis=0)
+            trial[:, choice[i] * n + i] = 0
+            trial[np.arange(k), np.arange(k) * n + i] = 1
+            values = np.array([_finite(v) for v in pool.mean_ap_of_multiplicities(trial)])
+            best = int(np.argmax(values))
+            if values[best] > current + 1e-12:
+                taken = trial[best]
+                choice[i], current, changed = best, values[best], True
+        if not changed:
+            break
+    return [names[j] for j in choice]

@@ -137,6 +137,35 @@ def threshold_candidates(crossover: Mapping, bounds: tuple[float, float] | None 
     return uniq
 
 
+OBSERVED_QUANTILES = (0.0, 0.25, 0.5, 0.75, 1.0)
+"""Where `observed_candidates` puts a rule's thresholds: these quantiles of the observed values, counted
+from the worst end (0: the worst value seen, 1: the mildest)."""
+
+
+def observed_candidates(values: Sequence[float], condition: str,
+                        quantiles: Sequence[float] = OBSERVED_QUANTILES) -> list[float | None]:
+    """The thresholds a rule under `condition` may take when no crossover was measured: `NEVER`, then
+    the values of its quantity (`CAR_QUANTITY`) at `quantiles` of `values` (the quantity on frames where
+    the condition holds, e.g. a gate set's fitting frames), counted from the worst end and each one a
+    value that was seen: at 0 the rule fires on the worst frame only, at 1 on every frame seen. Ordered
+    NEVER first, then from the worst end, so that `choose_thresholds`, which keeps the earlier candidate
+    on a tie, keeps a sensor and then drops it on as few frames as it can. Nothing but `NEVER` without values."""
+    if condition not in CAR_QUANTITY:
+        raise ValueError(f"unknown condition {condition!r} (known: {', '.join(CAR_QUANTITY)})")
+    v = [float(x) for x in values if math.isfinite(float(x))]
+    out: list[float | None] = [NEVER]
+    if not v:
+        return out
+    ordered = sorted(v, reverse=CAR_QUANTITY[condition][1] == "higher")  # worst first
+    for q in quantiles:
+        if not 0.0 <= q <= 1.0:
+            raise ValueError(f"quantiles must lie in [0, 1], got {q}")
+        t = ordered[min(len(ordered) - 1, int(math.floor(q * (len(ordered) - 1) + 0.5)))]
+        if t not in out:
+            out.append(t)
+    return out
+
+
 def choose_thresholds(candidates: Mapping[tuple[str, str], Sequence[float | None]],
                       score: Callable[[list[DropRule]], float], passes: int = 2) -> tuple[list[DropRule], list[dict]]:
     """Coordinate ascent over the rules: for each (sensor, condition) in `candidates`' order, the

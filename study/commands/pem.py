@@ -30,6 +30,7 @@ examples:
   hydrabench compare cpu-frontier demo/test --predictions pred_pem --gates knowledge
   hydrabench pem check cpu-frontier demo/test --network PRED_NET --pem pred_pem --plot pem_check.png
   hydrabench pem predict pem.json demo/test --out pred_pem_s4 --strength 4   (a stronger detector)
+  hydrabench pem sweep cpu-frontier pem.json demo/test --gate-set data/gate6 --work sweep --plot sweep.png
   hydrabench pem known-answer pem.json demo/test --gate-set data/gate6 --work ka   (do the gates find a known rule?)
 """
 
@@ -79,17 +80,25 @@ def add_parser(sub, name, help_text):
     c.add_argument("--out", type=out_file(".json"), default=None, help="also write the result as JSON here")
     c.add_argument("--json", action="store_true", help="print one JSON object on stdout")
     c.set_defaults(run=run_check)
-    w = what.add_parser("sweep", help="the verdict over detector strength: all_branches minus late and the "
-                        "knowledge gate minus all_branches, with intervals, per strength", formatter_class=Formatter)
+    w = what.add_parser("sweep", help="the verdict over detector strength: all_branches minus late, the knowledge "
+                        "gate, the per-context constant and the physical gate minus all_branches, room for context and "
+                        "the a-posteriori oracle, with intervals, per strength",
+                        description=module_doc("study.experiments.pem_sweep"), formatter_class=Formatter)
     w.add_argument("run_dir", metavar="MODEL", type=training_run, help="the model the PEM was fitted on")
     w.add_argument("pem", metavar="PEM.json", type=in_file, help="a PEM file (hydrabench pem fit)")
     w.add_argument("data", metavar="DATA", type=dataset_dir, help="the held-out dataset to draw and score on")
     w.add_argument("--strengths", default="0.5,1,2,4", type=_strengths, metavar="S[,S...]",
                    help="the strengths, comma-separated (1: the fitted detector)")
+    w.add_argument("--gate-set", type=dataset_dir, default=None, metavar="GATEDATA",
+                   help="a gate set (another dataset, two sequences or more per context): the per-context constant "
+                        "and the physical gate are chosen on it; without it they are not measured")
     w.add_argument("--work", required=True, type=cache_dir, metavar="DIR",
-                   help="where each strength's predictions are written (DIR/strength-<s>)")
-    w.add_argument("--seed", type=count_int, default=0, help="the draws' seed")
+                   help="where each strength's predictions are written (DIR/strength-<s>; the gate set's "
+                        "DIR/gate-strength-<s>)")
+    w.add_argument("--seed", type=count_int, default=0, help="the test set's draws (the gate set's: seed + 1)")
     w.add_argument("--bootstrap", type=bootstrap_int, default=500, metavar="N", help="sequence draws for the intervals")
+    w.add_argument("--plot", type=out_file(".png", ".pdf", ".svg"), default=None,
+                   help="draw the curves over strength here (one panel per comparison, 95 %% interval bands)")
     w.add_argument("--out", type=out_file(".json"), default=None, help="also write the result as JSON here")
     w.add_argument("--json", action="store_true", help="print one JSON object on stdout")
     w.set_defaults(run=run_sweep)
@@ -170,10 +179,15 @@ def run_check(args) -> int:
 
 
 def run_sweep(args) -> int:
-    from study.experiments.pem import format_sweep, sweep
+    from study.experiments.pem_sweep import format_sweep, plot_sweep, sweep
 
-    r = sweep(Path(args.run_dir), Path(args.data), Path(args.pem), args.strengths, Path(args.work), seed=args.seed,
-              resamples=args.bootstrap)
+    if args.plot and not args.bootstrap:
+        raise UserError("--plot draws the intervals: give --bootstrap N > 0")
+    r = sweep(Path(args.run_dir), Path(args.data), Path(args.pem), args.strengths, Path(args.work),
+              gate_set=None if args.gate_set is None else Path(args.gate_set), seed=args.seed, resamples=args.bootstrap)
+    if args.plot:
+        plot_sweep(r, args.plot)
+        r["plot"] = str(args.plot)
     _write_out(args, r)
     emit(r, args.json, format_sweep)
     return 0

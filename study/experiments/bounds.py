@@ -67,11 +67,18 @@ def label(name: str) -> str:
 def candidate_configurations(ev, singles: Sequence[str], late: Sequence[str]) -> dict[str, tuple[str, ...]]:
     """The constant branch sets the context oracle chooses among: each single sensor, late fusion, all
     branches and every EcoFusion configuration, {name: branches}, one name per branch set."""
+    return constant_configurations(ev.ed.branches, ev.configs.members, singles, late)
+
+
+def constant_configurations(branches: Sequence[str], members: Sequence[Sequence[str]], singles: Sequence[str],
+                            late: Sequence[str]) -> dict[str, tuple[str, ...]]:
+    """`candidate_configurations` of a network's `branches` and a configuration set's `members`
+    (`fusion.eco.configurations.build_configurations`): {name: branches}, one name per branch set."""
     out: dict[str, tuple[str, ...]] = {f"single:{b}": (b,) for b in singles}
     out["late"] = tuple(late)
-    out["all_branches"] = tuple(ev.ed.branches)
+    out["all_branches"] = tuple(branches)
     seen = set(out.values())
-    for m in ev.configs.members:
+    for m in members:
         if tuple(m) not in seen:
             out["+".join(m)] = tuple(m)
             seen.add(tuple(m))

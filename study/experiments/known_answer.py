@@ -80,15 +80,16 @@ def _value(m) -> float:
     return -1.0 if m is None else float(m)
 
 
-def split_by_sequence(per_frame: list) -> tuple[list, list]:
-    """(fitting, validation) positions of `per_frame`: each context's sequences in order, alternately."""
+def split_by_sequence(per_frame: list, who: str = "the known-answer check") -> tuple[list, list]:
+    """(fitting, validation) positions of `per_frame`: each context's sequences in order, alternately
+    (UserError naming `who` when a context has one sequence)."""
     seqs: dict = {}
     for pos, (meta, _) in enumerate(per_frame):
         seqs.setdefault(meta["context"], {}).setdefault(meta["sequence_id"], []).append(pos)
     fit, val = [], []
     for ctx, by_seq in sorted(seqs.items()):
         if len(by_seq) < 2:
-            raise UserError(f"the gate set has one sequence of {ctx}: the known-answer check needs two per context "
+            raise UserError(f"the gate set has one sequence of {ctx}: {who} needs two per context "
                             "(one to fit on, one to choose on)")
         for j, sid in enumerate(sorted(by_seq)):
             (fit if j % 2 == 0 else val).extend(by_seq[sid])

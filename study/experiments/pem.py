@@ -16,6 +16,8 @@ and predictions drawn from them in the same store as the networks' (`study.engin
 - `check`: the PEM against the network on held-out frames: per branch and late fusion, mAP per
   context with the network's 95 % sequence-bootstrap interval, and whether the PEM's mAP lies in it;
   recall against range and score calibration, PEM beside network (`plot_check`).
+
+The sweep over strength is `study.experiments.pem_sweep`, the known-answer world `study.experiments.known_answer`.
 """
 
 from __future__ import annotations
@@ -480,46 +482,3 @@ def format_check(r: dict) -> str:
                      "(method, severity; every condition pooled)")
     return "\n".join(lines)
 
-
-def sweep(run_dir, data, pem_path, strengths, out_dir, *, seed: int = 0, resamples: int = 500,
-          fusion: str = "soft-nms", k: int = 2, progress: bool = False) -> dict:
-    """The verdict over detector strength: per strength, the PEM drawn on `data` (`predict_pem`, into
-    OUT_DIR/strength-<s>) and scored by `study.experiments.compare.compare` (knowledge gate and fixed methods):
-    all_branches minus late and the knowledge gate minus all_branches, each with its 95 % interval
-    and verdict, every method's mAP, and the seconds the point took (draw + score + bootstrap)."""
-    from study.engine.scoring import load_run
-    from study.experiments.compare import compare
-
-    load_run(run_dir)  # the model first: a damaged checkpoint is named before the PEM file is read
-    points = []
-    for s in strengths:
-        t0 = time.perf_counter()
-        pred = Path(out_dir) / f"strength-{s:g}"
-        predict_pem(pem_path, data, pred, strength=s, seed=seed)
-        r = compare(run_dir, data, gates=("knowledge",), k=k, fusion=fusion, resamples=resamples,
-                    predictions=pred, progress=progress)
-        m = r["methods"]
-        points.append({"strength": float(s), "maps": {n: row["map"] for n, row in m.items()},
-                       "all_branches_minus_late": m.get("all_branches", {}).get("minus_late"),
-                       "knowledge_minus_all_branches": m.get("hydrafusion:knowledge", {}).get("minus_all_branches"),
-                       "knowledge_minus_late": m.get("hydrafusion:knowledge", {}).get("minus_late"),
-                       "seconds": round(time.perf_counter() - t0, 1)})
-    return {"data": str(data), "pem": str(pem_path), "seed": seed, "resamples": resamples, "fusion": fusion, "k": k,
-            "points": points}
-
-
-def format_sweep(r: dict) -> str:
-    def cell(d):
-        if not d:
-            return "-"
-        iv = d.get("ci95")
-        return f"{d['value']:+.3f}" + (f" [{iv[0]:+.3f}, {iv[1]:+.3f}] {d['verdict']}" if iv else "")
-
-    lines = [f"PEM {r['pem']} on {r['data']} (seed {r['seed']}, {r['resamples']} sequence draws, k {r['k']})",
-             f"{'strength':>8s} {'late':>6s} {'all':>6s}  {'all_branches - late':36s} {'knowledge - all_branches':36s} s"]
-    for p in r["points"]:
-        mp = p["maps"]
-        lines.append(f"{p['strength']:8g} {mp.get('late') or 0:6.3f} {mp.get('all_branches') or 0:6.3f}  "
-                     f"{cell(p['all_branches_minus_late']):36s} {cell(p['knowledge_minus_all_branches']):36s} "
-                     f"{p['seconds']}")
-    return "\n".join(lines)

@@ -1,10 +1,17 @@
 """fusion.bounds: the best constant per stratum is the one of best mAP in each stratum, its composite
 takes each image from its stratum's choice, and re-choosing it inside every bootstrap draw gives an
-interval of "room" (best constant per stratum minus a fixed source) that holds the truth."""
+interval of "room" (best constant per stratum minus a fixed source) that holds the truth; the
+a-posteriori per-image oracle finds the known best choice and never scores below where it starts."""
 
 import numpy as np
 
-from fusion.bounds import best_constant_map, best_constant_per_stratum, bootstrap_table, composite
+from fusion.bounds import (
+    best_constant_map,
+    best_constant_per_stratum,
+    bootstrap_table,
+    composite,
+    greedy_choice,
+)
 from fusion.intervals import percentile_interval
 from fusion.metrics import ImageMatches
 
@@ -69,3 +76,20 @@ def test_room_interval_with_the_choice_made_in_every_draw_holds_the_truth():
 
     first = next(iter(sequence_draws(by_seq, 1, 0)))
     assert draws[0, 0] == m["every"].mean_ap(first)
+
+
+def test_the_greedy_oracle_takes_each_image_from_the_source_that_finds_it_and_never_loses_its_start():
+    hit = {1: (np.array([0.9]), np.array([True]), 1)}
+    miss = {1: (np.array([0.9]), np.array([False]), 1)}  # the box missed, a false alarm instead
+    both = {1: (np.array([0.6, 0.5]), np.array([False, True]), 1)}  # a false alarm above the hit
+    m = {"a": ImageMatches([hit] * 5 + [miss] * 5, (1,), "all"), "b": ImageMatches([miss] * 5 + [hit] * 5, (1,), "all"),
+         "every": ImageMatches([both] * 10, (1,), "all")}
+    choice = greedy_choice(m, ["a", "b", "every"], "every")
+    assert choice == ["a"] * 5 + ["b"] * 5 and composite(m, choice).mean_ap(range(10)) == 1.0
+    contexts = ["x"] * 40 + ["y"] * 40
+    rnd = _matches(QUALITY, contexts, 3)
+    rows = range(len(contexts))
+    greedy = composite(rnd, greedy_choice(rnd, ["a", "b", "every"], "every"))
+    assert greedy.mean_ap(rows) >= best_constant_map(rnd, ["a", "b", "every"], list(rows), contexts)
+    assert greedy.mean_ap(rows) > rnd["every"].mean_ap(rows)
+    assert greedy_choice({"a": m["a"]}, ["a"], "a") == ["a"] * 10

@@ -10,6 +10,7 @@ from fusion.physical_gate import (
     NEVER,
     choose_thresholds,
     dropped,
+    observed_candidates,
     physical_selection,
     rule,
     threshold_candidates,
@@ -89,6 +90,20 @@ def test_candidates_come_from_the_crossover_and_a_curve_that_never_crosses_gives
     never = {"steps": [1.0, 2.0], "crossing": None, "crossing_kind": "none", "first_resolved_below": None,
              "crossing_interval": [None, None]}
     assert threshold_candidates(never) == [NEVER]
+
+
+def test_observed_candidates_are_seen_values_from_the_worst_end_and_each_fires_on_fewer_frames_first():
+    fog = [900.0, 120.0, 60.0, 300.0, 45.0]  # visibility (m): lower is worse
+    assert observed_candidates(fog, "fog") == [NEVER, 45.0, 60.0, 120.0, 300.0, 900.0]
+    rain = [2.0, 30.0, 7.0, 7.0, 12.0]  # mm/h: higher is worse; the repeated value once
+    assert observed_candidates(rain, "rain") == [NEVER, 30.0, 12.0, 7.0, 2.0]
+    frames = [{**CLEAR, "rain_mm_h": v} for v in rain]
+    fired = [sum(rule("camera_right", "rain", t).fires(w) for w in frames) for t in observed_candidates(rain, "rain")[1:]]
+    assert fired == sorted(fired) and fired[0] == 1 and fired[-1] == len(rain)  # the worst frame only, ..., every frame
+    assert observed_candidates([], "night") == [NEVER] and observed_candidates([float("nan")], "snow") == [NEVER]
+    assert observed_candidates(list(range(1, 101)), "snow", quantiles=(0.0, 0.5)) == [NEVER, 100, 50]
+    with pytest.raises(ValueError, match="unknown condition"):
+        observed_candidates([1.0], "hail")
 
 
 def test_the_threshold_search_finds_the_best_rules_and_keeps_a_sensor_on_a_tie():
