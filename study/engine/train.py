@@ -9,9 +9,8 @@ is in the run directory:
                            loss sums (a resumed epoch's row averages all of it), RNG states),
                            written atomically every `checkpoint_steps` steps and at each epoch end
     RUN/epoch-XXX.pt       the model at the end of each epoch
-    RUN/metrics.csv        one row per epoch: mean losses per branch, lr, test mAP@0.5 per branch
-                           (in its own frame) and of their late fusion (right camera), seconds
-                           (train_seconds: the training steps alone)
+    RUN/metrics.csv        one row per epoch: mean losses per branch, lr, test mAP@0.5 per branch (in its
+                           own frame) and of their late fusion (right camera), seconds (train_seconds: steps)
     RUN/curves.png         metrics.csv plotted: losses and test mAP per branch against the epoch
 
 Interrupted (even kill -9) and run again with the same arguments, training continues from the last
@@ -360,14 +359,13 @@ def build_model(cfg: TrainConfig, run_cfg: dict, specs, out: Path, initialise: b
     """The network of this run, initialised from `cfg.seed` (per-frame sampling installed if asked);
     without its initial draws for a run that resumes (its checkpoint loads every weight and the RNG)."""
     from fusion.nets import build_hydrafusion
+    from fusion.nets.sampling import use_frame_seeded_sampling
     from fusion.nets.uninitialised import uninitialised
 
     torch.manual_seed(cfg.seed)
     with uninitialised() if not initialise else contextlib.nullcontext():
         model = build_hydrafusion(profile=run_profile(run_cfg, out), branches=specs)
     if cfg.sampling == "per-frame":
-        from fusion.nets.sampling import use_frame_seeded_sampling
-
         use_frame_seeded_sampling(model)
     return model
 

@@ -12,11 +12,19 @@ the one scoring path (`fuse_selection`, `score`, `context_bootstrap`) and agains
 - `measured_gate` (a learner): a gate of the gate protocol that reads what a car measures (its
   `GateFrame`: the road type and the weather readings, never the context label): one-vs-rest
   logistic regressions (`fusion.pem.fit_logistic`) on the standardised readings, fitted on the
-  fitting frames to each frame's best branch (`frame_utility`; a frame where branches tie is left out).
+  fitting frames to each frame's best branch (`study.experiments.pem_sweep.frame_utility`; a frame where branches tie is left out).
 - `best_constant`: the one branch best on validation over every context. Blind to context, it must
   miss the rule wherever the answer is another branch: the check that this check can fail.
 - `knowledge`: HydraFusion's Table 1 (`KnowledgeGate`), fixed by the paper and reading the context
   label: reported, not required to agree.
+- `physical_gate`: the physical knowledge gate (`fusion.physical_gate`): a sensor is dropped where a
+  weather quantity the car measures (visibility, rain or snow rate, illuminance) passes a threshold;
+  every (sensor, condition) rule's threshold chosen among the values seen on the fitting frames and
+  kept by validation mAP (`study.experiments.pem_sweep.physical_rules`, as `pem sweep` fits it). It
+  runs the branches it keeps, fused. Its rules fire only under a condition, so in clear weather it
+  keeps every branch: there the answer (the camera alone) is beyond what it can express. Where a
+  condition holds (fog, rain, snow, night) the answer is one sensor the others' weakness leaves, and
+  the gate recovers the rule when it runs that branch alone on at least `RECOVER` of those frames.
 - `context_oracle`: per context the best branch on the test frames themselves, a bound: it checks
   the construction (it must be the answer).
 
@@ -66,34 +74,47 @@ class MeasuredGate:
         return max(logits, key=logits.get)
 
 
-def frame_utility(d, gt) -> float:
-    """The scores of `d`'s detections that find a true box minus the scores of those that find none
-    (IoU >= 0.5, greedy by score, difficult boxes left out): what a frame's AP rewards, per frame."""
-    from fusion.pem import match
-
-    m = match(d.boxes, d.scores, gt["boxes"][~gt["difficult"]])
-    return float(d.scores[m >= 0].sum() - d.scores[m < 0].sum())
-
-
 def _value(m) -> float:
     """An mAP to rank by: an undefined one (no box to find) below every defined one."""
     return -1.0 if m is None else float(m)
 
 
-def split_by_sequence(per_frame: list, who: str = "the known-answer check") -> tuple[list, list]:
-    """(fitting, validation) positions of `per_frame`: each context's sequences in order, alternately
-    (UserError naming `who` when a context has one sequence)."""
-    seqs: dict = {}
-    for pos, (meta, _) in enumerate(per_frame):
-        seqs.setdefault(meta["context"], {}).setdefault(meta["sequence_id"], []).append(pos)
-    fit, val = [], []
-    for ctx, by_seq in sorted(seqs.items()):
-        if len(by_seq) < 2:
-            raise UserError(f"the gate set has one sequence of {ctx}: {who} needs two per context "
-                            "(one to fit on, one to choose on)")
-        for j, sid in enumerate(sorted(by_seq)):
-            (fit if j % 2 == 0 else val).extend(by_seq[sid])
-    return sorted(fit), sorted(val)
+def fit_physical_gate(gp, fit_pos, val_pos, gate_reader, tp, method, protocol, branches, sensors) -> tuple[list, dict]:
+    """The physical gate fitted on the gate set's predictions `gp` (thresholds from its fitting frames,
+    chosen on its validation frames' mAP over every branch set) -> (its selection on each test frame of
+    `tp`, its record)."""
+    from fusion.physical_gate import physical_selection, weather_of
+    from study.experiments.pem_sweep import Constants, constants_of, physical_rules
+
+    val = Constants([gp.per_frame[p] for p in val_pos], constants_of(branches, sensors), gp.branch_frames, method,
+                    gate_reader, protocol)
+    rules, record = physical_rules(val, [gp.per_frame[p][0] for p in fit_pos], branches, sensors)
+    return [tuple(physical_selection(weather_of(m), branches, sensors, rules)) for m, _ in tp.per_frame], record
+
+
+def physical_row(selection, tp, answer, scored, boot) -> dict:
+    """The physical gate's row: per context the share of test frames on which it runs the answer alone
+    (`agreement`) and on which it runs the answer among others (`keeps_answer`); it recovers the rule
+    when it runs the answer alone on `RECOVER` of the frames of every context with a condition."""
+    from study.engine.scoring import difference_interval
+
+    ctx_of = [meta["context"] for meta, _ in tp.per_frame]
+    conditioned = {meta["context"] for meta, _ in tp.per_frame if meta.get("conditions")}
+
+    def share(test) -> dict:
+        return {c: round(float(np.mean([test(sel, c) for sel, cc in zip(selection, ctx_of) if cc == c])), 4)
+                for c in answer}
+
+    agree = share(lambda sel, c: tuple(sel) == (answer[c],))
+    row = {"map": scored["physical_gate"]["map"], "map_per_context": scored["physical_gate"]["map_per_context"],
+           "agreement": agree, "agreement_all": round(float(np.mean([tuple(s) == (answer[c],) for s, c in
+                                                                     zip(selection, ctx_of)])), 4),
+           "keeps_answer": share(lambda sel, c: answer[c] in sel),
+           "recovers_the_rule": bool(conditioned) and all(agree[c] >= RECOVER for c in conditioned),
+           "expressible_contexts": sorted(conditioned)}
+    if boot:
+        row["minus_answer_ci95"] = difference_interval(boot["per_context"]["all"], "physical_gate", "answer")
+    return row
 
 
 def run(pem_path, gate_data, test_data, work, *, strong: float = 8.0, weak: float = 0.125, seed: int = 0,
@@ -112,6 +133,7 @@ def run(pem_path, gate_data, test_data, work, *, strong: float = 8.0, weak: floa
     )
     from study.experiments.gate_protocol import gate_frame
     from study.experiments.pem import load_pem, predict_pem
+    from study.experiments.pem_sweep import frame_utility, split_by_sequence
 
     t0 = time.perf_counter()
     doc = load_pem(pem_path)
@@ -152,6 +174,8 @@ def run(pem_path, gate_data, test_data, work, *, strong: float = 8.0, weak: floa
         x.append(readings(gate_frame(meta, per, sensors)))
         best.append(max(branches, key=u.get))
     gate = MeasuredGate(branches, np.array(x), best)
+    physical, physical_record = fit_physical_gate(gp, fit_pos, val_pos, readers["gate"], tp, method, protocol,
+                                                  branches, sensors)
     test_scores = {b: per_context(tp.per_frame, readers["test"], b) for b in branches}
     oracle = {c: max(branches, key=lambda b: _value(test_scores[b]["map_per_context"].get(c))) for c in contexts}
     ctx_of = [meta["context"] for meta, _ in tp.per_frame]
@@ -165,6 +189,7 @@ def run(pem_path, gate_data, test_data, work, *, strong: float = 8.0, weak: floa
     }
     memo: dict = {}
     sources = {n: fuse_selection(tp.per_frame, [(b,) for b in p], frames, method, memo=memo) for n, p in picks.items()}
+    sources["physical_gate"] = fuse_selection(tp.per_frame, physical, frames, method, memo=memo)
     scored = {n: score(s, readers["test"], "camera_right", protocol=protocol) for n, s in sources.items()}
     boot = (context_bootstrap(sources, readers["test"], "camera_right", protocol=protocol, resamples=resamples,
                               classes="all", desc="bootstrap the gates") if resamples else None)
@@ -178,12 +203,13 @@ def run(pem_path, gate_data, test_data, work, *, strong: float = 8.0, weak: floa
         if n in LEARNERS or n == "best_constant":
             row["recovers_the_rule"] = all(a >= RECOVER for a in agree.values())
         methods[n] = row
+    methods["physical_gate"] = physical_row(physical, tp, answer, scored, boot)
     return {
         "world": {"answer": answer, "strong": strong, "weak": weak, "strengths": world},
         "construction_holds": methods["context_oracle"]["agreement_all"] == 1.0,
         "methods": methods, "chosen_on_validation": {"context_constant": context_constant, "best_constant": best_constant},
         "frames": {"fit": len(fit_pos), "validation": len(val_pos), "test": len(tp.per_frame)},
-        "measured_gate_targets": {b: best.count(b) for b in branches},
+        "measured_gate_targets": {b: best.count(b) for b in branches}, "physical_gate": physical_record,
         "recover": RECOVER, "fusion": fusion, "k": 1, "seed": seed, "bootstrap": resamples,
         "predictions": {"gate": str(work / "gate"), "test": str(work / "test")},
         "seconds": round(time.perf_counter() - t0, 1),
@@ -202,7 +228,11 @@ def format_result(r: dict) -> str:
         iv = f"[{ci[0]:+.3f}, {ci[1]:+.3f}]" if ci else ""
         verdict = ("" if "recovers_the_rule" not in m else
                    "  recovers the rule" if m["recovers_the_rule"] else "  DOES NOT recover the rule")
-        worst = min(m["agreement"], key=m["agreement"].get)
+        judged = m.get("expressible_contexts") or list(m["agreement"])
+        worst = min(judged, key=m["agreement"].get)
         lines.append(f"  {n:17s} agrees {100 * m['agreement_all']:5.1f} % (least: {worst} {100 * m['agreement'][worst]:.0f} %)"
                      f"  mAP {m['map'] if m['map'] is not None else '-'} {iv}{verdict}")
+        if "expressible_contexts" in m:
+            lines.append(f"  {'':17s} (the answer alone; its rules fire only under a condition: judged on "
+                         f"{', '.join(m['expressible_contexts'])}; in clear weather it runs every branch)")
     return "\n".join(lines)

@@ -8,7 +8,7 @@ interval and verdict (above / below / not resolved):
   `study.experiments.compare.compare` on the drawn predictions (the knowledge gate keeps the top k).
 - `context_constant_minus_all_branches` (needs the gate set): per context, the constant branch set of
   best mAP on the gate set's validation frames (its sequences alternately fitting and validation:
-  `study.experiments.known_answer.split_by_sequence`), among the study's constants
+  `split_by_sequence`), among the study's constants
   (`study.experiments.bounds.constant_configurations`: each single sensor, late fusion, all branches and
   every other subset of the branches), run on the test frames; a context the validation frames lack
   takes the best overall. The study's per-context constant, chosen the same way.
@@ -28,7 +28,7 @@ interval and verdict (above / below / not resolved):
   optimum, at least all branches), not achievable. A PEM has no Faster R-CNN losses, so neither oracle
   here is HydraFusion's optimal gate.
 - `utility_oracle_minus_all_branches`: per test frame, the constant whose fused detections score best
-  on that frame's own ground truth by `study.experiments.known_answer.frame_utility` (scores of
+  on that frame's own ground truth by `frame_utility` (scores of
   detections finding a true box minus those finding none; all branches where it ties for best). Also
   a-posteriori; a frame's utility is not its share of the pooled mAP (it counts every false alarm at
   its score, where AP counts only those ranked above true positives), so this one is no bound.
@@ -94,6 +94,31 @@ def constants_of(branches, sensors) -> dict[str, tuple[str, ...]]:
     singles = [b for b in branches if len(sensors[b]) == 1]
     members = build_configurations({b: tuple(sensors[b]) for b in branches}).members
     return constant_configurations(branches, members, singles, singles)
+
+
+def frame_utility(d, gt) -> float:
+    """The scores of `d`'s detections that find a true box minus the scores of those that find none
+    (IoU >= 0.5, greedy by score, difficult boxes left out): what a frame's AP rewards, per frame."""
+    from fusion.pem import match
+
+    m = match(d.boxes, d.scores, gt["boxes"][~gt["difficult"]])
+    return float(d.scores[m >= 0].sum() - d.scores[m < 0].sum())
+
+
+def split_by_sequence(per_frame: list, who: str = "the known-answer check") -> tuple[list, list]:
+    """(fitting, validation) positions of `per_frame`: each context's sequences in order, alternately
+    (UserError naming `who` when a context has one sequence)."""
+    seqs: dict = {}
+    for pos, (meta, _) in enumerate(per_frame):
+        seqs.setdefault(meta["context"], {}).setdefault(meta["sequence_id"], []).append(pos)
+    fit, val = [], []
+    for ctx, by_seq in sorted(seqs.items()):
+        if len(by_seq) < 2:
+            raise UserError(f"the gate set has one sequence of {ctx}: {who} needs two per context "
+                            "(one to fit on, one to choose on)")
+        for j, sid in enumerate(sorted(by_seq)):
+            (fit if j % 2 == 0 else val).extend(by_seq[sid])
+    return sorted(fit), sorted(val)
 
 
 class Constants:
@@ -180,8 +205,6 @@ def utility_choice(test: Constants) -> list[str]:
     """Per frame, the constant whose fused detections have the highest `frame_utility` on the frame's own
     ground truth (all branches where it ties for the highest)."""
     from study.engine.scoring import frame_ground_truth
-    from study.experiments.known_answer import frame_utility
-
     out = []
     for i, meta in enumerate(test.metas):
         gt = frame_ground_truth(test.reader, meta, "camera_right", None, test.protocol)
@@ -202,8 +225,6 @@ def gate_choices(test: Constants, gate_pred, gate_data, method, branches, sensor
     from fusion.physical_gate import physical_selection, weather_of
     from sensors.dataset import DatasetReader
     from study.engine.predictions import load
-    from study.experiments.known_answer import split_by_sequence
-
     gp = load(gate_pred)
     fit, val_pos = split_by_sequence(gp.per_frame, "pem sweep --gate-set")
     val = Constants([gp.per_frame[p] for p in val_pos], test.constants, gp.branch_frames, method,
@@ -323,8 +344,6 @@ def check_gate_set(gate_set, data) -> None:
     sequences in every context, or holds the test set's frames."""
     from sensors.dataset import DatasetReader
     from study.engine.gate_data import dataset_sha256
-    from study.experiments.known_answer import split_by_sequence
-
     reader = DatasetReader(gate_set)
     split_by_sequence([(reader.meta(i), None) for i in range(len(reader))], "pem sweep --gate-set")
     if dataset_sha256(gate_set) == dataset_sha256(data):

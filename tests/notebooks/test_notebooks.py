@@ -175,7 +175,10 @@ def test_when_to_drop_a_sensor_notebook_derives_the_crossover_and_reads_a_studys
     assert "late: with minus without each sensor" in text and "camera in fog, all_branches: measured" in text
     assert "physical_gate" in text and "hydrafusion:knowledge" in text
     # section 4 reads the committed PEM sweep and known-answer records (docs/pem.md checks their numbers)
-    assert "knowledge gate resolved above all_branches at strengths" in text
+    for title in ("knowledge gate", "per-context constant", "physical gate", "room for context (split-sample)",
+                  "a-posteriori oracle"):  # every comparison of the sweep, drawn and read
+        assert f": {title}" in text and "resolved above at strengths" in text, title
+    assert "physical_gate" in text.split("construction holds on the test frames", 1)[1]
     assert "construction holds on the test frames: True" in text and "context_constant" in text
     assert "recovers the rule" in text and "does not recover the rule" in text
 

@@ -54,6 +54,12 @@ def test_learners_recover_the_rule_and_the_blind_constant_does_not(world, capsys
     assert r["chosen_on_validation"]["context_constant"] == {"city": "camera_right", "fog": "radar"}
     assert m["context_constant"]["recovers_the_rule"] and m["context_constant"]["agreement_all"] == 1.0
     assert m["measured_gate"]["recovers_the_rule"], m["measured_gate"]["agreement"]
+    # the physical gate: in the clear city no rule can fire (it runs every branch, the answer among
+    # them); it is judged in fog alone, on the branch it runs alone there
+    pg = m["physical_gate"]
+    assert pg["expressible_contexts"] == ["fog"] and pg["agreement"]["city"] == 0.0 and pg["keeps_answer"]["city"] == 1.0
+    assert pg["recovers_the_rule"] == (pg["agreement"]["fog"] >= 0.9) and "minus_answer_ci95" in pg
+    assert set(r["physical_gate"]["candidates"]) == {f"{s} / fog" for s in ("radar", "camera_right", "lidar")}
     # one branch for both contexts: right in one of them at most
     assert not m["best_constant"]["recovers_the_rule"] and m["best_constant"]["agreement_all"] <= 0.5
     assert m["answer"]["agreement_all"] == 1.0 and "minus_answer_ci95" not in m["answer"]
@@ -95,7 +101,7 @@ def test_the_docs_table_is_the_results_file():
     for name, (agree, least, mean_ap, minus) in rows.items():
         m = r["methods"][name]
         assert agree == f"{100 * m['agreement_all']:.1f} %".replace("100.0 %", "100 %"), name
-        worst = min(m["agreement"], key=m["agreement"].get)
+        worst = min(m.get("expressible_contexts") or m["agreement"], key=m["agreement"].get)
         want_least = "100 %" if m["agreement"][worst] == 1 else f"{worst} {100 * m['agreement'][worst]:.0f} %"
         assert least == want_least, name
         assert mean_ap == f"{m['map']:.3f}", name
@@ -103,3 +109,25 @@ def test_the_docs_table_is_the_results_file():
         assert minus == ("0" if lo == hi == 0 else f"[{lo:+.3f}, {hi:+.3f}]"), name
         if name in ("context_constant", "measured_gate", "best_constant"):
             assert m["recovers_the_rule"] == (min(m["agreement"].values()) >= r["recover"]), name
+    pg = r["methods"]["physical_gate"]
+    assert pg["recovers_the_rule"] == all(pg["agreement"][c] >= r["recover"] for c in pg["expressible_contexts"])
+    assert ("does not recover the rule" if not pg["recovers_the_rule"] else "recovers the rule") in section
+
+
+def test_the_physical_gate_recovers_the_rule_when_it_runs_the_answer_alone_where_a_condition_holds():
+    """`physical_row` on chosen selections: running the answer alone in every frame with a condition
+    recovers the rule, whatever it runs in clear weather; keeping a weak branch beside it does not."""
+    from types import SimpleNamespace
+
+    from study.experiments.known_answer import physical_row
+
+    metas = [{"context": "city", "conditions": []}] * 2 + [{"context": "fog", "conditions": ["fog"]}] * 2
+    tp = SimpleNamespace(per_frame=[(m, None) for m in metas])
+    answer = {"city": "camera_right", "fog": "radar"}
+    scored = {"physical_gate": {"map": 0.5, "map_per_context": {}}}
+    every = ("radar", "camera_right", "lidar")
+    good = physical_row([every, every, ("radar",), ("radar",)], tp, answer, scored, None)
+    assert good["recovers_the_rule"] and good["agreement"] == {"city": 0.0, "fog": 1.0} and good["expressible_contexts"] == ["fog"]
+    assert good["agreement_all"] == 0.5 and good["keeps_answer"] == {"city": 1.0, "fog": 1.0}
+    bad = physical_row([every, every, ("radar", "lidar"), ("radar",)], tp, answer, scored, None)
+    assert not bad["recovers_the_rule"] and bad["agreement"]["fog"] == 0.5 and bad["keeps_answer"]["fog"] == 1.0

@@ -70,8 +70,7 @@ def test_the_choices_are_the_gate_sets_and_the_test_set_cannot_move_them(world):
     from sensors.dataset import DatasetReader
     from study.engine.predictions import load
     from study.engine.scoring import fuse_selection, score
-    from study.experiments.known_answer import split_by_sequence
-    from study.experiments.pem_sweep import constants_of, sweep
+    from study.experiments.pem_sweep import constants_of, split_by_sequence, sweep
 
     run, tmp, gate, test_a, test_b = world
     ra = sweep(run, test_a, tmp / "pem.json", [1.0], tmp / "a", gate_set=gate, resamples=0)["points"][0]
@@ -99,8 +98,13 @@ def test_the_oracles_read_each_frames_own_ground_truth(world):
     from sensors.dataset import DatasetReader
     from study.engine.predictions import load
     from study.engine.scoring import frame_ground_truth
-    from study.experiments.known_answer import frame_utility
-    from study.experiments.pem_sweep import Constants, a_posteriori_choice, constants_of, utility_choice
+    from study.experiments.pem_sweep import (
+        Constants,
+        a_posteriori_choice,
+        constants_of,
+        frame_utility,
+        utility_choice,
+    )
 
     run, tmp, gate, test, _ = world
     p = load(tmp / "work" / "strength-0.5")
