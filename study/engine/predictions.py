@@ -118,15 +118,22 @@ def identity_of(run_dir, data, model, gates, indices, split: str, batch_size: in
 
 
 def predict(run_dir, data, out=None, *, gates=GATES, split: str = "auto",
-            batch_size: int = 4, setup=None, progress: bool = True) -> Predictions:
+            batch_size: int = 4, setup=None, progress: bool = True, indices=None) -> Predictions:
     """The predictions of the run (or reference model's cache run) `run_dir` on `data`'s frames of
     `split` (`study.engine.scoring.frames_for`), read from `out` (default RUN/predictions/<key>/) when they
     are there with this identity, else made by one pass and written there. `gates`: those that can run
-    (`usable_gates`: learned ones only where trained) predict beside the branches."""
+    (`usable_gates`: learned ones only where trained) predict beside the branches. `indices`: only these
+    frames of the split (UserError for one outside it)."""
     from study.engine.gate_tables import setup_run
 
     run_dir, data = Path(run_dir), Path(data)
-    model, cfg, indices, used_split, reader = setup_run(run_dir, data, split, None, "latest", setup)
+    model, cfg, in_split, used_split, reader = setup_run(run_dir, data, split, None, "latest", setup)
+    if indices is None:
+        indices = in_split
+    else:
+        indices = sorted({int(i) for i in indices})
+        if not indices or not set(indices) <= set(in_split):
+            raise UserError(f"predict: frames outside the {used_split!r} split of {data} (or none) asked for")
     trained = usable_gates(run_dir, gates)
     identity = identity_of(run_dir, data, model, trained, indices, used_split, batch_size, model.device_setup)
     key = hashlib.sha256(json.dumps(identity, sort_keys=True).encode()).hexdigest()[:16]

@@ -106,7 +106,8 @@ def fit(run_dir, data, out, *, predictions=None, batch_size: int = 4, setup=None
     cfg = json.loads((run_dir / "config.json").read_text())
     doc = {"format": FORMAT, "version": VERSION, "run": str(run_dir),
            "checkpoint_sha256": cached_sha256(checkpoint_path(run_dir)), "fit_data": str(data),
-           "fit_dataset_sha256": dataset_sha256(data), "fit_frames": len(pred.per_frame), "protocol": protocol,
+           "fit_dataset_sha256": dataset_sha256(data), "fit_frames": len(pred.per_frame),
+           "fit_indices": [int(m["dataset_index"]) for m, _ in pred.per_frame], "protocol": protocol,
            "branches": pred.branches, "branch_sensors": {b: list(s) for b, s in sensors.items()},
            "model_frames": {s["name"]: s["frame"] for s in cfg.get("branch_specs", [])} or pred.branch_frames,
            "predictions": str(pred.root), "loadings": loadings, "branch_pem": models}
@@ -168,11 +169,13 @@ def _appender(arrays: dict):
 
 
 def predict_pem(pem_path, data, out, *, strength: float = 1.0, seed: int = 0, split: str = "auto",
-                world: dict | None = None) -> dict:
+                world: dict | None = None, indices=None, on_fitting_frames: bool = False) -> dict:
     """Draw every branch's detections from the PEM `pem_path` on `data`'s frames (`split` as the run's
-    `frames_for` gives them) and write them as predictions at `out` (`study.engine.predictions` format).
-    `world`: {branch: {context: factor}}, each branch's strength in a frame's context multiplied by
-    its factor (`fusion.pem.known_answer_world`); a context it does not name keeps `strength`."""
+    `frames_for` gives them; `indices`: these frames instead) and write them as predictions at `out`
+    (`study.engine.predictions` format). `world`: {branch: {context: factor}}, each branch's strength in a
+    frame's context multiplied by its factor (`fusion.pem.known_answer_world`); a context it does not
+    name keeps `strength`. A frame the PEM was fitted on is refused, unless `on_fitting_frames` (what a
+    choice made on the fitting frames draws, when there are no others to choose on: never a test frame)."""
     from fusion.pem import BranchPEM, frame_rng, shared_normals
     from sensors.dataset import DatasetReader
     from study.engine.gate_data import dataset_sha256
@@ -192,9 +195,15 @@ def predict_pem(pem_path, data, out, *, strength: float = 1.0, seed: int = 0, sp
             raise UserError(f"--out {out}: exists and is not a predictions directory (choose a new or empty one)")
     run_dir = Path(doc["run"])
     cfg = json.loads((run_dir / "config.json").read_text()) if (run_dir / "config.json").is_file() else {}
-    indices, used_split = frames_for(cfg, data, split) if cfg else (list(range(len(DatasetReader(data)))), "all")
-    if doc["fit_dataset_sha256"] == (sha := dataset_sha256(data)):
-        raise UserError(f"{data}: the PEM was fitted on this dataset; draw it on another (held-out) one")
+    if indices is not None:
+        indices, used_split = sorted({int(i) for i in indices}), "indices"
+    else:
+        indices, used_split = frames_for(cfg, data, split) if cfg else (list(range(len(DatasetReader(data)))), "all")
+    if doc["fit_dataset_sha256"] == (sha := dataset_sha256(data)) and not on_fitting_frames:
+        fitted = doc.get("fit_indices")
+        if fitted is None or set(fitted) & set(indices):
+            raise UserError(f"{data}: the PEM was fitted on this dataset; draw it on another (held-out) one"
+                            + ("" if fitted is None else " or on frames it was not fitted on"))
     reader = DatasetReader(data)
     branches = list(doc["branches"])
     sensors = {b: tuple(s) for b, s in doc["branch_sensors"].items()}

@@ -219,20 +219,27 @@ def _difference(value, iv) -> dict:
     return {"value": value, "ci95": iv, "verdict": verdict(iv)}
 
 
-def gate_choices(test: Constants, gate_pred, gate_data, method, branches, sensors) -> tuple[dict, dict]:
+def gate_choices(test: Constants, gate_pred, gate_data, method, branches, sensors,
+                 gate_frames: dict | None = None) -> tuple[dict, dict]:
     """The per-context constant and the physical gate chosen on the gate set's predictions `gate_pred`:
-    ({name: each test frame's constant}, their records)."""
+    ({name: each test frame's constant}, their records). `gate_frames` (`sweep`'s): every frame of
+    `gate_pred` is chosen on, and the physical gate's candidates are the values seen on the frames its
+    "fit_metas" list; without it the gate set is split by sequence (`split_by_sequence`)."""
     from fusion.physical_gate import physical_selection, weather_of
     from sensors.dataset import DatasetReader
     from study.engine.predictions import load
     gp = load(gate_pred)
-    fit, val_pos = split_by_sequence(gp.per_frame, "pem sweep --gate-set")
+    if gate_frames is None:
+        fit, val_pos = split_by_sequence(gp.per_frame, "pem sweep --gate-set")
+        fit_metas = [gp.per_frame[p][0] for p in fit]
+    else:
+        fit_metas, val_pos = gate_frames["fit_metas"], list(range(len(gp.per_frame)))
     val = Constants([gp.per_frame[p] for p in val_pos], test.constants, gp.branch_frames, method,
                     DatasetReader(gate_data), test.protocol)
     chosen_on = {"frames": len(val_pos), "sequences": len({m["sequence_id"] for m in val.metas}),
-                 "fitting_frames": len(fit)}
+                 "fitting_frames": len(fit_metas), **({"on": gate_frames["on"]} if gate_frames else {})}
     cc = context_constant(val)
-    rules, rec = physical_rules(val, [gp.per_frame[p][0] for p in fit], branches, sensors)
+    rules, rec = physical_rules(val, fit_metas, branches, sensors)
     choices = {CONTEXT_CONSTANT: [cc.get(m["context"], cc["all"]) for m in test.metas],
                PHYSICAL_GATE: [test.name_of[physical_selection(weather_of(m), branches, sensors, rules)]
                                for m in test.metas]}
@@ -246,7 +253,8 @@ def gate_choices(test: Constants, gate_pred, gate_data, method, branches, sensor
     return choices, records
 
 
-def verdict_at(test_pred, data, gate_pred, gate_data, *, fusion: str, resamples: int) -> dict:
+def verdict_at(test_pred, data, gate_pred, gate_data, *, fusion: str, resamples: int,
+               gate_frames: dict | None = None) -> dict:
     """The comparisons of the module docstring that `compare` does not make, on the test predictions
     `test_pred` (and the gate set's `gate_pred`, or None): their values, intervals and verdicts, each
     method's mAP, per context the intervals against all branches, and what was chosen."""
@@ -262,7 +270,7 @@ def verdict_at(test_pred, data, gate_pred, gate_data, *, fusion: str, resamples:
                      protocol)
     choices, out = {}, {}
     if gate_pred is not None:
-        choices, out = gate_choices(test, gate_pred, gate_data, method, branches, sensors)
+        choices, out = gate_choices(test, gate_pred, gate_data, method, branches, sensors, gate_frames)
     choices[ORACLE] = a_posteriori_choice(test)
     choices[UTILITY_ORACLE] = utility_choice(test)
     choices["all_branches"] = ["all_branches"] * len(test.metas)
@@ -296,17 +304,24 @@ def room_record(room: dict) -> dict:
 
 
 def sweep(run_dir, data, pem_path, strengths, out_dir, *, gate_set=None, seed: int = 0, resamples: int = 500,
-          fusion: str = "soft-nms", k: int = 2, progress: bool = False) -> dict:
+          fusion: str = "soft-nms", k: int = 2, progress: bool = False, gate_frames: dict | None = None) -> dict:
     """The sweep of the module docstring -> a JSON-able dict, one point per strength in `strengths`; each
-    strength's predictions in OUT_DIR/strength-<s> (the gate set's in OUT_DIR/gate-strength-<s>)."""
+    strength's predictions in OUT_DIR/strength-<s> (the gate set's in OUT_DIR/gate-strength-<s>).
+    `gate_frames` ({"fit": indices, "val": indices} of `gate_set`, which may be `data` itself: a study's
+    gate split): the gate frames as the caller split them, in place of `split_by_sequence`; the PEM is
+    drawn on "val" and chosen on there, the physical gate's candidates are the values seen on "fit"; with
+    no "val" frames both are the "fit" frames (the PEM drawn on the frames it was fitted on: labelled)."""
     from study.engine.scoring import load_run
     from study.experiments.compare import compare
     from study.experiments.pem import load_pem, predict_pem
 
     load_run(run_dir)  # the model first: a damaged checkpoint is named before the PEM file is read
     doc = load_pem(pem_path)
-    if gate_set is not None:
+    chosen = None
+    if gate_set is not None and gate_frames is None:
         check_gate_set(gate_set, data)
+    elif gate_set is not None:
+        chosen = given_gate_frames(run_dir, data, gate_set, gate_frames)
     points = []
     for s in strengths:
         t0 = time.perf_counter()
@@ -315,7 +330,8 @@ def sweep(run_dir, data, pem_path, strengths, out_dir, *, gate_set=None, seed: i
         gate_pred = None
         if gate_set is not None:
             gate_pred = Path(out_dir) / f"gate-strength-{s:g}"
-            predict_pem(pem_path, gate_set, gate_pred, strength=s, seed=seed + 1)
+            predict_pem(pem_path, gate_set, gate_pred, strength=s, seed=seed + 1,
+                        **({"indices": chosen["indices"], "on_fitting_frames": not gate_frames["val"]} if chosen else {}))
         t1 = time.perf_counter()
         r = compare(run_dir, data, gates=("knowledge",), k=k, fusion=fusion, resamples=resamples,
                     predictions=pred, progress=progress)
@@ -325,8 +341,10 @@ def sweep(run_dir, data, pem_path, strengths, out_dir, *, gate_set=None, seed: i
                  "all_branches_minus_late": m.get("all_branches", {}).get("minus_late"),
                  "knowledge_minus_all_branches": m.get("hydrafusion:knowledge", {}).get("minus_all_branches"),
                  "knowledge_minus_late": m.get("hydrafusion:knowledge", {}).get("minus_late")}
-        more = verdict_at(pred, data, gate_pred, gate_set, fusion=fusion, resamples=resamples)
-        point["maps"].update({n: v for n, v in more.pop("maps").items() if n != "all_branches"})
+        if "all_branches" not in m:  # every branch reads one sensor: all branches is late fusion itself
+            point.update(all_branches_is_late(point, resamples))
+        more = verdict_at(pred, data, gate_pred, gate_set, fusion=fusion, resamples=resamples, gate_frames=chosen)
+        point["maps"].update({n: v for n, v in more.pop("maps").items() if n not in point["maps"]})
         point.update(more)
         t3 = time.perf_counter()
         point["seconds"] = round(t3 - t0, 1)
@@ -334,9 +352,51 @@ def sweep(run_dir, data, pem_path, strengths, out_dir, *, gate_set=None, seed: i
         points.append(point)
     return {"data": str(data), "pem": str(pem_path), "seed": seed, "resamples": resamples, "fusion": fusion, "k": k,
             "gate_set": None if gate_set is None else str(gate_set), "gate_seed": None if gate_set is None else seed + 1,
+            **({"gate_frames": {"fit": len(gate_frames["fit"]), "val": len(gate_frames["val"]), "on": chosen["on"]}}
+               if chosen else {}),
             **({"without_gate_set": NO_GATE_SET} if gate_set is None else {}),
             "constants": {n: list(b) for n, b in constants_of(doc["branches"], doc["branch_sensors"]).items()},
             "what": WHAT, "points": points}
+
+
+SAME_AS_LATE = "every branch reads one sensor: all_branches is late fusion itself (the same boxes on every frame)"
+
+
+def all_branches_is_late(point: dict, resamples: int) -> dict:
+    """Where every branch is a single sensor `compare` has no all_branches row: all_branches is late fusion,
+    so all_branches minus late is 0 on every draw, and the knowledge gate minus all_branches is its minus
+    late (each marked with `SAME_AS_LATE`)."""
+    knowledge = point.get("knowledge_minus_late")
+    return {"all_branches_minus_late": {"value": 0.0, "ci95": [0.0, 0.0] if resamples else None,
+                                        "verdict": "not resolved", "note": SAME_AS_LATE},
+            "knowledge_minus_all_branches": None if knowledge is None else {**knowledge, "note": SAME_AS_LATE}}
+
+
+GIVEN_ON = {True: "the gate frames' validation sequences", False: (
+    "the gate frames' fitting sequences, which the PEM was fitted on (gates.val_fraction carves no validation "
+    "sequence; the study's own choices fall back the same way)")}
+"""Where `sweep` chooses with `gate_frames`: on their validation frames, or on the fitting ones."""
+
+
+def given_gate_frames(run_dir, data, gate_set, gate_frames: dict) -> dict:
+    """`sweep`'s `gate_frames` checked (UserError where a gate frame is a test frame or none is given) ->
+    the frames the PEM is drawn on and chosen on, the fitting frames' metas, and where it chooses."""
+    import json
+
+    from sensors.dataset import DatasetReader
+    from study.engine.gate_data import dataset_sha256
+    from study.engine.scoring import frames_for
+
+    fit, val = [int(i) for i in gate_frames["fit"]], [int(i) for i in gate_frames["val"]]
+    if not fit:
+        raise UserError(f"{gate_set}: no gate frames to fit the physical gate's candidates on")
+    if dataset_sha256(gate_set) == dataset_sha256(data):
+        test, _ = frames_for(json.loads((Path(run_dir) / "config.json").read_text()), data, "auto")
+        if set(test) & set(fit + val):
+            raise UserError(f"{gate_set}: a gate frame is a test frame; choose on other frames")
+    reader = DatasetReader(gate_set)
+    return {"indices": val or fit, "on": GIVEN_ON[bool(val)],
+            "fit_metas": [dict(reader.meta(i), dataset_index=i) for i in fit]}
 
 
 def check_gate_set(gate_set, data) -> None:

@@ -16,6 +16,9 @@ from study.engine.gate_training import GateTrainConfig
 from study.engine.train import TrainConfig  # torch: loading a study config imports it, `--help` does not
 from study.pipeline.presets import PRESETS_DIR as PRESETS_DIR  # (where the presets are, for its readers)
 from study.pipeline.presets import study_config_file
+from study.pipeline.sections import CrossoverSection, PemSection, TransitionsSection
+from study.pipeline.sections import check_fusion as _fusion
+from study.pipeline.sections import check_positive as _positive
 
 
 class Shared:
@@ -69,19 +72,6 @@ def source_config(section, where: str, **fields):
         return section.SOURCE(**{**{n: getattr(section, n) for n in section.SHARED}, **fields})
     except UserError as exc:
         raise UserError(f"{where}: {exc}") from None
-
-
-def _fusion(where: str, value, *also: str) -> None:
-    """A late-fusion method's label (`fusion.boxes.method_labels`), or one of `also`."""
-    from fusion.boxes import method_labels
-
-    if value not in (*also, *method_labels()):
-        raise UserError(f"{where} must be {' or '.join((*also, *method_labels()))}, got {value!r}")
-
-
-def _positive(where: str, value, lo=1) -> None:
-    if value < lo:
-        raise UserError(f"{where} must be >= {lo}, got {value}")
 
 
 @dataclass(frozen=True)
@@ -372,121 +362,6 @@ class EvaluateSection:
 
 
 @dataclass(frozen=True)
-class CrossoverSection:
-    """The crossover sweep (issue 37, `study.experiments.crossover`): at what physical severity fusing each
-    sensor stops paying, on a sweep set of its own; its crossovers give the physical knowledge gate
-    its rules (`study.experiments.physical_gate`), scored in the evaluation beside every other method.
-
-    Fields:
-        frames_per_step: [frames] per condition and severity level (whole sequences of
-            `sequence_length`): each step's with-minus-without interval is drawn from its own
-            sequences only.
-        sequence_length: [frames] per sequence.
-        frame_rate_hz: recording rate within a sequence [Hz] (as the detectors' data).
-        seed: the sweep set's seed; level s is generated with seed + s, so seed + 1 .. seed + 5 must
-            differ from every other set's seed.
-        severities: the levels swept (1..5); each is a dataset of its own, as large as the others.
-        conditions: the conditions swept (fog, rain, snow, night).
-        fusion: the late fusion of every with and without set (nms | soft-nms | wbf), declared in
-            advance; when evaluate.fusion is declared it must be the same.
-        bootstrap: draws of whole sequences per step (95 % intervals and the crossing's interval).
-        level: the intervals' coverage.
-    """
-
-    frames_per_step: int = 96
-    sequence_length: int = 3
-    frame_rate_hz: float = 2.0
-    seed: int = 3000
-    severities: tuple[int, ...] = (1, 2, 3, 4, 5)
-    conditions: tuple[str, ...] = ("fog", "rain", "snow", "night")
-    fusion: str = "soft-nms"
-    bootstrap: int = 500
-    level: float = 0.95
-
-    def __post_init__(self) -> None:
-        from fusion.physical_gate import CAR_QUANTITY
-
-        _positive("crossover.frames_per_step", self.frames_per_step)
-        _positive("crossover.sequence_length", self.sequence_length)
-        _positive("crossover.seed", self.seed, 0)
-        _positive("crossover.bootstrap", self.bootstrap)
-        if self.frames_per_step % self.sequence_length:
-            raise UserError(f"crossover.frames_per_step {self.frames_per_step} is not a whole number of sequences of "
-                            f"{self.sequence_length} frames")
-        if not self.severities or any(isinstance(s, bool) or s not in (1, 2, 3, 4, 5) for s in self.severities) \
-                or list(self.severities) != sorted(set(self.severities)):
-            raise UserError(f"crossover.severities must be distinct levels 1..5 in increasing order, got "
-                            f"{list(self.severities)}")
-        bad = [c for c in self.conditions if c not in CAR_QUANTITY]
-        if bad or not self.conditions or len(set(self.conditions)) != len(self.conditions):
-            raise UserError(f"crossover.conditions must be distinct names of {', '.join(CAR_QUANTITY)}, got "
-                            f"{list(self.conditions)}")
-        _fusion("crossover.fusion", self.fusion)
-        if not 0.5 <= self.level < 1:
-            raise UserError(f"crossover.level must be in [0.5, 1), got {self.level}")
-
-    def seeds(self) -> list[int]:
-        from study.experiments.crossover import level_seed
-
-        return [level_seed(self.seed, s) for s in self.severities]
-
-
-@dataclass(frozen=True)
-class TransitionsSection:
-    """Gates with memory on weather that changes (issue 37 item 3, `study.experiments.transitions`): a set of
-    long sequences whose weather ramps, one dataset per (part, kind), validation and test parts with
-    their own seeds; each learned HydraFusion gate per frame, with hysteresis and with an EMA of its
-    scores (each parameter chosen on the validation part), the best constant and the a-posteriori
-    oracle, scored per test sequence.
-
-    Fields:
-        duration_s: [s] per sequence (issue 37: at least 30 s).
-        frame_rate_hz: [Hz] within a sequence.
-        sequences: per condition and kind, in the test part.
-        validation_sequences: per condition and kind, in the validation part.
-        conditions: those with a ramp (fog, rain, snow; night has none).
-        kinds: onset | clearing | bank.
-        severities: the levels the ramps reach (drawn per sequence).
-        seed: the part and kind datasets get seed + 10 * kind index (+ 5 for validation).
-        radius: [frames] either side of a change of the best branch: the transition window.
-        margins: hysteresis margins (in predicted-loss units) chosen among on validation.
-        alphas: EMA weights of the newest frame chosen among on validation (1 = no memory).
-        bootstrap: draws of test sequences for the intervals.
-        recurrent_epochs: epochs of the recurrent gate (`fusion.nets.recurrent_gate`) on the gate set's
-            fitting sequences (the epoch kept: lowest regret on its validation sequences); 0: none.
-        recurrent_hidden: its GRU state width.
-        windows: [frames] how much of the past the recurrent gate runs over on a transition sequence,
-            chosen among on the validation part (0: the whole sequence from its first frame).
-    """
-
-    duration_s: float = 30.0
-    frame_rate_hz: float = 2.0
-    sequences: int = 2
-    validation_sequences: int = 1
-    conditions: tuple[str, ...] = ("fog", "rain", "snow")
-    kinds: tuple[str, ...] = ("onset", "clearing", "bank")
-    severities: tuple[int, ...] = (4, 5)
-    seed: int = 4000
-    radius: int = 3
-    margins: tuple[float, ...] = (0.0, 0.02, 0.05, 0.1, 0.2)
-    alphas: tuple[float, ...] = (1.0, 0.7, 0.5, 0.3, 0.2)
-    bootstrap: int = 500
-    recurrent_epochs: int = 60
-    recurrent_hidden: int = 32
-    windows: tuple[int, ...] = (2, 4, 8, 0)
-
-    def __post_init__(self) -> None:
-        from study.experiments.transitions import check_section
-
-        check_section(self)
-
-    def seeds(self) -> list[int]:
-        from study.experiments.transitions import PARTS, part_seed
-
-        return [part_seed(self.seed, p, k) for p in PARTS for k in self.kinds]
-
-
-@dataclass(frozen=True)
 class RunSection:
     """Where and how fast the stages run. The resolved device type and precision are part of the
     keys of the stages that run networks; threads, workers and backend of none.
@@ -536,6 +411,9 @@ class StudyConfig:
             without it (no crossover stage runs).
         transitions: gates with memory on weather that changes (`TransitionsSection`); none without
             it (no transitions stage runs).
+        pem: the verdict over detector strength, a perception error model fitted on the gate frames
+            (`PemSection`); none without it (no pem stage runs).
+    The optional sections are in `study.pipeline.sections`.
     """
 
     scale: str = "custom"
@@ -548,6 +426,7 @@ class StudyConfig:
     run: RunSection = field(default_factory=RunSection)
     crossover: CrossoverSection | None = None
     transitions: TransitionsSection | None = None
+    pem: PemSection | None = None
 
     def __post_init__(self) -> None:
         if not self.scale.strip():
@@ -576,11 +455,15 @@ class StudyConfig:
                 raise UserError(f"{name}.seed {sec.seed}: its sets' seeds include {clash[0]}, {seeds[clash[0]]}; "
                                 "each set needs its own")
             seeds.update({v: f"{name}.seed" for v in sec.seeds()})
-        if self.crossover is not None:
-            e = self.evaluate.fusion
-            if e != "validation" and e != self.crossover.fusion:
-                raise UserError(f"crossover.fusion {self.crossover.fusion!r} differs from evaluate.fusion {e!r}: one "
-                                "declared fusion for every method")
+        if self.pem is not None and self.data.gate is None and not self.train.gate_holdout:
+            raise UserError("pem: the PEM is fitted on gate frames the detectors never trained on: give a gate set "
+                            "(data.gate) or train.gate_holdout > 0")
+        e = self.evaluate.fusion
+        for name in ("crossover", "pem"):
+            sec = getattr(self, name)
+            if sec is not None and e != "validation" and e != sec.fusion:
+                raise UserError(f"{name}.fusion {sec.fusion!r} differs from evaluate.fusion {e!r}: one declared "
+                                "fusion for every method")
 
 
 def load_study_config(spec: str) -> StudyConfig:

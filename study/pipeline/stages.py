@@ -1,10 +1,12 @@
 """`hydrabench study`: the whole HydraFusion + EcoFusion comparison as cached, resumable stages.
 
-    generate -> train -> gatedata -> gates -> crossover -> evaluate -> transitions -> report
+    generate -> train -> gatedata -> gates -> crossover -> evaluate -> pem -> transitions -> report
 
 (crossover only with a `crossover` section: the severity sweep on a set of its own, whose measured
 crossovers give the evaluation's physical knowledge gate its rules; transitions only with a
-`transitions` section: the learned gates with memory on sequences whose weather ramps; issue 37.)
+`transitions` section: the learned gates with memory on sequences whose weather ramps; issue 37. pem
+only with a `pem` section: a perception error model fitted on the gate frames, the verdict swept over
+detector strength; issue 49.)
 
 Each stage is a function of its config section (`StudyConfig`) and of the digests of the stages it
 reads. Its key is the SHA-256 of both; its output lives in `DIR/stages/<stage>-<key>/` with a
@@ -49,7 +51,7 @@ from study.pipeline.cache import StageRecord, Study, json_digest, link_farm
 if TYPE_CHECKING:  # the config imports torch (TrainConfig); `hydrabench study --help` reads STAGES from here
     from study.pipeline.config import GatesSection, StudyConfig, TrainSection
 
-STAGES = ("generate", "train", "gatedata", "gates", "crossover", "evaluate", "transitions", "report")
+STAGES = ("generate", "train", "gatedata", "gates", "crossover", "evaluate", "pem", "transitions", "report")
 
 
 def _device_setup(cfg: StudyConfig):
@@ -308,6 +310,27 @@ def evaluate_stage(work: Path, gates_run: Path, run_early: Path | None, parts: d
     return file_sha256(work / "results.json"), {}
 
 
+def pem_inputs(cfg: StudyConfig) -> dict:
+    """The config part of the pem stage's key: its section, the gate frames' validation split it chooses on
+    (`gates.val_fraction`, `gates.seed`), the knowledge gate's k and the prediction pass's batch size."""
+    return {"pem": to_dict(cfg.pem), "gate_frames": {"val_fraction": cfg.gates.val_fraction, "seed": cfg.gates.seed},
+            "k": _gates_k(cfg), "batch_size": cfg.train.batch_size}
+
+
+def pem_stage(work: Path, run_paper: Path, parts: dict[str, Path], cfg: StudyConfig, setup,
+              progress: bool) -> tuple[str, dict]:
+    """The verdict over detector strength (`study.experiments.pem_section`): a PEM fitted on the detectors'
+    predictions on the gate frames' fitting sequences, swept over `pem.strengths` on the test frames ->
+    work/pem.json and work/pem_sweep.png."""
+    from study.experiments.pem_section import run_pem_section
+
+    data = study_data(work, parts)
+    rec = run_pem_section(work, run_paper, data, cfg.pem, val_fraction=cfg.gates.val_fraction,
+                          val_seed=cfg.gates.seed, k=_gates_k(cfg), batch_size=cfg.train.batch_size, setup=setup,
+                          progress=progress)
+    return file_sha256(work / "pem.json"), {"fit_frames": rec["fit"]["frames"], "seconds": rec["seconds"]}
+
+
 def transitions_inputs(cfg: StudyConfig) -> dict:
     """The config part of the transitions stage's key: its section, the profile, the batch size and the
     evaluation's power model and energy scale (its energy per variant)."""
@@ -330,15 +353,16 @@ def transitions_stage(work: Path, gates_run: Path, cfg: StudyConfig, setup, prog
 
 
 def report_stage(work: Path, results_dir: Path, context: dict, rel_to: Path,
-                 transitions: Path | None = None) -> tuple[str, dict]:
-    """report.md, report.html and report.json of the evaluation's results (and of the transitions
-    stage's, when the study has one)."""
+                 transitions: Path | None = None, pem: Path | None = None) -> tuple[str, dict]:
+    """report.md, report.html and report.json of the evaluation's results (and of the transitions and
+    pem stages', when the study has them)."""
     from study.report.build import write_report
 
     results = json.loads((Path(results_dir) / "results.json").read_text())
-    if transitions is not None:
-        results["transitions"] = json.loads(Path(transitions).read_text())
-        results["transitions"]["figures_dir"] = str(Path(transitions).parent)
+    for name, path in (("transitions", transitions), ("pem", pem)):
+        if path is not None:
+            results[name] = json.loads(Path(path).read_text())
+            results[name]["figures_dir"] = str(Path(path).parent)
     write_report(results, context, work, results_dir, rel_to=rel_to)
     return file_sha256(work / "report.json"), {"files": sorted(p.name for p in work.iterdir())}
 
@@ -351,6 +375,7 @@ STAGE_CODE = {
     "crossover": (("study.experiments.crossover",), crossover_stage),
     "transitions": (("study.experiments.transitions",), transitions_stage),
     "evaluate": (("study.pipeline.evaluation",), evaluate_stage),
+    "pem": (("study.experiments.pem_section",), pem_stage),
     "report": (("study.report.build",), report_stage),
 }
 """Per stage: the modules it runs and its stage function; their code is part of its key."""
@@ -479,20 +504,33 @@ def run_study(cfg: StudyConfig, out: str | Path, until: str = "report", progress
                      evaluate_stage, gates_run=gt.dir / "run", run_early=run_early, parts=all_parts, cfg=cfg,
                      settings=settings, setup=eval_setup, progress=progress,
                      **({"crossover": cx.dir / "crossover.json"} if cx else {}))
-    tx = None
+    extra = {}  # the optional stages below the evaluation: {stage: (its record, the file the report reads)}
+    if cfg.pem is not None and last >= STAGES.index("pem"):
+        pm = study.stage("pem", {**pem_inputs(cfg), **ident("pem")},
+                         (tr_paper, *(sets[p] for p in ("gate", "test") if p in sets)), pem_stage,
+                         run_paper=tr.dir / "paper", parts=all_parts, cfg=cfg, setup=eval_setup, progress=progress)
+        extra["pem"] = (pm, pm.dir / "pem.json")
     if cfg.transitions is not None and last >= STAGES.index("transitions"):
         tx = study.stage("transitions", {**transitions_inputs(cfg), **ident("transitions")}, (gt,),
                          transitions_stage, gates_run=gt.dir / "run", cfg=cfg, setup=eval_setup, progress=progress,
                          gate_data=gate_data)
+        extra["transitions"] = (tx, tx.dir / "transitions.json")
     if last < STAGES.index("report"):
         return _finish(study, result, t_start)
+    return _report(study, cfg, ev, extra, ident("report"), result, t_start)
 
+
+def _report(study: Study, cfg: StudyConfig, ev: StageRecord, extra: dict, identity: dict, result: dict,
+            t_start: float) -> dict:
+    """The report stage (it reads the evaluation and the optional stages in `extra`), its files copied to
+    the study's folder."""
     context = {"scale": cfg.scale, "meaningless": cfg.meaningless, "config": to_dict(cfg),
                "stages": {n: r.manifest for n, r in study.records.items()},
                "stage_dirs": {n: str(r.dir) for n, r in study.records.items()}}
-    rp = study.stage("report", {"scale": cfg.scale, "meaningless": cfg.meaningless, **ident("report")},
-                     (ev, *((tx,) if tx else ())), report_stage, results_dir=ev.dir, context=context, rel_to=study.out,
-                     **({"transitions": tx.dir / "transitions.json"} if tx else {}))
+    upstream = (ev, *(extra[n][0] for n in ("transitions", "pem") if n in extra))  # (transitions first, as before)
+    rp = study.stage("report", {"scale": cfg.scale, "meaningless": cfg.meaningless, **identity}, upstream,
+                     report_stage, results_dir=ev.dir, context=context, rel_to=study.out,
+                     **{n: path for n, (_, path) in extra.items()})
     for name in ("report.md", "report.html", "report.json"):
         with atomic_path(study.out / name) as tmp:
             shutil.copyfile(rp.dir / name, tmp)

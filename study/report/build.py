@@ -28,6 +28,7 @@ from study.report.bounds import (
     named,
 )
 from study.report.crossover import add_crossover, add_physical_gate, add_transitions
+from study.report.pem import add_pem
 
 REPORT_VERSION = 2
 
@@ -162,6 +163,7 @@ def build(results: dict, context: dict, work: Path, eval_dir: Path) -> tuple[Doc
     crossover = add_crossover(doc, r, tag, work)
     physical = add_physical_gate(doc, r, tag)
     transitions = add_transitions(doc, r, tag, work)
+    pem = add_pem(doc, r, tag, work)
     add_range_bins(doc, r, tag)
     add_gate_regret(doc, r, tag)
     add_gate_training(doc, r, tag)
@@ -176,7 +178,7 @@ def build(results: dict, context: dict, work: Path, eval_dir: Path) -> tuple[Doc
                "dataset": r["dataset"], "machine": r["machine"], "device": r.get("device"), "tag": tag,
                **({"energy_front": front} if front else {}), **({"crossover": crossover} if crossover else {}),
                **({"physical_gate": physical} if physical else {}),
-               **({"transitions": transitions} if transitions else {})}
+               **({"transitions": transitions} if transitions else {}), **({"pem": pem} if pem else {})}
     return doc, summary
 
 

@@ -65,8 +65,8 @@ def test_the_config_part_of_every_stage_key_is_unchanged(preset, tmp_path, monke
     want = json.loads(FIXTURE.read_text())[preset]
     got = config_keys(preset, tmp_path / "study", monkeypatch.setattr)
     assert sorted(got) == sorted(want)  # the stages of the preset (with a gate or test set: their own stages too)
-    # every stage in order; the crossover and transitions stages exactly when the preset has their section
-    expected = [s for s in stages.STAGES if s not in ("crossover", "transitions") or s in want]
+    # every stage in order; the crossover, pem and transitions stages exactly when the preset has their section
+    expected = [s for s in stages.STAGES if s not in ("crossover", "pem", "transitions") or s in want]
     assert [s for s in got if s in stages.STAGES] == expected
     for stage in want:
         assert got[stage]["inputs"] == want[stage]["inputs"], f"{preset} {stage}: the config inputs changed"

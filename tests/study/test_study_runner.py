@@ -260,14 +260,77 @@ def test_changing_a_downstream_field_reruns_only_the_stages_below_it(tiny):
     r = run_study(changed, out)
     status = {n: s["status"] for n, s in r["stages"].items()}
     assert status == {"generate": "skipped", "train": "skipped", "gatedata": "skipped", "gates": "skipped",
-                      "crossover": "skipped", "evaluate": "ran", "transitions": "skipped", "report": "ran"}
+                      "crossover": "skipped", "evaluate": "ran", "pem": "skipped", "transitions": "skipped",
+                      "report": "ran"}
     assert r["report_json"]["results"]["lambda_e"] == 0.05
-    for n in ("generate", "train", "gatedata", "gates", "crossover", "transitions"):
+    for n in ("generate", "train", "gatedata", "gates", "crossover", "pem", "transitions"):
         assert r["stages"][n]["key"] == tiny["first"]["stages"][n]["key"]
     # back to the original config: every stage is cached again, and the report is the original's
     again = run_study(cfg, out, progress=False)
     assert {s["status"] for s in again["stages"].values()} == {"skipped"}
     assert json.loads((out / "report.json").read_text()) == before
+
+
+def test_the_pem_stage_fits_on_gate_frames_and_sweeps_every_comparison_over_strength(tiny):
+    """Issue 49 item 3 as a study section: the PEM fitted on the detectors' predictions on the gate split's
+    fitting frames only, drawn on the test frames and the gate frames, every comparison of the sweep with
+    its interval at each strength, the figure, and the report's section with the strength-1 sentence
+    computed from the evaluation's own all_branches minus late."""
+    from study.engine.predictions import load
+    from study.engine.scoring import frames_for
+    from study.experiments.pem_sweep import COMPARISONS
+    from study.experiments.selection import gate_frames
+
+    cfg, first, out = tiny["cfg"], tiny["first"], tiny["out"]
+    work = Path(first["stages"]["pem"]["dir"])
+    rec = json.loads((work / "pem.json").read_text())
+    assert [p["strength"] for p in rec["points"]] == list(cfg.pem.strengths)
+    assert rec["seed"] == cfg.pem.seed and rec["gate_seed"] == cfg.pem.seed + 1 and rec["resamples"] == cfg.pem.bootstrap
+    for p in rec["points"]:
+        for key in COMPARISONS:
+            d = p[key]
+            if key == "room_for_context" and d.get("skipped"):  # one test sequence per context: no split
+                assert d["value"] is None and d["ci95"] is None and "test sequence" in d["skipped"]
+                continue
+            lo, hi = d["ci95"]
+            assert lo <= hi and d["verdict"] == ("above" if lo > 0 else "below" if hi < 0 else "not resolved"), key
+        assert p["seconds"] > 0 and rec["seconds_per_point"][f"{p['strength']:g}"] == p["seconds"]
+    # fitted on the gate split's fitting frames, and on nothing else; no draw the choices read is a test frame
+    data = Path(first["stages"]["generate"]["dir"]) / "data"
+    run_cfg = json.loads((Path(first["stages"]["train"]["dir"]) / "paper" / "config.json").read_text())
+    frames = gate_frames(run_cfg, data, "auto", cfg.gates.val_fraction, cfg.gates.seed)
+    test, _ = frames_for(run_cfg, data, "test")
+    assert rec["fit"]["indices"] == sorted(frames.fit) and rec["fit"]["frames"] == len(frames.fit) > 0
+    assert not set(rec["fit"]["indices"]) & set(test)
+    assert json.loads((work / "pem_model.json").read_text())["fit_indices"] == sorted(frames.fit)
+    net = load(work / "network_gate_fit")
+    assert sorted(int(m["dataset_index"]) for m, _ in net.per_frame) == sorted(frames.fit)
+    for s in cfg.pem.strengths:
+        drawn = {int(m["dataset_index"]) for m, _ in load(work / "draws" / f"strength-{s:g}").per_frame}
+        chosen_on = {int(m["dataset_index"]) for m, _ in load(work / "draws" / f"gate-strength-{s:g}").per_frame}
+        assert drawn == set(test) and not chosen_on & set(test) and chosen_on <= set(frames.fit) | set(frames.val)
+    assert rec["gate_frames"]["fit"] == len(frames.fit) and "fitted on" in rec["gate_frames"]["on"]  # no validation
+    assert (work / "pem_sweep.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    # the report: the curves' table, the figure beside report.md, and the sentence as computed
+    md = (out / "report.md").read_text()
+    links = [x for x in re.findall(r"!\[[^\]]*\]\(([^)]+)\)", md) if x.endswith("/pem_sweep.png")]
+    assert "The verdict over detector strength" in md and len(links) == 1 and (out / links[0]).is_file()
+    one = json.loads((out / "report.json").read_text())["pem"]["strength_one"]
+    net_d, pem_d = one["networks"], one["pem"]
+    assert pem_d == rec["points"][0]["all_branches_minus_late"]
+    assert one["agree"] == (net_d["verdict"] == pem_d["verdict"]) and one["sentence"] in md
+    assert ("their verdicts agree" if one["agree"] else "their verdicts differ") in one["sentence"]
+
+
+def test_changing_the_pem_strengths_reruns_only_pem_and_report(tiny):
+    cfg, out = tiny["cfg"], tiny["out"]
+    changed = dataclasses.replace(cfg, pem=dataclasses.replace(cfg.pem, strengths=(1.0, 4.0)))
+    r = run_study(changed, out, progress=False)
+    assert {n for n, s in r["stages"].items() if s["status"] == "ran"} == {"pem", "report"}
+    assert [p["strength"] for p in json.loads((Path(r["stages"]["pem"]["dir"]) / "pem.json").read_text())["points"]] \
+        == [1.0, 4.0]
+    again = run_study(cfg, out, progress=False)
+    assert {s["status"] for s in again["stages"].values()} == {"skipped"}
 
 
 def test_killed_with_sigkill_mid_run_it_continues_and_equals_an_uninterrupted_run(tiny, tmp_path):
@@ -277,10 +340,12 @@ def test_killed_with_sigkill_mid_run_it_continues_and_equals_an_uninterrupted_ru
                             env=env, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
     deadline = time.time() + 300
     try:
-        while time.time() < deadline and not list((out / "stages").glob("generate-*/manifest.json")):
+        # once the train stage has begun (on the idle 2-core machine the tiny train stage takes 1.7 s, less
+        # than a fixed wait after generate's end: the test once killed the process after it)
+        while time.time() < deadline and not list((out / "stages").glob("train-*.partial")):
             assert proc.poll() is None, "the study ended before it could be killed"
-            time.sleep(0.2)
-        time.sleep(2.0)  # into the train stage
+            time.sleep(0.05)
+        time.sleep(0.5)  # into the train stage
         assert proc.poll() is None, "the train stage finished before it could be killed"
         proc.send_signal(signal.SIGKILL)
         proc.wait(30)
@@ -318,7 +383,12 @@ def test_bad_configs_are_one_line_errors(tmp_path, capsys):
                          ("gates:\n  epochs: 0\n", "gates.epochs must be >= 1"),
                          ("data:\n  frames_per_context: 0\n", "data: frames_per_context must be >= 1"),
                          ("gates:\n  pooling: global\n", "the attention gate attends over the pooled grid"),
-                         ("data: [1, 2]\n", "data")):
+                         ("data: [1, 2]\n", "data"),
+                         ("pem:\n  strengths: [1, 0]\n", "pem.strengths must be distinct finite numbers > 0"),
+                         ("pem:\n  bootstrap: 0\n", "pem.bootstrap must be an integer in [1, "),
+                         ("pem: {}\n", "pem: the PEM is fitted on gate frames the detectors never trained on"),
+                         ("train:\n  gate_holdout: 0.5\nevaluate:\n  fusion: nms\npem: {}\n",
+                          "pem.fusion 'soft-nms' differs from evaluate.fusion 'nms'")):
         path = tmp_path / "bad.yaml"
         path.write_text(text)
         assert main(["study", str(path), "--out", str(tmp_path / "out")]) == 2

@@ -70,11 +70,11 @@ def test_enlarging_the_test_set_reruns_only_its_generation_and_evaluation(fake_s
     cfg = _with_sets(load_study_config("tiny"))
     first = run_study(cfg, tmp_path / "s", progress=False)
     assert fake_stages == ["generate", "gateset", "testset", "train", "gatedata", "gates", "crossover", "evaluate",
-                           "transitions", "report"]
+                           "pem", "transitions", "report"]
     fake_stages.clear()
     bigger = _with_sets(load_study_config("tiny"), test=SetSection(8, 2, 12))
     again = run_study(bigger, tmp_path / "s", progress=False)
-    assert fake_stages == ["testset", "evaluate", "report"]
+    assert fake_stages == ["testset", "evaluate", "pem", "report"]  # (the pem stage draws on the test frames)
     for name in ("generate", "gateset", "train", "gatedata", "gates"):
         assert again["stages"][name]["key"] == first["stages"][name]["key"], name
 
@@ -83,7 +83,7 @@ def test_enlarging_the_gate_set_reruns_the_gates_and_below_and_trains_nothing(fa
     run_study(_with_sets(load_study_config("tiny")), tmp_path / "s", progress=False)
     fake_stages.clear()
     run_study(_with_sets(load_study_config("tiny"), gate=SetSection(8, 2, 11)), tmp_path / "s", progress=False)
-    assert fake_stages == ["gateset", "gatedata", "gates", "evaluate", "transitions", "report"]
+    assert fake_stages == ["gateset", "gatedata", "gates", "evaluate", "pem", "transitions", "report"]
 
 
 def test_adding_or_retraining_the_early_fusion_model_reruns_no_gate_stage(fake_stages, tmp_path):
@@ -98,7 +98,7 @@ def test_adding_or_retraining_the_early_fusion_model_reruns_no_gate_stage(fake_s
     fake_stages.clear()
     longer = dataclasses.replace(tiny, train=dataclasses.replace(tiny.train, epochs=tiny.train.epochs + 1))
     run_study(longer, tmp_path / "s", progress=False)  # the paper's branches train again too: everything below
-    assert fake_stages == ["train", "gatedata", "gates", "crossover", "evaluate", "transitions", "report"]
+    assert fake_stages == ["train", "gatedata", "gates", "crossover", "evaluate", "pem", "transitions", "report"]
     for name in ("gatedata", "gates"):
         assert second["stages"][name]["key"] == first["stages"][name]["key"], name
     assert second["stages"]["train"]["key"] != first["stages"]["train"]["key"]
