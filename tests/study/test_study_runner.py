@@ -470,10 +470,10 @@ def test_a_gate_set_and_a_test_set_run_end_to_end_on_the_tiny_detectors(tiny, tm
     for name in ("generate", "train", "crossover"):
         src = Path(tiny["first"]["stages"][name]["dir"])
         shutil.copytree(src, out / "stages" / src.name, symlinks=True, copy_function=os.link)
-    r = run_study(cfg, out, until="evaluate", progress=False)
+    r = run_study(cfg, out, until="pem", progress=False)
     status = {n: s["status"] for n, s in r["stages"].items()}
     assert status == {"generate": "skipped", "gateset": "ran", "testset": "ran", "train": "skipped",
-                      "gatedata": "ran", "gates": "ran", "crossover": "skipped", "evaluate": "ran"}
+                      "gatedata": "ran", "gates": "ran", "crossover": "skipped", "evaluate": "ran", "pem": "ran"}
     res = json.loads((Path(r["stages"]["evaluate"]["dir"]) / "results.json").read_text())
     ds = res["dataset"]
     assert ds["sets"] == {"gate": {"frames": 8, "seed": 5, "frames_per_context": 4, "sequence_length": 1},
@@ -490,6 +490,18 @@ def test_a_gate_set_and_a_test_set_run_end_to_end_on_the_tiny_detectors(tiny, tm
     view = Path(r["stages"]["evaluate"]["dir"]) / "data"
     manifest = json.loads((view / "manifest.json").read_text())
     assert list(manifest["parts"]) == ["detectors", "gate", "test"]
+    # the pem section with a gate set: fitted on the gate set's fitting sequences, chosen on its validation ones
+    pem = json.loads((Path(r["stages"]["pem"]["dir"]) / "pem.json").read_text())
+    gate_part, test_part = (range(manifest["parts"][p]["start"], manifest["parts"][p]["stop"]) for p in ("gate", "test"))
+    assert pem["fit"]["split"] == "gate" and len(pem["fit"]["indices"]) == 4 and set(pem["fit"]["indices"]) <= set(gate_part)
+    assert pem["gate_frames"] == {"fit": 4, "val": 4, "on": "the gate frames' validation sequences"}
+    for p in pem["points"]:  # every comparison at every strength, with its interval; the room estimable here
+        for key in ("context_constant_minus_all_branches", "physical_gate_minus_all_branches",
+                    "a_posteriori_oracle_minus_all_branches", "room_for_context"):
+            lo, hi = p[key]["ci95"]
+            assert lo <= p[key]["value"] <= hi and p[key]["verdict"] in ("above", "below", "not resolved"), key
+        assert p["context_constant"]["chosen_on"]["on"] == "the gate frames' validation sequences"
+    assert len(test_part) == 6 and [p["strength"] for p in pem["points"]] == list(tiny["cfg"].pem.strengths)
     assert all((view / s["name"]).resolve().is_dir() for s in manifest["shards"])  # links hold after the rename
 
 
