@@ -45,6 +45,17 @@ def _resnet18(norm: str) -> torchvision.models.ResNet:
     return torchvision.models.resnet18(weights=None, norm_layer=NORM_LAYERS.get(norm))
 
 
+def _init_as_resnet(module: nn.Module) -> None:
+    """Initialise `module` as torchvision initialises ResNet: Kaiming-normal (fan out) convolutions,
+    unit-scale normalisation, in the order of `module.modules()`."""
+    for m in module.modules():
+        if isinstance(m, nn.Conv2d):
+            nn.init.kaiming_normal_(m.weight, mode="fan_out", nonlinearity="relu")
+        elif isinstance(m, nn.BatchNorm2d | nn.GroupNorm):
+            nn.init.constant_(m.weight, 1)
+            nn.init.constant_(m.bias, 0)
+
+
 class Stem(nn.Module):
     """ResNet-18 conv1 .. layer1 with `in_channels` input channels.
 
@@ -67,12 +78,7 @@ class Stem(nn.Module):
         self.bn1, self.relu = norm_layer(64), nn.ReLU(inplace=True)
         self.maxpool = nn.MaxPool2d(kernel_size=3, stride=2, padding=1)
         self.layer1 = nn.Sequential(BasicBlock(64, 64, norm_layer=norm_layer), BasicBlock(64, 64, norm_layer=norm_layer))
-        for m in self.modules():
-            if isinstance(m, nn.Conv2d):
-                nn.init.kaiming_normal_(m.weight, mode="fan_out", nonlinearity="relu")
-            elif isinstance(m, nn.BatchNorm2d | nn.GroupNorm):
-                nn.init.constant_(m.weight, 1)
-                nn.init.constant_(m.bias, 0)
+        _init_as_resnet(self)
         self.in_channels = in_channels
 
     def forward(self, x: Tensor) -> Tensor:
@@ -117,12 +123,7 @@ def _stages(norm: str, width: float) -> tuple[nn.Module, nn.Module, nn.Module]:
         down = nn.Sequential(conv1x1(inplanes, planes, 2), norm_layer(planes))
         stage = nn.Sequential(BasicBlock(inplanes, planes, 2, down, norm_layer=norm_layer),
                               BasicBlock(planes, planes, norm_layer=norm_layer))
-        for m in stage.modules():
-            if isinstance(m, nn.Conv2d):
-                nn.init.kaiming_normal_(m.weight, mode="fan_out", nonlinearity="relu")
-            elif isinstance(m, nn.BatchNorm2d | nn.GroupNorm):
-                nn.init.constant_(m.weight, 1)
-                nn.init.constant_(m.bias, 0)
+        _init_as_resnet(stage)
         stages.append(stage)
         inplanes = planes
     return tuple(stages)
