@@ -16,7 +16,7 @@ from study.engine.gate_training import GateTrainConfig
 from study.engine.train import TrainConfig  # torch: loading a study config imports it, `--help` does not
 from study.pipeline.presets import PRESETS_DIR as PRESETS_DIR  # (where the presets are, for its readers)
 from study.pipeline.presets import study_config_file
-from study.pipeline.sections import CrossoverSection, PemSection, TransitionsSection
+from study.pipeline.sections import CrossoverSection, PemSection, TransitionsSection, check_whole_sequences
 from study.pipeline.sections import check_fusion as _fusion
 from study.pipeline.sections import check_positive as _positive
 
@@ -97,9 +97,7 @@ class SetSection:
         _positive("frames_per_context", self.frames_per_context)
         _positive("sequence_length", self.sequence_length)
         _positive("seed", self.seed, 0)
-        if self.frames_per_context % self.sequence_length:
-            raise UserError(f"frames_per_context {self.frames_per_context} is not a whole number of sequences of "
-                            f"{self.sequence_length} frames")
+        check_whole_sequences("frames_per_context", self.frames_per_context, self.sequence_length)
 
 
 @section_of(GenerateConfig)

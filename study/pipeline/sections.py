@@ -24,6 +24,11 @@ def check_positive(where: str, value, lo=1) -> None:
         raise UserError(f"{where} must be >= {lo}, got {value}")
 
 
+def check_whole_sequences(where: str, frames: int, sequence_length: int) -> None:
+    """UserError unless `frames` (the field `where`) is a whole number of sequences of `sequence_length`."""
+    if frames % sequence_length:
+        raise UserError(f"{where} {frames} is not a whole number of sequences of {sequence_length} frames")
+
 
 @dataclass(frozen=True)
 class CrossoverSection:
@@ -64,9 +69,7 @@ class CrossoverSection:
         check_positive("crossover.sequence_length", self.sequence_length)
         check_positive("crossover.seed", self.seed, 0)
         check_positive("crossover.bootstrap", self.bootstrap)
-        if self.frames_per_step % self.sequence_length:
-            raise UserError(f"crossover.frames_per_step {self.frames_per_step} is not a whole number of sequences of "
-                            f"{self.sequence_length} frames")
+        check_whole_sequences("crossover.frames_per_step", self.frames_per_step, self.sequence_length)
         if not self.severities or any(isinstance(s, bool) or s not in (1, 2, 3, 4, 5) for s in self.severities) \
                 or list(self.severities) != sorted(set(self.severities)):
             raise UserError(f"crossover.severities must be distinct levels 1..5 in increasing order, got "
